@@ -1,0 +1,5 @@
+import sys
+
+from piezod.cli import main
+
+sys.exit(main())

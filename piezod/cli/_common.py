@@ -1,0 +1,60 @@
+"""Helpers shared by the subcommands: JSON output, config and port options."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_json(target: str | None, payload: dict[str, Any]) -> None:
+    """Write ``payload`` as JSON to ``target`` (``-`` is stdout, None does nothing).
+
+    NaN / inf become ``null`` so that the output is strict JSON.
+    """
+    if target is None:
+        return
+    text = json.dumps(_jsonable(payload), indent=2, allow_nan=False)
+    if target == "-":
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+    else:
+        Path(target).write_text(text + "\n", encoding="utf-8")
+
+
+def add_json_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--json F`` (``-`` for stdout)."""
+    parser.add_argument("--json", metavar="F", help="write machine-readable results to F ('-' = stdout)")
+
+
+def add_port_options(parser: argparse.ArgumentParser, *, required: bool = False) -> None:
+    """Add the mutually exclusive ``--sim`` / ``--port URL`` pair."""
+    group = parser.add_mutually_exclusive_group(required=required)
+    group.add_argument("--sim", action="store_true", help="start the built-in simulated stage on a pty")
+    group.add_argument("--port", metavar="URL", help="pyserial URL or device of the board (or usb://VID:PID)")
+
+
+def human_stream(args: argparse.Namespace) -> Any:
+    """Where human-readable output goes: stderr when ``--json -`` owns stdout."""
+    return sys.stderr if getattr(args, "json", None) == "-" else sys.stdout

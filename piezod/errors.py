@@ -1,0 +1,100 @@
+"""The exception tree of piezod.
+
+Every error piezod raises derives from :class:`PiezodError` and from the builtin
+exception that best describes it, so callers may catch either
+(``except TimeoutError`` catches :class:`LinkTimeoutError`).
+
+::
+
+    PiezodError
+    ├── ConfigError(ValueError)             invalid scanner YAML / settings
+    ├── RecordingError(ValueError)          malformed recording CSV (file:line)
+    ├── ModelError(ValueError)              model evaluation outside its domain
+    │   ├── RangeUnreachableError           requested scan range needs voltages beyond the limits
+    │   └── LambertWDomainError             argument leaves the real branch of W
+    ├── CalibrationError(RuntimeError)      fit failed or data insufficient
+    ├── ProtocolError(ValueError)           malformed / unexpected frame
+    │   └── VersionMismatchError            peer speaks another protocol version
+    ├── LinkError(OSError)                  transport problems
+    │   ├── LinkTimeoutError(TimeoutError)  no answer in time
+    │   └── LinkClosedError(ConnectionError) board unplugged / port closed
+    ├── BoardFaultError(RuntimeError)       the board reported a fault
+    └── SafetyError(ValueError)             a request would leave the configured limits
+"""
+
+from __future__ import annotations
+
+
+class PiezodError(Exception):
+    """Root of every exception raised by piezod."""
+
+
+class ConfigError(PiezodError, ValueError):
+    """A scanner configuration (YAML) or setting is invalid."""
+
+
+class RecordingError(PiezodError, ValueError):
+    """A recording file is malformed.
+
+    Parameters
+    ----------
+    message
+        What is wrong.
+    path
+        The file at fault, if known.
+    line
+        The 1-based line number at fault, if known.
+    """
+
+    def __init__(self, message: str, path: str | None = None, line: int | None = None) -> None:
+        self.path = path
+        self.line = line
+        self.reason = message
+        where = ""
+        if path is not None:
+            where = f"{path}:{line}: " if line is not None else f"{path}: "
+        super().__init__(f"{where}{message}")
+
+
+class ModelError(PiezodError, ValueError):
+    """A model was evaluated outside its domain."""
+
+
+class RangeUnreachableError(ModelError):
+    """The requested scan range cannot be reached inside the voltage limits."""
+
+
+class LambertWDomainError(ModelError):
+    """The Lambert W argument left the real branch (z < -1/e)."""
+
+
+class CalibrationError(PiezodError, RuntimeError):
+    """A calibration fit failed or the data cannot determine the parameters."""
+
+
+class ProtocolError(PiezodError, ValueError):
+    """A frame is malformed or unexpected."""
+
+
+class VersionMismatchError(ProtocolError):
+    """The peer speaks a different protocol version."""
+
+
+class LinkError(PiezodError, OSError):
+    """The transport to the board failed."""
+
+
+class LinkTimeoutError(LinkError, TimeoutError):
+    """The board did not answer in time."""
+
+
+class LinkClosedError(LinkError, ConnectionError):
+    """The board went away (unplugged, port closed)."""
+
+
+class BoardFaultError(PiezodError, RuntimeError):
+    """The board reported a fault (underrun, limit violation, watchdog)."""
+
+
+class SafetyError(PiezodError, ValueError):
+    """A request would drive the stage outside its configured limits."""
