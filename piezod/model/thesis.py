@@ -32,7 +32,7 @@ def loop_constant(alpha_per_v: float, v_min: float, v_max: float, direction: int
     ``C_t = 2 / (exp(-a V_m) + exp(-a V_M))`` and ``C_r = 2 / (exp(a V_m) + exp(a V_M))``.
     """
     s = float(direction)
-    return 2.0 / (np.exp(-s * alpha_per_v * v_min) + np.exp(-s * alpha_per_v * v_max))
+    return float(2.0 / (np.exp(-s * alpha_per_v * v_min) + np.exp(-s * alpha_per_v * v_max)))
 
 
 def hysteresis_loop(
