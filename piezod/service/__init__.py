@@ -1,0 +1,1 @@
+"""The daemon: streaming engine, control API, systemd integration."""
