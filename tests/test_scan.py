@@ -1,0 +1,106 @@
+"""Raster scan generation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from piezod.errors import SafetyError
+from piezod.scan import RasterGenerator, RasterParams, move_profile, slew_limit
+
+FS = 10_000.0
+
+
+def _all(gen: RasterGenerator, block: int = 777) -> dict[str, np.ndarray]:
+    out: dict[str, list[np.ndarray]] = {}
+    while not gen.done:
+        b = gen.next_block(block)
+        for name in ("fast_um", "slow_um", "x_um", "y_um", "fast_direction", "line", "frame"):
+            out.setdefault(name, []).append(getattr(b, name))
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def test_fast_axis_is_a_triangle_with_trace_and_retrace() -> None:
+    p = RasterParams(range_um=10.0, line_rate_hz=10.0, lines=4)
+    gen = RasterGenerator(p, FS)
+    assert gen.total_samples() == 4000
+    s = _all(gen)
+    assert s["fast_um"].size == 4000
+    assert s["fast_um"].min() == pytest.approx(-5.0) and s["fast_um"].max() == pytest.approx(5.0, abs=0.02)
+    trace = s["fast_direction"] == 1
+    assert np.all(np.diff(s["fast_um"][:500]) > 0) and np.all(np.diff(s["fast_um"][500:1000]) < 0)
+    assert trace.sum() == 2000
+    assert np.array_equal(np.unique(s["line"]), np.arange(4))
+
+
+def test_block_size_does_not_change_the_trajectory() -> None:
+    p = RasterParams(range_um=7.0, line_rate_hz=3.3, lines=5, rotation_deg=17.0, slow_mode="ramp")
+    a = _all(RasterGenerator(p, FS), block=1000)
+    b = _all(RasterGenerator(p, FS), block=313)
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_slow_axis_steps_are_slew_limited_not_jumps() -> None:
+    p = RasterParams(range_um=10.0, line_rate_hz=10.0, lines=11, slow_step_fraction=0.05)
+    s = _all(RasterGenerator(p, FS))
+    step = 10.0 / 10
+    max_jump = np.max(np.abs(np.diff(s["slow_um"])))
+    assert max_jump < step / 20  # spread over >= 50 samples
+    # Each line sits on its row outside the step window.
+    assert s["slow_um"][400] == pytest.approx(-5.0) and s["slow_um"][-1] == pytest.approx(5.0)
+
+
+def test_rotation_and_offset_map_the_image_frame_onto_the_axes() -> None:
+    p = RasterParams(
+        range_um=4.0, line_rate_hz=10.0, lines=3, rotation_deg=90.0, offset_x_um=1.0, offset_y_um=-2.0
+    )
+    s = _all(RasterGenerator(p, FS))
+    np.testing.assert_allclose(s["x_um"], 1.0 - s["slow_um"], atol=1e-12)
+    np.testing.assert_allclose(s["y_um"], -2.0 + s["fast_um"], atol=1e-12)
+    (x0, x1), (y0, y1) = p.extent_um()
+    assert (y0, y1) == pytest.approx((-4.0, 0.0))
+    assert (x0, x1) == pytest.approx((-1.0, 3.0))
+
+
+def test_change_applies_at_the_next_line_boundary() -> None:
+    p = RasterParams(range_um=10.0, line_rate_hz=10.0, lines=100, frames=0)
+    gen = RasterGenerator(p, FS)
+    gen.next_block(1500)  # mid line 1
+    gen.change(range_um=4.0)
+    b = gen.next_block(1000)
+    # samples 1500..1999 still belong to the old line (range 10), 2000.. to the new one.
+    assert np.max(np.abs(b.fast_um[:500])) > 4.5
+    assert np.max(np.abs(b.fast_um[500:])) <= 2.0 + 1e-12
+    assert b.line[500] == 2
+
+
+def test_overscan_extends_travel_but_not_the_image() -> None:
+    p = RasterParams(range_um=10.0, line_rate_hz=10.0, lines=2, overscan=0.1)
+    b = RasterGenerator(p, FS).next_block(1000)
+    assert b.fast_um.max() == pytest.approx(6.0, abs=0.03)
+    assert np.all(np.abs(b.fast_um[b.in_image]) <= 5.0)
+
+
+def test_invalid_parameters_are_refused() -> None:
+    with pytest.raises(SafetyError, match="range_um"):
+        RasterParams(range_um=-1.0, line_rate_hz=1.0)
+    with pytest.raises(SafetyError, match="samples per line"):
+        RasterGenerator(RasterParams(range_um=1.0, line_rate_hz=5000.0), FS)
+
+
+def test_move_profile_respects_the_speed_limit_and_arrives() -> None:
+    path = move_profile(np.array([0.0, 5.0]), np.array([10.0, 5.0]), 100.0, FS)
+    assert path.shape[0] == 2
+    speed = np.abs(np.diff(path, axis=1)) * FS
+    assert speed.max() <= 100.0 * 1.001
+    np.testing.assert_allclose(path[:, -1], [10.0, 5.0])
+    assert np.all(path[1] == 5.0)
+
+
+def test_slew_limit_clamps_only_when_needed() -> None:
+    v = np.array([0.0, 0.1, 0.2])
+    out, changed = slew_limit(v, 0.0, 0.5)
+    assert not changed and np.array_equal(out, v)
+    out, changed = slew_limit(np.array([0.0, 3.0, 3.0]), 0.0, 1.0)
+    assert changed and np.array_equal(out, [0.0, 1.0, 2.0])
