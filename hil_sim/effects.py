@@ -35,7 +35,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 from scipy.linalg import expm
 from scipy.signal import lfilter
 
@@ -130,6 +130,12 @@ class DelayEffect(EffectConfig):
     lag_time_constant_s: float = Field(default=0.0, ge=0, le=10.0, description="first-order lag (s)")
     at: Literal["sensor", "drive"] = "sensor"
 
+    @model_validator(mode="after")
+    def _not_empty(self) -> DelayEffect:
+        if self.delay_s == 0.0 and self.lag_time_constant_s == 0.0:
+            raise ValueError("delay needs delay_s > 0 or lag_time_constant_s > 0")
+        return self
+
 
 class SaturationEffect(EffectConfig):
     """Compression at large excursions: ``x_sat tanh(x / x_sat)``."""
@@ -153,7 +159,7 @@ class CreepLawOverride(EffectConfig):
     drive: Literal["position", "voltage"] | None = None
 
 
-#: The effects by audit id, in the order the stage applies them is documented in hil_sim.stage.
+#: The effects by audit id (the order in which the stage applies them is listed in :mod:`hil_sim.stage`).
 EFFECTS: dict[str, type[EffectConfig]] = {
     cls.name: cls
     for cls in (

@@ -46,7 +46,6 @@ from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from hil_sim.creep import CreepBank, CreepState, creep_rest_state, creep_step, lowpass_block
 from hil_sim.effects import (
-    SPEC_MODELS,
     CreepLawOverride,
     DelayEffect,
     DelayState,
@@ -685,7 +684,6 @@ class StageSnapshot:
 
 
 __all__ = [
-    "SPEC_MODELS",
     "CreepConfig",
     "EffectsConfig",
     "Stage",

@@ -168,3 +168,23 @@ def test_bank_blocks_compose(splits: list[int], dt: float) -> None:
         i += n
     np.testing.assert_allclose(np.concatenate(parts, axis=1), whole, rtol=0, atol=1e-12)
     np.testing.assert_allclose(state.z, end.z, rtol=0, atol=1e-12)
+
+
+def test_voltage_driven_creep_is_a_fraction_of_b_v_and_linear_in_v() -> None:
+    """``creep.drive: voltage``: the creep term is the bank applied to ``b V`` (thesis (3.3): linear in V)."""
+    position = _stage(1.5)
+    voltage = _stage(1.5, drive="voltage")
+    none = _stage(0.0)
+    b = X_AXIS["b_um_per_v"]
+    v = np.concatenate([np.linspace(0, 200, 50), np.full(2000, 200.0)])
+    dt = 1e-3
+    x_h = none.step(v[None, :], dt)[0]
+    x_v = voltage.step(v[None, :], dt)[0]
+    x_p = position.step(v[None, :], dt)[0]
+    bank = voltage.model.creep
+    creep_v, _ = creep_step(bank, b * v[None, :], dt, creep_rest_state(bank, 0.0))
+    creep_p, _ = creep_step(bank, x_h[None, :], dt, creep_rest_state(bank, 0.0))
+    np.testing.assert_allclose(x_v - x_h, creep_v[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(x_p - x_h, creep_p[0], rtol=0, atol=1e-12)
+    # b V exceeds the virgin-curve position, so the voltage-driven stage creeps more.
+    assert (x_v[-1] - x_h[-1]) / (x_p[-1] - x_h[-1]) == pytest.approx(b * 200.0 / x_h[-1], rel=0.02)

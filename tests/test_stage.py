@@ -169,6 +169,7 @@ def test_effect_strings_set_and_combine(base: StageConfig) -> None:
         ("resonance.q=30", "f0_hz: Field required"),
         ("saturation=-1", "x_sat_um: Input should be greater than 0"),
         ("delay.at=nowhere", "delay.at=nowhere"),
+        ("delay.at=drive", "delay needs delay_s > 0 or lag_time_constant_s > 0"),
         ("thermal=nan", "rate_pct_per_hour"),
     ],
 )
