@@ -360,6 +360,8 @@ class Capabilities(Message):
                 f"{o}.max_samples_per_frame: {mspf} outside [1, {limit}] for {len(checked)} channels"
             )
         set_(self, "max_samples_per_frame", mspf)
+        if self.sample_rate_min_hz < 1:
+            raise ProtocolError(f"{o}.sample_rate_min_hz: must be >= 1")
         if self.sample_rate_min_hz > self.sample_rate_max_hz:
             raise ProtocolError(
                 f"{o}.sample_rate_min_hz: {self.sample_rate_min_hz} above sample_rate_max_hz "
@@ -641,7 +643,7 @@ class Configure(Message):
         base = HEADER_SIZE
         if self.n_channels != caps.n_channels:
             return NakReason.BAD_VALUE, base + 12
-        if not caps.sample_rate_min_hz <= self.sample_rate_hz <= caps.sample_rate_max_hz:
+        if not max(caps.sample_rate_min_hz, 1) <= self.sample_rate_hz <= caps.sample_rate_max_hz:
             return NakReason.UNSUPPORTED, base + 0
         if caps.sample_clock_hz and caps.sample_clock_hz % self.sample_rate_hz:
             return NakReason.UNSUPPORTED, base + 0

@@ -59,7 +59,7 @@ from firmware_proto import (
     max_encoded_size,
     max_samples_per_frame,
 )
-from firmware_proto.strategies import messages
+from firmware_proto.strategies import capabilities, configures, messages
 from firmware_proto.vectors import canonical_vectors
 
 
@@ -341,6 +341,15 @@ def test_configure_check_points_at_the_offending_field(
     assert result is not None and result[0] == reason
     frame = cobs.decode(encode(cfg, 0)[:-1])
     assert struct.unpack_from(field_fmt, frame, result[1])[0] == value
+
+
+@given(configures(), capabilities())
+def test_configure_check_never_raises_and_points_into_the_frame(cfg: Configure, caps: Capabilities) -> None:
+    result = cfg.check(caps)
+    if result is not None:
+        reason, offset = result
+        assert reason in (NakReason.BAD_VALUE, NakReason.UNSUPPORTED)
+        assert HEADER_SIZE <= offset < len(cobs.decode(encode(cfg, 0)[:-1])) - CRC_SIZE
 
 
 def test_configure_check_clock_divider() -> None:
