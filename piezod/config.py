@@ -69,6 +69,40 @@ class AxisConfig(StrictModel):
         return self
 
 
+class ApiConfig(StrictModel):
+    """Control API access (``piezod serve --api``)."""
+
+    socket_group: str | None = Field(
+        default=None, description="group owning the Unix socket (mode 0660); None = the daemon's group"
+    )
+    allow_remote: bool = Field(
+        default=False, description="allow --api tcp: on non-loopback addresses (then a token is required)"
+    )
+    token_file: str | None = Field(
+        default=None, description="file holding the bearer token required on TCP (required when allow_remote)"
+    )
+
+    @model_validator(mode="after")
+    def _remote_needs_token(self) -> ApiConfig:
+        if self.allow_remote and not self.token_file:
+            raise ValueError("allow_remote needs token_file: a non-loopback API must require a token")
+        return self
+
+
+class ServiceConfig(StrictModel):
+    """How the daemon streams and records."""
+
+    recording_dir: str = Field(default="recordings", description="where recordings are written")
+    lead_ms: float = Field(
+        default=150.0, ge=100.0, le=5000.0, description="samples kept ahead in the FIFO (ms)"
+    )
+    block_ms: float = Field(default=20.0, ge=1.0, le=500.0, description="samples computed per block (ms)")
+    heartbeat_timeout_ms: int = Field(
+        default=500, ge=50, le=60_000, description="board watchdog timeout (ms)"
+    )
+    ramp_rate_v_per_s: float = Field(default=200.0, gt=0, le=1e5, description="ramp-to-safe rate (V/s)")
+
+
 class ScannerConfig(StrictModel):
     """A scanner: its axes, and optional sections used by the simulator and the service."""
 
@@ -77,6 +111,8 @@ class ScannerConfig(StrictModel):
     notes: list[str] = Field(default_factory=list)
     sample_rate_hz: float = Field(default=10_000.0, gt=0, le=1e6, description="board sample clock (Hz)")
     axes: dict[AxisName, AxisConfig]
+    api: ApiConfig = Field(default_factory=ApiConfig)
+    service: ServiceConfig = Field(default_factory=ServiceConfig)
     simulation: dict[str, Any] | None = Field(
         default=None, description="the simulated stage's physics (hil_sim validates it)"
     )
