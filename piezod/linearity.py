@@ -1,0 +1,354 @@
+"""Linearity of recorded scans: the thesis's metrics (4.14)-(4.16).
+
+For every experiment and each branch (trace and retrace separately) the measured
+position is regressed on a nominal coordinate ``xi`` with one intercept per line
+(so drift between lines is not counted as non-linearity) and one common slope
+``g = dx / dxi``:
+
+* with a ``target`` column, ``xi`` is the commanded target (um);
+* without, ``xi`` is the pixel coordinate: the nominal range ``R`` spread uniformly
+  in time over each line (``R * (t - t_start) / (t_end - t_start)`` on the trace,
+  reversed on the retrace), lines being the half periods between the turning
+  points of the voltage.
+
+Then (4.14) ``x'_R = g * R``, (4.15) ``e_l = (x'_R - R) / R`` and (4.16) ``e_rel = sigma
+/ x'_R`` with ``sigma`` the residual standard deviation (``n - lines - 1`` degrees of
+freedom). Both are reported in %, per branch and as the worse of the two.
+
+The nominal range ``R`` is ``range_um`` when given, else the recording's ``range_um``
+metadata, else (with a target) the commanded span without overscan. Only complete
+lines (between two turning points) are used. An overscan margin at the turning
+points is excluded only when the recording declares it: metadata ``overscan`` =
+extra travel at each turning point as a fraction of the range (as
+:class:`piezod.scan.RasterParams`), i.e. samples whose target lies outside the
+central ``1 / (1 + 2 overscan)`` of the line's span (with a target), or the first and
+last ``overscan / (1 + 2 overscan)`` of each line's duration (without).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from piezod.errors import RecordingError
+from piezod.recording import Experiment, ScanInfo, infer_scan
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class BranchLinearity:
+    """Metrics of one branch (trace or retrace) of an experiment.
+
+    Attributes
+    ----------
+    direction
+        +1 trace, -1 retrace.
+    n, lines
+        Samples and lines used.
+    slope
+        Measured um per nominal um (``g``).
+    nominal_range_um, measured_range_um
+        ``R`` and ``x'_R = g R`` (4.14).
+    sigma_um
+        Residual standard deviation of the regression.
+    nonlinearity_pct
+        ``100 sigma / x'_R`` (4.16).
+    length_error_pct
+        ``100 (x'_R - R) / R`` (4.15).
+    """
+
+    direction: int
+    n: int
+    lines: int
+    slope: float
+    nominal_range_um: float
+    measured_range_um: float
+    sigma_um: float
+    nonlinearity_pct: float
+    length_error_pct: float
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain dict for JSON output."""
+        return {
+            "n": self.n,
+            "lines": self.lines,
+            "slope": self.slope,
+            "nominal_range_um": self.nominal_range_um,
+            "measured_range_um": self.measured_range_um,
+            "sigma_um": self.sigma_um,
+            "nonlinearity_pct": self.nonlinearity_pct,
+            "length_error_pct": self.length_error_pct,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class ExperimentLinearity:
+    """Linearity of one experiment.
+
+    Attributes
+    ----------
+    label, axis, path
+        Identification.
+    reference
+        ``"target"`` or ``"pixel"`` (what the position was regressed on).
+    frequency_hz
+        Line frequency (from the target, else the voltage, waveform).
+    v_min, v_max
+        Voltage turning values.
+    range_um
+        Nominal range ``R``.
+    overscan
+        Overscan fraction excluded (0 when none is declared).
+    trace, retrace
+        Per-branch metrics.
+    """
+
+    label: str
+    axis: str | None
+    path: str | None
+    reference: str
+    frequency_hz: float
+    v_min: float
+    v_max: float
+    range_um: float
+    overscan: float
+    trace: BranchLinearity
+    retrace: BranchLinearity
+
+    @property
+    def offset_v(self) -> float:
+        """Centre of the voltage range."""
+        return 0.5 * (self.v_min + self.v_max)
+
+    @property
+    def nonlinearity_pct(self) -> float:
+        """The worse branch's non-linearity."""
+        return max(self.trace.nonlinearity_pct, self.retrace.nonlinearity_pct)
+
+    @property
+    def length_error_pct(self) -> float:
+        """The length error of larger magnitude (signed)."""
+        return max(self.trace.length_error_pct, self.retrace.length_error_pct, key=abs)
+
+    @property
+    def measured_range_um(self) -> float:
+        """Mean of the branches' measured ranges."""
+        return 0.5 * (self.trace.measured_range_um + self.retrace.measured_range_um)
+
+    def to_json(self) -> dict[str, Any]:
+        """The experiment's entry of ``piezod linearity --json``."""
+        return {
+            "label": self.label,
+            "axis": self.axis,
+            "path": self.path,
+            "reference": self.reference,
+            "range_um": self.range_um,
+            "measured_range_um": self.measured_range_um,
+            "frequency_hz": self.frequency_hz,
+            "offset_v": self.offset_v,
+            "v_min": self.v_min,
+            "v_max": self.v_max,
+            "overscan": self.overscan,
+            "nonlinearity_pct": self.nonlinearity_pct,
+            "length_error_pct": self.length_error_pct,
+            "trace": self.trace.to_json(),
+            "retrace": self.retrace.to_json(),
+        }
+
+
+def _metadata_float(exp: Experiment, key: str) -> float | None:
+    text = exp.metadata.get(key)
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise RecordingError(f"metadata {key!r}: not a number: {text!r}", exp.path) from None
+    if not math.isfinite(value):
+        raise RecordingError(f"metadata {key!r}: not finite: {text!r}", exp.path)
+    return value
+
+
+def experiment_linearity(
+    exp: Experiment, *, range_um: float | None = None, overscan: float | None = None
+) -> ExperimentLinearity:
+    """Metrics (4.14)-(4.16) of one experiment (see the module docstring).
+
+    Parameters
+    ----------
+    exp
+        The experiment: a periodic back-and-forth scan with at least one complete
+        trace and retrace.
+    range_um
+        Nominal scan range (um); overrides the recording's metadata.
+    overscan
+        Overscan fraction; overrides the recording's ``overscan`` metadata.
+
+    Raises
+    ------
+    RecordingError
+        Not a periodic scan, no nominal range, or too few samples.
+    """
+    where = (exp.path, exp.first_line)
+    vinfo = exp.scan()
+    info: ScanInfo = vinfo if exp.target_um is None else infer_scan(exp.t_s, exp.target_um)
+    if not info.is_periodic:
+        src = "voltage" if exp.target_um is None else "target"
+        raise RecordingError(
+            f"experiment {exp.describe()}: the {src} is not a periodic back-and-forth scan with a "
+            f"complete trace and retrace ({info.kind}: {info.reason})",
+            *where,
+        )
+    o = overscan if overscan is not None else (_metadata_float(exp, "overscan") or 0.0)
+    if not 0.0 <= o < 0.5:
+        raise RecordingError(f"overscan must be in [0, 0.5), got {o}", *where)
+    nominal = range_um if range_um is not None else _metadata_float(exp, "range_um")
+    if nominal is not None and not nominal > 0:
+        raise RecordingError(f"nominal range must be > 0 um, got {nominal}", *where)
+
+    # Every line runs from one turning sample to the next, both included (the turning samples
+    # are the first and the last pixel of the two lines that meet there).
+    idx = info.turning_indices
+    nl = idx.size - 1
+    lengths = np.diff(idx) + 1
+    line = np.repeat(np.arange(nl), lengths)
+    first = np.concatenate(([0], np.cumsum(lengths)[:-1]))
+    rows = idx[:-1][line] + (np.arange(line.size) - first[line])
+    direction = (-info.turning_kinds[:-1])[line].astype(np.int64)
+    t = exp.t_s[rows]
+    t0 = exp.t_s[idx[:-1]]
+    dur = exp.t_s[idx[1:]] - t0
+    phi = (t - t0[line]) / dur[line]
+    x = exp.position_um[rows]
+    m = o / (1.0 + 2.0 * o)
+    if exp.target_um is not None:
+        xi = exp.target_um[rows]
+        tmax = np.maximum.reduceat(xi, first)
+        tmin = np.minimum.reduceat(xi, first)
+        centre = 0.5 * (tmax + tmin)
+        half = 0.5 * (tmax - tmin) / (1.0 + 2.0 * o)
+        keep = np.abs(xi - centre[line]) <= half[line] * (1.0 + 1e-9)
+        span = float(np.median(tmax - tmin)) / (1.0 + 2.0 * o)
+        reference = "target"
+        if nominal is None:
+            nominal = span
+        scale_to_nominal = nominal / span if span > 0 else math.nan
+    else:
+        if nominal is None:
+            raise RecordingError(
+                f"experiment {exp.describe()}: no nominal scan range: pass --range-um or record a "
+                "'target' column or '# range_um:' metadata",
+                *where,
+            )
+        keep = (phi >= m - 1e-12) & (phi <= 1.0 - m + 1e-12)
+        frac = np.clip((phi - m) / (1.0 - 2.0 * m), 0.0, 1.0)
+        xi = nominal * np.where(direction > 0, frac, 1.0 - frac)
+        reference = "pixel"
+        scale_to_nominal = 1.0
+
+    branches = []
+    for d in (1, -1):
+        sel = keep & (direction == d)
+        branches.append(_branch(d, x[sel], xi[sel], line[sel], float(nominal), scale_to_nominal, exp))
+    return ExperimentLinearity(
+        label=exp.label,
+        axis=exp.axis,
+        path=exp.path,
+        reference=reference,
+        frequency_hz=info.frequency_hz,
+        v_min=vinfo.v_min,
+        v_max=vinfo.v_max,
+        range_um=float(nominal),
+        overscan=o,
+        trace=branches[0],
+        retrace=branches[1],
+    )
+
+
+def _branch(
+    d: int, x: F64, xi: F64, line: NDArray[np.intp], nominal: float, scale: float, exp: Experiment
+) -> BranchLinearity:
+    ids, inv = np.unique(line, return_inverse=True)
+    n_lines = ids.size
+    n = x.size
+    if n < n_lines + 3:
+        name = "trace" if d > 0 else "retrace"
+        raise RecordingError(
+            f"experiment {exp.describe()}: too few {name} samples ({n}) for the linearity regression",
+            exp.path,
+            exp.first_line,
+        )
+    cnt = np.bincount(inv).astype(np.float64)
+    xc = x - (np.bincount(inv, x) / cnt)[inv]
+    xic = xi - (np.bincount(inv, xi) / cnt)[inv]
+    sxx = float(xic @ xic)
+    g = float(xic @ xc) / sxx
+    r = xc - g * xic
+    sigma = math.sqrt(float(r @ r) / (n - n_lines - 1))
+    # g is measured um per target um; x'_R of (4.14) is g times the commanded span, compared with R.
+    measured = g * nominal / scale
+    return BranchLinearity(
+        direction=d,
+        n=n,
+        lines=n_lines,
+        slope=g,
+        nominal_range_um=nominal,
+        measured_range_um=measured,
+        sigma_um=sigma,
+        nonlinearity_pct=100.0 * sigma / measured,
+        length_error_pct=100.0 * (measured - nominal) / nominal,
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class LinearityReport:
+    """Linearity of several experiments.
+
+    Attributes
+    ----------
+    experiments
+        Per experiment.
+    """
+
+    experiments: tuple[ExperimentLinearity, ...]
+
+    @property
+    def max_nonlinearity_pct(self) -> float:
+        """Worst non-linearity over all experiments."""
+        return max(e.nonlinearity_pct for e in self.experiments)
+
+    @property
+    def max_abs_length_error_pct(self) -> float:
+        """Largest |length error| over all experiments."""
+        return max(abs(e.length_error_pct) for e in self.experiments)
+
+    def to_json(self) -> dict[str, Any]:
+        """The document of ``piezod linearity --json`` (DESIGN section 4)."""
+        return {
+            "experiments": [e.to_json() for e in self.experiments],
+            "max_nonlinearity_pct": self.max_nonlinearity_pct,
+            "max_abs_length_error_pct": self.max_abs_length_error_pct,
+        }
+
+
+def linearity(
+    experiments: Sequence[Experiment], *, range_um: float | None = None, overscan: float | None = None
+) -> LinearityReport:
+    """:func:`experiment_linearity` of every experiment.
+
+    Raises
+    ------
+    RecordingError
+        For the first experiment that cannot be analysed, or when there is none.
+    """
+    if not experiments:
+        raise RecordingError("no experiments to analyse")
+    return LinearityReport(
+        tuple(experiment_linearity(e, range_um=range_um, overscan=overscan) for e in experiments)
+    )
