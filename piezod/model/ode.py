@@ -19,11 +19,14 @@ number of reversals.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from piezod.errors import ModelError
+from piezod.model.lambertw import lambertw0_exp, lambertw0_exp_scalar
 from piezod.model.params import HysteresisParams
 
 #: Largest scaled total variation inside one cumulative chunk; exp(400) is far from overflow.
@@ -109,3 +112,132 @@ def hysteresis_step(
         start = stop
     x = y_out + b * v
     return x, HysteresisState(voltage_v=float(v[-1]), position_um=float(x[-1]))
+
+
+#: Up to this many monotone runs per block the runs are evaluated slice by slice.
+_MAX_SLICED_RUNS = 8
+
+
+def _run_starts(dx: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """First sample and direction of every monotone run of the targets.
+
+    A run starts at a sample whose step has the opposite sign of the last
+    non-zero step; zero steps belong to the run they are in.
+    """
+    moving = np.flatnonzero(dx)
+    if moving.size == 0:
+        return moving, np.empty(0)
+    sign = np.sign(dx[moving])
+    first = np.concatenate(([0], np.flatnonzero(np.diff(sign)) + 1))
+    return moving[first], sign[first]
+
+
+def hysteresis_inverse_step(
+    params: HysteresisParams, position_um: ArrayLike, state: HysteresisState
+) -> tuple[NDArray[np.float64], HysteresisState]:
+    """Voltages whose exact forward step (:func:`hysteresis_step`) reaches the target positions.
+
+    Inside a monotone run of the targets (direction ``s``) the voltage is
+    monotone too and the ODE follows one branch ``x = b V - s delta + K exp(-s alpha V)``
+    with ``K`` fixed by the state at the start of the run, so every sample of the
+    run is an independent Lambert W evaluation. With ``(V_0, x_0)`` the state at
+    the run start, ``eta_0 = x_0 - b V_0``, ``B = alpha (s eta_0 + delta) / b`` and
+    ``A = alpha s (x - x_0) / b + B``, the scaled voltage step is
+
+        t = alpha s (V - V_0) = A + W0(-B exp(-A))
+
+    (``W0`` because ``x`` must move in the direction of the run). The argument
+    never leaves the real branch: ``B exp(-A) <= B exp(-B) <= 1/e``.
+
+    A first pass loops over the runs only (one scalar W per run to find the state
+    at its end); a second pass evaluates all samples at once.
+
+    Non-monotone branches: if ``B > 1`` at the start of a run (possible when
+    ``b > 2 u`` and the state lies near the opposite asymptote, e.g. right after
+    a long run in the other direction), the branch first moves *against* the run
+    direction by up to ``b / alpha (B - 1 - ln B)`` before it turns. No monotone
+    voltage can avoid that dip; the inverse returns the unique ``W0`` voltage
+    beyond it, so the voltage jumps at the first sample of such a run and the
+    stage passes through the dip between two samples. All targets are still
+    reached exactly at the sample instants.
+
+    Parameters
+    ----------
+    params
+        Hysteresis parameters.
+    position_um
+        Target positions (um), shape ``(n,)``; the first step goes from
+        ``state.position_um`` to ``position_um[0]``.
+    state
+        State before the block (from :func:`relaxed_state`, :func:`hysteresis_step`
+        or a previous call).
+
+    Returns
+    -------
+    voltage_v : ndarray
+        Voltages (V), shape ``(n,)``; a sample equal to the previous target keeps
+        the previous voltage.
+    state : HysteresisState
+        State after the last sample, to pass to the next block (either function).
+    """
+    x = np.asarray(position_um, dtype=np.float64)
+    if x.ndim != 1:
+        raise ValueError(f"position_um must be 1-D, got shape {x.shape}")
+    if x.size == 0:
+        return np.empty(0), state
+    if not np.all(np.isfinite(x)):
+        bad = int(np.flatnonzero(~np.isfinite(x))[0])
+        raise ModelError(f"target position {x[bad]!r} at sample {bad} is not finite")
+    a, b, delta = params.alpha_per_v, params.b_um_per_v, params.delta_um
+    n = x.size
+    dx = np.diff(x, prepend=state.position_um)
+    starts, signs = _run_starts(dx)
+    v = np.full(n, state.voltage_v)
+    if starts.size == 0:
+        return v, HysteresisState(state.voltage_v, float(x[-1]))
+    n_runs = starts.size
+    ends = np.append(starts[1:], n) - 1
+    v0 = np.empty(n_runs)
+    x0 = np.empty(n_runs)
+    big_b = np.empty(n_runs)
+    v_prev, x_prev = state.voltage_v, state.position_um
+    for r in range(n_runs):
+        s = float(signs[r])
+        v0[r], x0[r] = v_prev, x_prev
+        big_b[r] = bb = a * (s * (x_prev - b * v_prev) + delta) / b
+        x_end = float(x[ends[r]])
+        aa = a * s * (x_end - x_prev) / b + bb
+        if bb != 0.0:
+            aa += lambertw0_exp_scalar(math.log(abs(bb)) - aa, negative=bb > 0.0)
+        v_prev, x_prev = v_prev + s * aa / a, x_end
+    # Per run, with t = A + w: y = ln|B| - A = c0 + c1 x and V = V_0 + s t / alpha = k0 + x / b + k1 w.
+    c1 = -(a / b) * signs
+    with np.errstate(divide="ignore"):
+        c0 = np.log(np.abs(big_b)) - big_b - c1 * x0
+    k0 = v0 + signs * big_b / a - x0 / b
+    k1 = signs / a
+    neg = big_b > 0.0
+    edges = np.append(starts, n)
+    if n_runs <= _MAX_SLICED_RUNS:
+        for r in range(n_runs):
+            sl = slice(int(edges[r]), int(edges[r + 1]))
+            y = x[sl] * float(c1[r])
+            y += float(c0[r])
+            w = lambertw0_exp(y, negative=bool(neg[r]))
+            w *= float(k1[r])
+            w += float(k0[r])
+            w += x[sl] * (1.0 / b)
+            v[sl] = w
+    else:
+        first = int(starts[0])
+        lengths = np.diff(edges)
+        xs = x[first:]
+        y = np.repeat(c1, lengths) * xs + np.repeat(c0, lengths)
+        neg_s = np.repeat(neg, lengths)
+        w = np.empty_like(y)
+        for flag in (True, False):
+            m = neg_s == flag
+            if m.any():
+                w[m] = lambertw0_exp(y[m], negative=flag)
+        v[first:] = np.repeat(k0, lengths) + xs / b + np.repeat(k1, lengths) * w
+    return v, HysteresisState(voltage_v=float(v[-1]), position_um=float(x[-1]))

@@ -145,3 +145,42 @@ def thesis_loop(
     hyst = hysteresis_loop(params.hysteresis, v, direction, v_min, v_max)
     out: NDArray[np.float64] = hyst + (b_hat - params.b_um_per_v) * (v - v_c)
     return out
+
+
+def scan_range_um(params: ThesisParams, frequency_hz: float, v_half: ArrayLike) -> NDArray[np.float64]:
+    """Scan range ``x(V_M) - x(V_m)`` of the (3.8) loop for a half voltage range ``V_h``.
+
+    ``2 b V_h + 2 d(V_h) (k(f, V_h) - 1)`` with ``d = (b - u)/alpha tanh(alpha V_h)`` (3.1):
+    the left-hand side of the range equation (4.12). It does not depend on the
+    scan centre (offset scans, section 3.3).
+
+    Parameters
+    ----------
+    params
+        The 7 model parameters.
+    frequency_hz
+        Line frequency (Hz).
+    v_half
+        Half the voltage range ``(V_M - V_m) / 2`` (V), >= 0.
+
+    Returns
+    -------
+    ndarray
+        Scan range (um).
+    """
+    if not frequency_hz > 0:
+        raise ModelError(f"scan frequency must be > 0 Hz, got {frequency_hz}")
+    vh = np.asarray(v_half, dtype=np.float64)
+    f_factor = 1.0 - params.a1 * np.exp(-1.0 / (frequency_hz * params.tau_s))
+    d = params.hysteresis.delta_um * np.tanh(params.alpha_per_v * vh)
+    out: NDArray[np.float64] = 2.0 * params.b_um_per_v * vh + 2.0 * d * (
+        f_factor * (params.a2_per_v * vh + params.a3) - 1.0
+    )
+    return out
+
+
+#: Medium tube scanner, thesis table 3.3 (calibration frame 172.5-402.5 V p-p, 0.1-1.4 Hz), with the
+#: table's A3 = 0.872 (the text of section 3.3.1 prints 0.681; see ``configs/medium-tube.yaml``).
+MEDIUM_TUBE_TABLE_3_3 = ThesisParams(
+    alpha_per_v=3.23e-3, b_um_per_v=0.081, u_um_per_v=0.016, tau_s=2.666, a1=0.081, a2_per_v=2.78e-3, a3=0.872
+)
