@@ -1,0 +1,182 @@
+"""Benchmarks of the model core: ``piezod bench inverse``.
+
+The full inverse (:class:`~piezod.model.inverse.ThesisInverse`) is timed on
+blocks of a triangular scan (both branches; the half line is not a multiple of
+the block, so some blocks hold a turning point), against the same inverse with
+W taken from :func:`scipy.special.lambertw` (the literal (4.11)), measured in the
+same run, interleaved, best of several repeats. The round-trip error is
+``max |x(V(x)) - x|`` over the run relative to the scan range.
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import lambertw as scipy_lambertw
+
+from piezod.errors import ModelError
+from piezod.model.inverse import BranchConstants, ThesisInverse
+from piezod.model.ode import hysteresis_inverse_step, hysteresis_step, relaxed_state
+from piezod.model.params import ThesisParams
+from piezod.model.thesis import MEDIUM_TUBE_TABLE_3_3, TRACE
+from piezod.progress import progress
+
+FloatArray = NDArray[np.float64]
+
+#: DESIGN section 6 targets.
+TARGET_NS_PER_SAMPLE = 50.0
+TARGET_RATIO = 0.3
+TARGET_ROUNDTRIP_REL = 1e-9
+
+
+def _scipy_branch(br: BranchConstants, x: FloatArray) -> FloatArray:
+    """(4.11) literally, with scipy's W."""
+    c1, c2, c3, c4 = br.c1, br.c2, br.c3, br.c4
+    u = (x - c4) / c1
+    z = (c2 * c3 / c1) * np.exp(c3 * u)
+    out: FloatArray = u - scipy_lambertw(z).real / c3
+    return out
+
+
+def scipy_voltage(inv: ThesisInverse, x: FloatArray, direction: NDArray[np.int8]) -> FloatArray:
+    """Baseline inverse: the same constants, checks and clipping as ``inv.voltage``, W from scipy."""
+    lo, hi = float(x.min()), float(x.max())
+    if not (lo >= inv.x_min - 1e-9 * inv.range_um and hi <= inv.x_max + 1e-9 * inv.range_um):
+        raise ModelError("target outside the scan")
+    trace = direction == TRACE
+    out = np.empty_like(x)
+    out[trace] = _scipy_branch(inv.trace, x[trace])
+    out[~trace] = _scipy_branch(inv.retrace, x[~trace])
+    np.clip(out, inv.v_min, inv.v_max, out=out)
+    return out
+
+
+def triangular_targets(
+    inv: ThesisInverse, n_samples: int, half_line: int
+) -> tuple[FloatArray, NDArray[np.int8]]:
+    """Absolute targets and directions of a linear triangular scan over the full range."""
+    k = np.arange(n_samples)
+    phase = k % (2 * half_line)
+    up = phase < half_line
+    frac = np.where(up, phase / half_line, 2.0 - phase / half_line)
+    x = inv.to_absolute(frac * inv.range_um)
+    return x, np.where(up, 1, -1).astype(np.int8)
+
+
+def _time_blocks(
+    fn: Callable[[FloatArray, NDArray[np.int8]], FloatArray],
+    blocks: list[tuple[FloatArray, NDArray[np.int8]]],
+) -> tuple[float, list[FloatArray]]:
+    out = []
+    t0 = time.perf_counter()
+    for xb, db in blocks:
+        out.append(fn(xb, db))
+    return time.perf_counter() - t0, out
+
+
+def run_inverse_bench(
+    *,
+    block_samples: int = 4096,
+    blocks: int = 128,
+    repeats: int = 5,
+    params: ThesisParams = MEDIUM_TUBE_TABLE_3_3,
+    range_um: float = 30.0,
+    frequency_hz: float = 1.0,
+    half_line_samples: int = 5000,
+    v_limits: tuple[float, float] = (-230.0, 230.0),
+) -> dict[str, Any]:
+    """Time the full inverse against a scipy-based inverse and measure its round trip.
+
+    Parameters
+    ----------
+    block_samples
+        Samples per call (one axis).
+    blocks
+        Blocks per repeat.
+    repeats
+        Interleaved repeats; the best time of each implementation counts.
+    params, range_um, frequency_hz, v_limits
+        The scan (default: medium tube, table 3.3, 30 um at 1 Hz).
+    half_line_samples
+        Samples per trace (and per retrace).
+
+    Returns
+    -------
+    dict
+        ``ns_per_sample``, ``scipy_ns_per_sample``, ``ratio``, ``max_roundtrip_error_rel``,
+        ``max_voltage_difference_v`` (vs scipy), ``ode_ns_per_sample`` and
+        ``ode_max_roundtrip_error_rel`` (per-sample ODE inverse on the same targets),
+        the settings, the targets and ``meets_targets``.
+    """
+    if block_samples < 1 or blocks < 1 or repeats < 1 or half_line_samples < 2:
+        raise ModelError("block_samples, blocks, repeats must be >= 1 and half_line_samples >= 2")
+    inv = ThesisInverse.for_scan(params, range_um, frequency_hz, v_limits=v_limits)
+    n = block_samples * blocks
+    x, d = triangular_targets(inv, n, half_line_samples)
+    chunks = [(x[i : i + block_samples], d[i : i + block_samples]) for i in range(0, n, block_samples)]
+    best_ours = best_scipy = math.inf
+    v_ours: list[FloatArray] = []
+    v_scipy: list[FloatArray] = []
+    for _ in progress(range(repeats), desc="bench inverse"):
+        t, v_ours = _time_blocks(inv.voltage, chunks)
+        best_ours = min(best_ours, t)
+        t, v_scipy = _time_blocks(lambda xb, db: scipy_voltage(inv, xb, db), chunks)
+        best_scipy = min(best_scipy, t)
+    v = np.concatenate(v_ours)
+    x_back = inv.position(v, d)
+    roundtrip = float(np.max(np.abs(x_back - x)) / inv.range_um)
+    dv = float(np.max(np.abs(v - np.concatenate(v_scipy))))
+
+    hyst = params.hysteresis
+    state0 = relaxed_state(hyst, inv.v_min)
+    ode_x = x - inv.x_min + state0.position_um
+    best_ode = math.inf
+    v_ode: list[FloatArray] = []
+    for _ in range(max(1, repeats // 2)):
+        state = state0
+        v_ode = []
+        t0 = time.perf_counter()
+        for i in range(0, n, block_samples):
+            vb, state = hysteresis_inverse_step(hyst, ode_x[i : i + block_samples], state)
+            v_ode.append(vb)
+        best_ode = min(best_ode, time.perf_counter() - t0)
+    x_ode, _ = hysteresis_step(hyst, np.concatenate(v_ode), state0)
+    ode_roundtrip = float(np.max(np.abs(x_ode - ode_x)) / inv.range_um)
+
+    ns = best_ours / n * 1e9
+    ns_scipy = best_scipy / n * 1e9
+    ratio = ns / ns_scipy
+    return {
+        "ns_per_sample": ns,
+        "scipy_ns_per_sample": ns_scipy,
+        "ratio": ratio,
+        "max_roundtrip_error_rel": roundtrip,
+        "max_voltage_difference_v": dv,
+        "ode_ns_per_sample": best_ode / n * 1e9,
+        "ode_max_roundtrip_error_rel": ode_roundtrip,
+        "block_samples": block_samples,
+        "blocks": blocks,
+        "repeats": repeats,
+        "samples": n,
+        "half_line_samples": half_line_samples,
+        "range_um": range_um,
+        "frequency_hz": frequency_hz,
+        "v_min": inv.v_min,
+        "v_max": inv.v_max,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "targets": {
+            "ns_per_sample": TARGET_NS_PER_SAMPLE,
+            "ratio": TARGET_RATIO,
+            "max_roundtrip_error_rel": TARGET_ROUNDTRIP_REL,
+        },
+        "meets_targets": bool(
+            ns <= TARGET_NS_PER_SAMPLE and ratio <= TARGET_RATIO and roundtrip <= TARGET_ROUNDTRIP_REL
+        ),
+    }

@@ -1,0 +1,86 @@
+"""``piezod bench inverse | stream``: speed and accuracy benchmarks with numbers against a baseline."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from typing import Any
+
+from piezod.cli._common import add_json_option, human_stream, write_json
+from piezod.errors import PiezodError
+
+#: Module providing ``run_stream_bench(args) -> dict`` (the link's streaming benchmark).
+STREAM_BENCH_MODULE = "piezod.link.bench"
+
+
+def register(sub: Any) -> None:
+    """Add the ``bench`` subcommand."""
+    p: argparse.ArgumentParser = sub.add_parser(
+        "bench",
+        help="benchmarks: the inverse model (ns/sample vs scipy) or streaming over the link",
+        description=(
+            "inverse: time the full Lambert-W inverse on blocks of a triangular scan against the same "
+            "inverse built on scipy.special.lambertw, in the same run, and report the worst round-trip "
+            "error relative to the range. stream: stream samples to the simulated board and count "
+            "underruns and CRC errors."
+        ),
+    )
+    p.add_argument("which", choices=("inverse", "stream"), help="what to benchmark")
+    add_json_option(p)
+    inv = p.add_argument_group("inverse")
+    inv.add_argument("--block-samples", type=int, default=4096, metavar="N", help="samples per block")
+    inv.add_argument("--blocks", type=int, default=128, metavar="N", help="blocks per repeat")
+    inv.add_argument("--repeats", type=int, default=7, metavar="N", help="interleaved repeats (best counts)")
+    stream = p.add_argument_group("stream")
+    stream.add_argument("--axes", type=int, default=3, metavar="N", help="number of axes streamed")
+    stream.add_argument("--rate-hz", type=float, default=100_000.0, metavar="R", help="samples/s per axis")
+    stream.add_argument("--seconds", type=float, default=60.0, metavar="S", help="duration (s)")
+    p.set_defaults(func=run)
+
+
+def _run_inverse(args: argparse.Namespace) -> dict[str, Any]:
+    from piezod.bench import run_inverse_bench
+
+    if args.block_samples < 1 or args.blocks < 1 or args.repeats < 1:
+        raise PiezodError("--block-samples, --blocks and --repeats must be >= 1")
+    result = run_inverse_bench(block_samples=args.block_samples, blocks=args.blocks, repeats=args.repeats)
+    out = human_stream(args)
+    print(
+        f"inverse: {result['ns_per_sample']:.1f} ns/sample, scipy-based: {result['scipy_ns_per_sample']:.1f} "
+        f"ns/sample, ratio {result['ratio']:.3f} (target <= 0.3)",
+        file=out,
+    )
+    print(
+        f"round trip: max error {result['max_roundtrip_error_rel']:.2e} of range (target <= 1e-9); "
+        f"ODE per-sample inverse {result['ode_ns_per_sample']:.1f} ns/sample, "
+        f"round trip {result['ode_max_roundtrip_error_rel']:.2e}",
+        file=out,
+    )
+    print(
+        f"{result['samples']} samples in blocks of {result['block_samples']}, best of {result['repeats']}; "
+        f"targets {'met' if result['meets_targets'] else 'NOT met'}",
+        file=out,
+    )
+    return result
+
+
+def _run_stream(args: argparse.Namespace) -> dict[str, Any]:
+    try:
+        module = importlib.import_module(STREAM_BENCH_MODULE)
+    except ModuleNotFoundError as exc:
+        if exc.name is not None and STREAM_BENCH_MODULE.startswith(exc.name):
+            raise PiezodError(
+                f"the stream bench is not available yet ({STREAM_BENCH_MODULE} does not exist)"
+            ) from exc
+        raise
+    result: dict[str, Any] = module.run_stream_bench(args)
+    keys = ("axes", "rate_hz", "seconds", "samples_sent", "samples_read", "underruns", "crc_errors")
+    print(", ".join(f"{k} {result[k]}" for k in keys if k in result), file=human_stream(args))
+    return result
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``piezod bench``."""
+    result = _run_inverse(args) if args.which == "inverse" else _run_stream(args)
+    write_json(args.json, result)
+    return 0
