@@ -1,0 +1,972 @@
+"""Offline calibration: least-squares fit of the 7-parameter model (3.8) to recorded loops.
+
+Model
+-----
+Experiment ``i`` is a steady triangular scan between ``V_m,i`` and ``V_M,i`` at line
+frequency ``f_i`` (all inferred from the voltage waveform). Its samples are modelled as
+
+    x_ij = thesis_loop(p, V_ij, s_ij, V_m,i, V_M,i, f_i) + c_i + noise
+
+with the 7 parameters ``p = (alpha, b, u, tau, A1, A2, A3)`` shared by all experiments
+and one position offset ``c_i`` per experiment (sensor zero, drift between experiments;
+it also absorbs the ``-(b_hat - b) V_C`` term of offset scans).
+
+Offsets
+-------
+With the default squared loss the offsets are eliminated analytically (variable
+projection): residuals and Jacobian are centred per experiment, which is exactly the
+least-squares optimum over ``c_i`` for every ``p``, and the marginal covariance of
+``p`` follows from the projected Jacobian. With a robust loss (``soft_l1``, ``huber``,
+``cauchy``, ``arctan``) the mean is not the optimal offset, so the offsets are fitted
+as explicit parameters; ``f_scale`` defaults to twice the robust noise estimate of a
+first squared-loss fit.
+
+Parametrisation, bounds, start
+------------------------------
+The solver works on ``z = (ln alpha, ln b, ln u, ln tau, A1, A2 * S, A3)`` with
+``S`` the mean half range of the frame, so that all components are O(1)
+(``x_scale = 1``) and ``alpha, b, u, tau`` stay positive. Bounds keep the model
+physical and inside the config schema: ``1e-6 < alpha < 0.999 /V``,
+``1e-6 < b, u < 99 um/V``, ``1e-3 s < tau < 1e5 s``, ``0 <= A1 <= 0.999`` (creep
+decreases with frequency and the creep factor stays positive), ``|A2| <= 0.999 /V``,
+``|A3| <= 99``. The Jacobian is analytic.
+
+The automatic start needs no prior: (1) for ``alpha`` on a grid refined by a scalar
+search, the model with one free sensitivity ``b_hat_i`` per experiment (the thesis's
+"unrestricted k_i" fit (3.4)) is linear in ``delta = (b - u)/alpha``, ``b_hat_i`` and
+``c_i``; (2) for ``(tau, A1)`` on a grid, ``b_hat_i = b + delta D_i (1 - A1 E_i)(A2 V_h,i +
+A3)`` is linear in ``(b, A2, A3)``. The best of this start and, when given, the config's
+parameters starts the full fit.
+
+Identifiability
+---------------
+Only ``alpha``, ``delta`` and the function ``b_hat(f, V_h)`` are observable. ``tau`` and
+``A1`` need frequencies around ``1/tau``; ``A2`` needs three or more ranges; ``b`` and
+``A3`` are separated only by the curvature of ``tanh(alpha V_h) / V_h`` over the
+ranges and are strongly correlated for small ``alpha V_h``. Parameters the frame
+cannot determine (fewer than 3 distinct frequencies: ``tau``; fewer than 2: also
+``A1``; fewer than 3 ranges: ``A2``) are held at their start values and listed in
+:attr:`CalibrationResult.fixed`; the correlation matrix and the condition number of
+the scaled Jacobian are reported as they are.
+
+Fit error
+---------
+Per experiment (2.26)-(2.27): ``sigma_i = sqrt(LSF_i / (n_i - nu))`` with ``nu`` the
+number of fitted model parameters (the per-experiment offset is not counted; it
+changes sigma by ~1/(2 n_i)), relative to the distance ``Delta x_i`` covered by the
+fitted loop (``max - min`` of the model), in %.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares, minimize_scalar
+
+from piezod import __version__
+from piezod.config import AxisConfig, ScannerConfig, ThesisModelConfig
+from piezod.errors import CalibrationError, ModelError
+from piezod.model.params import ThesisParams
+from piezod.recording import Experiment
+
+F64 = NDArray[np.float64]
+
+#: Names of the 7 model parameters, in the order of (3.8) / table 3.3.
+PARAM_NAMES: tuple[str, ...] = ("alpha_per_v", "b_um_per_v", "u_um_per_v", "tau_s", "a1", "a2_per_v", "a3")
+LOSSES: tuple[str, ...] = ("linear", "soft_l1", "huber", "cauchy", "arctan")
+
+_LOG = np.array([True, True, True, True, False, False, False])
+_LOWER = np.array([1e-6, 1e-6, 1e-6, 1e-3, 0.0, -0.999, -99.0])
+_UPPER = np.array([0.999, 99.0, 99.0, 1e5, 0.999, 0.999, 99.0])
+_DEFAULT_TAU_S = 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationData:
+    """The experiments of a calibration frame, concatenated for the fit.
+
+    Attributes
+    ----------
+    voltage_v, direction, position_um
+        Per sample (direction +1 trace / -1 retrace, as float).
+    starts
+        Index of the first sample of every experiment (experiments are contiguous).
+    v_min, v_max, frequency_hz
+        Per experiment, inferred from the voltage waveform.
+    labels, axes, paths, n_loops
+        Per experiment, for reports.
+    """
+
+    voltage_v: F64
+    direction: F64
+    position_um: F64
+    starts: NDArray[np.intp]
+    v_min: F64
+    v_max: F64
+    frequency_hz: F64
+    labels: tuple[str, ...]
+    axes: tuple[str | None, ...]
+    paths: tuple[str | None, ...]
+    n_loops: tuple[int, ...]
+
+    @property
+    def n_experiments(self) -> int:
+        """Number of experiments."""
+        return len(self.labels)
+
+    @cached_property
+    def counts(self) -> NDArray[np.intp]:
+        """Samples per experiment."""
+        return np.diff(np.append(self.starts, self.voltage_v.size))
+
+    @cached_property
+    def index(self) -> NDArray[np.intp]:
+        """Experiment index of every sample."""
+        return np.repeat(np.arange(self.n_experiments), self.counts)
+
+    @cached_property
+    def distance_from_start_v(self) -> F64:
+        """``s (V - V_start)`` >= 0: voltage travelled since the branch's turning point."""
+        v_start = np.where(self.direction > 0, self.v_min[self.index], self.v_max[self.index])
+        out: F64 = self.direction * (self.voltage_v - v_start)
+        return out
+
+    @cached_property
+    def from_centre_v(self) -> F64:
+        """``V - V_C`` with ``V_C`` the centre of the experiment's scan."""
+        out: F64 = self.voltage_v - (0.5 * (self.v_max + self.v_min))[self.index]
+        return out
+
+
+def prepare(experiments: Sequence[Experiment], *, skip_loops: int = 0) -> CalibrationData:
+    """Infer every experiment's scan and concatenate the frame.
+
+    Parameters
+    ----------
+    experiments
+        The experiments (one axis).
+    skip_loops
+        Complete loops to drop at the start of every experiment (settling).
+
+    Raises
+    ------
+    RecordingError
+        An experiment's voltage is not a periodic triangular scan (file:line).
+    CalibrationError
+        Too little data left.
+    """
+    if not experiments:
+        raise CalibrationError("no experiments to calibrate")
+    vs, ds, xs, starts = [], [], [], []
+    v_min, v_max, freq, n_loops = [], [], [], []
+    n = 0
+    for e in experiments:
+        info = e.require_scan()
+        lo = 0
+        if skip_loops:
+            if info.n_loops <= skip_loops:
+                raise CalibrationError(
+                    f"experiment {e.describe()} has {info.n_loops} complete loop(s), cannot skip {skip_loops}"
+                )
+            lo = int(info.turning_indices[2 * skip_loops])
+        starts.append(n)
+        vs.append(e.voltage_v[lo:])
+        ds.append(info.direction[lo:].astype(np.float64))
+        xs.append(e.position_um[lo:])
+        n += vs[-1].size
+        v_min.append(info.v_min)
+        v_max.append(info.v_max)
+        freq.append(info.frequency_hz)
+        n_loops.append(info.n_loops - skip_loops)
+    return CalibrationData(
+        voltage_v=np.concatenate(vs),
+        direction=np.concatenate(ds),
+        position_um=np.concatenate(xs),
+        starts=np.asarray(starts, dtype=np.intp),
+        v_min=np.asarray(v_min),
+        v_max=np.asarray(v_max),
+        frequency_hz=np.asarray(freq),
+        labels=tuple(e.label for e in experiments),
+        axes=tuple(e.axis for e in experiments),
+        paths=tuple(e.path for e in experiments),
+        n_loops=tuple(n_loops),
+    )
+
+
+# ------------------------------------------------------------------------------------------------ model
+
+
+def _to_z(p: ThesisParams, a2_scale: float) -> F64:
+    v = np.array([getattr(p, k) for k in PARAM_NAMES], dtype=np.float64)
+    v[5] *= a2_scale
+    v[:4] = np.log(v[:4])
+    return v
+
+
+def _from_z(z: F64, a2_scale: float) -> ThesisParams:
+    v = np.asarray(z, dtype=np.float64).copy()
+    v[:4] = np.exp(v[:4])
+    v[5] /= a2_scale
+    return ThesisParams(**dict(zip(PARAM_NAMES, v.tolist(), strict=True)))
+
+
+def _z_bounds(a2_scale: float) -> tuple[F64, F64]:
+    lo, hi = _LOWER.copy(), _UPPER.copy()
+    lo[5] *= a2_scale
+    hi[5] *= a2_scale
+    lo[:4] = np.log(lo[:4])
+    hi[:4] = np.log(hi[:4])
+    return lo, hi
+
+
+def _model(data: CalibrationData, z: F64, a2_scale: float, jac: bool) -> tuple[F64, F64 | None]:
+    """Model positions (without offsets) and, optionally, the Jacobian d x / d z (n x 7)."""
+    alpha, b, u, tau = np.exp(z[:4])
+    a1, a2, a3 = z[4], z[5] / a2_scale, z[6]
+    idx = data.index
+    v, s = data.voltage_v, data.direction
+    sdv = data.distance_from_start_v
+    pc = data.from_centre_v
+    vr = data.v_max - data.v_min
+    vh = 0.5 * vr
+    e_r = np.exp(-alpha * vr)
+    c_rel = 2.0 / (1.0 + e_r)
+    th = np.tanh(alpha * vh)
+    dd = th / vh
+    ee = np.exp(-1.0 / (data.frequency_hz * tau))
+    gg = a2 * vh + a3
+    ff = 1.0 - a1 * ee
+    kk = ff * gg
+    delta = (b - u) / alpha
+    w = c_rel[idx] * np.exp(-alpha * sdv)
+    one_w = 1.0 - w
+    beta = kk * delta * dd  # b_hat - b per experiment
+    x = b * v - s * delta * one_w + beta[idx] * pc
+    if not jac:
+        return x, None
+    dlnc = vr * e_r / (1.0 + e_r)  # d ln(C_rel) / d alpha
+    J = np.empty((v.size, 7))
+    J[:, 0] = (
+        s * delta * (one_w + alpha * w * (dlnc[idx] - sdv))
+        + (kk * delta * (alpha * (1.0 - th**2) - dd))[idx] * pc
+    )
+    creep = (kk * dd / alpha)[idx] * pc
+    J[:, 1] = b * (v - s * one_w / alpha + creep)
+    J[:, 2] = u * (s * one_w / alpha - creep)
+    per_exp = np.column_stack(
+        [
+            -delta * dd * gg * a1 * ee / (data.frequency_hz * tau),
+            -delta * dd * gg * ee,
+            delta * dd * ff * vh / a2_scale,
+            delta * dd * ff,
+        ]
+    )
+    J[:, 3:] = per_exp[idx] * pc[:, None]
+    return x, J
+
+
+def model_positions(data: CalibrationData, params: ThesisParams) -> F64:
+    """Positions of (3.8) for every sample of the frame, without offsets."""
+    x, _ = _model(data, _to_z(params, 1.0), 1.0, jac=False)
+    return x
+
+
+def _centre(data: CalibrationData, a: NDArray[np.float64]) -> NDArray[np.float64]:
+    sums = np.add.reduceat(a, data.starts, axis=0)
+    means = sums / (data.counts if a.ndim == 1 else data.counts[:, None])
+    out: NDArray[np.float64] = a - np.repeat(means, data.counts, axis=0)
+    return out
+
+
+def fit_errors(data: CalibrationData, params: ThesisParams, *, nu: int = 7) -> tuple[F64, F64, F64]:
+    """Per-experiment fit error (2.26)-(2.27) of ``params`` with least-squares offsets.
+
+    Returns
+    -------
+    fit_error_pct, sigma_um, range_um
+        Per experiment.
+    """
+    x = model_positions(data, params)
+    r = _centre(data, data.position_um - x)
+    return _errors(data, x, r, nu)
+
+
+def _errors(data: CalibrationData, x: F64, r: F64, nu: int) -> tuple[F64, F64, F64]:
+    lsf = np.add.reduceat(r**2, data.starts)
+    sigma = np.sqrt(lsf / np.maximum(data.counts - nu, 1))
+    rng = np.maximum.reduceat(x, data.starts) - np.minimum.reduceat(x, data.starts)
+    return 100.0 * sigma / rng, sigma, rng
+
+
+# ------------------------------------------------------------------------------------------------ start
+
+
+def _distinct(values: F64, rel: float = 0.05) -> int:
+    lv = np.sort(np.log(np.abs(values)))
+    return int(1 + np.count_nonzero(np.diff(lv) > rel)) if lv.size else 0
+
+
+def _hysteresis_stage(data: CalibrationData, log_alpha: float) -> tuple[float, float, F64]:
+    """Free-sensitivity fit (3.4) at fixed alpha: returns (rss, delta, b_hat per experiment)."""
+    alpha = math.exp(log_alpha)
+    counts = data.counts
+    s, v = data.direction, data.voltage_v
+    c_rel = 2.0 / (1.0 + np.exp(-alpha * (data.v_max - data.v_min)))
+    g = -s * (1.0 - c_rel[data.index] * np.exp(-alpha * data.distance_from_start_v))
+    vc = _centre(data, v)
+    svv = np.add.reduceat(vc * vc, data.starts)
+    gc = _centre(data, g)
+    xc = _centre(data, data.position_um)
+    gp = gc - np.repeat(np.add.reduceat(gc * vc, data.starts) / svv, counts) * vc
+    xp = xc - np.repeat(np.add.reduceat(xc * vc, data.starts) / svv, counts) * vc
+    sgg = float(gp @ gp)
+    sgx = float(gp @ xp)
+    delta = sgx / sgg if sgg > 0 else 0.0
+    rss = float(xp @ xp) - (sgx * delta)
+    b_hat = np.add.reduceat((xc - delta * gc) * vc, data.starts) / svv
+    return rss, delta, b_hat
+
+
+def auto_start(data: CalibrationData, *, fixed: Mapping[str, float] | None = None) -> ThesisParams:
+    """A start for the fit from the data alone (see the module docstring).
+
+    Parameters
+    ----------
+    data
+        The frame.
+    fixed
+        Values to use for parameters held fixed (``tau_s``, ``a1``, ``a2_per_v``).
+
+    Raises
+    ------
+    CalibrationError
+        The loops show no hysteresis of the modelled orientation (``b <= u``).
+    """
+    fixed = dict(fixed or {})
+    vr = data.v_max - data.v_min
+    grid = np.linspace(math.log(0.02 / vr.max()), math.log(min(20.0 / vr.min(), 0.9)), 48)
+    rss = np.array([_hysteresis_stage(data, la)[0] for la in grid])
+    k = int(np.argmin(rss))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
+    best = minimize_scalar(
+        lambda la: _hysteresis_stage(data, la)[0], bounds=(lo, hi), method="bounded", options={"xatol": 1e-6}
+    )
+    log_alpha = float(best.x) if best.fun <= rss[k] else float(grid[k])
+    _, delta, b_hat = _hysteresis_stage(data, log_alpha)
+    alpha = math.exp(log_alpha)
+    if not delta > 0:
+        raise CalibrationError(
+            "the loops show no hysteresis of the modelled orientation (trace below retrace): "
+            f"fitted (b - u)/alpha = {delta:.4g} um"
+        )
+
+    vh = 0.5 * vr
+    dd = np.tanh(alpha * vh) / vh
+    f = data.frequency_hz
+    taus = (
+        np.array([fixed["tau_s"]])
+        if "tau_s" in fixed
+        else np.exp(np.linspace(math.log(0.01 / f.max()), math.log(100.0 / f.min()), 40))
+    )
+    a1s = np.array([fixed["a1"]]) if "a1" in fixed else np.linspace(0.0, 0.95, 20)
+    best_rss, best_sol = math.inf, (float(np.median(b_hat)), 0.0, 0.0, _DEFAULT_TAU_S, 0.0)
+    for tau in taus:
+        ee = np.exp(-1.0 / (f * tau))
+        for a1 in a1s:
+            ff = 1.0 - a1 * ee
+            cols = [np.ones_like(vh), delta * dd * ff]
+            target = b_hat.copy()
+            if "a2_per_v" in fixed:
+                target -= delta * dd * ff * vh * fixed["a2_per_v"]
+            else:
+                cols.append(delta * dd * ff * vh)
+            A = np.column_stack(cols)
+            sol, *_ = np.linalg.lstsq(A, target, rcond=None)
+            r = float(np.sum((A @ sol - target) ** 2))
+            if r < best_rss:
+                a2 = fixed.get("a2_per_v", float(sol[2]) if sol.size > 2 else 0.0)
+                best_rss, best_sol = r, (float(sol[0]), float(sol[1]), a2, float(tau), float(a1))
+    b, a3, a2, tau, a1 = best_sol
+    b = float(np.clip(b, 1.01 * alpha * delta, 98.0))  # keep u = b - alpha delta > 0
+    u = max(b - alpha * delta, 1e-3 * b)
+    return ThesisParams(
+        alpha_per_v=float(np.clip(alpha, 2e-6, 0.99)),
+        b_um_per_v=b,
+        u_um_per_v=u,
+        tau_s=float(np.clip(tau, 2e-3, 5e4)),
+        a1=float(np.clip(a1, 0.0, 0.99)),
+        a2_per_v=float(np.clip(a2, -0.99, 0.99)),
+        a3=float(np.clip(a3, -98.0, 98.0)),
+    )
+
+
+# -------------------------------------------------------------------------------------------------- fit
+
+
+@dataclass(frozen=True, eq=False)
+class ExperimentFit:
+    """Fit summary of one experiment.
+
+    Attributes
+    ----------
+    label, axis, path
+        Identification.
+    v_min, v_max, frequency_hz, n_loops
+        The scan inferred from the voltage.
+    n
+        Samples used.
+    position_offset_um
+        Fitted position offset ``c_i``.
+    range_um
+        Distance covered by the fitted loop (``Delta x_i`` of (2.27)).
+    sigma_um
+        ``sigma_i`` of (2.26).
+    fit_error_pct
+        ``100 sigma_i / Delta x_i`` (2.27).
+    rms_um
+        RMS residual.
+    """
+
+    label: str
+    axis: str | None
+    path: str | None
+    v_min: float
+    v_max: float
+    frequency_hz: float
+    n_loops: int
+    n: int
+    position_offset_um: float
+    range_um: float
+    sigma_um: float
+    fit_error_pct: float
+    rms_um: float
+
+    @property
+    def range_v(self) -> float:
+        """Peak-to-peak voltage range."""
+        return self.v_max - self.v_min
+
+    @property
+    def offset_v(self) -> float:
+        """Centre voltage of the scan."""
+        return 0.5 * (self.v_max + self.v_min)
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Result of :func:`fit` (all values in the units of the parameter names).
+
+    Attributes
+    ----------
+    params
+        Fitted parameters.
+    stderr
+        Standard error per parameter name (0 for fixed ones; inf when undetermined).
+    correlations
+        Correlation matrix of the free parameters (order of ``free``).
+    free, fixed
+        Names of the fitted and of the held parameters.
+    at_bounds
+        Free parameters that ended on a bound (their standard errors are not meaningful).
+    condition_number
+        Condition number of the column-normalised Jacobian of the free parameters.
+    experiments
+        Per-experiment summaries.
+    residuals_um
+        Measured minus fitted position, per sample, experiments concatenated.
+    cost
+        ``0.5 * sum(rho(r^2))`` at the solution (the solver's cost).
+    n
+        Number of samples.
+    loss
+        Loss function used.
+    nfev
+        Model evaluations.
+    success, message
+        Solver status.
+    seconds
+        Wall time of the fit, including the automatic start.
+    warnings
+        Things the user should know (undetermined or bounded parameters, ...).
+    """
+
+    params: ThesisParams
+    stderr: Mapping[str, float]
+    correlations: F64
+    free: tuple[str, ...]
+    fixed: tuple[str, ...]
+    at_bounds: tuple[str, ...]
+    condition_number: float
+    experiments: tuple[ExperimentFit, ...]
+    residuals_um: F64
+    cost: float
+    n: int
+    loss: str
+    nfev: int
+    success: bool
+    message: str
+    seconds: float
+    warnings: tuple[str, ...] = field(default=())
+
+    @property
+    def values(self) -> dict[str, float]:
+        """Parameter name -> fitted value."""
+        return {k: float(getattr(self.params, k)) for k in PARAM_NAMES}
+
+    @property
+    def fit_error_pct(self) -> float:
+        """Worst experiment's fit error (2.27), in %."""
+        return max(e.fit_error_pct for e in self.experiments)
+
+    @property
+    def worst(self) -> ExperimentFit:
+        """The experiment with the largest fit error."""
+        return max(self.experiments, key=lambda e: e.fit_error_pct)
+
+
+def _free_names(data: CalibrationData, fix: Iterable[str]) -> tuple[tuple[str, ...], list[str]]:
+    fixed = set(fix)
+    unknown = fixed - set(PARAM_NAMES)
+    if unknown:
+        raise CalibrationError(f"unknown parameter(s) to fix: {', '.join(sorted(unknown))}")
+    notes: list[str] = []
+    n_f = _distinct(data.frequency_hz)
+    n_r = _distinct(data.v_max - data.v_min)
+    if n_r < 2:
+        raise CalibrationError(
+            f"the frame has {n_r} distinct voltage range(s); at least 2 (better 4 or more) are needed"
+        )
+    if n_f < 3 and "tau_s" not in fixed:
+        fixed.add("tau_s")
+        notes.append(f"only {n_f} distinct frequencies: tau_s held at its start value")
+    if n_f < 2 and "a1" not in fixed:
+        fixed.add("a1")
+        notes.append("one frequency only: a1 held at its start value")
+    if n_r < 3 and "a2_per_v" not in fixed:
+        fixed.add("a2_per_v")
+        notes.append(f"only {n_r} distinct ranges: a2_per_v held at its start value")
+    return tuple(k for k in PARAM_NAMES if k in fixed), notes
+
+
+def fit(
+    data: CalibrationData,
+    *,
+    start: ThesisParams | None = None,
+    loss: str = "linear",
+    f_scale: float | None = None,
+    fix: Iterable[str] = (),
+    max_nfev: int = 500,
+    on_eval: Callable[[int], None] | None = None,
+) -> CalibrationResult:
+    """Fit the 7-parameter model (3.8) with per-experiment offsets.
+
+    Parameters
+    ----------
+    data
+        The frame (:func:`prepare`).
+    start
+        Parameters to start from (e.g. a scanner config's); the automatic start is
+        computed as well and the better one is used.
+    loss
+        ``linear`` (least squares) or a robust loss of :func:`scipy.optimize.least_squares`.
+    f_scale
+        Residual scale of a robust loss (um); default twice the robust noise estimate.
+    fix
+        Parameter names to hold at their start values.
+    max_nfev
+        Evaluation budget of the solver.
+    on_eval
+        Called with the running number of model evaluations (progress display).
+
+    Returns
+    -------
+    CalibrationResult
+
+    Raises
+    ------
+    CalibrationError
+        Unknown loss / parameter, a frame that cannot determine the model, or a
+        solver failure.
+    """
+    t0 = time.perf_counter()
+    if loss not in LOSSES:
+        raise CalibrationError(f"unknown loss {loss!r}; choose one of {', '.join(LOSSES)}")
+    fixed, notes = _free_names(data, fix)
+    free = tuple(k for k in PARAM_NAMES if k not in fixed)
+    mask = np.array([k in free for k in PARAM_NAMES])
+    a2_scale = float(np.mean(0.5 * (data.v_max - data.v_min)))
+    lo, hi = _z_bounds(a2_scale)
+    nfev = [0]
+
+    def count() -> None:
+        nfev[0] += 1
+        if on_eval is not None:
+            on_eval(nfev[0])
+
+    held = {k: float(getattr(start, k)) for k in fixed} if start is not None else {}
+    if "tau_s" in fixed and "tau_s" not in held:
+        held["tau_s"] = _DEFAULT_TAU_S
+    if "a1" in fixed and "a1" not in held:
+        held["a1"] = 0.0
+    if "a2_per_v" in fixed and "a2_per_v" not in held:
+        held["a2_per_v"] = 0.0
+    candidates = [auto_start(data, fixed=held)]
+    if start is not None:
+        candidates.append(start)
+    best_z, best_cost = None, math.inf
+    for cand in candidates:
+        z = np.clip(_to_z(cand, a2_scale), lo + 1e-9, hi - 1e-9)
+        for k, val in held.items():
+            j = PARAM_NAMES.index(k)
+            z[j] = _to_z(ThesisParams(**{**_as_dict(cand), k: val}), a2_scale)[j]
+        x, _ = _model(data, z, a2_scale, jac=False)
+        count()
+        c = float(np.sum(_centre(data, data.position_um - x) ** 2))
+        if c < best_cost:
+            best_z, best_cost = z, c
+    assert best_z is not None
+    z_full = best_z.copy()
+
+    def full(zf: F64) -> F64:
+        out = z_full.copy()
+        out[mask] = zf
+        return out
+
+    def resid(zf: F64) -> F64:
+        count()
+        x, _ = _model(data, full(zf), a2_scale, jac=False)
+        return _centre(data, x - data.position_um)
+
+    def jac(zf: F64) -> F64:
+        _, J = _model(data, full(zf), a2_scale, jac=True)
+        assert J is not None
+        return _centre(data, J[:, mask])
+
+    kw: dict[str, Any] = {"method": "trf", "x_scale": 1.0, "ftol": 1e-10, "xtol": 1e-10, "gtol": 1e-10}
+    try:
+        res = least_squares(
+            resid, best_z[mask], jac=jac, bounds=(lo[mask], hi[mask]), max_nfev=max_nfev, **kw
+        )
+    except (ValueError, ModelError, FloatingPointError) as exc:
+        raise CalibrationError(f"the fit failed: {exc}") from exc
+    z_sol = full(res.x)
+    n_exp = data.n_experiments
+    jac_for_cov = res.jac
+    resid_for_dof = res.fun
+    cost = float(res.cost)
+    success, message = bool(res.success), str(res.message)
+    if loss != "linear":
+        x, _ = _model(data, z_sol, a2_scale, jac=False)
+        r0 = _centre(data, data.position_um - x)
+        scale = f_scale if f_scale is not None else 2.0 * 1.4826 * float(np.median(np.abs(r0)))
+        starts, counts = data.starts, data.counts
+        offs0 = np.add.reduceat(data.position_um - x, starts) / counts
+
+        def resid_r(zc: F64) -> F64:
+            count()
+            xm, _ = _model(data, full(zc[: mask.sum()]), a2_scale, jac=False)
+            return xm + np.repeat(zc[mask.sum() :], counts) - data.position_um
+
+        def jac_r(zc: F64) -> F64:
+            _, J = _model(data, full(zc[: mask.sum()]), a2_scale, jac=True)
+            assert J is not None
+            ind = np.zeros((data.voltage_v.size, n_exp))
+            ind[np.arange(data.voltage_v.size), data.index] = 1.0
+            return np.hstack([J[:, mask], ind])
+
+        big = np.full(n_exp, np.inf)
+        try:
+            res = least_squares(
+                resid_r,
+                np.concatenate([res.x, offs0]),
+                jac=jac_r,
+                bounds=(np.concatenate([lo[mask], -big]), np.concatenate([hi[mask], big])),
+                loss=loss,
+                f_scale=scale,
+                max_nfev=max_nfev,
+                **kw,
+            )
+        except (ValueError, ModelError, FloatingPointError) as exc:
+            raise CalibrationError(f"the robust fit failed: {exc}") from exc
+        z_sol = full(res.x[: mask.sum()])
+        # Standard errors as if the outliers (beyond 3 robust sigma) had been left out.
+        r_fin = np.asarray(res.fun, dtype=np.float64)
+        sigma_rob = 1.4826 * float(np.median(np.abs(r_fin)))
+        inl = np.abs(r_fin) <= 3.0 * sigma_rob
+        jac_for_cov = jac_r(res.x)[inl]
+        resid_for_dof = r_fin[inl]
+        cost = float(res.cost)
+        success, message = bool(res.success), str(res.message)
+        notes.append(
+            f"robust loss {loss} with f_scale {scale:.4g} um; {int((~inl).sum())} samples "
+            f"({100.0 * float((~inl).mean()):.2g} %) beyond 3 robust sigma"
+        )
+
+    params = _from_z(z_sol, a2_scale)
+    x, _ = _model(data, z_sol, a2_scale, jac=False)
+    offsets = np.add.reduceat(data.position_um - x, data.starts) / data.counts
+    if loss != "linear":
+        offsets = np.asarray(res.x[mask.sum() :], dtype=np.float64)
+    resid_um = data.position_um - x - np.repeat(offsets, data.counts)
+    err_pct, sigma, rng = _errors(data, x + np.repeat(offsets, data.counts), resid_um, int(mask.sum()))
+
+    # Covariance from the (projected) Jacobian and the residual variance.
+    p_free = int(mask.sum())
+    dof = max(np.size(resid_for_dof) - p_free - n_exp, 1)
+    s2 = float(np.sum(np.asarray(resid_for_dof) ** 2)) / dof
+    Jc = np.asarray(jac_for_cov, dtype=np.float64)
+    norms = np.linalg.norm(Jc, axis=0)
+    norms[norms == 0] = 1.0
+    _, sv, vt = np.linalg.svd(Jc / norms, full_matrices=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    inv_sv2 = np.where(sv > sv[0] * 1e-13, 1.0 / np.maximum(sv, 1e-300) ** 2, np.inf)
+    cov_all = (vt.T * inv_sv2) @ vt / np.outer(norms, norms) * s2
+    cov = cov_all[:p_free, :p_free]
+    sd_z = np.sqrt(np.abs(np.diag(cov)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(sd_z, sd_z)
+    vals = np.array([getattr(params, k) for k in PARAM_NAMES])
+    dz = np.where(_LOG, vals, 1.0)
+    dz[5] = 1.0 / a2_scale
+    stderr = dict.fromkeys(PARAM_NAMES, 0.0)
+    for j, k in enumerate(free):
+        stderr[k] = float(abs(dz[PARAM_NAMES.index(k)]) * sd_z[j])
+
+    warnings = list(notes)
+    span = hi - lo
+    at_bounds = tuple(
+        k
+        for k in free
+        if min(
+            z_sol[PARAM_NAMES.index(k)] - lo[PARAM_NAMES.index(k)],
+            hi[PARAM_NAMES.index(k)] - z_sol[PARAM_NAMES.index(k)],
+        )
+        < 1e-6 * span[PARAM_NAMES.index(k)]
+    )
+    if at_bounds:
+        warnings.append(f"on a bound (standard errors not meaningful): {', '.join(at_bounds)}")
+    if cond > 1e8:
+        warnings.append(f"ill-conditioned: condition number {cond:.3g}; see the correlations")
+    if params.u_um_per_v >= params.b_um_per_v:
+        warnings.append("u >= b: the loop shape is not that of a piezo (check the data)")
+    vh = 0.5 * (data.v_max - data.v_min)
+    kk = (1.0 - params.a1 * np.exp(-1.0 / (data.frequency_hz * params.tau_s))) * (
+        params.a2_per_v * vh + params.a3
+    )
+    if np.any(kk < 0):
+        warnings.append("the creep factor k(f, V) of (3.5) is negative for some experiments")
+    if not success:
+        warnings.append(f"solver did not converge: {message}")
+
+    exps = tuple(
+        ExperimentFit(
+            label=data.labels[i],
+            axis=data.axes[i],
+            path=data.paths[i],
+            v_min=float(data.v_min[i]),
+            v_max=float(data.v_max[i]),
+            frequency_hz=float(data.frequency_hz[i]),
+            n_loops=data.n_loops[i],
+            n=int(data.counts[i]),
+            position_offset_um=float(offsets[i]),
+            range_um=float(rng[i]),
+            sigma_um=float(sigma[i]),
+            fit_error_pct=float(err_pct[i]),
+            rms_um=float(np.sqrt(np.mean(resid_um[data.starts[i] : data.starts[i] + data.counts[i]] ** 2))),
+        )
+        for i in range(n_exp)
+    )
+    resid_um.setflags(write=False)
+    return CalibrationResult(
+        params=params,
+        stderr=MappingProxyType(stderr),
+        correlations=corr,
+        free=free,
+        fixed=fixed,
+        at_bounds=at_bounds,
+        condition_number=cond,
+        experiments=exps,
+        residuals_um=resid_um,
+        cost=cost,
+        n=int(resid_um.size),
+        loss=loss,
+        nfev=nfev[0],
+        success=success,
+        message=message,
+        seconds=time.perf_counter() - t0,
+        warnings=tuple(warnings),
+    )
+
+
+def _as_dict(p: ThesisParams) -> dict[str, float]:
+    return {k: float(getattr(p, k)) for k in PARAM_NAMES}
+
+
+def calibrate(
+    experiments: Sequence[Experiment],
+    *,
+    start: ThesisParams | None = None,
+    loss: str = "linear",
+    f_scale: float | None = None,
+    fix: Iterable[str] = (),
+    skip_loops: int = 0,
+    on_eval: Callable[[int], None] | None = None,
+) -> CalibrationResult:
+    """:func:`prepare` the experiments and :func:`fit` them (see there)."""
+    data = prepare(experiments, skip_loops=skip_loops)
+    return fit(data, start=start, loss=loss, f_scale=f_scale, fix=fix, on_eval=on_eval)
+
+
+# ----------------------------------------------------------------------------------------------- output
+
+
+def result_json(result: CalibrationResult, *, inputs: Sequence[str] = ()) -> dict[str, Any]:
+    """The JSON document of ``piezod calibrate --json`` (DESIGN section 4)."""
+    corr = {
+        a: {b: float(result.correlations[i, j]) for j, b in enumerate(result.free)}
+        for i, a in enumerate(result.free)
+    }
+    return {
+        "params": result.values,
+        "stderr": dict(result.stderr),
+        "fit_error_pct": result.fit_error_pct,
+        "experiments": [
+            {
+                "label": e.label,
+                "axis": e.axis,
+                "path": e.path,
+                "range_v": e.range_v,
+                "offset_v": e.offset_v,
+                "v_min": e.v_min,
+                "v_max": e.v_max,
+                "frequency_hz": e.frequency_hz,
+                "n_loops": e.n_loops,
+                "range_um": e.range_um,
+                "position_offset_um": e.position_offset_um,
+                "sigma_um": e.sigma_um,
+                "rms_um": e.rms_um,
+                "fit_error_pct": e.fit_error_pct,
+                "n": e.n,
+            }
+            for e in result.experiments
+        ],
+        "correlations": corr,
+        "condition_number": result.condition_number,
+        "free": list(result.free),
+        "fixed": list(result.fixed),
+        "at_bounds": list(result.at_bounds),
+        "n": result.n,
+        "n_experiments": len(result.experiments),
+        "cost": result.cost,
+        "loss": result.loss,
+        "nfev": result.nfev,
+        "success": result.success,
+        "message": result.message,
+        "seconds": result.seconds,
+        "warnings": list(result.warnings),
+        "inputs": list(inputs),
+    }
+
+
+def calibrated_config(
+    result: CalibrationResult,
+    *,
+    axis: str = "x",
+    base: ScannerConfig | None = None,
+    inputs: Sequence[str] = (),
+    voltage_span_v: tuple[float, float] | None = None,
+    name: str = "calibrated",
+) -> ScannerConfig:
+    """The scanner config with the fitted parameters on ``axis``.
+
+    Parameters
+    ----------
+    result
+        The fit.
+    axis
+        The calibrated axis.
+    base
+        Scanner to start from: its limits and other axes are kept, ``axis``'s thesis
+        parameters are replaced. Without a base a minimal scanner is written whose
+        voltage limits cover ``voltage_span_v`` (only the x axis).
+    inputs
+        Recording files, for the provenance section.
+    voltage_span_v
+        Lowest and highest recorded voltage (needed without ``base``).
+    name
+        Scanner name without ``base``.
+
+    Raises
+    ------
+    CalibrationError
+        The parameters do not fit the config schema, or no base for a non-x axis.
+    """
+    try:
+        thesis = ThesisModelConfig(**result.values)
+    except ValueError as exc:
+        raise CalibrationError(f"fitted parameters are outside the config limits: {exc}") from exc
+    prov: dict[str, Any] = {
+        "tool": f"piezod calibrate {__version__}",
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "axis": axis,
+        "recordings": list(inputs),
+        "n_experiments": len(result.experiments),
+        "n_samples": result.n,
+        "loss": result.loss,
+        "fit_error_pct": round(result.fit_error_pct, 6),
+        "stderr": {k: float(f"{v:.6g}") for k, v in result.stderr.items()},
+        "fixed": list(result.fixed),
+        "condition_number": float(f"{result.condition_number:.4g}"),
+        "voltage_range_v": [
+            min(e.range_v for e in result.experiments),
+            max(e.range_v for e in result.experiments),
+        ],
+        "frequency_range_hz": [
+            min(e.frequency_hz for e in result.experiments),
+            max(e.frequency_hz for e in result.experiments),
+        ],
+    }
+    if base is not None:
+        if axis not in base.axes:
+            raise CalibrationError(f"the base config has no axis {axis!r} (axes: {', '.join(base.axes)})")
+        axes = dict(base.axes)
+        axes[axis] = base.axes[axis].model_copy(update={"thesis": thesis})
+        data = base.model_dump()
+        data["axes"] = {k: a.model_dump() for k, a in axes.items()}
+        data["calibration"] = prov
+        try:
+            return ScannerConfig.model_validate(data)
+        except ValueError as exc:
+            raise CalibrationError(f"cannot build the calibrated config: {exc}") from exc
+    if axis != "x":
+        raise CalibrationError(f"calibrating axis {axis!r} needs --config (a scanner with an x axis)")
+    if voltage_span_v is None:
+        raise CalibrationError("without a base config the recorded voltage span is needed")
+    vlo = math.floor(voltage_span_v[0])
+    vhi = math.ceil(voltage_span_v[1])
+    if vhi <= vlo:
+        vhi = vlo + 1
+    try:
+        ax = AxisConfig(
+            voltage_min_v=vlo,
+            voltage_max_v=vhi,
+            safe_voltage_v=float(min(max(0.0, vlo), vhi)),
+            thesis=thesis,
+        )
+        return ScannerConfig(
+            name=name,
+            description="written by piezod calibrate from recordings (voltage limits = recorded span)",
+            axes={"x": ax},
+            calibration=prov,
+        )
+    except ValueError as exc:
+        raise CalibrationError(f"cannot build the calibrated config: {exc}") from exc

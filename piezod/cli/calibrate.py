@@ -1,0 +1,139 @@
+"""``piezod calibrate``: fit the hysteresis + creep model (3.8) to recorded loops (offline)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+import numpy as np
+
+from piezod.calibrate import LOSSES, PARAM_NAMES, CalibrationResult, calibrate, calibrated_config, result_json
+from piezod.cli._common import add_json_option, add_port_options, human_stream, write_json
+from piezod.config import dump_config, load_config
+from piezod.errors import CalibrationError, PiezodError
+from piezod.progress import progress_bar
+from piezod.recording import AXES, read_experiments
+
+
+def register(sub: Any) -> None:
+    """Add the ``calibrate`` subcommand."""
+    p: argparse.ArgumentParser = sub.add_parser(
+        "calibrate",
+        help="fit the model (3.8) to recorded loops and write the scanner config",
+        description=(
+            "Least-squares fit of the 7-parameter hysteresis + creep model (3.8) with one position "
+            "offset per experiment to triangular-scan recordings. Scan range, offset and frequency "
+            "are inferred from the voltage. Writes the scanner YAML (--out) and a JSON report (--json)."
+        ),
+    )
+    p.add_argument("recordings", nargs="*", metavar="REC.csv", help="recording files (DESIGN section 3)")
+    p.add_argument("--config", metavar="F", help="base scanner YAML: limits kept, start parameters taken")
+    p.add_argument("--out", metavar="F.yaml", help="write the calibrated scanner config here")
+    add_json_option(p)
+    p.add_argument(
+        "--axis", choices=AXES, help="axis to calibrate (default: the recordings' only axis, else x)"
+    )
+    p.add_argument("--loss", choices=LOSSES, default="linear", help="loss function (default: linear)")
+    p.add_argument("--f-scale", type=float, metavar="UM", help="residual scale of a robust loss (um)")
+    p.add_argument(
+        "--fix", nargs="+", default=[], choices=PARAM_NAMES, metavar="NAME", help="hold parameters at start"
+    )
+    p.add_argument(
+        "--skip-loops", type=int, default=0, metavar="N", help="drop N settling loops per experiment"
+    )
+    p.add_argument(
+        "--allow-truncated-tail",
+        action="store_true",
+        help="drop an unterminated last line (crash while writing)",
+    )
+    add_port_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``piezod calibrate``."""
+    if args.sim or args.port:
+        raise PiezodError(
+            "on-stage calibration (--sim / --port) is not available yet; record a calibration frame "
+            "and run 'piezod calibrate REC.csv...'"
+        )
+    if not args.recordings:
+        raise CalibrationError("no recordings given (piezod calibrate REC.csv...)")
+    if args.skip_loops < 0:
+        raise CalibrationError(f"--skip-loops must be >= 0, got {args.skip_loops}")
+    base = load_config(args.config) if args.config else None
+    exps = read_experiments(args.recordings, axis=args.axis, allow_truncated_tail=args.allow_truncated_tail)
+    axes = sorted({e.axis for e in exps if e.axis is not None})
+    if args.axis is None and len(axes) > 1:
+        raise CalibrationError(f"the recordings contain axes {', '.join(axes)}: choose one with --axis")
+    axis = args.axis or (axes[0] if axes else "x")
+    start = base.axes[axis].thesis.params() if base is not None and axis in base.axes else None
+
+    with progress_bar(desc="calibrate", total=None, unit="eval") as bar:
+
+        def tick(_n: int) -> None:
+            bar.update(1)
+
+        result = calibrate(
+            exps,
+            start=start,
+            loss=args.loss,
+            f_scale=args.f_scale,
+            fix=args.fix,
+            skip_loops=args.skip_loops,
+            on_eval=tick,
+        )
+    out = human_stream(args)
+    _print_summary(result, axis, out)
+    if args.out:
+        span = (
+            float(min(np.min(e.voltage_v) for e in exps)),
+            float(max(np.max(e.voltage_v) for e in exps)),
+        )
+        cfg = calibrated_config(
+            result, axis=axis, base=base, inputs=list(args.recordings), voltage_span_v=span
+        )
+        dump_config(cfg, args.out, header=f"scanner config written by piezod calibrate (axis {axis})")
+        print(f"wrote {args.out}", file=out)
+    write_json(args.json, result_json(result, inputs=list(args.recordings)))
+    if not result.success:
+        print(f"piezod calibrate: the fit did not converge: {result.message}", file=out)
+        return 1
+    return 0
+
+
+def _print_summary(result: CalibrationResult, axis: str, out: Any) -> None:
+    print(
+        f"axis {axis}: {len(result.experiments)} experiments, {result.n} samples, loss {result.loss}, "
+        f"{result.nfev} evaluations, {result.seconds:.2f} s",
+        file=out,
+    )
+    for k in PARAM_NAMES:
+        tag = "  (fixed)" if k in result.fixed else ""
+        print(f"  {k:<12} = {getattr(result.params, k):<12.6g} +- {result.stderr[k]:.3g}{tag}", file=out)
+    print(
+        f"  {'experiment':<28} {'range V':>8} {'offs V':>7} {'f Hz':>7} {'range um':>9} {'fit err %':>9}",
+        file=out,
+    )
+    for e in result.experiments:
+        print(
+            f"  {e.label[-28:]:<28} {e.range_v:8.1f} {e.offset_v:7.1f} {e.frequency_hz:7.3g} "
+            f"{e.range_um:9.3f} {e.fit_error_pct:9.4f}",
+            file=out,
+        )
+    w = result.worst
+    print(
+        f"worst fit error {w.fit_error_pct:.4f} % ({w.label}); "
+        f"condition number {result.condition_number:.3g}",
+        file=out,
+    )
+    strong = [
+        f"{a}/{b} {result.correlations[i, j]:+.3f}"
+        for i, a in enumerate(result.free)
+        for j, b in enumerate(result.free)
+        if j > i and abs(result.correlations[i, j]) > 0.95
+    ]
+    if strong:
+        print("strong correlations: " + ", ".join(strong), file=out)
+    for msg in result.warnings:
+        print(f"note: {msg}", file=out)

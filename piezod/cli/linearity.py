@@ -1,0 +1,63 @@
+"""``piezod linearity``: non-linearity and length error (4.14)-(4.16) of recorded scans."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from piezod.cli._common import add_json_option, human_stream, write_json
+from piezod.linearity import LinearityReport, linearity
+from piezod.recording import AXES, read_experiments
+
+
+def register(sub: Any) -> None:
+    """Add the ``linearity`` subcommand."""
+    p: argparse.ArgumentParser = sub.add_parser(
+        "linearity",
+        help="non-linearity and length error of recorded scans (thesis 4.14-4.16)",
+        description=(
+            "Per experiment and branch, regress the measured position on the commanded target (or, "
+            "without a target column, on the pixel coordinate of the nominal range) and report the "
+            "residual non-linearity sigma / measured range and the length error, in %."
+        ),
+    )
+    p.add_argument("recordings", nargs="+", metavar="REC.csv", help="recording files (DESIGN section 3)")
+    add_json_option(p)
+    p.add_argument("--range-um", type=float, metavar="R", help="nominal scan range (um)")
+    p.add_argument("--overscan", type=float, metavar="O", help="overscan fraction (default: from the file)")
+    p.add_argument("--axis", choices=AXES, help="only this axis")
+    p.add_argument(
+        "--allow-truncated-tail",
+        action="store_true",
+        help="drop an unterminated last line (crash while writing)",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``piezod linearity``."""
+    exps = read_experiments(args.recordings, axis=args.axis, allow_truncated_tail=args.allow_truncated_tail)
+    report = linearity(exps, range_um=args.range_um, overscan=args.overscan)
+    _print_table(report, human_stream(args))
+    write_json(args.json, report.to_json())
+    return 0
+
+
+def _print_table(report: LinearityReport, out: Any) -> None:
+    print(
+        f"{'experiment':<28} {'axis':>4} {'f Hz':>7} {'offs V':>7} {'range um':>9} {'meas um':>9} "
+        f"{'nonlin %':>9} {'length %':>9}",
+        file=out,
+    )
+    for e in report.experiments:
+        print(
+            f"{e.label[-28:]:<28} {e.axis or '-':>4} {e.frequency_hz:7.3g} {e.offset_v:7.1f} "
+            f"{e.range_um:9.4g} {e.measured_range_um:9.4g} "
+            f"{e.nonlinearity_pct:9.4f} {e.length_error_pct:+9.4f}",
+            file=out,
+        )
+    print(
+        f"max non-linearity {report.max_nonlinearity_pct:.4f} %, "
+        f"max |length error| {report.max_abs_length_error_pct:.4f} %",
+        file=out,
+    )

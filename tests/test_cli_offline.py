@@ -1,0 +1,164 @@
+"""``piezod calibrate`` and ``piezod linearity`` end to end on files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from piezod.cli import main
+from piezod.config import AxisConfig, ScannerConfig, ThesisModelConfig, dump_config, load_config
+from piezod.recording import Recording, write_recording
+from piezod.synth import MEDIUM_TUBE, random_plan, synth_session
+
+PARAMS = ("alpha_per_v", "b_um_per_v", "u_um_per_v", "tau_s", "a1", "a2_per_v", "a3")
+
+
+@pytest.fixture(scope="module")
+def frame(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A 10-experiment frame split over two files."""
+    d = tmp_path_factory.mktemp("frame")
+    s = synth_session(MEDIUM_TUBE, random_plan(6, 10, offset_v=(-20.0, 20.0)), samples_per_loop=512, seed=6)
+    rec = s.recording
+    half = int(np.flatnonzero(rec.experiment == s.plan[5].label)[0])
+    parts = []
+    for name, sl in (("a.csv", slice(0, half)), ("b.csv", slice(half, None))):
+        part = Recording(
+            t_s=rec.t_s[sl],
+            voltage_v=rec.voltage_v[sl],
+            position_um=rec.position_um[sl],
+            axis=rec.axis[sl] if rec.axis is not None else None,
+            experiment=rec.experiment[sl] if rec.experiment is not None else None,
+        )
+        write_recording(d / name, part)
+        parts.append(d / name)
+    return parts[0], parts[1]
+
+
+def _one_line_error(capsys: pytest.CaptureFixture[str], prefix: str) -> str:
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err, err
+    assert err.startswith(prefix), err
+    return err
+
+
+def test_calibrate_writes_config_and_json(frame: tuple[Path, Path], tmp_path: Path) -> None:
+    out, js = tmp_path / "cal.yaml", tmp_path / "cal.json"
+    rc = main(["calibrate", str(frame[0]), str(frame[1]), "--out", str(out), "--json", str(js)])
+    assert rc == 0
+    doc = json.loads(js.read_text())
+    assert {"params", "stderr", "fit_error_pct", "experiments", "correlations"} <= set(doc)
+    assert set(doc["params"]) == set(PARAMS)
+    assert len(doc["experiments"]) == 10
+    assert doc["experiments"][0]["label"].startswith("a.csv:")
+    for key in ("label", "range_v", "offset_v", "frequency_hz", "range_um", "fit_error_pct", "n"):
+        assert key in doc["experiments"][0]
+    assert doc["fit_error_pct"] < 0.5
+    cfg = load_config(out)
+    assert cfg.axes["x"].thesis.params().alpha_per_v == pytest.approx(doc["params"]["alpha_per_v"])
+    assert cfg.calibration is not None and cfg.calibration["n_experiments"] == 10
+
+
+def test_calibrate_keeps_the_base_config(frame: tuple[Path, Path], tmp_path: Path) -> None:
+    base = ScannerConfig(
+        name="medium-tube",
+        axes={
+            "x": AxisConfig(
+                voltage_min_v=-300,
+                voltage_max_v=300,
+                thesis=ThesisModelConfig(**{k: getattr(MEDIUM_TUBE, k) for k in PARAMS}),
+            )
+        },
+    )
+    dump_config(base, tmp_path / "base.yaml")
+    out = tmp_path / "new.yaml"
+    rc = main(
+        [
+            "calibrate",
+            str(frame[0]),
+            str(frame[1]),
+            "--config",
+            str(tmp_path / "base.yaml"),
+            "--out",
+            str(out),
+        ]
+    )
+    assert rc == 0
+    cfg = load_config(out)
+    assert cfg.name == "medium-tube" and cfg.axes["x"].voltage_max_v == 300
+    assert cfg.axes["x"].thesis.alpha_per_v == pytest.approx(MEDIUM_TUBE.alpha_per_v, rel=0.01)
+
+
+def test_json_to_stdout_moves_the_table_to_stderr(
+    frame: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["calibrate", str(frame[0]), str(frame[1]), "--json", "-"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["params"]
+    assert "worst fit error" in cap.err
+
+
+def test_on_stage_calibration_is_not_available_yet(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calibrate", "--sim", "--out", "x.yaml"]) == 2
+    assert "not available yet" in _one_line_error(capsys, "piezod calibrate: error:")
+    assert main(["calibrate", "--port", "/dev/ttyUSB0"]) == 2
+    assert "not available yet" in _one_line_error(capsys, "piezod calibrate: error:")
+    assert main(["calibrate"]) == 2
+    assert "no recordings" in _one_line_error(capsys, "piezod calibrate: error:")
+
+
+@pytest.mark.parametrize("command", ["calibrate", "linearity"])
+def test_corrupt_csv_exits_2_with_file_and_line(
+    frame: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    lines = frame[0].read_text().splitlines(keepends=True)
+    lines[40] = lines[40].replace(",", ";", 1)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("".join(lines))
+    assert main([command, str(bad)]) == 2
+    err = _one_line_error(capsys, f"piezod {command}: error: {bad}:41: ")
+    assert "wrong number of cells" in err
+
+
+def test_several_axes_need_a_choice(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    p = tmp_path / "xy.csv"
+    p.write_text("t,voltage,position,axis\n0,0,0,x\n0,0,0,y\n")
+    assert main(["calibrate", str(p)]) == 2
+    assert "choose one with --axis" in _one_line_error(capsys, "piezod calibrate: error:")
+
+
+def _scan_file(path: Path, gain: float) -> None:
+    spl, lines = 1000, 8
+    k = np.arange(lines * spl // 2 + 1)
+    ph = (k / spl) % 1.0
+    target = -10 + 20 * np.where(ph < 0.5, 2 * ph, 2 - 2 * ph)
+    rec = Recording(
+        t_s=k / (2.0 * spl),
+        voltage_v=8.0 * target + 0.01 * target**2,
+        position_um=gain * target + 0.3,
+        target_um=target,
+        experiment=np.full(k.size, f"g{gain:g}"),
+    )
+    write_recording(path, rec, metadata={"range_um": 20})
+
+
+def test_linearity_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _scan_file(tmp_path / "a.csv", 1.002)
+    _scan_file(tmp_path / "b.csv", 0.995)
+    js = tmp_path / "lin.json"
+    assert main(["linearity", str(tmp_path / "a.csv"), str(tmp_path / "b.csv"), "--json", str(js)]) == 0
+    doc = json.loads(js.read_text())
+    assert doc["max_abs_length_error_pct"] == pytest.approx(0.5, abs=1e-6)
+    assert doc["max_nonlinearity_pct"] < 1e-6
+    a, b = doc["experiments"]
+    assert b["length_error_pct"] == pytest.approx(-0.5, abs=1e-6)
+    for key in ("range_um", "frequency_hz", "offset_v", "nonlinearity_pct", "length_error_pct"):
+        assert key in a
+    assert a["length_error_pct"] == pytest.approx(0.2, abs=1e-6) and a["frequency_hz"] == pytest.approx(2.0)
+    assert "max non-linearity" in capsys.readouterr().out
+    assert main(["linearity", str(tmp_path / "a.csv"), "--json", "-"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["experiments"][0]["label"] == "g1.002"
+    assert "max non-linearity" in cap.err
