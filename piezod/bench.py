@@ -4,7 +4,8 @@ The full inverse (:class:`~piezod.model.inverse.ThesisInverse`) is timed on
 blocks of a triangular scan (both branches; the half line is not a multiple of
 the block, so some blocks hold a turning point), against the same inverse with
 W taken from :func:`scipy.special.lambertw` (the literal (4.11)), measured in the
-same run, interleaved, best of several repeats. The round-trip error is
+same run, alternating block by block; every block counts with its best time over
+the repeats (robust against other load on a shared machine). The round-trip error is
 ``max |x(V(x)) - x|`` over the run relative to the scan range.
 """
 
@@ -69,15 +70,25 @@ def triangular_targets(
     return x, np.where(up, 1, -1).astype(np.int8)
 
 
-def _time_blocks(
-    fn: Callable[[FloatArray, NDArray[np.int8]], FloatArray],
+def _time_interleaved(
+    fns: list[Callable[[FloatArray, NDArray[np.int8]], FloatArray]],
     blocks: list[tuple[FloatArray, NDArray[np.int8]]],
-) -> tuple[float, list[FloatArray]]:
-    out = []
-    t0 = time.perf_counter()
-    for xb, db in blocks:
-        out.append(fn(xb, db))
-    return time.perf_counter() - t0, out
+    repeats: int,
+) -> tuple[list[float], list[list[FloatArray]]]:
+    """Best time of every block over the repeats, summed, per function; the implementations
+    alternate block by block so that both see the same machine load."""
+    best = np.full((len(fns), len(blocks)), math.inf)
+    outputs: list[list[FloatArray]] = [[] for _ in fns]
+    clock = time.perf_counter
+    for rep in progress(range(repeats), desc="bench inverse"):
+        for j, (xb, db) in enumerate(blocks):
+            for i, fn in enumerate(fns):
+                t0 = clock()
+                out = fn(xb, db)
+                best[i, j] = min(best[i, j], clock() - t0)
+                if rep == 0:
+                    outputs[i].append(out)
+    return [float(t) for t in best.sum(axis=1)], outputs
 
 
 def run_inverse_bench(
@@ -120,14 +131,9 @@ def run_inverse_bench(
     n = block_samples * blocks
     x, d = triangular_targets(inv, n, half_line_samples)
     chunks = [(x[i : i + block_samples], d[i : i + block_samples]) for i in range(0, n, block_samples)]
-    best_ours = best_scipy = math.inf
-    v_ours: list[FloatArray] = []
-    v_scipy: list[FloatArray] = []
-    for _ in progress(range(repeats), desc="bench inverse"):
-        t, v_ours = _time_blocks(inv.voltage, chunks)
-        best_ours = min(best_ours, t)
-        t, v_scipy = _time_blocks(lambda xb, db: scipy_voltage(inv, xb, db), chunks)
-        best_scipy = min(best_scipy, t)
+    (best_ours, best_scipy), (v_ours, v_scipy) = _time_interleaved(
+        [inv.voltage, lambda xb, db: scipy_voltage(inv, xb, db)], chunks, repeats
+    )
     v = np.concatenate(v_ours)
     x_back = inv.position(v, d)
     roundtrip = float(np.max(np.abs(x_back - x)) / inv.range_um)

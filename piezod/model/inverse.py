@@ -318,14 +318,23 @@ class ThesisInverse:
             )
         return lo, hi
 
-    def _voltage_branch(self, x: FloatArray, lo: float, hi: float, fast: _Fast) -> FloatArray:
-        y = x * fast.ya
-        y += fast.yb
-        y_lo, y_hi = sorted((lo * fast.ya + fast.yb, hi * fast.ya + fast.yb))
-        w = lambertw0_exp_bounded(y, y_lo, y_hi, negative=fast.negative)
-        w *= fast.vw
-        v = x * fast.va
-        v += fast.vb
+    def _evaluate(
+        self,
+        x: FloatArray,
+        c: tuple[float | FloatArray, ...],
+        negative: bool,
+        y_bounds: tuple[float, float] | None,
+    ) -> FloatArray:
+        """``V = va x + vb + vw W0(±exp(ya x + yb))`` with coefficients ``c = (ya, yb, va, vb, vw)``."""
+        ya, yb, va, vb, vw = c
+        y = x * ya
+        y += yb
+        if y_bounds is None:
+            y_bounds = (float(y.min()), float(y.max()))
+        w = lambertw0_exp_bounded(y, y_bounds[0], y_bounds[1], negative=negative)
+        w *= vw
+        v = x * va
+        v += vb
         v += w
         np.maximum(v, self.v_min, out=v)
         np.minimum(v, self.v_max, out=v)
@@ -339,8 +348,7 @@ class ThesisInverse:
         position_um
             Absolute model positions inside ``[x_min, x_max]`` (um).
         direction
-            +1 (trace) or -1 (retrace), scalar or one per sample. Per-sample
-            directions are evaluated run by run (a scan block holds few runs).
+            +1 (trace) or -1 (retrace), scalar or one per sample.
 
         Returns
         -------
@@ -361,32 +369,35 @@ class ThesisInverse:
         if x.size == 0:
             return np.empty(shape)
         lo, hi = self._check_targets(x)
+        # both branches share the sign of the W argument (-sign(b - u))
+        negative = self._fast_t.negative
         d = np.asarray(direction)
         if d.ndim == 0:
-            fast = self._fast_t if _direction_sign(int(d)) == TRACE else self._fast_r
-            return self._voltage_branch(x, lo, hi, fast).reshape(shape)
+            f = self._fast_t if _direction_sign(int(d)) == TRACE else self._fast_r
+            y_bounds = (lo * f.ya + f.yb, hi * f.ya + f.yb)
+            y_bounds = (min(y_bounds), max(y_bounds))
+            return self._evaluate(x, (f.ya, f.yb, f.va, f.vb, f.vw), negative, y_bounds).reshape(shape)
         d = d.reshape(-1)
         if d.shape != x.shape:
             raise ModelError(f"direction has {d.size} entries for {x.size} positions")
+        t, r = self._fast_t, self._fast_r
         cuts = np.flatnonzero(d[1:] != d[:-1]) + 1
-        if cuts.size > _MAX_DIRECTION_RUNS:
+        if cuts.size <= _MAX_DIRECTION_RUNS:
+            coeffs = [np.empty_like(x) for _ in range(5)]
+            edges = [0, *cuts.tolist(), x.size]
+            for start, stop in itertools.pairwise(edges):
+                f = t if _direction_sign(int(d[start])) == TRACE else r
+                for arr, value in zip(coeffs, (f.ya, f.yb, f.va, f.vb, f.vw), strict=True):
+                    arr[start:stop] = value
+        else:
             trace = d == TRACE
             if int(np.count_nonzero(trace)) + int(np.count_nonzero(d == RETRACE)) != d.size:
                 raise ModelError("direction entries must be +1 (trace) or -1 (retrace)")
-            out = np.empty_like(x)
-            for mask, fast in ((trace, self._fast_t), (~trace, self._fast_r)):
-                part = np.ascontiguousarray(x[mask])
-                if part.size:
-                    out[mask] = self._voltage_branch(part, float(part.min()), float(part.max()), fast)
-            return out.reshape(shape)
-        out = np.empty_like(x)
-        edges = [0, *cuts.tolist(), x.size]
-        for start, stop in itertools.pairwise(edges):
-            fast = self._fast_t if _direction_sign(int(d[start])) == TRACE else self._fast_r
-            seg = x[start:stop]
-            seg_lo, seg_hi = (lo, hi) if len(edges) == 2 else (float(seg.min()), float(seg.max()))
-            out[start:stop] = self._voltage_branch(seg, seg_lo, seg_hi, fast)
-        return out.reshape(shape)
+            coeffs = [
+                np.where(trace, a, b)
+                for a, b in zip((t.ya, t.yb, t.va, t.vb, t.vw), (r.ya, r.yb, r.va, r.vb, r.vw), strict=True)
+            ]
+        return self._evaluate(x, tuple(coeffs), negative, None).reshape(shape)
 
     def position(self, voltage_v: ArrayLike, direction: int | ArrayLike) -> FloatArray:
         """Forward model (3.8) on the given branch, the same as :func:`~piezod.model.thesis.thesis_loop`.

@@ -35,6 +35,7 @@ indexing. Arguments below the branch point ``z < -1/e`` raise
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Callable, Sequence
 
@@ -229,9 +230,9 @@ def _pos_large(y: FloatArray, z: FloatArray | None) -> FloatArray:
 
 _Kernel = Callable[[FloatArray, FloatArray | None], FloatArray]
 
-_NEG_BOUNDS = np.array([_Y_TINY, _Y_BRANCH])
+_NEG_BOUNDS = (_Y_TINY, _Y_BRANCH)
 _NEG_KERNELS: tuple[_Kernel, ...] = (_neg_tiny, _neg_main, _neg_branch)
-_POS_BOUNDS = np.array([_Y_TINY, _Y_POS_MID, _Y_POS_ASYM])
+_POS_BOUNDS = (_Y_TINY, _Y_POS_MID, _Y_POS_ASYM)
 _POS_KERNELS: tuple[_Kernel, ...] = (_pos_tiny, _pos_small, _pos_mid, _pos_large)
 
 
@@ -240,11 +241,11 @@ def _dispatch(
     z: FloatArray | None,
     lo: float,
     hi: float,
-    bounds: NDArray[np.float64],
+    bounds: tuple[float, ...],
     kernels: tuple[_Kernel, ...],
 ) -> FloatArray:
-    i_lo = int(np.searchsorted(bounds, lo, side="right"))
-    i_hi = int(np.searchsorted(bounds, hi, side="right"))
+    i_lo = bisect.bisect_right(bounds, lo)
+    i_hi = bisect.bisect_right(bounds, hi)
     if i_lo == i_hi:
         return kernels[i_lo](y, z)
     region = np.searchsorted(bounds, y, side="right")

@@ -124,11 +124,16 @@ def _run_starts(dx: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.f
     A run starts at a sample whose step has the opposite sign of the last
     non-zero step; zero steps belong to the run they are in.
     """
-    moving = np.flatnonzero(dx)
+    sign = np.sign(dx)
+    if sign[0] != 0.0 and np.all(sign):
+        # the usual case: no held samples
+        first = np.concatenate(([0], np.flatnonzero(sign[1:] != sign[:-1]) + 1))
+        return first, sign[first]
+    moving = np.flatnonzero(sign)
     if moving.size == 0:
         return moving, np.empty(0)
-    sign = np.sign(dx[moving])
-    first = np.concatenate(([0], np.flatnonzero(np.diff(sign)) + 1))
+    sign = sign[moving]
+    first = np.concatenate(([0], np.flatnonzero(sign[1:] != sign[:-1]) + 1))
     return moving[first], sign[first]
 
 
@@ -185,12 +190,14 @@ def hysteresis_inverse_step(
         raise ValueError(f"position_um must be 1-D, got shape {x.shape}")
     if x.size == 0:
         return np.empty(0), state
-    if not np.all(np.isfinite(x)):
+    if not (math.isfinite(float(x.min())) and math.isfinite(float(x.max()))):
         bad = int(np.flatnonzero(~np.isfinite(x))[0])
         raise ModelError(f"target position {x[bad]!r} at sample {bad} is not finite")
     a, b, delta = params.alpha_per_v, params.b_um_per_v, params.delta_um
     n = x.size
-    dx = np.diff(x, prepend=state.position_um)
+    dx = np.empty_like(x)
+    dx[0] = x[0] - state.position_um
+    np.subtract(x[1:], x[:-1], out=dx[1:])
     starts, signs = _run_starts(dx)
     v = np.full(n, state.voltage_v)
     if starts.size == 0:
