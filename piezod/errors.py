@@ -19,7 +19,10 @@ exception that best describes it, so callers may catch either
     │   ├── LinkTimeoutError(TimeoutError)  no answer in time
     │   └── LinkClosedError(ConnectionError) board unplugged / port closed
     ├── BoardFaultError(RuntimeError)       the board reported a fault
-    └── SafetyError(ValueError)             a request would leave the configured limits
+    ├── SafetyError(ValueError)             a request would leave the configured limits
+    ├── EngineStateError(RuntimeError)      request does not fit the engine's state (busy, fault)
+    └── ApiError(RuntimeError)              the control API answered with an error (status, detail)
+        └── ApiUnreachableError(ConnectionError) no answer from the control API
 """
 
 from __future__ import annotations
@@ -98,3 +101,38 @@ class BoardFaultError(PiezodError, RuntimeError):
 
 class SafetyError(PiezodError, ValueError):
     """A request would drive the stage outside its configured limits."""
+
+
+class EngineStateError(PiezodError, RuntimeError):
+    """The request does not fit the engine's current state (busy, in fault, not scanning).
+
+    The control API answers it with HTTP 409.
+    """
+
+
+class ApiError(PiezodError, RuntimeError):
+    """The daemon's control API refused a request or failed.
+
+    Parameters
+    ----------
+    message
+        One line: what was asked and the server's reason.
+    status_code
+        The HTTP status, None when no HTTP answer arrived.
+    detail
+        The server's reason alone.
+    error
+        The server-side exception name, if the server gave one.
+    """
+
+    def __init__(
+        self, message: str, status_code: int | None = None, detail: str = "", error: str | None = None
+    ) -> None:
+        self.status_code = status_code
+        self.detail = detail or message
+        self.error = error
+        super().__init__(message)
+
+
+class ApiUnreachableError(ApiError, ConnectionError):
+    """No answer from the control API (no socket, connection refused, timeout)."""
