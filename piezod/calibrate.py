@@ -533,8 +533,10 @@ class CalibrationResult:
         return max(self.experiments, key=lambda e: e.fit_error_pct)
 
 
-def _free_names(data: CalibrationData, fix: Iterable[str]) -> tuple[tuple[str, ...], list[str]]:
+def _free_names(data: CalibrationData, fix: Iterable[str]) -> tuple[tuple[str, ...], set[str], list[str]]:
+    """(held parameters, those held because the frame cannot determine them, notes)."""
     fixed = set(fix)
+    asked = set(fixed)
     unknown = fixed - set(PARAM_NAMES)
     if unknown:
         raise CalibrationError(f"unknown parameter(s) to fix: {', '.join(sorted(unknown))}")
@@ -554,7 +556,7 @@ def _free_names(data: CalibrationData, fix: Iterable[str]) -> tuple[tuple[str, .
     if n_r < 3 and "a2_per_v" not in fixed:
         fixed.add("a2_per_v")
         notes.append(f"only {n_r} distinct ranges: a2_per_v held at its start value")
-    return tuple(k for k in PARAM_NAMES if k in fixed), notes
+    return tuple(k for k in PARAM_NAMES if k in fixed), fixed - asked, notes
 
 
 def fit(
@@ -600,7 +602,7 @@ def fit(
     t0 = time.perf_counter()
     if loss not in LOSSES:
         raise CalibrationError(f"unknown loss {loss!r}; choose one of {', '.join(LOSSES)}")
-    fixed, notes = _free_names(data, fix)
+    fixed, undetermined, notes = _free_names(data, fix)
     free = tuple(k for k in PARAM_NAMES if k not in fixed)
     mask = np.array([k in free for k in PARAM_NAMES])
     a2_scale = float(np.mean(0.5 * (data.v_max - data.v_min)))
@@ -612,14 +614,17 @@ def fit(
         if on_eval is not None:
             on_eval(nfev[0])
 
-    held = {k: float(getattr(start, k)) for k in fixed} if start is not None else {}
-    if "tau_s" in fixed and "tau_s" not in held:
-        held["tau_s"] = _DEFAULT_TAU_S
-    if "a1" in fixed and "a1" not in held:
-        held["a1"] = 0.0
-    if "a2_per_v" in fixed and "a2_per_v" not in held:
-        held["a2_per_v"] = 0.0
-    candidates = [auto_start(data, fixed=held)]
+    # Held values: the given start's; else, for what the frame cannot determine, neutral
+    # defaults (no frequency / range dependence, tau 1 s); else the automatic start's.
+    if start is not None:
+        held = {k: float(getattr(start, k)) for k in fixed}
+    else:
+        defaults = {"tau_s": _DEFAULT_TAU_S, "a1": 0.0, "a2_per_v": 0.0}
+        held = {k: defaults[k] for k in undetermined}
+    auto = auto_start(data, fixed=held)
+    for k in fixed:
+        held.setdefault(k, float(getattr(auto, k)))
+    candidates = [auto]
     if start is not None:
         candidates.append(start)
     best_z, best_cost = None, math.inf
@@ -668,6 +673,8 @@ def fit(
         x, _ = _model(data, z_sol, a2_scale, jac=False)
         r0 = _centre(data, data.position_um - x)
         scale = f_scale if f_scale is not None else 2.0 * 1.4826 * float(np.median(np.abs(r0)))
+        if not scale > 0:
+            raise CalibrationError(f"the robust loss needs a residual scale > 0 um, got {scale}")
         starts, counts = data.starts, data.counts
         offs0 = np.add.reduceat(data.position_um - x, starts) / counts
 

@@ -27,10 +27,10 @@ A recording is a UTF-8 CSV file::
   must increase within each axis and the rows of one experiment (per axis) must be
   contiguous.
 
-Well-known metadata keys (all optional): ``range_um`` (nominal scan range, used by
-``piezod linearity`` when there is no ``target`` column) and ``overscan_fraction``
-(fraction of every line, at each end, that lies in the turnaround overscan and is
-excluded from the linearity regression).
+Well-known metadata keys (all optional): ``range_um`` (nominal fast-axis scan range,
+the image width) and ``overscan`` (extra travel at each turning point as a fraction of
+``range_um``, as :class:`piezod.scan.RasterParams`); ``piezod linearity`` uses the
+first when there is no ``target`` column and excludes the overscan from its regression.
 
 Crash tolerance
 ---------------

@@ -166,6 +166,17 @@ def test_single_frequency_holds_tau_and_a1() -> None:
     assert res.fit_error_pct < 1.3 * float(fit_errors(data, MEDIUM_TUBE)[0].max())
 
 
+def test_user_fixed_parameters_are_held_at_the_start() -> None:
+    _, data = _frame(8, n_exp=8, spl=256)
+    res = fit(data, fix=["tau_s"])
+    assert res.fixed == ("tau_s",) and res.stderr["tau_s"] == 0.0
+    assert res.params.tau_s == auto_start(data).tau_s
+    res = fit(data, start=MEDIUM_TUBE, fix=["tau_s", "a2_per_v"])
+    assert (res.params.tau_s, res.params.a2_per_v) == (MEDIUM_TUBE.tau_s, MEDIUM_TUBE.a2_per_v)
+    assert res.free == ("alpha_per_v", "b_um_per_v", "u_um_per_v", "a1", "a3")
+    assert res.correlations.shape == (5, 5)
+
+
 def test_frames_that_cannot_determine_the_model() -> None:
     one_range = synth_session(MEDIUM_TUBE, calibration_plan((200.0,), (0.1, 1.0, 3.0)), samples_per_loop=256)
     with pytest.raises(CalibrationError, match="1 distinct voltage range"):

@@ -312,3 +312,39 @@ def test_parse_speed_is_vectorised() -> None:
     body = "\n".join(f"{a:.4f},{a * 3:.4f},{a * 0.2:.4f}" for a in t.tolist())
     rec = parse_recording(f"{HEADER}\n{body}\n", path="mem.csv")
     assert len(rec) == n and rec.line_numbers is not None and rec.line_numbers[-1] == n + 1
+
+
+@pytest.mark.slow
+def test_read_write_speed_against_loadtxt(tmp_path: Path) -> None:
+    """Benchmark: reading / writing 200k rows, as a ratio to plain ``np.loadtxt`` / ``np.savetxt``."""
+    import time
+
+    n = 200_000
+    rng = np.random.default_rng(0)
+    rec = Recording(
+        t_s=np.arange(n, dtype=np.float64) * 1e-4,
+        voltage_v=rng.uniform(-200, 200, n),
+        position_um=rng.normal(0, 10, n),
+        axis=np.full(n, "x"),
+        experiment=np.repeat(["a", "b"], n // 2),
+    )
+    p = tmp_path / "big.csv"
+    t0 = time.perf_counter()
+    write_recording(p, rec)
+    t_write = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    back = read_recording(p)
+    t_read = time.perf_counter() - t0
+    plain = tmp_path / "plain.csv"
+    t0 = time.perf_counter()
+    np.savetxt(plain, np.column_stack([rec.t_s, rec.voltage_v, rec.position_um]), delimiter=",")
+    t_savetxt = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    np.loadtxt(plain, delimiter=",")
+    t_loadtxt = time.perf_counter() - t0
+    print(
+        f"\n200k rows x 5 columns: read {t_read:.3f} s ({t_read / t_loadtxt:.2f} x np.loadtxt of 3 numeric "
+        f"columns, {t_loadtxt:.3f} s), write {t_write:.3f} s ({t_write / t_savetxt:.2f} x np.savetxt, "
+        f"{t_savetxt:.3f} s)"
+    )
+    assert len(back) == n

@@ -93,7 +93,10 @@ def run(args: argparse.Namespace) -> int:
         cfg = calibrated_config(
             result, axis=axis, base=base, inputs=list(args.recordings), voltage_span_v=span
         )
-        dump_config(cfg, args.out, header=f"scanner config written by piezod calibrate (axis {axis})")
+        header = f"scanner config written by piezod calibrate (axis {axis}) from {', '.join(args.recordings)}"
+        if args.config:
+            header += f"\nbase: {args.config} (limits and other axes kept)"
+        dump_config(cfg, args.out, header=header)
         print(f"wrote {args.out}", file=out)
     write_json(args.json, result_json(result, inputs=list(args.recordings)))
     if not result.success:
