@@ -166,6 +166,21 @@ def test_single_frequency_holds_tau_and_a1() -> None:
     assert res.fit_error_pct < 1.3 * float(fit_errors(data, MEDIUM_TUBE)[0].max())
 
 
+def test_long_loops_are_strided() -> None:
+    plan = calibration_plan((100.0, 250.0, 400.0), (0.1, 1.0, 4.0), n_loops=2)
+    s = synth_session(MEDIUM_TUBE, plan, samples_per_loop=4096, noise_um=0.005, seed=4)
+    exps = split_experiments(s.recording)
+    data = prepare(exps, max_samples_per_loop=1024)
+    assert data.counts.tolist() == [2 * 1024 + 1] * 9
+    full = prepare(exps, max_samples_per_loop=None)
+    assert full.counts.tolist() == [2 * 4096 + 1] * 9
+    # striding keeps the per-sample noise: the fit errors stay comparable with the full data
+    a, b = fit(data), fit(full)
+    assert a.fit_error_pct == pytest.approx(b.fit_error_pct, rel=0.05)
+    for k in PARAM_NAMES:
+        assert abs(getattr(a.params, k) - getattr(MEDIUM_TUBE, k)) < 4 * a.stderr[k], k
+
+
 def test_user_fixed_parameters_are_held_at_the_start() -> None:
     _, data = _frame(8, n_exp=8, spl=256)
     res = fit(data, fix=["tau_s"])

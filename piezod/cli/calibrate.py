@@ -42,6 +42,13 @@ def register(sub: Any) -> None:
         "--skip-loops", type=int, default=0, metavar="N", help="drop N settling loops per experiment"
     )
     p.add_argument(
+        "--max-samples-per-loop",
+        type=int,
+        default=2048,
+        metavar="N",
+        help="keep every k-th sample so that a loop has at most N (0 = all; default 2048)",
+    )
+    p.add_argument(
         "--allow-truncated-tail",
         action="store_true",
         help="drop an unterminated last line (crash while writing)",
@@ -81,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
             f_scale=args.f_scale,
             fix=args.fix,
             skip_loops=args.skip_loops,
+            max_samples_per_loop=args.max_samples_per_loop or None,
             on_eval=tick,
         )
     out = human_stream(args)
