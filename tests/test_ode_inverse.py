@@ -132,3 +132,32 @@ def test_non_finite_targets_raise() -> None:
         hysteresis_inverse_step(LONG_TUBE, np.zeros((2, 2)), relaxed_state(LONG_TUBE))
     v, s = hysteresis_inverse_step(LONG_TUBE, np.empty(0), relaxed_state(LONG_TUBE, 3.0))
     assert v.size == 0 and s == relaxed_state(LONG_TUBE, 3.0)
+
+
+def test_creep_term_inverse_is_the_thesis_inverse_in_steady_state() -> None:
+    """With kappa = b_hat - b the per-sample inverse converges to the closed-form (3.8) inverse."""
+    from piezod.model import ThesisParams, hysteresis_step, relaxed_state
+    from piezod.model.inverse import ThesisInverse
+
+    p = ThesisParams(3.23e-3, 0.081, 0.016, 2.666, 0.081, 2.78e-3, 0.872)
+    inv = ThesisInverse.for_scan(p, 20.0, 1.0, v_limits=(-230.0, 230.0), center_v=20.0)
+    kappa = inv.b_hat - p.b_um_per_v
+    n = 2000
+    phase = (np.arange(8 * n) % n) / n
+    tri = np.where(phase < 0.5, 2 * phase, 2 - 2 * phase)
+    direction = np.where(phase < 0.5, 1, -1)
+    x_abs = p.b_um_per_v * inv.center_v + (tri - 0.5) * 20.0
+    start = relaxed_state(p.hysteresis, inv.v_min)
+    v, _ = hysteresis_inverse_step(p.hysteresis, x_abs + kappa * inv.center_v, start, kappa_um_per_v=kappa)
+    np.testing.assert_allclose(v[-n:], inv.voltage(x_abs[-n:], direction[-n:]), atol=1e-4)
+    x_h, _ = hysteresis_step(p.hysteresis, v, start)
+    np.testing.assert_allclose(x_h + kappa * v, x_abs + kappa * inv.center_v, atol=1e-9)
+
+
+def test_creep_term_must_keep_the_branch_invertible() -> None:
+    from piezod.errors import ModelError
+    from piezod.model import relaxed_state
+
+    p = HysteresisParams(3e-3, 0.1, 0.06)
+    with pytest.raises(ModelError, match="b \\+ kappa"):
+        hysteresis_inverse_step(p, np.array([1.0]), relaxed_state(p), kappa_um_per_v=-0.2)

@@ -138,7 +138,11 @@ def _run_starts(dx: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.f
 
 
 def hysteresis_inverse_step(
-    params: HysteresisParams, position_um: ArrayLike, state: HysteresisState
+    params: HysteresisParams,
+    position_um: ArrayLike,
+    state: HysteresisState,
+    *,
+    kappa_um_per_v: float = 0.0,
 ) -> tuple[NDArray[np.float64], HysteresisState]:
     """Voltages whose exact forward step (:func:`hysteresis_step`) reaches the target positions.
 
@@ -184,6 +188,17 @@ def hysteresis_inverse_step(
         the previous voltage.
     state : HysteresisState
         State after the last sample, to pass to the next block (either function).
+
+    Notes
+    -----
+    With ``kappa_um_per_v`` the targets are ``x' = x_h + kappa V``: the hysteretic
+    position plus a term linear in the voltage, the creep term of (3.8)
+    (``kappa = b_hat - b``; the constant ``-kappa V_C`` is the caller's). Every
+    branch keeps the form "linear + exponential" with slope ``b + kappa`` in its
+    linear part, so the same Lambert W solution applies; the returned state holds
+    the hysteretic position ``x_h = x' - kappa V``. For a steady triangle this is
+    exactly the inverse of (3.8), and after a change of range, offset or rate the
+    ODE state carries the transient of chapter 5.
     """
     x = np.asarray(position_um, dtype=np.float64)
     if x.ndim != 1:
@@ -194,34 +209,39 @@ def hysteresis_inverse_step(
         bad = int(np.flatnonzero(~np.isfinite(x))[0])
         raise ModelError(f"target position {x[bad]!r} at sample {bad} is not finite")
     a, b, delta = params.alpha_per_v, params.b_um_per_v, params.delta_um
+    kappa = float(kappa_um_per_v)
+    bp = b + kappa
+    if not (math.isfinite(bp) and bp > 0.0):
+        raise ModelError(f"b + kappa = {bp!r} um/V must be > 0 for an invertible branch")
     n = x.size
+    x_start = state.position_um + kappa * state.voltage_v
     dx = np.empty_like(x)
-    dx[0] = x[0] - state.position_um
+    dx[0] = x[0] - x_start
     np.subtract(x[1:], x[:-1], out=dx[1:])
     starts, signs = _run_starts(dx)
     v = np.full(n, state.voltage_v)
     if starts.size == 0:
-        return v, HysteresisState(state.voltage_v, float(x[-1]))
+        return v, HysteresisState(state.voltage_v, float(x[-1]) - kappa * state.voltage_v)
     n_runs = starts.size
     ends = np.append(starts[1:], n) - 1
     v0 = np.empty(n_runs)
     x0 = np.empty(n_runs)
     big_b = np.empty(n_runs)
-    v_prev, x_prev = state.voltage_v, state.position_um
+    v_prev, x_prev = state.voltage_v, x_start
     for r in range(n_runs):
         s = float(signs[r])
         v0[r], x0[r] = v_prev, x_prev
-        big_b[r] = bb = a * (s * (x_prev - b * v_prev) + delta) / b
+        big_b[r] = bb = a * (s * (x_prev - bp * v_prev) + delta) / bp
         x_end = float(x[ends[r]])
-        aa = a * s * (x_end - x_prev) / b + bb
+        aa = a * s * (x_end - x_prev) / bp + bb
         if bb != 0.0:
             aa += lambertw0_exp_scalar(math.log(abs(bb)) - aa, negative=bb > 0.0)
         v_prev, x_prev = v_prev + s * aa / a, x_end
-    # Per run, with t = A + w: y = ln|B| - A = c0 + c1 x and V = V_0 + s t / alpha = k0 + x / b + k1 w.
-    c1 = -(a / b) * signs
+    # Per run, with t = A + w: y = ln|B| - A = c0 + c1 x and V = V_0 + s t / alpha = k0 + x / b' + k1 w.
+    c1 = -(a / bp) * signs
     with np.errstate(divide="ignore"):
         c0 = np.log(np.abs(big_b)) - big_b - c1 * x0
-    k0 = v0 + signs * big_b / a - x0 / b
+    k0 = v0 + signs * big_b / a - x0 / bp
     k1 = signs / a
     neg = big_b > 0.0
     edges = np.append(starts, n)
@@ -233,7 +253,7 @@ def hysteresis_inverse_step(
             w = lambertw0_exp(y, negative=bool(neg[r]))
             w *= float(k1[r])
             w += float(k0[r])
-            w += x[sl] * (1.0 / b)
+            w += x[sl] * (1.0 / bp)
             v[sl] = w
     else:
         first = int(starts[0])
@@ -246,5 +266,5 @@ def hysteresis_inverse_step(
             m = neg_s == flag
             if m.any():
                 w[m] = lambertw0_exp(y[m], negative=flag)
-        v[first:] = np.repeat(k0, lengths) + xs / b + np.repeat(k1, lengths) * w
-    return v, HysteresisState(voltage_v=float(v[-1]), position_um=float(x[-1]))
+        v[first:] = np.repeat(k0, lengths) + xs / bp + np.repeat(k1, lengths) * w
+    return v, HysteresisState(voltage_v=float(v[-1]), position_um=float(x[-1]) - kappa * float(v[-1]))
