@@ -36,7 +36,7 @@ USB_VENDOR_ID = 0x1209
 USB_PRODUCT_ID = 0x7A01
 """Product id of the simulated board (a real board needs its own pid.codes allocation)."""
 USB_MANUFACTURER = "piezod"
-USB_PRODUCT = "piezod simulated DAC/HV board"
+USB_PRODUCT = "piezod DAC board (simulated)"
 USB_INTERFACE = 0
 """The vendor-specific interface (class 0xFF) holding the two bulk endpoints."""
 USB_INTERFACE_CLASS = 0xFF
