@@ -370,23 +370,27 @@ def move_profile(
 
 def slew_limit(
     values: NDArray[np.float64], previous: float, max_step: float
-) -> tuple[NDArray[np.float64], bool]:
+) -> tuple[NDArray[np.float64], int]:
     """Limit sample-to-sample steps to ``max_step`` (a last line of defence, not a trajectory).
 
-    Returns the limited samples and whether any sample was changed. Sequential by
-    nature, but cheap: only runs of samples that violate the limit are walked.
+    Returns the limited samples and how many samples were changed. Sequential by
+    nature, so it walks the samples only when some step violates the limit
+    (a fault path; trajectories are slew-limited by construction).
     """
     v = np.asarray(values, dtype=np.float64)
     d = np.diff(v, prepend=previous)
-    if not np.any(np.abs(d) > max_step * (1 + 1e-12)):
-        return v, False
+    if not np.any(np.abs(d) > max_step * (1 + 1e-9)):
+        return v, 0
     out = v.copy()
     prev = previous
+    changed = 0
     for i in range(out.size):
         step = out[i] - prev
         if step > max_step:
             out[i] = prev + max_step
+            changed += 1
         elif step < -max_step:
             out[i] = prev - max_step
+            changed += 1
         prev = out[i]
-    return out, True
+    return out, changed

@@ -101,6 +101,6 @@ def test_move_profile_respects_the_speed_limit_and_arrives() -> None:
 def test_slew_limit_clamps_only_when_needed() -> None:
     v = np.array([0.0, 0.1, 0.2])
     out, changed = slew_limit(v, 0.0, 0.5)
-    assert not changed and np.array_equal(out, v)
+    assert changed == 0 and np.array_equal(out, v)
     out, changed = slew_limit(np.array([0.0, 3.0, 3.0]), 0.0, 1.0)
-    assert changed and np.array_equal(out, [0.0, 1.0, 2.0])
+    assert changed == 2 and np.array_equal(out, [0.0, 1.0, 2.0])
