@@ -67,7 +67,6 @@ from piezod.config import load_config
 from piezod.errors import ConfigError
 
 F64 = NDArray[np.float64]
-I16 = NDArray[np.int16]
 
 log = logging.getLogger("hil_sim.board")
 

@@ -350,6 +350,7 @@ def test_plays_at_the_configured_rate_and_reports_credits(stage_config: StageCon
     assert st.write_index == start + 3000
     assert st.fifo_free_samples == 65536 - 2000
     assert st.credit_limit == start + 3000 + 65536 - 2000
+    assert link.now < board.next_deadline() <= link.now + 1e-4 + 1e-9  # the next tick
     link.run(0.05)
     assert board.status().last_played_index == start + 1499
     assert link.last_status().state is BoardState.RUNNING
