@@ -1,0 +1,1711 @@
+"""A protocol session with the board: handshake, configuration, I/O threads, faults, reconnection.
+
+:class:`BoardSession` owns the transport and two threads per connection: a *reader* that decodes
+everything the board sends (the :class:`~firmware_proto.FrameDecoder` resynchronises after
+corruption and every dropped frame is counted), and a *writer* that sends queued frames,
+retransmits unanswered control requests (:class:`~firmware_proto.Endpoint`) and sends HEARTBEAT
+whenever nothing else went out for ``heartbeat_timeout_ms / 4``. Callers talk to it from any
+thread: control requests block until ACK / NAK (:meth:`BoardSession.configure`,
+:meth:`BoardSession.start`, :meth:`BoardSession.stop`...), SAMPLES are queued without blocking
+(:meth:`BoardSession.send_samples`), and everything the board reports arrives as typed events
+(:class:`LinkEvent` subclasses) at the callbacks registered with :meth:`BoardSession.subscribe`,
+plus cumulative :class:`LinkCounters`.
+
+When the link breaks (unplugged, EIO, hangup, a control request unanswered after all
+retransmissions, the board silent) the session reports :class:`LinkDown`, reopens the same URL
+with exponential backoff, redoes the handshake, reads the board's STATUS to learn what happened
+meanwhile (watchdog ramp, last played index, counters) and reports :class:`Reconnected`. It does
+not reconfigure or restart the output by itself: the caller decides how to re-enter (see
+:meth:`BoardSession.prepare_restart`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from firmware_proto import (
+    DEFAULT_ACK_TIMEOUT_S,
+    DEFAULT_MAX_RETRIES,
+    HEADER_SIZE,
+    NO_INDEX,
+    PROTOCOL_VERSION,
+    Acked,
+    BoardState,
+    Capabilities,
+    ChannelConfig,
+    CodeArray,
+    Configure,
+    DecodeError,
+    Endpoint,
+    ErrorKind,
+    Fault,
+    FaultCode,
+    FaultFlags,
+    Frame,
+    FrameDecoder,
+    Heartbeat,
+    Hello,
+    Message,
+    MessageType,
+    Nacked,
+    Nak,
+    NakReason,
+    RampToSafe,
+    Samples,
+    Sensor,
+    Start,
+    Status,
+    Stop,
+    TimedOut,
+    check_capabilities,
+)
+from piezod.config import ScannerConfig
+from piezod.errors import (
+    ConfigError,
+    LinkClosedError,
+    LinkError,
+    LinkTimeoutError,
+    ProtocolError,
+    SafetyError,
+)
+from piezod.link.transport import Transport, open_transport
+
+log = logging.getLogger(__name__)
+
+DEFAULT_AXIS_CHANNELS: Mapping[str, int] = {"x": 0, "y": 1, "z": 2}
+"""Board channel of each axis unless :attr:`LinkSettings.axis_channels` says otherwise."""
+
+_U32 = 1 << 32
+
+
+# ---------------------------------------------------------------------------------------------
+# settings
+
+
+@dataclass(frozen=True, slots=True)
+class LinkSettings:
+    """How the host drives the link.
+
+    Attributes
+    ----------
+    heartbeat_timeout_ms
+        The board's watchdog (CONFIGURE); the host sends HEARTBEAT after a quarter of it.
+    status_period_ms
+        The board sends STATUS at least this often.
+    sensor_decimation
+        One sensor sample every this many ticks.
+    sensor_full_scale_um
+        The sensor range: ADC code +-32768 is +-this many um (``adc_um_per_code = fs / 32768``),
+        for every axis not in :attr:`sensor_full_scale_um_by_axis`.
+    sensor_full_scale_um_by_axis
+        Per-axis override of the sensor range (um).
+    axis_channels
+        Board channel of each axis; board channels without an axis are pinned to their safe code.
+    ack_timeout_s, max_retries
+        Retransmission of control requests (PROTOCOL.md 5.3).
+    read_timeout_s, write_timeout_s
+        Transport timeouts.
+    reconnect
+        Reopen the link after it broke.
+    reconnect_initial_s, reconnect_max_s
+        Backoff between reopen attempts (doubling).
+    reconnect_give_up_s
+        Give up (:class:`LinkLost`) after this long; ``None`` = never.
+    silence_timeout_s
+        A configured board that sent no valid frame for this long is considered gone;
+        ``None`` = ``max(1 s, 50 status periods)``.
+    """
+
+    heartbeat_timeout_ms: int = 500
+    status_period_ms: int = 10
+    sensor_decimation: int = 1
+    sensor_full_scale_um: float = 100.0
+    sensor_full_scale_um_by_axis: Mapping[str, float] = field(default_factory=dict)
+    axis_channels: Mapping[str, int] = field(default_factory=lambda: dict(DEFAULT_AXIS_CHANNELS))
+    ack_timeout_s: float = DEFAULT_ACK_TIMEOUT_S
+    max_retries: int = DEFAULT_MAX_RETRIES
+    read_timeout_s: float = 0.02
+    write_timeout_s: float = 2.0
+    reconnect: bool = True
+    reconnect_initial_s: float = 0.1
+    reconnect_max_s: float = 2.0
+    reconnect_give_up_s: float | None = None
+    silence_timeout_s: float | None = None
+
+    @classmethod
+    def from_config(cls, config: ScannerConfig, **overrides: Any) -> LinkSettings:
+        """Settings taken from the scanner config's ``service`` section, then ``overrides``."""
+        base: dict[str, Any] = {"heartbeat_timeout_ms": int(config.service.heartbeat_timeout_ms)}
+        base.update(overrides)
+        return cls(**base)
+
+    @property
+    def heartbeat_interval_s(self) -> float:
+        """Longest pause between two frames the host sends (s)."""
+        return self.heartbeat_timeout_ms / 4000.0
+
+    @property
+    def silence_limit_s(self) -> float:
+        """See :attr:`silence_timeout_s`."""
+        if self.silence_timeout_s is not None:
+            return self.silence_timeout_s
+        return max(1.0, 0.05 * self.status_period_ms)
+
+
+# ---------------------------------------------------------------------------------------------
+# CONFIGURE from a scanner config
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelPlan:
+    """What each board channel does in a configuration.
+
+    Attributes
+    ----------
+    configure
+        The CONFIGURE message.
+    channel_axes
+        Axis name of each board channel, ``None`` for a channel pinned to its safe code.
+    axis_limits_v
+        Per board channel the configured voltage limits (V) as given (before inward rounding
+        to codes); pinned channels get their single voltage.
+    """
+
+    configure: Configure
+    channel_axes: tuple[str | None, ...]
+    axis_limits_v: tuple[tuple[float, float], ...]
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        """The streamed axes, in board-channel order."""
+        return tuple(a for a in self.channel_axes if a is not None)
+
+    @property
+    def axis_channel_indices(self) -> tuple[int, ...]:
+        """Board channel of each axis in :attr:`axes`."""
+        return tuple(i for i, a in enumerate(self.channel_axes) if a is not None)
+
+    @property
+    def sample_rate_hz(self) -> int:
+        """The configured sample clock (Hz)."""
+        return self.configure.sample_rate_hz
+
+
+_CONFIGURE_FIELDS = {
+    0: "sample_rate_hz",
+    4: "heartbeat_timeout_ms",
+    8: "status_period_ms",
+    10: "sensor_decimation",
+    12: "n_channels",
+}
+_CHANNEL_FIELDS = {
+    0: "dac_v_per_code",
+    4: "dac_offset_v",
+    8: "code_min",
+    10: "code_max",
+    12: "safe_code",
+    16: "ramp_v_per_s",
+    20: "adc_um_per_code",
+    24: "adc_offset_um",
+}
+_CONFIGURE_HEAD = 16
+
+
+def describe_configure_offset(offset: int, channel_axes: tuple[str | None, ...] = ()) -> str:
+    """Name the CONFIGURE field at frame ``offset`` (NAK / FAULT detail).
+
+    Example: ``channels[1].code_min (axis y)``.
+    """
+    rel = offset - HEADER_SIZE
+    if rel < 0:
+        return f"header byte {offset}"
+    if rel < _CONFIGURE_HEAD:
+        return _CONFIGURE_FIELDS.get(rel, f"byte {offset}")
+    ch, within = divmod(rel - _CONFIGURE_HEAD, 32)
+    name = _CHANNEL_FIELDS.get(within, f"byte {within}")
+    axis = channel_axes[ch] if ch < len(channel_axes) else None
+    return f"channels[{ch}].{name}" + (
+        f" (axis {axis})" if axis else " (unused channel)" if channel_axes else ""
+    )
+
+
+def plan_channels(
+    config: ScannerConfig,
+    caps: Capabilities,
+    settings: LinkSettings,
+    *,
+    sample_rate_hz: float | None = None,
+) -> ChannelPlan:
+    """Build the CONFIGURE message for ``config`` on a board with ``caps``.
+
+    The DAC's full scale (int16) is assumed to span each channel's amplifier range
+    (``dac_v_per_code = (v_max - v_min) / 65536``, offset at mid-range); the voltage limits and
+    the safe value come from the axis config, the ramp rate from ``config.service``, the sensor
+    scaling from ``settings``. Board channels without an axis are pinned to one code (their
+    limits and safe value coincide, at the code nearest 0 V inside the amplifier range).
+
+    Raises
+    ------
+    ConfigError
+        An axis maps to a channel the board lacks, the rate is not an integer or the board
+        cannot produce it, or the FIFO cannot hold the rate's lead.
+    SafetyError
+        An axis's voltage limits leave the amplifier range of its channel.
+    """
+    rate_f = float(sample_rate_hz if sample_rate_hz is not None else config.sample_rate_hz)
+    if not rate_f.is_integer() or rate_f < 1:
+        raise ConfigError(
+            f"sample_rate_hz: {rate_f} is not a whole number of Hz (the board clock is integer)"
+        )
+    rate = int(rate_f)
+    if not caps.sample_rate_min_hz <= rate <= caps.sample_rate_max_hz:
+        raise ConfigError(
+            f"sample_rate_hz: {rate} Hz outside the board's range "
+            f"[{caps.sample_rate_min_hz}, {caps.sample_rate_max_hz}] Hz"
+        )
+    if caps.sample_clock_hz and caps.sample_clock_hz % rate:
+        raise ConfigError(
+            f"sample_rate_hz: {rate} Hz does not divide the board clock {caps.sample_clock_hz} Hz"
+        )
+    channel_axes: list[str | None] = [None] * caps.n_channels
+    for axis_name in config.axes:
+        axis = str(axis_name)
+        ch = settings.axis_channels.get(axis)
+        if ch is None or not 0 <= ch < caps.n_channels:
+            raise ConfigError(
+                f"axes.{axis}: no board channel for this axis (board has {caps.n_channels} channels, "
+                f"axis_channels maps it to {ch})"
+            )
+        if channel_axes[ch] is not None:
+            raise ConfigError(f"axes.{axis}: board channel {ch} already drives axis {channel_axes[ch]}")
+        channel_axes[ch] = axis
+    ramp = float(config.service.ramp_rate_v_per_s)
+    channels: list[ChannelConfig] = []
+    limits: list[tuple[float, float]] = []
+    for i, ch_axis in enumerate(channel_axes):
+        amp_lo, amp_hi = caps.amplifier_ranges_v[i]
+        scale = float(np.float32((amp_hi - amp_lo) / 65536.0))
+        offset = float(np.float32((amp_hi + amp_lo) / 2.0))
+        # the int16 code range: the top code is one step below the amplifier's maximum
+        code_lo_v, code_hi_v = offset - 32768 * scale, offset + 32767 * scale
+        if ch_axis is None:
+            full = ChannelConfig.from_volts(
+                v_min=max(amp_lo, code_lo_v),
+                v_max=min(amp_hi, code_hi_v),
+                safe_v=min(max(0.0, amp_lo), amp_hi),
+                dac_v_per_code=scale,
+                dac_offset_v=offset,
+                ramp_v_per_s=ramp,
+                adc_um_per_code=settings.sensor_full_scale_um / 32768.0,
+                adc_offset_um=0.0,
+            )
+            c = full.safe_code
+            channels.append(
+                ChannelConfig(
+                    full.dac_v_per_code,
+                    full.dac_offset_v,
+                    c,
+                    c,
+                    c,
+                    full.ramp_v_per_s,
+                    full.adc_um_per_code,
+                    full.adc_offset_um,
+                )
+            )
+            limits.append((full.safe_v, full.safe_v))
+            continue
+        ax = config.axes[ch_axis]  # type: ignore[index]  # the name came from config.axes
+        if ax.voltage_min_v < amp_lo or ax.voltage_max_v > amp_hi:
+            raise SafetyError(
+                f"axes.{ch_axis}: voltage limits [{ax.voltage_min_v}, {ax.voltage_max_v}] V leave the "
+                f"amplifier range [{amp_lo}, {amp_hi}] V of board channel {i}"
+            )
+        fs = float(settings.sensor_full_scale_um_by_axis.get(ch_axis, settings.sensor_full_scale_um))
+        channels.append(
+            ChannelConfig.from_volts(
+                v_min=max(ax.voltage_min_v, code_lo_v),
+                v_max=min(ax.voltage_max_v, code_hi_v),
+                safe_v=ax.safe_voltage_v,
+                dac_v_per_code=scale,
+                dac_offset_v=offset,
+                ramp_v_per_s=ramp,
+                adc_um_per_code=fs / 32768.0,
+                adc_offset_um=0.0,
+            )
+        )
+        limits.append((ax.voltage_min_v, ax.voltage_max_v))
+    cfg = Configure(
+        sample_rate_hz=rate,
+        heartbeat_timeout_ms=settings.heartbeat_timeout_ms,
+        status_period_ms=settings.status_period_ms,
+        sensor_decimation=settings.sensor_decimation,
+        channels=tuple(channels),
+    )
+    problem = cfg.check(caps)
+    if problem is not None:
+        reason, detail = problem
+        raise ConfigError(
+            f"the board would refuse this configuration: {reason.name} at "
+            f"{describe_configure_offset(detail, tuple(channel_axes))}"
+        )
+    return ChannelPlan(cfg, tuple(channel_axes), tuple(limits))
+
+
+# ---------------------------------------------------------------------------------------------
+# events
+
+
+@dataclass(frozen=True, slots=True)
+class LinkEvent:
+    """Base of everything a session reports. ``time`` is ``time.monotonic()`` at detection."""
+
+    time: float
+
+
+@dataclass(frozen=True, slots=True)
+class LinkUp(LinkEvent):
+    """The handshake succeeded (first connection or a reconnection)."""
+
+    capabilities: Capabilities
+    url: str
+
+
+@dataclass(frozen=True, slots=True)
+class LinkDown(LinkEvent):
+    """The link broke; a reconnection follows when enabled."""
+
+    error: LinkError
+
+
+@dataclass(frozen=True, slots=True)
+class Reconnected(LinkEvent):
+    """The link is back after :class:`LinkDown`; nothing was restarted.
+
+    Attributes
+    ----------
+    capabilities
+        The board's CAPABILITIES now.
+    status
+        The first STATUS after the handshake (``None``: the board sent none, i.e. it is
+        unconfigured, for instance after a power cycle).
+    board_changed
+        Another board (serial number / channels) answered.
+    watchdog_fired
+        The board latched WATCHDOG: it ramped the outputs to their safe values.
+    fault_flags
+        Everything latched since the last START / CONFIGURE.
+    last_played_index
+        The last sample the board applied (``None`` if none).
+    downtime_s
+        From :class:`LinkDown` to now.
+    """
+
+    capabilities: Capabilities
+    status: Status | None
+    board_changed: bool
+    watchdog_fired: bool
+    fault_flags: FaultFlags
+    last_played_index: int | None
+    downtime_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class LinkLost(LinkEvent):
+    """Reconnection was given up (or disabled); the session is dead."""
+
+    error: LinkError
+
+
+@dataclass(frozen=True, slots=True)
+class StatusUpdate(LinkEvent):
+    """A STATUS frame."""
+
+    status: Status
+
+
+@dataclass(frozen=True, slots=True)
+class BoardFault(LinkEvent):
+    """A FAULT frame (best effort; :class:`FaultFlagsRaised` and the counters are the reliable record)."""
+
+    fault: Fault
+
+    @property
+    def code(self) -> FaultCode:
+        """What happened."""
+        return self.fault.code
+
+
+@dataclass(frozen=True, slots=True)
+class FaultFlagsRaised(LinkEvent):
+    """STATUS shows newly latched fault flags (also when their FAULT frame was lost)."""
+
+    raised: FaultFlags
+    status: Status
+
+
+@dataclass(frozen=True, slots=True)
+class BoardCounter(LinkEvent):
+    """A board counter in STATUS increased (``name`` is the STATUS field)."""
+
+    name: str
+    delta: int
+    total: int
+
+
+@dataclass(frozen=True, slots=True)
+class DecodeFailure(LinkEvent):
+    """The host dropped a damaged frame."""
+
+    kind: ErrorKind
+    detail: str
+    wire_size: int
+
+
+@dataclass(frozen=True, slots=True)
+class SensorGap(LinkEvent):
+    """Sensor rows missing in the readback.
+
+    Attributes
+    ----------
+    expected_index
+        First missing sample index.
+    missing_rows
+        Rows lost.
+    explained
+        A dropped frame (counted by the decoder) or a link break can account for them.
+    """
+
+    expected_index: int
+    missing_rows: int
+    explained: bool
+
+
+@dataclass(frozen=True, slots=True)
+class HostLimitFault(LinkEvent):
+    """The host clamped samples that left the configured voltage limits (reported by the streamer)."""
+
+    channel: int
+    axis: str | None
+    first_index: int
+    count: int
+    worst_v: float
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SensorBlock(LinkEvent):
+    """One SENSOR frame, with its sample indices and the configured scaling.
+
+    Attributes
+    ----------
+    first_index
+        Sample index of the first row.
+    stride
+        Index step between rows.
+    codes
+        ADC codes, shape ``(n, channels)``.
+    um_per_code, offset_um
+        Per-channel scaling from the configuration in force.
+    """
+
+    first_index: int
+    stride: int
+    codes: CodeArray
+    um_per_code: npt.NDArray[np.float64]
+    offset_um: npt.NDArray[np.float64]
+
+    @property
+    def n_samples(self) -> int:
+        """Rows in this block."""
+        return int(self.codes.shape[0])
+
+    @property
+    def indices(self) -> npt.NDArray[np.int64]:
+        """Sample index of every row."""
+        return self.first_index + self.stride * np.arange(self.n_samples, dtype=np.int64)
+
+    @property
+    def positions_um(self) -> npt.NDArray[np.float64]:
+        """Sensor positions (um), shape ``(channels, n)``."""
+        out: npt.NDArray[np.float64] = self.offset_um[:, None] + self.um_per_code[
+            :, None
+        ] * self.codes.T.astype(np.float64)
+        return out
+
+
+class BoardRefusedError(ProtocolError):
+    """The board answered a control request with NAK.
+
+    Attributes
+    ----------
+    nak
+        The NAK.
+    """
+
+    def __init__(self, message: str, nak: Nak) -> None:
+        super().__init__(message)
+        self.nak = nak
+
+
+# ---------------------------------------------------------------------------------------------
+# counters
+
+
+@dataclass(frozen=True, slots=True)
+class LinkCounters:
+    """Cumulative counts of a session (all connections).
+
+    Board counters are increments since the session's first STATUS (wrap- and reset-aware),
+    including increments that happened while the link was down. ``frames_lost_rx`` counts the
+    board's frames that never arrived intact, from the gaps in their sequence numbers (this
+    includes frames the decoder dropped, and frames lost whole).
+    """
+
+    frames_sent: int = 0
+    bytes_sent: int = 0
+    samples_frames_sent: int = 0
+    sample_rows_sent: int = 0
+    heartbeats_sent: int = 0
+    retransmits: int = 0
+    request_timeouts: int = 0
+    frames_received: int = 0
+    bytes_received: int = 0
+    decode_errors: int = 0
+    crc_errors_host: int = 0
+    decode_errors_by_kind: Mapping[str, int] = field(default_factory=dict)
+    frames_lost_rx: int = 0
+    status_frames: int = 0
+    sensor_frames: int = 0
+    sensor_rows: int = 0
+    sensor_rows_lost: int = 0
+    sensor_rows_lost_unexplained: int = 0
+    sensor_gaps: int = 0
+    sensor_rows_duplicate: int = 0
+    unexpected_frames: int = 0
+    stray_replies: int = 0
+    link_downs: int = 0
+    reconnects: int = 0
+    callback_errors: int = 0
+    crc_errors_board: int = 0
+    frames_dropped_board: int = 0
+    underruns: int = 0
+    clamped_samples: int = 0
+    index_gaps: int = 0
+    overflows: int = 0
+    watchdogs: int = 0
+    fault_frames: Mapping[str, int] = field(default_factory=dict)
+
+    @property
+    def crc_errors(self) -> int:
+        """CRC errors detected on both sides."""
+        return self.crc_errors_host + self.crc_errors_board
+
+
+_BOARD_COUNTERS = (
+    ("crc_errors", "crc_errors_board"),
+    ("frames_dropped", "frames_dropped_board"),
+    ("underruns", "underruns"),
+    ("clamped_samples", "clamped_samples"),
+    ("index_gaps", "index_gaps"),
+    ("overflows", "overflows"),
+)
+
+
+@dataclass(slots=True)
+class _Tally:
+    samples_frames_sent: int = 0
+    sample_rows_sent: int = 0
+    heartbeats_sent: int = 0
+    status_frames: int = 0
+    sensor_frames: int = 0
+    sensor_rows: int = 0
+    sensor_rows_lost: int = 0
+    sensor_rows_lost_unexplained: int = 0
+    sensor_gaps: int = 0
+    sensor_rows_duplicate: int = 0
+    unexpected_frames: int = 0
+    link_downs: int = 0
+    reconnects: int = 0
+    callback_errors: int = 0
+    board: dict[str, int] = field(default_factory=lambda: {name: 0 for _, name in _BOARD_COUNTERS})
+    watchdogs: int = 0
+    fault_frames: dict[str, int] = field(default_factory=dict)
+    # from retired connections
+    frames_sent: int = 0
+    bytes_sent: int = 0
+    retransmits: int = 0
+    request_timeouts: int = 0
+    stray_replies: int = 0
+    frames_received: int = 0
+    bytes_received: int = 0
+    decode_kinds: dict[str, int] = field(default_factory=dict)
+    frames_missing: int = 0
+
+
+# ---------------------------------------------------------------------------------------------
+# the session
+
+
+class _Request:
+    __slots__ = ("done", "error", "msg", "reply", "status_mark")
+
+    def __init__(self, msg: Message) -> None:
+        self.msg = msg
+        self.done = threading.Event()
+        self.reply: Message | None = None
+        self.error: BaseException | None = None
+        self.status_mark = 0  # STATUS frames received before the reply
+
+
+class _SeqWatch(FrameDecoder):
+    """A :class:`FrameDecoder` that also counts frames missing from the peer's sequence numbers.
+
+    Every frame the board sends carries the next ``seq``; a jump reveals frames lost on the way
+    (damaged beyond recognition, merged by a damaged delimiter, or dropped), replies included.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.expected: int | None = None
+        self.missing = 0
+        self.out_of_order = 0
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Frame | DecodeError]:
+        items = super().feed(data)
+        for item in items:
+            if isinstance(item, Frame):
+                if self.expected is not None and item.seq != self.expected:
+                    gap = (item.seq - self.expected) & 0xFFFFFFFF
+                    if gap < 1 << 31:
+                        self.missing += gap
+                    else:
+                        self.out_of_order += 1
+                self.expected = (item.seq + 1) & 0xFFFFFFFF
+        return items
+
+
+def _new_endpoint(settings: LinkSettings) -> Endpoint:
+    ep = Endpoint(ack_timeout_s=settings.ack_timeout_s, max_retries=settings.max_retries)
+    ep.decoder = _SeqWatch()
+    return ep
+
+
+def _missing(ep: Endpoint) -> int:
+    dec = ep.decoder
+    return dec.missing if isinstance(dec, _SeqWatch) else 0
+
+
+class _Connection:
+    def __init__(self, transport: Transport, settings: LinkSettings, generation: int) -> None:
+        self.transport = transport
+        self.generation = generation
+        self.endpoint = _new_endpoint(settings)
+        self.alive = True
+        self.wake = threading.Event()
+        self.requests: dict[int, _Request] = {}
+        self.last_tx = time.monotonic()
+        self.last_rx = time.monotonic()
+        self.got_status = False
+        self.hello_done = False
+        self.established = False  # handshake done: a later failure is a LinkDown
+        self.retired = False
+        self.reader: threading.Thread | None = None
+        self.writer: threading.Thread | None = None
+
+
+def _alive(conn: _Connection) -> bool:
+    """Re-read the flag another thread may have cleared (defeats mypy's narrowing)."""
+    return conn.alive
+
+
+Subscriber = Callable[[LinkEvent], None]
+
+
+class BoardSession:
+    """One host session with the board (see the module docstring).
+
+    Use :meth:`open`; the constructor does no I/O.
+
+    Parameters
+    ----------
+    transport_factory
+        Opens a fresh transport (called again to reconnect).
+    url
+        For messages and events.
+    settings
+        Link settings.
+    session_id
+        HELLO ``session_id``; default: the process id.
+    """
+
+    def __init__(
+        self,
+        transport_factory: Callable[[], Transport],
+        *,
+        url: str,
+        settings: LinkSettings | None = None,
+        session_id: int | None = None,
+    ) -> None:
+        self.url = url
+        self.settings = settings or LinkSettings()
+        self.session_id = (os.getpid() if session_id is None else session_id) & 0xFFFFFFFF
+        self._factory = transport_factory
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
+        self._conn: _Connection | None = None
+        self._generation = 0
+        self._subscribers: list[Subscriber] = []
+        self._tally = _Tally()
+        self._closing = False
+        self._closed_event = threading.Event()
+        self._dead: LinkError | None = None
+        self._supervisor: threading.Thread | None = None
+        self._down_since: float | None = None
+        self.capabilities: Capabilities | None = None
+        self._config: ScannerConfig | None = None
+        self._sample_rate_override: float | None = None
+        self.plan: ChannelPlan | None = None
+        self._adc_scale = np.ones(1)
+        self._adc_offset = np.zeros(1)
+        # STATUS tracking
+        self._status: Status | None = None
+        self._status_time = 0.0
+        self._status_count = 0
+        self._board_raw: dict[str, int] | None = None
+        self._flags_seen = FaultFlags.NONE
+        # sensor accounting
+        self._run_start: int | None = None
+        self._sensor_next: int | None = None
+        self._sensor_stride = 1
+        self._sensor_err_mark = 0
+        self._tail: tuple[int, float] | None = None
+        self._link_broke_in_run = False
+        self._last_played_seen: int | None = None
+        self._pending_axes: tuple[str | None, ...] | None = None
+
+    # -- opening ----------------------------------------------------------------------------
+
+    @classmethod
+    def open(
+        cls,
+        url: str | None = None,
+        *,
+        config: ScannerConfig | None = None,
+        settings: LinkSettings | None = None,
+        sample_rate_hz: float | None = None,
+        transport_factory: Callable[[], Transport] | None = None,
+        on_event: Subscriber | None = None,
+        session_id: int | None = None,
+        timeout_s: float = 5.0,
+    ) -> BoardSession:
+        """Connect, say HELLO, and (with ``config``) CONFIGURE and wait for the board to be IDLE.
+
+        Parameters
+        ----------
+        url
+            Transport URL (:func:`~piezod.link.transport.open_transport`).
+        config
+            Scanner config to configure the board with; ``None`` = handshake only.
+        settings
+            Link settings; default :meth:`LinkSettings.from_config` (or the defaults).
+        sample_rate_hz
+            Overrides ``config.sample_rate_hz``.
+        transport_factory
+            Instead of ``url``: a callable opening the transport (tests, in-memory boards).
+        on_event
+            Subscribed before the handshake (sees :class:`LinkUp`).
+        session_id
+            HELLO ``session_id``.
+        timeout_s
+            For the handshake and the initial ramp to the safe values.
+
+        Raises
+        ------
+        LinkError
+            The port cannot be opened or the board does not answer.
+        VersionMismatchError
+            The board speaks another protocol version (the message names both).
+        BoardRefusedError
+            The board refused the configuration (the message names the field).
+        """
+        if settings is None:
+            settings = LinkSettings.from_config(config) if config is not None else LinkSettings()
+        if transport_factory is None:
+            if url is None:
+                raise ConfigError("BoardSession.open: give a URL or a transport_factory")
+            target = url
+            rt, wt = settings.read_timeout_s, settings.write_timeout_s
+
+            def transport_factory() -> Transport:
+                return open_transport(target, read_timeout_s=rt, write_timeout_s=wt)
+
+        session = cls(transport_factory, url=url or "<transport>", settings=settings, session_id=session_id)
+        if on_event is not None:
+            session.subscribe(on_event)
+        try:
+            session._connect(reconnect=False, timeout_s=timeout_s)
+            if config is not None:
+                session.configure(config, sample_rate_hz=sample_rate_hz, timeout_s=timeout_s)
+        except BaseException:
+            session.close()
+            raise
+        return session
+
+    def __enter__(self) -> BoardSession:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- events -----------------------------------------------------------------------------
+
+    def subscribe(self, callback: Subscriber) -> Callable[[], None]:
+        """Call ``callback(event)`` for every :class:`LinkEvent` (from the I/O threads: be quick).
+
+        Returns
+        -------
+        Callable[[], None]
+            Unsubscribes.
+        """
+        with self._lock:
+            self._subscribers.append(callback)
+
+        def _unsubscribe() -> None:
+            with self._lock:
+                if callback in self._subscribers:
+                    self._subscribers.remove(callback)
+
+        return _unsubscribe
+
+    def emit(self, event: LinkEvent) -> None:
+        """Deliver ``event`` to the subscribers (also used by the streamer for host-side faults)."""
+        with self._lock:
+            subs = list(self._subscribers)
+        for cb in subs:
+            try:
+                cb(event)
+            except Exception:
+                with self._lock:
+                    self._tally.callback_errors += 1
+                log.exception("link event subscriber %r failed on %s", cb, type(event).__name__)
+
+    def _emit_all(self, events: list[LinkEvent]) -> None:
+        for ev in events:
+            self.emit(ev)
+
+    # -- state ------------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        """The link is up (handshake done, not broken)."""
+        with self._lock:
+            return self._conn is not None and self._conn.alive and self.capabilities is not None
+
+    @property
+    def status(self) -> Status | None:
+        """The latest STATUS."""
+        with self._lock:
+            return self._status
+
+    def status_snapshot(self) -> tuple[Status | None, float, int]:
+        """``(status, status_time, status_count)`` read atomically."""
+        with self._lock:
+            return self._status, self._status_time, self._status_count
+
+    @property
+    def status_count(self) -> int:
+        """STATUS frames received in this session."""
+        with self._lock:
+            return self._status_count
+
+    @property
+    def status_time(self) -> float:
+        """``time.monotonic()`` when :attr:`status` arrived."""
+        with self._lock:
+            return self._status_time
+
+    @property
+    def sample_rate_hz(self) -> int:
+        """The configured sample clock (Hz)."""
+        if self.plan is None:
+            raise ProtocolError("the board is not configured")
+        return self.plan.sample_rate_hz
+
+    def counters(self) -> LinkCounters:
+        """A snapshot of :class:`LinkCounters`."""
+        with self._lock:
+            t = self._tally
+            kinds = dict(t.decode_kinds)
+            frames_sent, bytes_sent = t.frames_sent, t.bytes_sent
+            retrans, timeouts, strays = t.retransmits, t.request_timeouts, t.stray_replies
+            frames_rx, bytes_rx = t.frames_received, t.bytes_received
+            lost_rx = t.frames_missing
+            if self._conn is not None:
+                lost_rx += _missing(self._conn.endpoint)
+                es, ds = self._conn.endpoint.stats, self._conn.endpoint.decoder_stats
+                frames_sent += es.frames_sent
+                bytes_sent += es.bytes_sent
+                retrans += es.retransmits
+                timeouts += es.timeouts
+                strays += es.stray_replies
+                frames_rx += ds.frames_ok
+                bytes_rx += ds.bytes_in
+                for kind in ErrorKind:
+                    kinds[kind.value] = kinds.get(kind.value, 0) + ds.count(kind)
+            return LinkCounters(
+                frames_sent=frames_sent,
+                bytes_sent=bytes_sent,
+                samples_frames_sent=t.samples_frames_sent,
+                sample_rows_sent=t.sample_rows_sent,
+                heartbeats_sent=t.heartbeats_sent,
+                retransmits=retrans,
+                request_timeouts=timeouts,
+                frames_received=frames_rx,
+                bytes_received=bytes_rx,
+                decode_errors=sum(kinds.values()),
+                crc_errors_host=kinds.get(ErrorKind.BAD_CRC.value, 0),
+                decode_errors_by_kind={k: v for k, v in kinds.items() if v},
+                frames_lost_rx=lost_rx,
+                status_frames=t.status_frames,
+                sensor_frames=t.sensor_frames,
+                sensor_rows=t.sensor_rows,
+                sensor_rows_lost=t.sensor_rows_lost,
+                sensor_rows_lost_unexplained=t.sensor_rows_lost_unexplained,
+                sensor_gaps=t.sensor_gaps,
+                sensor_rows_duplicate=t.sensor_rows_duplicate,
+                unexpected_frames=t.unexpected_frames,
+                stray_replies=strays,
+                link_downs=t.link_downs,
+                reconnects=t.reconnects,
+                callback_errors=t.callback_errors,
+                crc_errors_board=t.board["crc_errors_board"],
+                frames_dropped_board=t.board["frames_dropped_board"],
+                underruns=t.board["underruns"],
+                clamped_samples=t.board["clamped_samples"],
+                index_gaps=t.board["index_gaps"],
+                overflows=t.board["overflows"],
+                watchdogs=t.watchdogs,
+                fault_frames=dict(t.fault_frames),
+            )
+
+    def _losses_now(self) -> int:
+        """Frames from the board known lost so far: dropped by the decoder or missing by ``seq``."""
+        total = sum(self._tally.decode_kinds.values()) + self._tally.frames_missing
+        if self._conn is not None:
+            total += self._conn.endpoint.decoder_stats.errors + _missing(self._conn.endpoint)
+        return total
+
+    # -- connection management ----------------------------------------------------------------
+
+    def _connect(self, *, reconnect: bool, timeout_s: float) -> Capabilities:
+        transport = self._factory()
+        with self._lock:
+            if self._closing:
+                transport.close()
+                raise LinkClosedError(f"{self.url}: session closed")
+            self._generation += 1
+            conn = _Connection(transport, self.settings, self._generation)
+            self._conn = conn
+            self._sensor_next = None
+            self._tail = None
+        try:
+            transport.write(b"\x00")  # terminate any partial garbage in the board's receive buffer
+        except LinkError as exc:
+            self._retire(conn)
+            raise exc from None
+        conn.reader = threading.Thread(target=self._reader, args=(conn,), name="piezod-link-rx", daemon=True)
+        conn.writer = threading.Thread(target=self._writer, args=(conn,), name="piezod-link-tx", daemon=True)
+        conn.reader.start()
+        conn.writer.start()
+        try:
+            reply = self._request(Hello(PROTOCOL_VERSION, self.session_id), timeout_s=timeout_s, conn=conn)
+        except BaseException:
+            self._shutdown_connection(conn)
+            raise
+        if not isinstance(reply, Capabilities):  # pragma: no cover - Endpoint matches HELLO to CAPABILITIES
+            self._shutdown_connection(conn)
+            raise ProtocolError(f"{self.url}: HELLO answered by {type(reply).__name__}")
+        try:
+            check_capabilities(reply)
+        except ProtocolError:
+            self._shutdown_connection(conn)
+            raise
+        with self._lock:
+            self.capabilities = reply
+            conn.hello_done = True
+            conn.established = True
+        self.emit(LinkUp(time.monotonic(), reply, self.url))
+        return reply
+
+    def _retire(self, conn: _Connection) -> None:
+        """Fold a dead connection's endpoint counters into the tally (once)."""
+        with self._lock:
+            if conn.retired:
+                return
+            conn.retired = True
+            t = self._tally
+            es, ds = conn.endpoint.stats, conn.endpoint.decoder_stats
+            t.frames_sent += es.frames_sent
+            t.bytes_sent += es.bytes_sent
+            t.retransmits += es.retransmits
+            t.request_timeouts += es.timeouts
+            t.stray_replies += es.stray_replies
+            t.frames_received += ds.frames_ok
+            t.bytes_received += ds.bytes_in
+            for kind in ErrorKind:
+                t.decode_kinds[kind.value] = t.decode_kinds.get(kind.value, 0) + ds.count(kind)
+            t.frames_missing += _missing(conn.endpoint)
+            conn.endpoint = _new_endpoint(self.settings)
+            conn.alive = False
+            conn.wake.set()
+        with contextlib.suppress(LinkError):
+            conn.transport.close()
+
+    def _shutdown_connection(self, conn: _Connection) -> None:
+        with self._lock:
+            conn.alive = False
+            conn.wake.set()
+            reqs = list(conn.requests.values())
+            conn.requests.clear()
+        for r in reqs:
+            if not r.done.is_set():
+                r.error = LinkClosedError(f"{self.url}: connection closed")
+                r.done.set()
+        for t in (conn.reader, conn.writer):
+            if t is not None and t is not threading.current_thread():
+                t.join(timeout=self.settings.write_timeout_s + 1.0)
+        self._retire(conn)
+        with self._lock:
+            if self._conn is conn:
+                self._conn = None
+            self._cond.notify_all()
+
+    def _link_failed(self, conn: _Connection, error: LinkError) -> None:
+        """Called by an I/O thread when the link broke."""
+        with self._lock:
+            if not conn.alive or self._conn is not conn:
+                return
+            conn.alive = False
+            conn.wake.set()
+            reqs = list(conn.requests.values())
+            conn.requests.clear()
+            closing = self._closing or not conn.established  # a failed handshake raises in _connect
+            if not closing:
+                self._tally.link_downs += 1
+                self._down_since = time.monotonic()
+                self._link_broke_in_run = self._sensor_next is not None
+            self._cond.notify_all()
+        for r in reqs:
+            if not r.done.is_set():
+                r.error = error
+                r.done.set()
+        if closing:
+            return
+        log.warning("link to the board broke: %s", error)
+        self.emit(LinkDown(time.monotonic(), error))
+        with self._lock:
+            if self._supervisor is not None and self._supervisor.is_alive():
+                return
+            self._supervisor = threading.Thread(
+                target=self._supervise, args=(conn, error), name="piezod-link-reconnect", daemon=True
+            )
+            self._supervisor.start()
+
+    def _supervise(self, dead: _Connection, error: LinkError) -> None:
+        self._shutdown_connection(dead)
+        if not self.settings.reconnect:
+            self._give_up(error)
+            return
+        delay = self.settings.reconnect_initial_s
+        started = time.monotonic()
+        last_error: LinkError = error
+        old_caps = self.capabilities
+        while not self._closing:
+            if self._closed_event.wait(delay):
+                return
+            try:
+                caps = self._connect(reconnect=True, timeout_s=max(1.0, self.settings.ack_timeout_s * 8))
+            except (LinkError, ProtocolError) as exc:
+                if isinstance(exc, ProtocolError) and not isinstance(exc, LinkError):
+                    self._give_up(LinkError(f"{self.url}: reconnection refused: {exc}"))
+                    return
+                last_error = exc
+                delay = min(delay * 2.0, self.settings.reconnect_max_s)
+                give_up = self.settings.reconnect_give_up_s
+                if give_up is not None and time.monotonic() - started > give_up:
+                    self._give_up(last_error)
+                    return
+                continue
+            self._after_reconnect(caps, old_caps)
+            return
+
+    def _after_reconnect(self, caps: Capabilities, old: Capabilities | None) -> None:
+        changed = old is not None and (
+            old.board_serial != caps.board_serial or old.n_channels != caps.n_channels
+        )
+        with self._lock:
+            conn = self._conn
+            if changed:
+                self._board_raw = None
+                self._flags_seen = FaultFlags.NONE
+            count0 = self._status_count
+            wait = max(0.5, 10 * self.settings.status_period_ms / 1000.0)
+            self._cond.wait_for(
+                lambda: (
+                    self._status_count > count0
+                    and self._conn is conn
+                    and conn is not None
+                    and conn.got_status
+                ),
+                timeout=wait,
+            )
+            status = self._status if conn is not None and conn.got_status else None
+            self._tally.reconnects += 1
+            down = time.monotonic() - (self._down_since or time.monotonic())
+            self._down_since = None
+        flags = status.fault_flags if status is not None else FaultFlags.NONE
+        lp = status.last_played_index if status is not None else None
+        event = Reconnected(
+            time.monotonic(),
+            caps,
+            status,
+            changed,
+            bool(flags & FaultFlags.WATCHDOG),
+            flags,
+            None if lp is None or lp == NO_INDEX else lp,
+            down,
+        )
+        log.warning(
+            "link to the board is back after %.2f s: state %s, faults %s, last played index %s",
+            down,
+            status.state.name if status else "unknown (no STATUS: unconfigured?)",
+            flags,
+            event.last_played_index,
+        )
+        self.emit(event)
+
+    def _give_up(self, error: LinkError) -> None:
+        with self._lock:
+            self._dead = error
+            self._cond.notify_all()
+        log.error("giving up on the board: %s", error)
+        self.emit(LinkLost(time.monotonic(), error))
+
+    def wait_connected(self, timeout_s: float) -> bool:
+        """Wait until the link is up (e.g. after :class:`LinkDown`); ``False`` on timeout.
+
+        Raises
+        ------
+        LinkError
+            The session gave up reconnecting.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while True:
+                if self._dead is not None:
+                    raise self._dead
+                if self._conn is not None and self._conn.alive and self._supervisor_done():
+                    return True
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(min(left, 0.05))
+
+    def _supervisor_done(self) -> bool:
+        return self._supervisor is None or not self._supervisor.is_alive()
+
+    def close(self, *, ramp_to_safe: bool = False) -> None:
+        """End the session (idempotent).
+
+        Parameters
+        ----------
+        ramp_to_safe
+            Ask the board to ramp every output to its safe value first (best effort). Otherwise
+            the board keeps its state and its watchdog takes over once the host is silent.
+        """
+        if ramp_to_safe and self.connected:
+            try:
+                self.ramp_to_safe()
+            except (LinkError, ProtocolError) as exc:
+                log.warning("RAMP_TO_SAFE on close failed: %s", exc)
+        with self._lock:
+            conn = None if self._closing else self._conn
+            self._closing = True
+            self._closed_event.set()
+        if conn is not None:
+            self._shutdown_connection(conn)
+        sup = self._supervisor
+        if sup is not None and sup is not threading.current_thread():
+            sup.join(timeout=5.0)
+        with self._lock:
+            stray = self._conn
+        if stray is not None:  # created by a reconnection racing with close
+            self._shutdown_connection(stray)
+
+    # -- I/O threads --------------------------------------------------------------------------
+
+    def _reader(self, conn: _Connection) -> None:
+        silence = self.settings.silence_limit_s
+        while conn.alive:
+            try:
+                data = conn.transport.read()
+            except LinkError as exc:
+                self._link_failed(conn, exc)
+                return
+            now = time.monotonic()
+            out: list[LinkEvent] = []
+            with self._lock:
+                if not _alive(conn):
+                    return
+                if data:
+                    events = conn.endpoint.receive(data, now)
+                    if conn.endpoint.last_rx_time is not None:
+                        conn.last_rx = conn.endpoint.last_rx_time
+                    for ev in events:
+                        self._handle(conn, ev, now, out)
+                self._check_tail(now, out)
+                silent = conn.got_status and now - conn.last_rx > silence
+            self._emit_all(out)
+            if silent:
+                self._link_failed(
+                    conn, LinkTimeoutError(f"{self.url}: the board sent nothing valid for {silence:g} s")
+                )
+                return
+
+    def _writer(self, conn: _Connection) -> None:
+        hb = self.settings.heartbeat_interval_s
+        while conn.alive:
+            with self._lock:
+                deadline = conn.endpoint.next_deadline()
+            now = time.monotonic()
+            wait = conn.last_tx + hb - now if conn.hello_done else 0.05
+            if deadline is not None:
+                wait = min(wait, deadline - now)
+            conn.wake.wait(timeout=min(max(wait, 0.0005), 0.05))
+            conn.wake.clear()
+            if not _alive(conn):
+                return
+            now = time.monotonic()
+            failed: list[tuple[_Request, LinkError]] = []
+            with self._lock:
+                polled = conn.endpoint.poll(now)
+                for ev in polled:
+                    if isinstance(ev, TimedOut):
+                        req = conn.requests.pop(ev.seq, None)
+                        err: LinkError = LinkTimeoutError(
+                            f"{self.url}: no reply to {ev.request.TYPE.name} (seq {ev.seq}) after "
+                            f"{ev.attempts} attempts {self.settings.ack_timeout_s * 1000:g} ms apart"
+                        )
+                        if req is not None:
+                            failed.append((req, err))
+                data = conn.endpoint.data_to_send()
+                if not data and now - conn.last_tx >= hb and conn.hello_done:
+                    conn.endpoint.send(Heartbeat(time_us=int(now * 1e6) & ((1 << 64) - 1)), now)
+                    self._tally.heartbeats_sent += 1
+                    data = conn.endpoint.data_to_send()
+            for req, err in failed:
+                req.error = err
+                req.done.set()
+            if failed:
+                self._link_failed(conn, failed[0][1])
+                return
+            if data:
+                try:
+                    conn.transport.write(data)
+                except LinkError as exc:
+                    self._link_failed(conn, exc)
+                    return
+                conn.last_tx = time.monotonic()
+
+    # -- frame handling (under the lock, in the reader thread) ------------------------------------
+
+    def _handle(self, conn: _Connection, ev: Any, now: float, out: list[LinkEvent]) -> None:
+        if isinstance(ev, Frame):
+            msg = ev.msg
+            if isinstance(msg, Status):
+                self._on_status(conn, msg, now, out)
+            elif isinstance(msg, Sensor):
+                self._on_sensor(msg, now, out)
+            elif isinstance(msg, Fault):
+                name = msg.code.name
+                self._tally.fault_frames[name] = self._tally.fault_frames.get(name, 0) + 1
+                if msg.code in (FaultCode.UNDERRUN, FaultCode.WATCHDOG) and msg.index != NO_INDEX:
+                    self._last_played_seen = max(self._last_played_seen or 0, msg.index)
+                out.append(BoardFault(now, msg))
+            else:
+                self._tally.unexpected_frames += 1
+        elif isinstance(ev, DecodeError):
+            out.append(DecodeFailure(now, ev.kind, ev.detail, ev.wire_size))
+        elif isinstance(ev, Acked | Nacked):
+            req = conn.requests.pop(ev.seq, None)
+            if req is None:
+                return
+            req.status_mark = self._status_count
+            if isinstance(ev, Acked):
+                self._on_acked(ev, now, out)
+                req.reply = ev.reply
+            else:
+                req.error = self._refusal(ev)
+            req.done.set()
+
+    def _refusal(self, ev: Nacked) -> ProtocolError:
+        nak = ev.reply
+        if nak.reason == NakReason.VERSION_MISMATCH:
+            return nak.to_error()
+        what = ev.request.TYPE.name
+        detail = ""
+        if nak.reason in (NakReason.BAD_VALUE, NakReason.UNSUPPORTED):
+            if ev.request.TYPE is MessageType.CONFIGURE:
+                axes = self._pending_axes if self._pending_axes is not None else ()
+                detail = f" at {describe_configure_offset(nak.detail, axes)} (frame offset {nak.detail})"
+            else:
+                detail = f" (field at frame offset {nak.detail})"
+        elif nak.reason == NakReason.BAD_STATE:
+            try:
+                detail = f" (board state {BoardState(nak.detail).name})"
+            except ValueError:
+                detail = f" (board state {nak.detail})"
+        return BoardRefusedError(
+            f"{self.url}: board refused {what} (seq {ev.seq}): {nak.reason.name}{detail}", nak
+        )
+
+    def _on_acked(self, ev: Acked, now: float, out: list[LinkEvent]) -> None:
+        req = ev.request
+        if isinstance(req, Start):
+            # the previous run's last SENSOR rows came before this ACK (flushed when its clock stopped)
+            if self._last_played_seen is not None:
+                self._close_sensor_run(self._last_played_seen, now, out)
+            self._run_start = req.start_index
+            self._sensor_next = req.start_index
+            self._sensor_err_mark = self._losses_now()
+            self._tail = None
+            self._link_broke_in_run = False
+        elif isinstance(req, Configure):
+            self._sensor_stride = req.sensor_decimation
+            self._flags_seen = FaultFlags.NONE
+            self._sensor_next = None
+            self._tail = None
+
+    def _on_status(self, conn: _Connection, st: Status, now: float, out: list[LinkEvent]) -> None:
+        prev = self._status
+        self._status = st
+        if st.last_played_index != NO_INDEX:
+            self._last_played_seen = st.last_played_index
+        self._status_time = now
+        self._status_count += 1
+        conn.got_status = True
+        self._tally.status_frames += 1
+        raw = {src: int(getattr(st, src)) for src, _ in _BOARD_COUNTERS}
+        if self._board_raw is not None:
+            for src, dst in _BOARD_COUNTERS:
+                delta = (raw[src] - self._board_raw[src]) % _U32
+                if delta > _U32 // 2:  # the counter went down: the board restarted
+                    delta = raw[src]
+                if delta:
+                    self._tally.board[dst] += delta
+                    out.append(BoardCounter(now, src, delta, self._tally.board[dst]))
+        self._board_raw = raw
+        raised = st.fault_flags & ~self._flags_seen
+        if raised:
+            if raised & FaultFlags.WATCHDOG:
+                self._tally.watchdogs += 1
+            out.append(FaultFlagsRaised(now, FaultFlags(raised), st))
+        self._flags_seen = st.fault_flags
+        was_running = prev is not None and prev.state == BoardState.RUNNING
+        if (
+            st.state in (BoardState.IDLE, BoardState.RAMPING)
+            and (was_running or self._tail is None)
+            and self._sensor_next is not None
+            and st.last_played_index != NO_INDEX
+        ):
+            self._tail = (st.last_played_index, now + 4 * self.settings.status_period_ms / 1000.0)
+        out.append(StatusUpdate(now, st))
+        self._cond.notify_all()
+
+    def _on_sensor(self, msg: Sensor, now: float, out: list[LinkEvent]) -> None:
+        n = msg.n_samples
+        self._tally.sensor_frames += 1
+        self._tally.sensor_rows += n
+        errors = self._losses_now()
+        nxt = self._sensor_next
+        if nxt is not None:
+            if msg.first_index > nxt:
+                missing = -(-(msg.first_index - nxt) // msg.stride)
+                self._count_gap(nxt, missing, errors > self._sensor_err_mark, now, out)
+            elif msg.first_index < nxt:
+                self._tally.sensor_rows_duplicate += min(n, -(-(nxt - msg.first_index) // msg.stride))
+        self._sensor_next = msg.first_index + n * msg.stride
+        self._sensor_stride = msg.stride
+        self._sensor_err_mark = errors
+        if self.plan is not None and msg.n_channels == len(self._adc_scale):
+            out.append(
+                SensorBlock(now, msg.first_index, msg.stride, msg.codes, self._adc_scale, self._adc_offset)
+            )
+        else:
+            self._tally.unexpected_frames += 1
+
+    def _count_gap(self, index: int, missing: int, explained: bool, now: float, out: list[LinkEvent]) -> None:
+        self._tally.sensor_gaps += 1
+        self._tally.sensor_rows_lost += missing
+        if not explained:
+            self._tally.sensor_rows_lost_unexplained += missing
+            log.error("sensor rows %d.. (%d rows) lost without a detected frame error", index, missing)
+        out.append(SensorGap(now, index, missing, explained))
+
+    def _check_tail(self, now: float, out: list[LinkEvent]) -> None:
+        if self._tail is None or now < self._tail[1]:
+            return
+        self._close_sensor_run(self._tail[0], now, out)
+
+    def _close_sensor_run(self, last_played: int, now: float, out: list[LinkEvent]) -> None:
+        """The clock stopped after ``last_played``: count the sensor rows of the run that never came."""
+        self._tail = None
+        nxt = self._sensor_next
+        if nxt is not None and nxt <= last_played:
+            missing = (last_played - nxt) // self._sensor_stride + 1
+            explained = self._losses_now() > self._sensor_err_mark or self._link_broke_in_run
+            self._count_gap(nxt, missing, explained, now, out)
+        self._sensor_next = None
+
+    # -- requests -----------------------------------------------------------------------------
+
+    def _request(
+        self, msg: Message, *, timeout_s: float | None = None, conn: _Connection | None = None
+    ) -> Message:
+        req = self._request_full(msg, timeout_s=timeout_s, conn=conn)
+        assert req.reply is not None
+        return req.reply
+
+    def _request_full(
+        self, msg: Message, *, timeout_s: float | None = None, conn: _Connection | None = None
+    ) -> _Request:
+        req = _Request(msg)
+        with self._lock:
+            if conn is None:
+                conn = self._conn
+                if self._dead is not None:
+                    raise self._dead
+                if conn is None or not conn.alive or self.capabilities is None:
+                    raise LinkClosedError(f"{self.url}: the link is down")
+            elif not conn.alive:
+                raise LinkClosedError(f"{self.url}: the link is down")
+            seq = conn.endpoint.send(msg, time.monotonic())
+            conn.requests[seq] = req
+        conn.wake.set()
+        limit = timeout_s
+        if limit is None:
+            limit = self.settings.ack_timeout_s * (self.settings.max_retries + 1) + 1.0
+        if not req.done.wait(limit):
+            with self._lock:
+                conn.requests.pop(seq, None)
+                conn.endpoint.cancel(seq)
+            raise LinkTimeoutError(f"{self.url}: no reply to {msg.TYPE.name} within {limit:g} s")
+        if req.error is not None:
+            raise req.error
+        return req
+
+    def configure(
+        self,
+        config: ScannerConfig | None = None,
+        *,
+        sample_rate_hz: float | None = None,
+        settings: LinkSettings | None = None,
+        timeout_s: float = 5.0,
+    ) -> ChannelPlan:
+        """Send CONFIGURE (from ``config``, or the last one) and wait until the board is IDLE.
+
+        The board first finishes a ramp in progress (CONFIGURE is refused while RAMPING), then
+        ramps every output to its new safe value.
+
+        Raises
+        ------
+        BoardRefusedError
+            NAK: the message names the field at fault (e.g. ``channels[1].code_min (axis y)``).
+        ConfigError, SafetyError
+            The config does not fit the board (checked before sending).
+        LinkError
+            No reply / the link broke.
+        """
+        if self.capabilities is None:
+            raise LinkClosedError(f"{self.url}: not connected")
+        if config is None:
+            config = self._config
+            if config is None:
+                raise ConfigError("configure: no scanner config given and none sent before")
+            sample_rate_hz = sample_rate_hz if sample_rate_hz is not None else self._sample_rate_override
+        if settings is not None:
+            self.settings = settings
+        plan = plan_channels(config, self.capabilities, self.settings, sample_rate_hz=sample_rate_hz)
+        ramp_s = self._ramp_time_s(plan)
+        st = self.status
+        if st is not None and st.state == BoardState.RAMPING:
+            self.wait_status(lambda s: s.state != BoardState.RAMPING, timeout_s=ramp_s + timeout_s)
+        with self._lock:
+            self._pending_axes = plan.channel_axes
+        req = self._request_full(plan.configure)
+        with self._lock:
+            self._config = config
+            self._sample_rate_override = sample_rate_hz
+            self.plan = plan
+            self._adc_scale = np.array([c.adc_um_per_code for c in plan.configure.channels], dtype=np.float64)
+            self._adc_offset = np.array([c.adc_offset_um for c in plan.configure.channels], dtype=np.float64)
+        self.wait_status(
+            lambda s: s.state == BoardState.IDLE, timeout_s=ramp_s + timeout_s, after=req.status_mark
+        )
+        return plan
+
+    def _ramp_time_s(self, plan: ChannelPlan) -> float:
+        caps = self.capabilities
+        assert caps is not None
+        return max(
+            (hi - lo) / ch.ramp_v_per_s
+            for (lo, hi), ch in zip(caps.amplifier_ranges_v, plan.configure.channels, strict=True)
+        )
+
+    def start(self, start_index: int, prefill_samples: int, *, timeout_s: float | None = None) -> int:
+        """Send START (board must be IDLE): the clock runs once ``prefill_samples`` are queued.
+
+        Returns
+        -------
+        int
+            :attr:`status_count` when the ACK arrived (STATUS frames after it reflect the START).
+
+        Raises
+        ------
+        BoardRefusedError
+            NAK (e.g. ``BAD_STATE`` while ramping, ``BAD_VALUE`` prefill beyond the FIFO).
+        """
+        if self.plan is None:
+            raise ProtocolError("start: the board is not configured (call configure first)")
+        return self._request_full(Start(start_index, prefill_samples), timeout_s=timeout_s).status_mark
+
+    def stop(self, after_index: int = NO_INDEX, *, timeout_s: float | None = None) -> None:
+        """Send STOP: play up to and including ``after_index`` (default: now), then hold."""
+        self._request(Stop(after_index), timeout_s=timeout_s)
+
+    def ramp_to_safe(self, *, timeout_s: float | None = None) -> None:
+        """Send RAMP_TO_SAFE: stop the clock and ramp every output to its safe value."""
+        self._request(RampToSafe(), timeout_s=timeout_s)
+
+    def prepare_restart(self, *, reconfigure: bool = True, timeout_s: float = 5.0) -> Status:
+        """Bring the board back to IDLE after a fault or a reconnection, ready for :meth:`start`.
+
+        Waits for a ramp in progress to end, then (``reconfigure``) sends the last configuration
+        again, which also ramps the outputs to their safe values and clears the latched faults.
+        """
+        if self.plan is None or self._config is None:
+            raise ProtocolError("prepare_restart: the board was never configured in this session")
+        st = self.status
+        if st is not None and st.state in (BoardState.ARMED, BoardState.RUNNING):
+            self.stop()
+        if reconfigure:
+            self.configure(timeout_s=timeout_s)
+        return self.wait_status(lambda s: s.state == BoardState.IDLE, timeout_s=timeout_s, fresh=False)
+
+    def wait_status(
+        self,
+        predicate: Callable[[Status], bool],
+        *,
+        timeout_s: float,
+        fresh: bool = True,
+        after: int | None = None,
+    ) -> Status:
+        """Wait for a STATUS satisfying ``predicate``.
+
+        ``fresh``: only one arriving after this call; ``after``: only one after the
+        ``after``-th STATUS of the session (:attr:`status_count`, e.g. at a reply).
+
+        Raises
+        ------
+        LinkTimeoutError
+            None in time.
+        LinkClosedError
+            The link broke meanwhile.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            count0 = self._status_count if after is None else after
+            if after is None and not fresh:
+                count0 = -1
+            conn = self._conn
+            while True:
+                st = self._status
+                if st is not None and self._status_count > count0 and predicate(st):
+                    return st
+                if self._conn is not conn or conn is None or not conn.alive:
+                    raise LinkClosedError(f"{self.url}: the link broke while waiting for STATUS")
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    last = f"state {st.state.name}" if st is not None else "no STATUS at all"
+                    raise LinkTimeoutError(f"{self.url}: no matching STATUS within {timeout_s:g} s ({last})")
+                self._cond.wait(left)
+
+    # -- streaming ------------------------------------------------------------------------------
+
+    def send_samples(self, first_index: int, codes: CodeArray) -> int:
+        """Queue one SAMPLES frame (codes ``(n, channels)`` int16); returns its sequence number.
+
+        Does not block. The caller respects the credits (:class:`~piezod.link.streamer.Streamer`).
+
+        Raises
+        ------
+        LinkClosedError
+            The link is down.
+        """
+        msg = Samples(first_index, codes)
+        with self._lock:
+            conn = self._conn
+            if conn is None or not conn.alive:
+                raise LinkClosedError(f"{self.url}: the link is down")
+            seq = conn.endpoint.send(msg, time.monotonic())
+            self._tally.samples_frames_sent += 1
+            self._tally.sample_rows_sent += msg.n_samples
+        conn.wake.set()
+        return seq
+
+    def fifo_level(self) -> int | None:
+        """Samples per channel in the board FIFO at the last STATUS (``None`` before one)."""
+        st = self.status
+        if st is None or self.capabilities is None:
+            return None
+        return int(self.capabilities.fifo_depth_samples - st.fifo_free_samples)
+
+
+__all__ = [
+    "DEFAULT_AXIS_CHANNELS",
+    "BoardCounter",
+    "BoardFault",
+    "BoardRefusedError",
+    "BoardSession",
+    "ChannelPlan",
+    "DecodeFailure",
+    "FaultFlagsRaised",
+    "HostLimitFault",
+    "LinkCounters",
+    "LinkDown",
+    "LinkEvent",
+    "LinkLost",
+    "LinkSettings",
+    "LinkUp",
+    "Reconnected",
+    "SensorBlock",
+    "SensorGap",
+    "StatusUpdate",
+    "describe_configure_offset",
+    "plan_channels",
+]

@@ -1,0 +1,431 @@
+"""BoardSession and Streamer against the in-memory board (tests/fake_board.py)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from fake_board import FakeBoard
+
+from firmware_proto import HEADER_SIZE, BoardState, Capabilities, FaultFlags, MessageType, NakReason
+from piezod.config import ScannerConfig, default_sim_config_path, load_config
+from piezod.errors import ConfigError, LinkTimeoutError, SafetyError, VersionMismatchError
+from piezod.link.session import (
+    BoardCounter,
+    BoardRefusedError,
+    BoardSession,
+    HostLimitFault,
+    LinkDown,
+    LinkEvent,
+    LinkLost,
+    LinkSettings,
+    LinkUp,
+    Reconnected,
+    SensorGap,
+    describe_configure_offset,
+    plan_channels,
+)
+from piezod.link.streamer import CodeConverter, MatchedBlock, Streamer, TriangleSource
+
+RATE = 20_000
+
+
+@pytest.fixture(scope="module")
+def config() -> ScannerConfig:
+    return load_config(default_sim_config_path())
+
+
+@pytest.fixture
+def board() -> Iterator[FakeBoard]:
+    b = FakeBoard()
+    yield b
+    b.close()
+
+
+class Events:
+    """Collects events (thread-safe) and waits for one of a type."""
+
+    def __init__(self) -> None:
+        self.items: list[LinkEvent] = []
+        self.cond = threading.Condition()
+
+    def __call__(self, ev: LinkEvent) -> None:
+        with self.cond:
+            self.items.append(ev)
+            self.cond.notify_all()
+
+    def of(self, kind: type[Any]) -> list[Any]:
+        with self.cond:
+            return [e for e in self.items if isinstance(e, kind)]
+
+    def wait_for(self, kind: type[Any], timeout: float = 10.0) -> Any:
+        with self.cond:
+            ok = self.cond.wait_for(lambda: any(isinstance(e, kind) for e in self.items), timeout)
+        assert ok, f"no {kind.__name__} event; got {[type(e).__name__ for e in self.items]}"
+        return self.of(kind)[0]
+
+
+def _source(rate: int = RATE) -> TriangleSource:
+    return TriangleSource(rate, [150.0, 150.0, 100.0], [0.0, 0.0, 20.0], 10.0, [0.0, 0.25, 0.5])
+
+
+def _stream(session: BoardSession, seconds: float, **kwargs: Any) -> tuple[Streamer, list[MatchedBlock]]:
+    blocks: list[MatchedBlock] = []
+    streamer = Streamer(session, kwargs.pop("source", _source()), on_block=blocks.append, **kwargs)
+    streamer.start(0)
+    time.sleep(seconds)
+    streamer.finish()
+    return streamer, blocks
+
+
+# -- handshake ----------------------------------------------------------------------------------
+
+
+def test_handshake_reports_capabilities(board: FakeBoard) -> None:
+    events = Events()
+    with BoardSession.open(transport_factory=board.connect, on_event=events) as s:
+        caps = s.capabilities
+        assert isinstance(caps, Capabilities)
+        assert (caps.n_channels, caps.fifo_depth_samples, caps.board_serial) == (3, 16384, 0xB0A4D)
+        assert events.wait_for(LinkUp).capabilities == caps
+        assert board.hellos[-1].session_id == s.session_id
+        assert s.plan is None and s.connected
+
+
+def test_version_mismatch_names_both_versions() -> None:
+    with FakeBoard(protocol_version=2) as b, pytest.raises(VersionMismatchError) as info:
+        BoardSession.open(transport_factory=b.connect)
+    assert "version 2" in str(info.value) and "speaks 1" in str(info.value)
+
+
+def test_capabilities_of_another_version_are_refused() -> None:
+    with FakeBoard() as b:
+        b.caps_version = 3
+        with pytest.raises(VersionMismatchError, match="3"):
+            BoardSession.open(transport_factory=b.connect)
+
+
+def test_no_answer_is_a_timeout() -> None:
+    with FakeBoard() as b:
+        b.silent = True
+        settings = LinkSettings(ack_timeout_s=0.02, max_retries=2, reconnect=False)
+        with pytest.raises(LinkTimeoutError, match=r"no reply to HELLO \(seq 0\) after 3 attempts"):
+            BoardSession.open(transport_factory=b.connect, settings=settings)
+
+
+# -- configuration --------------------------------------------------------------------------------
+
+
+def test_configure_from_the_scanner_config(board: FakeBoard, config: ScannerConfig) -> None:
+    with BoardSession.open(transport_factory=board.connect, config=config, sample_rate_hz=RATE) as s:
+        plan = s.plan
+        assert plan is not None and plan.axes == ("x", "y", "z")
+        cfg = board.config
+        assert cfg == plan.configure and cfg is not None
+        assert cfg.sample_rate_hz == RATE
+        assert cfg.heartbeat_timeout_ms == config.service.heartbeat_timeout_ms
+        for ch, axis in zip(cfg.channels, ("x", "y", "z"), strict=True):
+            ax = config.axes[axis]  # type: ignore[index]
+            assert ax.voltage_min_v <= ch.v_min < ch.v_max <= ax.voltage_max_v
+            assert ch.v_min - ch.dac_v_per_code < ax.voltage_min_v  # rounded inwards by less than a code
+            assert ch.ramp_v_per_s == pytest.approx(config.service.ramp_rate_v_per_s)
+            assert ch.safe_v == pytest.approx(ax.safe_voltage_v, abs=ch.dac_v_per_code)
+        assert s.status is not None and s.status.state == BoardState.IDLE
+
+
+def test_configure_nak_surfaces_with_the_field(board: FakeBoard, config: ScannerConfig) -> None:
+    offset = HEADER_SIZE + 16 + 32 * 1 + 8  # channel 1 code_min
+    board.force_nak[MessageType.CONFIGURE] = (NakReason.BAD_VALUE, offset)
+    with pytest.raises(BoardRefusedError) as info:
+        BoardSession.open(transport_factory=board.connect, config=config, sample_rate_hz=RATE)
+    assert "BAD_VALUE" in str(info.value) and "channels[1].code_min (axis y)" in str(info.value)
+    assert info.value.nak.detail == offset
+
+
+def test_limits_beyond_the_amplifier_are_refused_before_sending(config: ScannerConfig) -> None:
+    with FakeBoard(amp_v=(-100.0, 100.0)) as b:
+        with pytest.raises(SafetyError, match=r"axes\.x: voltage limits \[-230.0, 230.0\] V leave"):
+            BoardSession.open(transport_factory=b.connect, config=config, sample_rate_hz=RATE)
+        assert b.config is None
+
+
+def test_unsupported_rate_is_refused(board: FakeBoard, config: ScannerConfig) -> None:
+    with BoardSession.open(transport_factory=board.connect) as s:
+        with pytest.raises(ConfigError, match="outside the board's range"):
+            s.configure(config, sample_rate_hz=500_000)
+        with pytest.raises(ConfigError, match="whole number"):
+            s.configure(config, sample_rate_hz=1000.5)
+
+
+def test_unused_channels_are_pinned(board: FakeBoard, config: ScannerConfig) -> None:
+    only_x = config.model_copy(update={"axes": {"x": config.axes["x"]}})
+    caps = board.capabilities(0)
+    plan = plan_channels(only_x, caps, LinkSettings(), sample_rate_hz=RATE)
+    assert plan.channel_axes == ("x", None, None)
+    for ch in plan.configure.channels[1:]:
+        assert ch.code_min == ch.code_max == ch.safe_code
+        assert ch.safe_v == pytest.approx(0.0, abs=ch.dac_v_per_code)
+    assert plan.configure.check(caps) is None
+
+
+def test_describe_configure_offset() -> None:
+    axes = ("x", "y", None)
+    assert describe_configure_offset(HEADER_SIZE + 0, axes) == "sample_rate_hz"
+    assert describe_configure_offset(HEADER_SIZE + 4, axes) == "heartbeat_timeout_ms"
+    assert describe_configure_offset(HEADER_SIZE + 16 + 32 + 10, axes) == "channels[1].code_max (axis y)"
+    assert (
+        describe_configure_offset(HEADER_SIZE + 16 + 64 + 16, axes)
+        == "channels[2].ramp_v_per_s (unused channel)"
+    )
+
+
+def test_dropped_ack_is_retransmitted(board: FakeBoard, config: ScannerConfig) -> None:
+    board.drop_replies[MessageType.CONFIGURE] = 1
+    with BoardSession.open(transport_factory=board.connect, config=config, sample_rate_hz=RATE) as s:
+        c = s.counters()
+        assert c.retransmits == 1
+        assert board.stats.requests["CONFIGURE"] == 1  # the copy was answered from the reply cache
+        assert board.endpoint.stats.duplicate_requests == 1
+        assert s.plan is not None
+
+
+def test_heartbeat_keeps_the_watchdog_quiet(board: FakeBoard, config: ScannerConfig) -> None:
+    settings = LinkSettings(heartbeat_timeout_ms=100)
+    with BoardSession.open(
+        transport_factory=board.connect, config=config, settings=settings, sample_rate_hz=RATE
+    ) as s:
+        time.sleep(0.5)
+        assert s.counters().heartbeats_sent >= 10
+        assert board.stats.watchdogs == 0
+        assert s.status is not None and not s.status.fault_flags & FaultFlags.WATCHDOG
+
+
+# -- streaming --------------------------------------------------------------------------------------
+
+
+def test_stream_plays_every_sample_and_matches_the_sensor(board: FakeBoard, config: ScannerConfig) -> None:
+    with BoardSession.open(transport_factory=board.connect, config=config, sample_rate_hz=RATE) as s:
+        streamer, blocks = _stream(s, 1.0)
+        stats = streamer.stats
+        c = s.counters()
+    run = stats.runs[0]
+    assert run.ended_by == "stop" and run.samples_played == run.samples_sent > 0.8 * RATE
+    first, played = board.played_codes()
+    assert first == 0 and played.shape[0] == run.samples_sent
+    # every sample went out once, in order, as computed by the converter from the source
+    expected, bad = CodeConverter.from_plan(s.plan).convert(_source().next_block(played.shape[0]))  # type: ignore[arg-type]
+    assert not bad.any()
+    np.testing.assert_array_equal(played, expected)
+    # the sensor (ADC code = applied DAC code) comes back at the right indices
+    idx = np.concatenate([b.indices for b in blocks])
+    np.testing.assert_array_equal(idx, np.arange(run.samples_played))
+    conv = CodeConverter.from_plan(s.plan)  # type: ignore[arg-type]
+    commanded = np.concatenate([b.commanded_v for b in blocks], axis=1)
+    np.testing.assert_allclose(commanded, conv.to_volts(played))
+    pos = np.concatenate([b.position_um for b in blocks], axis=1)
+    um_per_code = np.array([ch.adc_um_per_code for ch in s.plan.configure.channels])  # type: ignore[union-attr]
+    np.testing.assert_array_equal(np.rint(pos / um_per_code[:, None]).T, played)
+    assert c.sensor_rows == run.samples_played and c.sensor_rows_lost == 0
+    assert c.underruns == 0 and c.decode_errors == 0 and stats.rewinds == 0
+    assert stats.lead_min_samples is not None and stats.lead_min_samples >= streamer.lead_samples
+
+
+def test_credits_are_never_exceeded(config: ScannerConfig) -> None:
+    # a small FIFO and a fill target far beyond it: only the credits hold the host back
+    with FakeBoard(fifo_depth=2048, max_samples_per_frame=256) as b:
+        with BoardSession.open(transport_factory=b.connect, config=config, sample_rate_hz=RATE) as s:
+            sent: list[tuple[int, int, int]] = []
+            original = s.send_samples
+
+            def spy(first: int, codes: Any) -> int:
+                st = s.status
+                sent.append((first, codes.shape[0], st.credit_limit if st is not None else 0))
+                return original(first, codes)
+
+            s.send_samples = spy  # type: ignore[method-assign]
+            streamer, _ = _stream(s, 0.8, lead_s=0.05, fill_s=2.0)
+            assert streamer.fill_samples > 10 * 2048
+        assert b.stats.overflows == 0 and b.stats.underruns == 0
+        assert b.stats.max_fifo_level <= 2048
+        assert streamer.stats.runs[0].samples_played > 0.6 * RATE
+        # after the first STATUS of the run, no frame reached beyond the credit limit known then
+        assert all(first + n <= max(limit, 2048) for first, n, limit in sent)
+
+
+def test_host_clamps_and_reports_out_of_limit_volts(board: FakeBoard, config: ScannerConfig) -> None:
+    class Wild:
+        def __init__(self) -> None:
+            self.inner = _source()
+            self.calls = 0
+
+        def next_block(self, n: int) -> np.ndarray:
+            v = self.inner.next_block(n)
+            self.calls += 1
+            if self.calls == 2:
+                v[0, 10:20] = 400.0
+                v[1, 5] = np.nan
+                v[2, 7] = -1e6
+            return v
+
+    events = Events()
+    with BoardSession.open(
+        transport_factory=board.connect, config=config, sample_rate_hz=RATE, on_event=events
+    ) as s:
+        streamer, _ = _stream(s, 0.5, source=Wild())
+    faults = events.of(HostLimitFault)
+    assert {(f.axis, f.count) for f in faults} == {("x", 10), ("y", 1), ("z", 1)}
+    x = next(f for f in faults if f.axis == "x")
+    assert x.worst_v == 400.0 and x.first_index == streamer.block_samples + 10
+    assert streamer.stats.host_clamped_samples == 12
+    assert board.stats.clamped_samples == 0  # nothing outside the limits ever reached the board
+    _, played = board.played_codes()
+    lo = np.array([c.code_min for c in board.config.channels])  # type: ignore[union-attr]
+    hi = np.array([c.code_max for c in board.config.channels])  # type: ignore[union-attr]
+    assert (played >= lo).all() and (played <= hi).all()
+    assert played[streamer.block_samples + 10, 0] == hi[0]
+
+
+def test_converter_is_exact_at_the_limits(config: ScannerConfig, board: FakeBoard) -> None:
+    plan = plan_channels(config, board.capabilities(0), LinkSettings(), sample_rate_hz=RATE)
+    conv = CodeConverter.from_plan(plan)
+    ch = plan.configure.channels
+    v = np.array([[c.v_min, c.v_max, c.safe_v, -230.0, 230.0] for c in ch])
+    codes, bad = conv.convert(v)
+    assert not bad.any()
+    np.testing.assert_array_equal(codes[0], [c.code_min for c in ch])
+    np.testing.assert_array_equal(codes[1], [c.code_max for c in ch])
+    np.testing.assert_array_equal(codes[2], [c.safe_code for c in ch])
+    np.testing.assert_array_equal(codes[4], [c.code_max for c in ch])
+    with pytest.raises(ValueError, match="shape"):
+        conv.convert(np.zeros((2, 5)))
+
+
+def test_corrupted_board_stream_resyncs_and_every_loss_is_counted(config: ScannerConfig) -> None:
+    with FakeBoard(corrupt_tx=2e-4, seed=3) as b:
+        events = Events()
+        with BoardSession.open(
+            transport_factory=b.connect, config=config, sample_rate_hz=RATE, on_event=events
+        ) as s:
+            streamer, blocks = _stream(s, 1.5)
+            c = s.counters()
+    assert b.stats.bytes_corrupted_tx > 0
+    assert c.decode_errors > 0 and c.crc_errors_host > 0
+    # each dropped frame is also a gap in the board's seq (a damaged byte may split one frame into two
+    # errors, a damaged delimiter merge two frames into one)
+    assert c.decode_errors / 2 <= c.frames_lost_rx <= 2 * c.decode_errors
+    played = streamer.stats.samples_played
+    assert played == streamer.stats.samples_sent  # SAMPLES were not damaged: all played
+    assert c.sensor_rows + c.sensor_rows_lost == played
+    assert c.sensor_rows_lost > 0 and c.sensor_rows_lost_unexplained == 0
+    assert all(g.explained for g in events.of(SensorGap))
+    idx = np.concatenate([bl.indices for bl in blocks])
+    assert np.all(np.diff(idx) > 0)  # what did arrive is in order, without duplicates
+
+
+def test_corrupted_host_stream_is_resent_and_counted_by_the_board(config: ScannerConfig) -> None:
+    with FakeBoard(corrupt_rx=3e-5, seed=5) as b:
+        events = Events()
+        with BoardSession.open(
+            transport_factory=b.connect, config=config, sample_rate_hz=RATE, on_event=events
+        ) as s:
+            streamer, _ = _stream(s, 1.5)
+            c = s.counters()
+    stats = streamer.stats
+    assert b.stats.crc_errors > 0
+    assert c.crc_errors_board == b.stats.crc_errors  # the board's count, as reported in STATUS
+    assert c.index_gaps == b.stats.index_gaps and c.frames_dropped_board == b.stats.frames_dropped
+    assert stats.rewinds > 0 and stats.rows_resent > 0
+    assert stats.runs[0].ended_by == "stop" and stats.samples_played == stats.samples_sent
+    assert b.stats.underruns == 0
+    assert any(isinstance(e, BoardCounter) and e.name == "crc_errors" for e in events.items)
+    _, played = b.played_codes()
+    assert played.shape[0] == stats.samples_sent  # go-back-N filled every gap, in order
+
+
+def test_underrun_is_reported_and_the_run_ends(board: FakeBoard, config: ScannerConfig) -> None:
+    class Slow:
+        def __init__(self) -> None:
+            self.inner = _source()
+            self.calls = 0
+
+        def next_block(self, n: int) -> np.ndarray:
+            self.calls += 1
+            if self.calls == 6:
+                time.sleep(0.4)  # the daemon falls behind by more than the lead
+            return self.inner.next_block(n)
+
+    with BoardSession.open(transport_factory=board.connect, config=config, sample_rate_hz=RATE) as s:
+        streamer = Streamer(s, Slow(), lead_s=0.05)
+        streamer.start(0)
+        assert streamer.wait(5.0)
+        run = streamer.stats.runs[0]
+        c = s.counters()
+        assert run.ended_by == "underrun"
+        assert c.underruns == 1 == board.stats.underruns
+        assert run.last_played_index == board.last_played
+        assert streamer.stats.unexplained_output_loss == 0
+        assert s.status is not None and s.status.fault_flags & FaultFlags.UNDERRUN
+        # the caller restarts at a fresh index
+        streamer.start(run.end_index + 1000)
+        time.sleep(0.3)
+        streamer.finish()
+    assert [r.ended_by for r in streamer.stats.runs] == ["underrun", "stop"]
+
+
+# -- link loss ----------------------------------------------------------------------------------
+
+
+def test_request_timeout_breaks_the_link(board: FakeBoard, config: ScannerConfig) -> None:
+    events = Events()
+    settings = LinkSettings(ack_timeout_s=0.02, max_retries=2, reconnect=False)
+    with BoardSession.open(
+        transport_factory=board.connect,
+        config=config,
+        settings=settings,
+        sample_rate_hz=RATE,
+        on_event=events,
+    ) as s:
+        board.silent = True
+        with pytest.raises(LinkTimeoutError, match="no reply to STOP"):
+            s.stop()
+        assert isinstance(events.wait_for(LinkDown).error, LinkTimeoutError)
+        events.wait_for(LinkLost)
+        assert not s.connected
+
+
+def test_unplug_reconnects_and_reports_the_watchdog(board: FakeBoard, config: ScannerConfig) -> None:
+    events = Events()
+    settings = LinkSettings(heartbeat_timeout_ms=100, reconnect_initial_s=0.05)
+    with BoardSession.open(
+        transport_factory=board.connect,
+        config=config,
+        settings=settings,
+        sample_rate_hz=RATE,
+        on_event=events,
+    ) as s:
+        streamer = Streamer(s, _source(), lead_s=0.05)
+        streamer.start(0)
+        time.sleep(0.3)
+        board.unplug(0.5)
+        down = events.wait_for(LinkDown)
+        assert "end of stream" in str(down.error) or "closed" in str(down.error)
+        assert streamer.wait(5.0)
+        assert streamer.stats.runs[0].ended_by == "link"
+        back = events.wait_for(Reconnected)
+        assert back.watchdog_fired and back.status is not None
+        assert back.last_played_index == board.last_played > 0
+        assert back.downtime_s >= 0.4
+        assert not back.board_changed
+        assert s.counters().watchdogs == 1 and s.counters().reconnects == 1
+        # nothing restarted by itself; the caller re-enters explicitly
+        assert board.stats.requests["START"] == 1
+        st = s.prepare_restart()
+        assert st.state == BoardState.IDLE
+        streamer.start(back.last_played_index + 1)
+        time.sleep(0.3)
+        streamer.finish()
+    assert [r.ended_by for r in streamer.stats.runs] == ["link", "stop"]
