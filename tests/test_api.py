@@ -288,6 +288,18 @@ def test_internal_errors_are_logged_but_not_leaked(
     assert logged and "deadbeef" in str(logged[0].exc_info[1])  # type: ignore[index]
 
 
+def test_bug_in_a_route_is_a_logged_500_and_the_connection_survives(
+    client: httpx.Client, fake: FakeEngine, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(fake, "recordings", lambda: [{"bogus": 1}])  # breaks the response model
+    with caplog.at_level(logging.ERROR, logger="piezod.service.api"):
+        r = client.get("/v1/recordings")
+    assert r.status_code == 500
+    assert r.json() == {"detail": "internal error; see the daemon log", "error": "InternalError"}
+    assert any(rec.exc_info and "GET /v1/recordings failed" in rec.getMessage() for rec in caplog.records)
+    assert client.get("/v1/status").status_code == 200  # same keep-alive connection
+
+
 def test_engine_calls_do_not_block_the_event_loop(client: httpx.Client, fake: FakeEngine) -> None:
     fake.block_start = threading.Event()
     answer: list[int] = []

@@ -27,14 +27,17 @@ import os
 import re
 import stat
 import threading
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Annotated, Any, TypeVar
 
 from fastapi import FastAPI, Path, Query, Request
-from fastapi.responses import JSONResponse, StreamingResponse
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.routing import APIRoute
 from pydantic import BaseModel
 from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from piezod import __version__
@@ -375,6 +378,30 @@ _BUSY_REASONS = {
 }
 
 
+class _LoggedRoute(APIRoute):
+    """Answers an unexpected exception with a JSON 500 and logs its traceback.
+
+    Catching it here, not in an ``Exception`` handler, keeps the connection open:
+    Starlette re-raises from such a handler and the server then drops the
+    keep-alive connection, failing the client's next request.
+    """
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def run(request: Request) -> Response:
+            try:
+                return await handler(request)
+            except (StarletteHTTPException, RequestValidationError, _RefusedError):
+                raise
+            except Exception:
+                log.exception("%s %s failed", request.method, request.url.path)
+                body = ErrorBody(detail="internal error; see the daemon log", error="InternalError")
+                return JSONResponse(body.model_dump(), 500)
+
+        return run
+
+
 def _require_state(status: Status, allowed: frozenset[str], action: str) -> None:
     if status.state in allowed:
         return
@@ -449,6 +476,7 @@ def create_app(
         openapi_tags=_TAGS,
         responses=_E500,
     )
+    app.router.route_class = _LoggedRoute
     app.state.engine = engine
     app.state.events = hub
 
@@ -458,7 +486,7 @@ def create_app(
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
-        # Starlette re-raises after answering, so the server logs the traceback.
+        # Last resort (errors outside the routes): Starlette re-raises, so the server logs it.
         return JSONResponse(
             ErrorBody(detail="internal error; see the daemon log", error="InternalError").model_dump(), 500
         )
