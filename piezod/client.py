@@ -22,7 +22,7 @@ import contextlib
 import json
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -252,7 +252,7 @@ class PiezodClient:
 
     def events(
         self, *, rate_hz: float | None = None, limit: int | None = None
-    ) -> Iterator[Status | FaultInfo]:
+    ) -> Generator[Status | FaultInfo, None, None]:
         """Follow the daemon live (``GET /v1/events``, server-sent events).
 
         Yields a :class:`Status` per snapshot (at ``rate_hz``, default the

@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import re
+import signal
 import socket
 import stat
 import threading
@@ -135,8 +136,10 @@ def test_parse_api_spec_forms() -> None:
     assert not parse_api_spec("tcp:192.0.2.7:80").is_loopback
 
 
-def test_tcp_loopback_on_a_free_port(tmp_path: Path) -> None:
+def test_tcp_loopback_on_a_free_port_and_no_signal_handlers(tmp_path: Path) -> None:
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
     with running_api(tmp_path, "tcp:127.0.0.1:0") as (_, server):
+        assert {sig: signal.getsignal(sig) for sig in before} == before  # the daemon owns them
         spec = parse_api_spec(server.address)
         assert spec.port > 0
         assert not server.requires_token

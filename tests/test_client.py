@@ -115,7 +115,7 @@ def test_events_deliver_a_fault_at_once(client: PiezodClient, fake: FakeEngine) 
     fake.inject_fault("limit", "sample outside voltage limits")
     second = next(stream)  # the next status is 5 s away
     assert isinstance(second, FaultInfo) and second.code == "limit"
-    stream.close()  # type: ignore[attr-defined]
+    stream.close()
 
 
 def test_unreachable_daemon(tmp_path: Path) -> None:

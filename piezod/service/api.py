@@ -491,7 +491,7 @@ def create_app(
             ErrorBody(detail="internal error; see the daemon log", error="InternalError").model_dump(), 500
         )
 
-    @app.get("/v1/status", tags=["status"], summary="Status snapshot")
+    @app.get("/v1/status", tags=["status"], summary="Status snapshot", response_description="the status")
     def get_status() -> Status:
         """What the daemon is doing now: state, scan, FIFO level, faults, last line's linearity."""
         return _engine_call("status", engine.status)
@@ -501,6 +501,7 @@ def create_app(
         tags=["scan"],
         status_code=202,
         summary="Start a scan",
+        response_description="accepted: the status with the scan starting",
         responses={**_E409, **_E503, 422: {"description": _E422_ENGINE}},
     )
     def post_scan(request: ScanRequest) -> Status:
@@ -513,6 +514,7 @@ def create_app(
         "/v1/scan",
         tags=["scan"],
         summary="Change the running scan",
+        response_description="the status with the changed scan",
         responses={**_E409, **_E503, 422: {"description": _E422_ENGINE}},
     )
     def patch_scan(change: ScanChange) -> Status:
@@ -522,7 +524,13 @@ def create_app(
         _require_state(_engine_call("status", engine.status), frozenset({"scanning"}), "change the scan")
         return _engine_call("scan change", engine.change_scan, change)
 
-    @app.post("/v1/stop", tags=["scan"], summary="Stop", responses=_E503)
+    @app.post(
+        "/v1/stop",
+        tags=["scan"],
+        summary="Stop",
+        response_description="the status after stopping",
+        responses=_E503,
+    )
     def post_stop() -> Status:
         """Stop scanning or moving and hold; ramp to the safe value when nothing runs. Clears a fault."""
         return _engine_call("stop", engine.stop)
@@ -532,6 +540,7 @@ def create_app(
         tags=["scan"],
         status_code=202,
         summary="Move and hold",
+        response_description="accepted: the status with the move starting",
         responses={**_E409, **_E503, 422: {"description": _E422_ENGINE}},
     )
     def post_move(request: MoveRequest) -> Status:
@@ -544,7 +553,12 @@ def create_app(
         _require_state(_engine_call("status", engine.status), frozenset({"idle", "moving"}), "move")
         return _engine_call("move", engine.move, request)
 
-    @app.get("/v1/recordings", tags=["recordings"], summary="List recordings")
+    @app.get(
+        "/v1/recordings",
+        tags=["recordings"],
+        summary="List recordings",
+        response_description="the recordings",
+    )
     def get_recordings() -> list[RecordingInfo]:
         """The recordings in the daemon's recording directory."""
         return _engine_call("recordings", engine.recordings)
