@@ -209,11 +209,11 @@ def test_heartbeat_keeps_the_watchdog_quiet(board: FakeBoard, config: ScannerCon
 
 def test_stream_plays_every_sample_and_matches_the_sensor(board: FakeBoard, config: ScannerConfig) -> None:
     with BoardSession.open(transport_factory=board.connect, config=config, sample_rate_hz=RATE) as s:
-        streamer, blocks = _stream(s, 1.0)
+        streamer, blocks = _stream(s, 0.6)
         stats = streamer.stats
         c = s.counters()
     run = stats.runs[0]
-    assert run.ended_by == "stop" and run.samples_played == run.samples_sent > 0.8 * RATE
+    assert run.ended_by == "stop" and run.samples_played == run.samples_sent > 0.5 * RATE
     first, played = board.played_codes()
     assert first == 0 and played.shape[0] == run.samples_sent
     # every sample went out once, in order, as computed by the converter from the source
@@ -247,11 +247,11 @@ def test_credits_are_never_exceeded(config: ScannerConfig) -> None:
                 return original(first, codes)
 
             s.send_samples = spy  # type: ignore[method-assign]
-            streamer, _ = _stream(s, 0.8, lead_s=0.05, fill_s=2.0)
+            streamer, _ = _stream(s, 0.6, lead_s=0.05, fill_s=2.0)
             assert streamer.fill_samples > 10 * 2048
         assert b.stats.overflows == 0 and b.stats.underruns == 0
         assert b.stats.max_fifo_level <= 2048
-        assert streamer.stats.runs[0].samples_played > 0.6 * RATE
+        assert streamer.stats.runs[0].samples_played > 0.4 * RATE
         # after the first STATUS of the run, no frame reached beyond the credit limit known then
         assert all(first + n <= max(limit, 2048) for first, n, limit in sent)
 
@@ -275,7 +275,7 @@ def test_host_clamps_and_reports_out_of_limit_volts(board: FakeBoard, config: Sc
     with BoardSession.open(
         transport_factory=board.connect, config=config, sample_rate_hz=RATE, on_event=events
     ) as s:
-        streamer, _ = _stream(s, 0.5, source=Wild())
+        streamer, _ = _stream(s, 0.3, source=Wild())
     faults = events.of(HostLimitFault)
     assert {(f.axis, f.count) for f in faults} == {("x", 10), ("y", 1), ("z", 1)}
     x = next(f for f in faults if f.axis == "x")
@@ -305,12 +305,12 @@ def test_converter_is_exact_at_the_limits(config: ScannerConfig, board: FakeBoar
 
 
 def test_corrupted_board_stream_resyncs_and_every_loss_is_counted(config: ScannerConfig) -> None:
-    with FakeBoard(corrupt_tx=2e-4, seed=3) as b:
+    with FakeBoard(corrupt_tx=3e-4, seed=3) as b:
         events = Events()
         with BoardSession.open(
             transport_factory=b.connect, config=config, sample_rate_hz=RATE, on_event=events
         ) as s:
-            streamer, blocks = _stream(s, 1.5)
+            streamer, blocks = _stream(s, 1.0)
             c = s.counters()
     assert b.stats.bytes_corrupted_tx > 0
     assert c.decode_errors > 0 and c.crc_errors_host > 0
@@ -327,12 +327,12 @@ def test_corrupted_board_stream_resyncs_and_every_loss_is_counted(config: Scanne
 
 
 def test_corrupted_host_stream_is_resent_and_counted_by_the_board(config: ScannerConfig) -> None:
-    with FakeBoard(corrupt_rx=3e-5, seed=5) as b:
+    with FakeBoard(corrupt_rx=5e-5, seed=5) as b:
         events = Events()
         with BoardSession.open(
             transport_factory=b.connect, config=config, sample_rate_hz=RATE, on_event=events
         ) as s:
-            streamer, _ = _stream(s, 1.5)
+            streamer, _ = _stream(s, 1.0)
             c = s.counters()
     stats = streamer.stats
     assert b.stats.crc_errors > 0
