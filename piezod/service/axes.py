@@ -27,7 +27,11 @@ from piezod.errors import SafetyError
 from piezod.model.inverse import ThesisInverse
 from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
 from piezod.model.params import ThesisParams
+from piezod.model.thesis import effective_sensitivity
 from piezod.scan import slew_limit
+
+#: Frequency (Hz) whose creep term moves and holds use before any scan sets one.
+QUASI_STATIC_HZ = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,8 +119,11 @@ class AxisDriver:
         self.limits = (config.voltage_min_v, config.voltage_max_v)
         self.max_step_v = config.slew_rate_v_per_s / sample_rate_hz
         self._state = relaxed_state(self.params.hysteresis, config.safe_voltage_v)
-        self._kappa = 0.0
-        self._v_center = 0.0
+        # Until a scan sets its own, the creep term of a slow scan over the whole voltage range
+        # (moves and holds then use the stage's quasi-static sensitivity, not the bare b).
+        lo, hi = self.limits
+        self._kappa = effective_sensitivity(self.params, QUASI_STATIC_HZ, lo, hi) - self.params.b_um_per_v
+        self._v_center = 0.5 * (lo + hi)
 
     @property
     def state(self) -> HysteresisState:
@@ -149,6 +156,20 @@ class AxisDriver:
             If the centre lies outside the limits.
         """
         return _plan(self.params, float(range_um), float(frequency_hz), float(center_um), *self.limits)
+
+    def peak_slew_v_per_s(self, plan: PeriodicPlan) -> float:
+        """Largest |dV/dt| of the corrected steady loop of ``plan`` (inf if a branch is not monotone).
+
+        The target moves at ``2 range f``; the voltage is fastest where the branch is flattest,
+        at its start right after a turning point.
+        """
+        inv = ThesisInverse.for_voltages(
+            self.params, plan.v_min, plan.v_max, plan.frequency_hz, allow_nonmonotone=True
+        )
+        slope = min(inv.trace.slope_start_um_per_v, inv.retrace.slope_start_um_per_v)
+        if slope <= 0.0:
+            return math.inf
+        return 2.0 * plan.range_um * plan.frequency_hz / slope
 
     def use_plan(self, plan: PeriodicPlan | None) -> None:
         """Switch the creep term to that of ``plan`` (None: keep the current one)."""

@@ -1,0 +1,86 @@
+"""The streaming engine against the real simulator process over a real pty."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil_sim.server import spawn_sim
+from piezod.config import ScannerConfig, default_sim_config_path, load_config
+from piezod.errors import EngineStateError, RangeUnreachableError, SafetyError
+from piezod.recording import read_recording
+from piezod.service.engine import Engine
+from piezod.service.schemas import MoveRequest, ScanChange, ScanRequest
+
+RATE_HZ = 10_000.0
+
+
+@pytest.fixture(scope="module")
+def sim_config() -> ScannerConfig:
+    return load_config(default_sim_config_path()).model_copy(update={"sample_rate_hz": RATE_HZ})
+
+
+@pytest.fixture
+def engine(sim_config: ScannerConfig, tmp_path: Path) -> Iterator[Engine]:
+    with spawn_sim(default_sim_config_path()) as sim:
+        eng = Engine(sim_config, sim.path, recording_dir=tmp_path)
+        eng.open()
+        try:
+            yield eng
+        finally:
+            eng.close()
+
+
+def test_scan_is_streamed_recorded_and_measured(engine: Engine, tmp_path: Path) -> None:
+    engine.start_scan(ScanRequest(range_um=15.0, line_rate_hz=2.0, lines=4, name="s1"))
+    assert engine.wait_idle(20.0) == "idle"
+    engine.wait_recorded()
+    st = engine.status()
+    assert st.underruns == 0 and not [f for f in st.faults if f.source != "link"]
+    assert st.last_line is not None and st.last_line.line == 3
+    rec = read_recording(tmp_path / "s1.csv")
+    assert rec.metadata["range_um"] == "15.0"
+    x = rec.axis == "x"
+    # 4 recorded lines of 5000 samples on x (settling lines are not recorded)
+    assert int(np.count_nonzero(x)) == 4 * 5000
+    assert np.all(np.diff(rec.t_s[x]) > 0)
+    assert rec.target_um is not None
+    assert np.nanmax(rec.target_um[x]) - np.nanmin(rec.target_um[x]) == pytest.approx(15.0, rel=1e-3)
+    # the stage followed: the readback spans about the commanded range (uncalibrated model: within 10 %)
+    span = np.ptp(rec.position_um[x])
+    assert 13.5 < span < 16.5
+
+
+def test_change_mid_scan_and_stop(engine: Engine) -> None:
+    engine.start_scan(ScanRequest(range_um=10.0, line_rate_hz=5.0, lines=0 + 100, frames=0, record=False))
+    time.sleep(1.0)
+    engine.change_scan(ScanChange(range_um=5.0, offset_x_um=2.0))
+    time.sleep(1.0)
+    st = engine.status()
+    assert st.state == "scanning"
+    # the x voltages of the new lines: around the new centre
+    engine.stop()
+    assert engine.status().state == "idle"
+    with pytest.raises(EngineStateError):
+        engine.change_scan(ScanChange(range_um=3.0))
+
+
+def test_requests_outside_the_limits_are_refused_with_the_reason(engine: Engine) -> None:
+    with pytest.raises(RangeUnreachableError, match="largest reachable"):
+        engine.check_scan(ScanRequest(range_um=200.0, line_rate_hz=1.0))
+    with pytest.raises(SafetyError, match="slew limit"):
+        engine.check_scan(ScanRequest(range_um=30.0, line_rate_hz=40.0))
+    with pytest.raises(SafetyError, match="outside the reach"):
+        engine.check_move(MoveRequest(x_um=500.0))
+
+
+def test_move_reaches_the_position(engine: Engine) -> None:
+    engine.move(MoveRequest(x_um=5.0, y_um=-3.0, speed_um_per_s=50.0))
+    assert engine.wait_idle(10.0) == "idle"
+    st = engine.status()
+    assert st.position_um["x"] == pytest.approx(5.0, abs=1e-6)
+    assert st.position_um["y"] == pytest.approx(-3.0, abs=1e-6)
