@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -58,3 +60,32 @@ def add_port_options(parser: argparse.ArgumentParser, *, required: bool = False)
 def human_stream(args: argparse.Namespace) -> Any:
     """Where human-readable output goes: stderr when ``--json -`` owns stdout."""
     return sys.stderr if getattr(args, "json", None) == "-" else sys.stdout
+
+
+def scanner_config_path(args: argparse.Namespace) -> Path:
+    """``--config`` or, with ``--sim``, the built-in simulated stage's config."""
+    from piezod.config import default_sim_config_path
+    from piezod.errors import ConfigError
+
+    if getattr(args, "config", None):
+        return Path(args.config)
+    if getattr(args, "sim", False):
+        return default_sim_config_path()
+    raise ConfigError("--config F is required with --port (the scanner's YAML)")
+
+
+@contextlib.contextmanager
+def board_url(args: argparse.Namespace, config_path: Path) -> Iterator[str]:
+    """The board's URL: ``--port``, or a simulator started for ``--sim`` (stopped afterwards)."""
+    from piezod.errors import ConfigError
+
+    if getattr(args, "sim", False):
+        from hil_sim.server import spawn_sim
+
+        effects = tuple(getattr(args, "effect", None) or ())
+        with spawn_sim(config_path, effects=effects) as sim:
+            yield sim.path
+    elif getattr(args, "port", None):
+        yield str(args.port)
+    else:
+        raise ConfigError("give --sim or --port URL")

@@ -1,0 +1,86 @@
+"""``piezod scan``: run one scan end to end on the stage and write the recording."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+
+from piezod.cli._common import add_port_options, board_url, human_stream, scanner_config_path
+from piezod.config import load_config
+from piezod.errors import BoardFaultError
+from piezod.progress import progress_bar
+from piezod.service.engine import Engine
+from piezod.service.schemas import ScanRequest
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Add ``piezod scan``."""
+    p = sub.add_parser("scan", help="run one scan on the stage and record it", description=__doc__)
+    p.add_argument("--config", metavar="F", help="scanner YAML (default with --sim: configs/sim-stage.yaml)")
+    add_port_options(p, required=True)
+    p.add_argument("--effect", action="append", metavar="NAME=VALUE", help="simulator effect (with --sim)")
+    p.add_argument("--range-um", type=float, required=True, help="fast-axis scan range (um)")
+    p.add_argument("--line-rate-hz", type=float, required=True, help="lines per second (trace + retrace)")
+    p.add_argument("--lines", type=int, default=8, help="lines per frame (default 8)")
+    p.add_argument("--offset-um", type=float, default=0.0, help="fast-axis offset of the image centre (um)")
+    p.add_argument("--slow-range-um", type=float, default=None, help="slow-axis range (default: range)")
+    p.add_argument("--no-correction", action="store_true", help="drive the plain triangle (no model)")
+    p.add_argument("--out", required=True, metavar="REC.csv", help="the recording to write")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the scan."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    config_path = scanner_config_path(args)
+    config = load_config(config_path)
+    out = Path(args.out)
+    request = ScanRequest(
+        range_um=args.range_um,
+        line_rate_hz=args.line_rate_hz,
+        lines=args.lines,
+        slow_range_um=args.slow_range_um,
+        offset_x_um=args.offset_um,
+        correction=not args.no_correction,
+        name=out.stem,
+    )
+    say = human_stream(args)
+    with board_url(args, config_path) as url:
+        engine = Engine(config, url, recording_dir=out.parent if str(out.parent) else Path("."))
+        engine.check_scan(request)
+        engine.open()
+        try:
+            engine.start_scan(request, path=out)
+            total = (request.lines + 2) / request.line_rate_hz
+            t0 = time.monotonic()
+            with progress_bar(desc="scanning", total=round(total, 1), unit="s") as bar:
+                shown = 0.0
+                while engine.status().state == "scanning":
+                    time.sleep(0.1)
+                    now = round(min(time.monotonic() - t0, total), 1)
+                    bar.update(now - shown)
+                    shown = now
+            state = engine.wait_idle(timeout_s=10.0)
+            engine.wait_recorded()
+            status = engine.status()
+        finally:
+            engine.close()
+    if state != "idle":
+        faults = "; ".join(f"{f.code}: {f.message}" for f in status.faults[-3:])
+        raise BoardFaultError(f"the scan ended in state {state}: {faults}")
+    mode = "corrected (thesis model)" if request.correction else "uncorrected (plain triangle)"
+    print(
+        f"scanned {request.lines} lines of {request.range_um:g} um at {request.line_rate_hz:g} Hz, {mode}",
+        file=say,
+    )
+    print(f"recording: {out}  (underruns {status.underruns}, faults {len(status.faults)})", file=say)
+    if status.last_line is not None:
+        ll = status.last_line
+        print(
+            f"last line ({ll.direction}): nonlinearity {ll.nonlinearity_pct:.3f} %, "
+            f"length error {ll.length_error_pct:+.3f} %",
+            file=say,
+        )
+    return 0
