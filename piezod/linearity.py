@@ -200,7 +200,7 @@ def experiment_linearity(
     info: ScanInfo = vinfo if exp.target_um is None else infer_scan(exp.t_s, exp.target_um)
     if not info.is_periodic:
         src = "voltage" if exp.target_um is None else "target"
-        raise RecordingError(
+        raise NotAScanError(
             f"experiment {exp.describe()}: the {src} is not a periodic back-and-forth scan with a "
             f"complete trace and retrace ({info.kind}: {info.reason})",
             *where,
@@ -306,6 +306,10 @@ def _branch(
     )
 
 
+class NotAScanError(RecordingError):
+    """The experiment's voltage / target is not a periodic back-and-forth scan."""
+
+
 @dataclass(frozen=True, slots=True)
 class LinearityReport:
     """Linearity of several experiments.
@@ -317,6 +321,7 @@ class LinearityReport:
     """
 
     experiments: tuple[ExperimentLinearity, ...]
+    skipped: tuple[tuple[str, str, str], ...] = ()
 
     @property
     def max_nonlinearity_pct(self) -> float:
@@ -334,21 +339,41 @@ class LinearityReport:
             "experiments": [e.to_json() for e in self.experiments],
             "max_nonlinearity_pct": self.max_nonlinearity_pct,
             "max_abs_length_error_pct": self.max_abs_length_error_pct,
+            "skipped": [{"experiment": e, "axis": a, "reason": r} for e, a, r in self.skipped],
         }
 
 
 def linearity(
-    experiments: Sequence[Experiment], *, range_um: float | None = None, overscan: float | None = None
+    experiments: Sequence[Experiment],
+    *,
+    range_um: float | None = None,
+    overscan: float | None = None,
+    skip_non_scans: bool = False,
 ) -> LinearityReport:
     """:func:`experiment_linearity` of every experiment.
+
+    With ``skip_non_scans`` an experiment that is not a periodic scan (e.g. the slow axis
+    of a raster recording) is listed in ``skipped`` instead of failing the analysis.
 
     Raises
     ------
     RecordingError
-        For the first experiment that cannot be analysed, or when there is none.
+        For the first experiment that cannot be analysed, or when none is left.
     """
     if not experiments:
         raise RecordingError("no experiments to analyse")
-    return LinearityReport(
-        tuple(experiment_linearity(e, range_um=range_um, overscan=overscan) for e in experiments)
-    )
+    done: list[ExperimentLinearity] = []
+    skipped: list[tuple[str, str, str]] = []
+    first_error: NotAScanError | None = None
+    for e in experiments:
+        try:
+            done.append(experiment_linearity(e, range_um=range_um, overscan=overscan))
+        except NotAScanError as exc:
+            if not skip_non_scans:
+                raise
+            first_error = first_error or exc
+            skipped.append((e.label, e.axis or "-", exc.reason))
+    if not done:
+        assert first_error is not None
+        raise first_error
+    return LinearityReport(tuple(done), tuple(skipped))

@@ -146,6 +146,19 @@ def test_report_maxima() -> None:
     rep = linearity([_exp(t, v, 1.02 * target, target), _exp(t, v, 0.97 * target, target)])
     assert rep.max_abs_length_error_pct == pytest.approx(3.0, abs=1e-6)
     doc = rep.to_json()
-    assert set(doc) == {"experiments", "max_nonlinearity_pct", "max_abs_length_error_pct"}
+    assert set(doc) >= {"experiments", "max_nonlinearity_pct", "max_abs_length_error_pct"}
+    assert doc["skipped"] == []
     for key in ("range_um", "frequency_hz", "offset_v", "nonlinearity_pct", "length_error_pct"):
         assert key in doc["experiments"][0]
+
+
+def test_non_scans_are_skipped_only_when_asked() -> None:
+    t, v, target, _ = _scan()
+    slow = _exp(t, v, np.linspace(0.0, 1.0, t.size), np.linspace(0.0, 1.0, t.size))
+    good = _exp(t, v, 1.01 * target, target)
+    with pytest.raises(RecordingError, match="not a periodic"):
+        linearity([good, slow])
+    rep = linearity([good, slow], skip_non_scans=True)
+    assert len(rep.experiments) == 1 and len(rep.skipped) == 1
+    with pytest.raises(RecordingError, match="not a periodic"):
+        linearity([slow], skip_non_scans=True)

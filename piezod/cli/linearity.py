@@ -37,7 +37,13 @@ def register(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``piezod linearity``."""
     exps = read_experiments(args.recordings, axis=args.axis, allow_truncated_tail=args.allow_truncated_tail)
-    report = linearity(exps, range_um=args.range_um, overscan=args.overscan)
+    several_axes = len({e.axis for e in exps}) > 1
+    report = linearity(
+        exps,
+        range_um=args.range_um,
+        overscan=args.overscan,
+        skip_non_scans=args.axis is None and several_axes,
+    )
     _print_table(report, human_stream(args))
     write_json(args.json, report.to_json())
     return 0
@@ -56,6 +62,8 @@ def _print_table(report: LinearityReport, out: Any) -> None:
             f"{e.nonlinearity_pct:9.4f} {e.length_error_pct:+9.4f}",
             file=out,
         )
+    for label, axis, reason in report.skipped:
+        print(f"skipped {label} (axis {axis}): {reason}", file=out)
     print(
         f"max non-linearity {report.max_nonlinearity_pct:.4f} %, "
         f"max |length error| {report.max_abs_length_error_pct:.4f} %",
