@@ -61,6 +61,7 @@ class BoardStats:
     bytes_corrupted_rx: int = 0
     bytes_corrupted_tx: int = 0
     frames_tx: int = 0
+    frames_dropped_tx: int = 0
     watchdogs: int = 0
     requests: dict[str, int] = field(default_factory=dict)
 
@@ -74,6 +75,8 @@ class FakeBoard:
         What CAPABILITIES reports.
     corrupt_rx, corrupt_tx
         Probability per byte of damaging a byte received from / sent to the host.
+    drop_tx
+        Probability per frame of not sending it at all (it keeps its sequence number).
     seed
         Random generator seed (corruption).
     """
@@ -90,6 +93,7 @@ class FakeBoard:
         serial: int = 0xB0A4D,
         corrupt_rx: float = 0.0,
         corrupt_tx: float = 0.0,
+        drop_tx: float = 0.0,
         seed: int = 0,
     ) -> None:
         self.version = protocol_version
@@ -102,6 +106,7 @@ class FakeBoard:
         self.serial = serial
         self.corrupt_rx = corrupt_rx
         self.corrupt_tx = corrupt_tx
+        self.drop_tx = drop_tx
         self.rng = np.random.default_rng(seed)
         self.stats = BoardStats()
         self.drop_replies: dict[MessageType, int] = {}
@@ -254,6 +259,7 @@ class FakeBoard:
                 out = self.endpoint.data_to_send()
                 sock = self._sock
             if out and sock is not None and not self.silent:
+                out = self._drop(out)
                 out = self._corrupt(out, self.corrupt_tx, rx=False)
                 try:
                     sock.setblocking(True)
@@ -264,6 +270,14 @@ class FakeBoard:
                     with self._lock:
                         if self._sock is sock:
                             self._sock = None
+
+    def _drop(self, data: bytes) -> bytes:
+        if self.drop_tx <= 0:
+            return data
+        frames = data.split(b"\x00")[:-1]
+        keep = self.rng.random(len(frames)) >= self.drop_tx
+        self.stats.frames_dropped_tx += int((~keep).sum())
+        return b"".join(f + b"\x00" for f, k in zip(frames, keep, strict=True) if k)
 
     def _corrupt(self, data: bytes, rate: float, *, rx: bool) -> bytes:
         if rate <= 0 or not data:

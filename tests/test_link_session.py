@@ -326,6 +326,23 @@ def test_corrupted_board_stream_resyncs_and_every_loss_is_counted(config: Scanne
     assert np.all(np.diff(idx) > 0)  # what did arrive is in order, without duplicates
 
 
+def test_frames_lost_whole_are_found_by_sequence_number(config: ScannerConfig) -> None:
+    # no decode error at all: only the gaps in the board's sequence numbers reveal the losses
+    with FakeBoard(drop_tx=0.03, seed=7) as b:
+        events = Events()
+        with BoardSession.open(
+            transport_factory=b.connect, config=config, sample_rate_hz=RATE, on_event=events
+        ) as s:
+            streamer, _ = _stream(s, 1.0)
+            c = s.counters()
+    assert b.stats.frames_dropped_tx > 0 and c.decode_errors == 0
+    # every lost frame is seen once a later frame arrives (the board goes on sending after the snapshot)
+    assert 0.8 * b.stats.frames_dropped_tx <= c.frames_lost_rx <= b.stats.frames_dropped_tx
+    assert c.sensor_rows_lost > 0 and c.sensor_rows_lost_unexplained == 0
+    assert c.sensor_rows + c.sensor_rows_lost == streamer.stats.samples_played
+    assert all(g.explained for g in events.of(SensorGap))
+
+
 def test_corrupted_host_stream_is_resent_and_counted_by_the_board(config: ScannerConfig) -> None:
     with FakeBoard(corrupt_rx=5e-5, seed=5) as b:
         events = Events()

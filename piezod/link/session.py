@@ -679,6 +679,9 @@ class _SeqWatch(FrameDecoder):
         self.expected: int | None = None
         self.missing = 0
         self.out_of_order = 0
+        # frames missing right before a frame, by id() of its message: the session places each
+        # loss at its position in the stream (a batch of bytes may hold a loss after a SENSOR)
+        self.gap_before: dict[int, int] = {}
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[Frame | DecodeError]:
         items = super().feed(data)
@@ -688,6 +691,7 @@ class _SeqWatch(FrameDecoder):
                     gap = (item.seq - self.expected) & 0xFFFFFFFF
                     if gap < 1 << 31:
                         self.missing += gap
+                        self.gap_before[id(item.msg)] = gap
                     else:
                         self.out_of_order += 1
                 self.expected = (item.seq + 1) & 0xFFFFFFFF
@@ -703,6 +707,11 @@ def _new_endpoint(settings: LinkSettings) -> Endpoint:
 def _missing(ep: Endpoint) -> int:
     dec = ep.decoder
     return dec.missing if isinstance(dec, _SeqWatch) else 0
+
+
+def _gap_before(ep: Endpoint, msg: Message) -> int:
+    dec = ep.decoder
+    return dec.gap_before.pop(id(msg), 0) if isinstance(dec, _SeqWatch) else 0
 
 
 class _Connection:
@@ -788,6 +797,7 @@ class BoardSession:
         self._sensor_next: int | None = None
         self._sensor_stride = 1
         self._sensor_err_mark = 0
+        self._loss_pos = 0  # frames known lost up to the event being handled (stream order)
         self._tail: tuple[int, float] | None = None
         self._link_broke_in_run = False
         self._last_played_seen: int | None = None
@@ -1023,6 +1033,7 @@ class BoardSession:
             self._conn = conn
             self._sensor_next = None
             self._tail = None
+            self._loss_pos = self._losses_now()
         try:
             transport.write(b"\x00")  # terminate any partial garbage in the board's receive buffer
         except LinkError as exc:
@@ -1278,6 +1289,10 @@ class BoardSession:
                         conn.last_rx = conn.endpoint.last_rx_time
                     for ev in events:
                         self._handle(conn, ev, now, out)
+                    dec = conn.endpoint.decoder
+                    if isinstance(dec, _SeqWatch):
+                        dec.gap_before.clear()  # e.g. before a stray reply: no event to place it at
+                    self._loss_pos = self._losses_now()
                 self._check_tail(now, out)
                 silent = conn.got_status and now - conn.last_rx > silence
             self._emit_all(out)
@@ -1335,6 +1350,12 @@ class BoardSession:
     # -- frame handling (under the lock, in the reader thread) ------------------------------------
 
     def _handle(self, conn: _Connection, ev: Any, now: float, out: list[LinkEvent]) -> None:
+        if isinstance(ev, DecodeError):
+            self._loss_pos += 1
+        elif isinstance(ev, Frame):
+            self._loss_pos += _gap_before(conn.endpoint, ev.msg)
+        elif isinstance(ev, Acked | Nacked):
+            self._loss_pos += _gap_before(conn.endpoint, ev.reply)
         if isinstance(ev, Frame):
             msg = ev.msg
             if isinstance(msg, Status):
@@ -1392,7 +1413,7 @@ class BoardSession:
                 self._close_sensor_run(self._last_played_seen, now, out)
             self._run_start = req.start_index
             self._sensor_next = req.start_index
-            self._sensor_err_mark = self._losses_now()
+            self._sensor_err_mark = self._loss_pos
             self._tail = None
             self._link_broke_in_run = False
         elif isinstance(req, Configure):
@@ -1441,7 +1462,7 @@ class BoardSession:
         n = msg.n_samples
         self._tally.sensor_frames += 1
         self._tally.sensor_rows += n
-        errors = self._losses_now()
+        errors = self._loss_pos
         nxt = self._sensor_next
         if nxt is not None:
             if msg.first_index > nxt:
@@ -1478,7 +1499,7 @@ class BoardSession:
         nxt = self._sensor_next
         if nxt is not None and nxt <= last_played:
             missing = (last_played - nxt) // self._sensor_stride + 1
-            explained = self._losses_now() > self._sensor_err_mark or self._link_broke_in_run
+            explained = self._loss_pos > self._sensor_err_mark or self._link_broke_in_run
             self._count_gap(nxt, missing, explained, now, out)
         self._sensor_next = None
 
