@@ -10,7 +10,7 @@ import numpy as np
 from piezod.calibrate import LOSSES, PARAM_NAMES, CalibrationResult, calibrate, calibrated_config, result_json
 from piezod.cli._common import add_json_option, add_port_options, human_stream, write_json
 from piezod.config import dump_config, load_config
-from piezod.errors import CalibrationError, PiezodError
+from piezod.errors import CalibrationError
 from piezod.progress import progress_bar
 from piezod.recording import AXES, read_experiments
 
@@ -54,16 +54,27 @@ def register(sub: Any) -> None:
         help="drop an unterminated last line (crash while writing)",
     )
     add_port_options(p)
+    stage = p.add_argument_group("on the stage (--sim / --port)")
+    stage.add_argument(
+        "--frame", choices=("full", "reduced"), default="full", help="calibration frame (default: full)"
+    )
+    stage.add_argument("--no-verify", action="store_true", help="skip the verification scans")
+    stage.add_argument(
+        "--recordings-dir", metavar="DIR", help="where the frame and verification recordings go"
+    )
+    stage.add_argument("--plot", metavar="F.png", help="plot of the verification (matplotlib)")
+    stage.add_argument(
+        "--effect", action="append", metavar="NAME=VALUE", help="simulator effect (with --sim)"
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``piezod calibrate``."""
     if args.sim or args.port:
-        raise PiezodError(
-            "on-stage calibration (--sim / --port) is not available yet; record a calibration frame "
-            "and run 'piezod calibrate REC.csv...'"
-        )
+        from piezod.cli.calibrate_stage import run_on_stage
+
+        return run_on_stage(args)
     if not args.recordings:
         raise CalibrationError("no recordings given (piezod calibrate REC.csv...)")
     if args.skip_loops < 0:

@@ -24,6 +24,14 @@ from numpy.typing import NDArray
 
 from piezod.config import AxisConfig
 from piezod.errors import SafetyError
+from piezod.model.dynamic import (
+    DynamicParams,
+    DynamicState,
+    dynamic_forward,
+    dynamic_hold,
+    dynamic_inverse,
+    dynamic_rest_state,
+)
 from piezod.model.inverse import ThesisInverse
 from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
 from piezod.model.params import ThesisParams
@@ -124,6 +132,15 @@ class AxisDriver:
         lo, hi = self.limits
         self._kappa = effective_sensitivity(self.params, QUASI_STATIC_HZ, lo, hi) - self.params.b_um_per_v
         self._v_center = 0.5 * (lo + hi)
+        # model: dynamic -- the time-domain model (piezod.model.dynamic) drives corrected(); its
+        # state is kept next to (and in step with) the hysteresis state.
+        self._dt_s = 1.0 / sample_rate_hz
+        self.dynamic: DynamicParams | None = None
+        self._dyn: DynamicState | None = None
+        if config.model == "dynamic" and config.dynamic is not None:
+            self.dynamic = config.dynamic.params()
+            self._dyn = dynamic_rest_state(self.dynamic, config.safe_voltage_v)
+            self._state = self._dyn.hysteresis
 
     @property
     def state(self) -> HysteresisState:
@@ -138,12 +155,17 @@ class AxisDriver:
     @property
     def position_um(self) -> float:
         """The model's position after the last sample (hysteresis + current creep term)."""
+        if self.dynamic is not None:
+            return self._dynamic_state().position_um
         return self._state.position_um + self._kappa * (self._state.voltage_v - self._v_center)
 
     def reset(self, voltage_v: float | None = None) -> None:
         """Forget the history: the stage rests at ``voltage_v`` (default: the safe value)."""
         v = self.config.safe_voltage_v if voltage_v is None else voltage_v
         self._state = relaxed_state(self.params.hysteresis, v)
+        if self.dynamic is not None:
+            self._dyn = dynamic_rest_state(self.dynamic, v)
+            self._state = self._dyn.hysteresis
 
     def plan(self, range_um: float, frequency_hz: float, center_um: float) -> PeriodicPlan:
         """The steady loop of a periodic scan (cached).
@@ -178,6 +200,9 @@ class AxisDriver:
 
     def corrected(self, targets_um: NDArray[np.float64]) -> AxisOutput:
         """Voltages that bring the modelled stage to ``targets_um`` (um), sample by sample."""
+        if self.dynamic is not None:
+            volts, dyn = dynamic_inverse(self.dynamic, targets_um, self._dt_s, self._dynamic_state())
+            return self._finish(volts, dyn)
         shifted = np.asarray(targets_um, dtype=np.float64) + self._kappa * self._v_center
         volts, state = hysteresis_inverse_step(
             self.params.hysteresis, shifted, self._state, kappa_um_per_v=self._kappa
@@ -190,8 +215,23 @@ class AxisDriver:
         volts = plan.v_center + (np.asarray(targets_um, dtype=np.float64) - plan.center_um) * scale
         return self._finish(volts)
 
+    def direct(self, volts: NDArray[np.float64]) -> AxisOutput:
+        """Voltages given directly (no model), clamped and slew-limited; the model state follows."""
+        return self._finish(np.asarray(volts, dtype=np.float64))
+
+    def adopt_state(self, other: AxisDriver) -> None:
+        """Continue from another driver's last voltage and position (new parameters, same stage)."""
+        v = other.voltage_v
+        eta = other.state.position_um - other.params.b_um_per_v * v
+        # keep the distance from the branch centre line b V, rescaled to the new loop width
+        scale = self.params.hysteresis.delta_um / other.params.hysteresis.delta_um
+        self._state = HysteresisState(v, self.params.b_um_per_v * v + eta * scale)
+
     def hold(self, n: int) -> AxisOutput:
         """Keep the last voltage for ``n`` samples."""
+        if self.dynamic is not None:
+            self._dyn = dynamic_hold(self.dynamic, n, self._dt_s, self._dynamic_state())
+            self._state = self._dyn.hysteresis
         return AxisOutput(np.full(n, self._state.voltage_v), 0, 0)
 
     def ramp_to(self, voltage_v: float, rate_v_per_s: float, sample_rate_hz: float) -> NDArray[np.float64]:
@@ -201,14 +241,34 @@ class AxisDriver:
         volts = start + (voltage_v - start) * np.arange(1, n + 1) / n
         return self._finish(volts).voltage_v
 
-    def _finish(self, volts: NDArray[np.float64], state_after: HysteresisState | None = None) -> AxisOutput:
+    def _dynamic_state(self) -> DynamicState:
+        """The dynamic model's state; rebuilt (creep relaxed) if the hysteresis state was replaced."""
+        assert self.dynamic is not None and self._dyn is not None
+        if self._dyn.hysteresis is not self._state:
+            self._dyn = DynamicState(
+                self._state,
+                (1.0 + self.dynamic.total_creep) * self._state.position_um,
+                np.zeros(self.dynamic.taus_s.size),
+            )
+        return self._dyn
+
+    def _finish(
+        self, volts: NDArray[np.float64], state_after: HysteresisState | DynamicState | None = None
+    ) -> AxisOutput:
         lo, hi = self.limits
         bad = (volts < lo) | (volts > hi) | ~np.isfinite(volts)
         clamped = int(np.count_nonzero(bad))
         if clamped:
             volts = np.clip(np.nan_to_num(volts, nan=self._state.voltage_v), lo, hi)
         volts, slewed = slew_limit(volts, self._state.voltage_v, self.max_step_v)
-        if state_after is None or clamped or slewed:
+        if self.dynamic is not None:
+            dyn = state_after if isinstance(state_after, DynamicState) else None
+            if dyn is None or clamped or slewed:
+                _, dyn = dynamic_forward(self.dynamic, volts, self._dt_s, self._dynamic_state())
+            self._dyn = dyn
+            self._state = dyn.hysteresis
+            return AxisOutput(volts, clamped, slewed)
+        if not isinstance(state_after, HysteresisState) or clamped or slewed:
             _, state_after = hysteresis_step(self.params.hysteresis, volts, self._state)
         self._state = state_after
         return AxisOutput(volts, clamped, slewed)

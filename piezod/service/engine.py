@@ -26,7 +26,7 @@ import queue
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from firmware_proto import NO_INDEX
-from piezod.config import ScannerConfig
+from piezod.config import AxisConfig, AxisName, ScannerConfig
 from piezod.errors import (
     EngineStateError,
     LinkError,
@@ -98,6 +98,8 @@ class Chunk:
         +1 trace / -1 retrace / 0 (per sample).
     record
         Whether the sample is recorded.
+    label
+        Experiment label id of the chunk (:meth:`Engine.label_id`), -1 for none.
     """
 
     volts: FloatArray
@@ -105,6 +107,7 @@ class Chunk:
     line: NDArray[np.int64]
     direction: NDArray[np.int8]
     record: NDArray[np.bool_]
+    label: int = -1
 
 
 class Job:
@@ -189,6 +192,7 @@ class ScanJob(Job):
         settle = replace(params, lines=1, frames=SETTLE_LINES, bidirectional_slow=False)
         self._settle: RasterGenerator | None = RasterGenerator(settle, engine.rate_hz)
         self._gen = RasterGenerator(params, engine.rate_hz)
+        self.label = engine.label_id(request.name or "scan")
         self._plans = engine.plans_for(params)
         self._plan_key: RasterParams | None = params
         for name, plan in self._plans.items():
@@ -246,7 +250,7 @@ class ScanJob(Job):
                 volts, targets, np.full(m, -1, dtype=np.int64), block.fast_direction, np.zeros(m, bool)
             )
         record = np.full(m, self.request.record)
-        return Chunk(volts, targets, block.line, block.fast_direction, record)
+        return Chunk(volts, targets, block.line, block.fast_direction, record, self.label)
 
     @property
     def params(self) -> RasterParams:
@@ -255,6 +259,75 @@ class ScanJob(Job):
     @property
     def line(self) -> int:
         return max(0, self._gen._line_at(self._gen.next_index))
+
+
+@dataclass(frozen=True, slots=True)
+class Segment:
+    """One piece of a voltage program: samples for one axis, labelled, recorded or not."""
+
+    volts: FloatArray
+    label: str
+    record: bool = True
+
+
+class ProgramJob(Job):
+    """Play voltage segments on one axis (others hold), each preceded by a ramp to its start.
+
+    This is how a calibration frame runs: the thesis's uncorrected triangles, settling loops
+    unrecorded, then the recorded loops, each experiment labelled.
+    """
+
+    state: EngineState = "scanning"
+
+    def __init__(self, engine: Engine, axis: str, segments: list[Segment], ramp_v_per_s: float) -> None:
+        if axis not in engine.drivers:
+            raise SafetyError(f"the scanner has no axis {axis!r}")
+        lo, hi = engine.drivers[axis].limits
+        for seg in segments:
+            if seg.volts.size == 0 or not (np.all(seg.volts >= lo) and np.all(seg.volts <= hi)):
+                raise SafetyError(f"segment {seg.label!r}: voltages outside [{lo:g}, {hi:g}] V or empty")
+        self.axis = axis
+        self._axis_index = list(engine.drivers).index(axis)
+        self._segments = list(segments)
+        self._ramp = ramp_v_per_s
+        self._current: FloatArray | None = None
+        self._current_seg: Segment | None = None
+        self._pos = 0
+        self._label = -1
+
+    def _advance(self, engine: Engine) -> bool:
+        if not self._segments:
+            return False
+        seg = self._segments.pop(0)
+        driver = engine.drivers[self.axis]
+        start = float(seg.volts[0])
+        n_ramp = math.ceil(abs(start - driver.voltage_v) / self._ramp * engine.rate_hz)
+        ramp = driver.voltage_v + (start - driver.voltage_v) * np.arange(1, n_ramp + 1) / max(n_ramp, 1)
+        self._ramp_len = n_ramp
+        self._current = np.concatenate([ramp, seg.volts])
+        self._current_seg = seg
+        self._pos = 0
+        self._label = engine.label_id(seg.label)
+        return True
+
+    def render(self, engine: Engine, n: int) -> Chunk:
+        if (self._current is None or self._pos >= self._current.size) and not self._advance(engine):
+            self.done = True
+            return engine.chunk(np.empty((len(engine.drivers), 0)), None)
+        assert self._current is not None and self._current_seg is not None
+        take = min(n, self._current.size - self._pos)
+        piece = self._current[self._pos : self._pos + take]
+        in_seg = np.arange(self._pos, self._pos + take) >= self._ramp_len
+        self._pos += take
+        volts = np.empty((len(engine.drivers), take))
+        for i, d in enumerate(engine.drivers.values()):
+            volts[i] = engine.drive(d, d.direct(piece)) if i == self._axis_index else d.hold(take).voltage_v
+        chunk = engine.chunk(volts, None)
+        chunk.record = in_seg & self._current_seg.record
+        chunk.label = self._label
+        if self._pos >= self._current.size and not self._segments:
+            self.done = True
+        return chunk
 
 
 class TargetRing:
@@ -267,6 +340,7 @@ class TargetRing:
         self.direction = np.zeros(capacity, dtype=np.int8)
         self.record = np.zeros(capacity, dtype=bool)
         self.recording = np.full(capacity, -1, dtype=np.int64)
+        self.label = np.full(capacity, -1, dtype=np.int64)
         self.hi = 0
         self.lock = threading.Lock()
 
@@ -279,22 +353,22 @@ class TargetRing:
             self.direction[slots] = chunk.direction
             self.record[slots] = chunk.record
             self.recording[slots] = recording_id if chunk.record.any() else -1
+            self.label[slots] = chunk.label
             self.hi = max(self.hi, first + n)
 
-    def get(
-        self, idx: NDArray[np.int64]
-    ) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.int8], NDArray[np.bool_], NDArray[np.int64]]:
+    def get(self, idx: NDArray[np.int64]) -> tuple[Any, ...]:
+        """(targets, line, direction, record, recording id, label id) at the sample indices."""
         slots = idx % self.capacity
         with self.lock:
             known = (idx < self.hi) & (idx >= self.hi - self.capacity)
-            out = (
+            return (
                 self.targets[:, slots].copy(),
                 self.line[slots].copy(),
                 self.direction[slots].copy(),
                 self.record[slots] & known,
                 np.where(known, self.recording[slots], -1),
+                self.label[slots].copy(),
             )
-        return out
 
 
 @dataclass
@@ -302,7 +376,8 @@ class _OpenRecording:
     ident: int
     path: Path
     writer: RecordingWriter
-    range_um: float
+    axes: tuple[str, ...]
+    targets: bool
     rows: int = 0
     done: bool = False
 
@@ -328,12 +403,19 @@ class Recorder(threading.Thread):
         self._acc = _LineAccumulator()
         self._pending_close: dict[int, int] = {}
 
-    def open(self, ident: int, path: Path, metadata: dict[str, object], range_um: float) -> None:
-        writer = RecordingWriter(
-            path, ("t", "voltage", "position", "target", "axis"), metadata=metadata, append=False
-        )
+    def open(
+        self,
+        ident: int,
+        path: Path,
+        metadata: dict[str, object],
+        axes: tuple[str, ...],
+        *,
+        targets: bool = True,
+    ) -> None:
+        columns = ("t", "voltage", "position", *(("target",) if targets else ()), "axis", "experiment")
+        writer = RecordingWriter(path, columns, metadata=metadata, append=False)
         with self.lock:
-            self.recordings[ident] = _OpenRecording(ident, path, writer, range_um)
+            self.recordings[ident] = _OpenRecording(ident, path, writer, axes, targets)
 
     def run(self) -> None:
         while True:
@@ -371,7 +453,7 @@ class Recorder(threading.Thread):
             log.info("recording %s closed (%d rows)", rec.path, rec.rows)
 
     def _write(self, block: MatchedBlock, meta: tuple[Any, ...]) -> None:
-        targets, line, direction, record, rec_id = meta
+        targets, line, direction, record, rec_id, label = meta
         rate = self.engine.rate_hz
         t = block.indices / rate
         self._line_stats(block, targets, line, direction)
@@ -383,12 +465,17 @@ class Recorder(threading.Thread):
             if rec is None:
                 continue
             sel = record & (rec_id == ident)
+            names = self.engine.label_names(label[sel])
             for i, axis in enumerate(block.axes):
-                tgt = targets[i, sel]
-                if np.all(np.isnan(tgt)):
+                if axis not in rec.axes:
                     continue
                 rec.writer.write(
-                    t[sel], block.commanded_v[i, sel], block.position_um[i, sel], target_um=tgt, axis=axis
+                    t[sel],
+                    block.commanded_v[i, sel],
+                    block.position_um[i, sel],
+                    target_um=targets[i, sel] if rec.targets else None,
+                    axis=axis,
+                    experiment=names,
                 )
                 rec.rows += int(sel.sum())
 
@@ -500,6 +587,8 @@ class Engine:
         self._closing = threading.Event()
         self._supervisor: threading.Thread | None = None
         self._idle_cb: list[Callable[[], None]] = []
+        self._labels: list[str] = []
+        self._label_ids: dict[str, int] = {}
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -623,7 +712,7 @@ class Engine:
         return out
 
     def _job_finished(self, job: Job, end_index: int) -> None:
-        if isinstance(job, ScanJob):
+        if isinstance(job, ScanJob | ProgramJob):
             self._end_recording(end_index)
         if self._queue:
             self._job = self._queue.popleft()
@@ -837,6 +926,32 @@ class Engine:
             raise FileNotFoundError(name)
         return p
 
+    def start_program(
+        self, axis: AxisName, segments: list[Segment], path: Path, metadata: Mapping[str, object]
+    ) -> Status:
+        """Play a voltage program on ``axis`` (e.g. a calibration frame), recorded to ``path``."""
+        job = ProgramJob(self, axis, segments, self.config.service.ramp_rate_v_per_s)
+        with self._lock:
+            if self._state != "idle":
+                raise EngineStateError(f"cannot start a program while {self._state}")
+            self._next_recording += 1
+            ident = self._next_recording
+            meta = {"scanner": self.config.name, "sample_rate_hz": self.rate_hz, **metadata}
+            self._recorder.open(ident, path, meta, (axis,), targets=False)
+            self._recording_id = ident
+            self._recording_name = path.name
+            self._job = job
+            self._state = "scanning"
+        return self.status()
+
+    def set_axis_model(self, axis: AxisName, config: AxisConfig) -> None:
+        """Use new model parameters on ``axis`` from now on (the model state carries over)."""
+        with self._lock:
+            old = self.drivers[axis]
+            new = AxisDriver(axis, config, self.rate_hz)
+            new.adopt_state(old)
+            self.drivers[axis] = new
+
     # -- waiting (piezod scan) -------------------------------------------------------------------
 
     def wait_idle(self, timeout_s: float | None = None, poll_s: float = 0.05) -> EngineState:
@@ -884,7 +999,8 @@ class Engine:
             "correction": "thesis" if request.correction else "none",
             "sample_rate_hz": self.rate_hz,
         }
-        self._recorder.open(ident, path, meta, request.range_um)
+        axes = tuple(a for a, plan in self.plans_for(params).items() if plan is not None) or ("x",)
+        self._recorder.open(ident, path, meta, axes)
         self._recording_id = ident
         self._recording_name = path.name
 
@@ -900,6 +1016,20 @@ class Engine:
 
     def _on_block(self, block: MatchedBlock) -> None:
         self._recorder.queue.put((block, self._ring.get(block.indices)))
+
+    def label_id(self, name: str) -> int:
+        """The id of an experiment label (registered on first use)."""
+        with self._lock:
+            if name not in self._label_ids:
+                self._label_ids[name] = len(self._labels)
+                self._labels.append(name)
+            return self._label_ids[name]
+
+    def label_names(self, ids: NDArray[np.int64]) -> NDArray[np.str_]:
+        """Label strings of label ids (``""`` for none)."""
+        with self._lock:
+            names = np.array([*self._labels, ""], dtype=str)
+        return names[np.where(ids >= 0, ids, len(names) - 1)]
 
     def set_line_linearity(self, value: LineLinearity) -> None:
         """Called by the recorder when a line completes."""

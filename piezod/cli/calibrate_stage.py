@@ -1,0 +1,85 @@
+"""``piezod calibrate (--sim | --port URL) --config F --out F.yaml``: the calibration button."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from piezod.cli._common import board_url, human_stream, scanner_config_path, write_json
+from piezod.config import AxisName, dump_config, load_config
+from piezod.errors import CalibrationError
+from piezod.progress import progress_bar
+from piezod.service.engine import Engine
+from piezod.stagecal import (
+    default_frame,
+    fit_thesis,
+    format_table,
+    frame_summary,
+    plot_verification,
+    run_frame,
+    summary,
+    verification_points,
+    verify,
+)
+
+
+def run_on_stage(args: argparse.Namespace) -> int:
+    """Record the frame on the stage, fit, write the YAML, verify inside and outside the frame."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if not args.out:
+        raise CalibrationError("--out F.yaml is required: where the calibrated scanner config goes")
+    if args.recordings:
+        raise CalibrationError("give recordings (offline fit) or --sim/--port (on the stage), not both")
+    config_path = scanner_config_path(args)
+    base = load_config(config_path)
+    axis: AxisName = args.axis or "x"
+    reduced = args.frame == "reduced"
+    frame = default_frame(base, axis, reduced=reduced)
+    out = Path(args.out)
+    recdir = Path(args.recordings_dir) if args.recordings_dir else out.parent / f"{out.stem}-recordings"
+    recdir.mkdir(parents=True, exist_ok=True)
+    say = human_stream(args)
+    print(f"calibration frame: {frame_summary(frame)}", file=say)
+    t_start = time.monotonic()
+    report: dict[str, Any] = {}
+    with board_url(args, config_path) as url:
+        engine = Engine(base, url, recording_dir=recdir)
+        engine.open()
+        try:
+            with progress_bar(desc="calibration frame", total=round(frame.duration_s, 1), unit="s") as bar:
+                shown = [0.0]
+
+                def tick(_: str, t: float) -> None:
+                    bar.update(round(t, 1) - shown[0])
+                    shown[0] = round(t, 1)
+
+                frame_path = run_frame(engine, frame, recdir / "frame.csv", progress=tick)
+            fitted = fit_thesis(frame_path, base, axis)
+            calibrated = fitted.config
+            dump_config(
+                calibrated,
+                out,
+                header=f"calibrated on the stage by piezod calibrate ({frame_summary(frame)})",
+            )
+            print(f"thesis model fitted: worst fit error {fitted.fit_error_pct:.3f} % -> {out}", file=say)
+            report = dict(fitted.report)
+            report["frame"] = {"summary": frame_summary(frame), "recording": str(frame_path)}
+            rows: list[dict[str, Any]] = []
+            if not args.no_verify:
+                engine.set_axis_model(axis, calibrated.axes[axis])
+                points = verification_points(calibrated, frame, reduced=reduced, axis=axis)
+                rows = verify(engine, points, recdir, "thesis")
+                print(format_table(rows), file=say)
+                report["verification"] = rows
+                report["verification_summary"] = summary(rows)
+                if args.plot:
+                    plot_verification(rows, Path(args.plot))
+                    print(f"plot: {args.plot}", file=say)
+        finally:
+            engine.close()
+    report["seconds"] = time.monotonic() - t_start
+    write_json(args.json, report)
+    return 0

@@ -1,0 +1,410 @@
+"""Calibration on the stage: the thesis's "calibration button", and its verification.
+
+``piezod calibrate (--sim | --port URL) --config F --out F.yaml`` runs a *calibration frame*
+(thesis section 3.1, tables 3.1-3.2) on the stage through the daemon's engine: uncorrected
+triangular voltage scans over a grid of voltage ranges x line rates (x offsets), each with
+settling loops first (not recorded) and then the recorded loops. It keeps the recording, fits
+the model(s) to it, writes the scanner YAML, and verifies: it scans online-corrected inside the
+frame and outside it (10x slower, 10x faster, offsets beyond it) and tabulates nonlinearity and
+length error per range, rate and offset for each model, like thesis tables 4.3 / 4.4.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import math
+import multiprocessing
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from piezod.calibrate import calibrate, calibrated_config, result_json
+from piezod.config import AxisName, ScannerConfig
+from piezod.errors import CalibrationError, PiezodError
+from piezod.linearity import linearity
+from piezod.model.thesis import scan_range_um
+from piezod.recording import read_experiments
+from piezod.service.engine import Engine, Segment
+from piezod.service.schemas import ScanRequest
+
+Progress = Callable[[str, float], None]
+T = TypeVar("T")
+
+
+@dataclass(frozen=True, slots=True)
+class FrameScan:
+    """One experiment of the calibration frame: an uncorrected triangular voltage scan."""
+
+    range_v: float
+    frequency_hz: float
+    offset_v: float = 0.0
+    settle_loops: int = 2
+    loops: int = 3
+
+    @property
+    def label(self) -> str:
+        """Experiment label in the recording."""
+        return f"R{self.range_v:g}V_f{self.frequency_hz:g}Hz_o{self.offset_v:+g}V"
+
+    @property
+    def duration_s(self) -> float:
+        """Time on the stage (s)."""
+        return (self.settle_loops + self.loops) / self.frequency_hz
+
+    def segments(self, rate_hz: float) -> list[Segment]:
+        """Settling loops (unrecorded) then recorded loops, each starting at the lower turning point."""
+        n = max(8, round(rate_hz / self.frequency_hz))
+        phase = np.arange(n) / n
+        tri = np.where(phase < 0.5, 2.0 * phase, 2.0 - 2.0 * phase)
+        one = self.offset_v + (tri - 0.5) * self.range_v
+        out = []
+        if self.settle_loops:
+            out.append(Segment(np.tile(one, self.settle_loops), self.label, record=False))
+        out.append(Segment(np.concatenate([np.tile(one, self.loops), one[:1]]), self.label, record=True))
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """A calibration frame on one axis."""
+
+    axis: AxisName
+    scans: tuple[FrameScan, ...]
+
+    @property
+    def duration_s(self) -> float:
+        """Total time on the stage (s), without the ramps between scans."""
+        return sum(s.duration_s for s in self.scans)
+
+    @property
+    def frequencies_hz(self) -> tuple[float, float]:
+        """Lowest and highest line rate."""
+        f = [s.frequency_hz for s in self.scans]
+        return min(f), max(f)
+
+    @property
+    def ranges_v(self) -> tuple[float, float]:
+        """Smallest and largest voltage range."""
+        r = [s.range_v for s in self.scans]
+        return min(r), max(r)
+
+    @property
+    def offsets_v(self) -> tuple[float, float]:
+        """Lowest and highest offset."""
+        o = [s.offset_v for s in self.scans]
+        return min(o), max(o)
+
+
+def default_frame(config: ScannerConfig, axis: AxisName = "x", *, reduced: bool = False) -> Frame:
+    """A frame like thesis table 3.1 scaled to the axis: ranges 1/3..full x 0.2-2 Hz, +- offsets.
+
+    ``reduced`` is a quick frame (2 ranges x 3 rates, one offset) for tests and demos.
+    """
+    ax = config.axes[axis]
+    span = ax.voltage_max_v - ax.voltage_min_v
+    centre = 0.5 * (ax.voltage_max_v + ax.voltage_min_v)
+    full = 0.98 * span
+    if reduced:
+        ranges = [0.45 * full, 0.9 * full]
+        freqs = [0.5, 1.0, 2.0]
+        scans = [FrameScan(r, f, centre, settle_loops=1, loops=2) for r in ranges for f in freqs]
+    else:
+        ranges = list(np.linspace(full / 3.0, full, 5))
+        freqs = [0.2, 0.4, 0.7, 1.0, 1.4, 2.0]
+        scans = [FrameScan(r, f, centre) for r in ranges for f in freqs]
+        off = 0.15 * span
+        scans += [FrameScan(full / 2.0, 1.0, centre + o) for o in (-off, off)]
+        scans += [FrameScan(full / 3.0, 0.4, centre + o) for o in (-off, off)]
+    for s in scans:
+        needed = 2.0 * s.range_v * s.frequency_hz
+        if needed > ax.slew_rate_v_per_s:
+            raise CalibrationError(
+                f"frame scan {s.label} needs {needed:g} V/s, "
+                f"above the slew limit {ax.slew_rate_v_per_s:g} V/s"
+            )
+    return Frame(axis, tuple(round_frame(s) for s in scans))
+
+
+def round_frame(scan: FrameScan) -> FrameScan:
+    """Round the ranges / offsets to 0.1 V (readable labels)."""
+    return FrameScan(
+        round(scan.range_v, 1), scan.frequency_hz, round(scan.offset_v, 1), scan.settle_loops, scan.loops
+    )
+
+
+def run_frame(
+    engine: Engine,
+    frame: Frame,
+    path: Path,
+    *,
+    progress: Progress | None = None,
+    timeout_s: float | None = None,
+) -> Path:
+    """Play the frame on the stage, recorded to ``path`` (one experiment per scan)."""
+    segments = [seg for scan in frame.scans for seg in scan.segments(engine.rate_hz)]
+    meta = {
+        "content": "calibration frame (uncorrected triangles)",
+        "axis": frame.axis,
+        "experiments": len(frame.scans),
+    }
+    engine.start_program(frame.axis, segments, path, meta)
+    total = frame.duration_s
+    t0 = time.monotonic()
+    deadline = None if timeout_s is None else t0 + timeout_s
+    while engine.status().state == "scanning":
+        if progress is not None:
+            progress("frame", min(time.monotonic() - t0, total))
+        if deadline is not None and time.monotonic() > deadline:
+            engine.stop()
+            raise CalibrationError(f"the calibration frame did not finish within {timeout_s:g} s")
+        time.sleep(0.1)
+    state = engine.wait_idle(10.0)
+    engine.wait_recorded()
+    if state != "idle":
+        faults = "; ".join(f"{f.code}: {f.message}" for f in engine.status().faults[-3:])
+        raise CalibrationError(f"the calibration frame ended in state {state}: {faults}")
+    return path
+
+
+@dataclass(frozen=True, slots=True)
+class VerifyPoint:
+    """One verification scan."""
+
+    range_um: float
+    frequency_hz: float
+    offset_um: float
+    inside_frame: bool
+    why: str
+
+
+def verification_points(
+    config: ScannerConfig, frame: Frame, *, reduced: bool = False, axis: AxisName = "x"
+) -> list[VerifyPoint]:
+    """Scans inside the frame and outside it (10x slower, 10x faster, offsets beyond)."""
+    ax = config.axes[axis]
+    p = ax.thesis.params()
+    f_lo, f_hi = frame.frequencies_hz
+    r_lo, r_hi = frame.ranges_v
+    o_lo, o_hi = frame.offsets_v
+    centre = 0.5 * (ax.voltage_max_v + ax.voltage_min_v)
+
+    def um(range_v: float, f: float) -> float:
+        return round(float(scan_range_um(p, f, 0.5 * range_v)), 1)
+
+    f_mid = float(np.sqrt(f_lo * f_hi))
+    b = p.b_um_per_v
+    pts = [
+        VerifyPoint(um(r_lo * 1.1, f_mid), round(f_mid, 2), 0.0, True, "inside: small range"),
+        VerifyPoint(um(0.5 * (r_lo + r_hi), f_mid), round(f_mid, 2), 0.0, True, "inside: mid range"),
+        VerifyPoint(um(r_hi * 0.92, f_hi), f_hi, 0.0, True, "inside: large range, fastest rate"),
+    ]
+    if reduced:
+        return pts
+    pts += [
+        VerifyPoint(um(r_lo * 1.1, f_lo), f_lo, 0.0, True, "inside: slowest rate"),
+        VerifyPoint(um(0.5 * (r_lo + r_hi), f_lo / 10.0), round(f_lo / 10.0, 4), 0.0, False, "10x slower"),
+    ]
+    # 10x faster: as large as the slew limit allows.
+    f_fast = 10.0 * f_hi
+    r_fast = min(0.5 * (r_lo + r_hi), 0.8 * ax.slew_rate_v_per_s / (2.0 * f_fast) / 2.0)
+    pts.append(VerifyPoint(um(r_fast, f_fast), f_fast, 0.0, False, "10x faster"))
+    # Offsets beyond the frame's: half-range scans pushed out to 1.8x the largest offset.
+    off_v = 1.8 * max(abs(o_hi - centre), abs(o_lo - centre), 0.1 * (ax.voltage_max_v - ax.voltage_min_v))
+    r_off = min(r_lo, 2.0 * (0.5 * (ax.voltage_max_v - ax.voltage_min_v) - off_v) * 0.9)
+    if r_off > 0:
+        for sign in (-1.0, 1.0):
+            pts.append(
+                VerifyPoint(
+                    um(r_off, 1.0),
+                    1.0,
+                    round(sign * off_v * b, 2),
+                    False,
+                    f"offset {sign * off_v:+.0f} V beyond frame",
+                )
+            )
+    return pts
+
+
+def verify(
+    engine: Engine,
+    points: Sequence[VerifyPoint],
+    directory: Path,
+    model: str,
+    *,
+    lines: int = 4,
+    progress: Progress | None = None,
+) -> list[dict[str, Any]]:
+    """Scan each point online-corrected; nonlinearity and length error from the sensor readback."""
+    rows: list[dict[str, Any]] = []
+    for i, pt in enumerate(points):
+        name = f"verify-{model}-{i:02d}"
+        path = directory / f"{name}.csv"
+        req = ScanRequest(
+            range_um=pt.range_um,
+            line_rate_hz=pt.frequency_hz,
+            lines=lines,
+            slow_range_um=0.0,
+            offset_x_um=pt.offset_um,
+            name=name,
+        )
+        row: dict[str, Any] = {
+            "model": model,
+            "range_um": pt.range_um,
+            "frequency_hz": pt.frequency_hz,
+            "offset_um": pt.offset_um,
+            "inside_frame": pt.inside_frame,
+            "what": pt.why,
+            "recording": str(path),
+        }
+        before = engine.status()
+        if before.state == "fault":
+            # An earlier fault (e.g. an underrun while the fit ran) must not silently end the run:
+            # it is reported with the next point, cleared, and the verification goes on.
+            row["faults_before"] = [f"{f.source}/{f.code}: {f.message}" for f in before.faults[-3:]]
+            engine.stop()
+        try:
+            engine.check_scan(req)
+        except PiezodError as exc:
+            row.update(nonlinearity_pct=None, length_error_pct=None, skipped=str(exc))
+            rows.append(row)
+            continue
+        engine.start_scan(req, path=path)
+        total = (lines + 2) / pt.frequency_hz
+        t0 = time.monotonic()
+        while engine.status().state == "scanning":
+            if progress is not None:
+                progress(f"verify {i + 1}/{len(points)}", min(time.monotonic() - t0, total))
+            time.sleep(0.1)
+        state = engine.wait_idle(10.0)
+        engine.wait_recorded()
+        if state != "idle":
+            row.update(
+                nonlinearity_pct=None, length_error_pct=None, skipped=f"the scan ended in state {state}"
+            )
+            rows.append(row)
+            continue
+        report = linearity(read_experiments([path], axis="x"))
+        e = report.experiments[0]
+        row.update(nonlinearity_pct=e.nonlinearity_pct, length_error_pct=e.length_error_pct)
+        rows.append(row)
+    return rows
+
+
+@dataclass(frozen=True, slots=True)
+class ThesisFit:
+    """What the fit process returns: the JSON report, the calibrated config, the worst fit error."""
+
+    report: dict[str, Any]
+    config: ScannerConfig
+    fit_error_pct: float
+
+
+def _fit_thesis_here(frame_path: Path, axis: AxisName, base: ScannerConfig) -> ThesisFit:
+    result = calibrate(read_experiments([frame_path], axis=axis))
+    config = calibrated_config(result, axis=axis, base=base, inputs=[str(frame_path)])
+    return ThesisFit(result_json(result, inputs=[str(frame_path)]), config, float(result.fit_error_pct))
+
+
+def fit_thesis(frame_path: Path, base: ScannerConfig, axis: AxisName = "x") -> ThesisFit:
+    """Fit the thesis model (3.8) to the frame recording, in a separate process.
+
+    The fit is CPU-bound Python + numpy; in the daemon's process it would hold the GIL long
+    enough to starve the streaming thread (underruns were seen), so it runs in a fresh
+    ``spawn`` process (no fork of a threaded process) and only the result comes back.
+    """
+    return run_in_subprocess(_fit_thesis_here, frame_path, axis, base)
+
+
+def run_in_subprocess(fn: Callable[..., T], *args: Any) -> T:
+    """``fn(*args)`` in a fresh worker process (spawned), returning its result or raising its error."""
+    ctx = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
+        return pool.submit(fn, *args).result()
+
+
+def format_table(rows: Sequence[dict[str, Any]]) -> str:
+    """A table like thesis tables 4.3 / 4.4."""
+    head = (
+        f"{'model':<8} {'range um':>9} {'f Hz':>7} {'offset um':>9} {'frame':>7} "
+        f"{'nonlin %':>9} {'length %':>9}  what"
+    )
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        nl = "-" if r.get("nonlinearity_pct") is None else f"{r['nonlinearity_pct']:.3f}"
+        le = "-" if r.get("length_error_pct") is None else f"{r['length_error_pct']:+.3f}"
+        inside = "inside" if r["inside_frame"] else "outside"
+        what = r["what"] + (f" (skipped: {r['skipped']})" if r.get("skipped") else "")
+        lines.append(
+            f"{r['model']:<8} {r['range_um']:9.3g} {r['frequency_hz']:7.3g} {r['offset_um']:9.3g} "
+            f"{inside:>7} {nl:>9} {le:>9}  {what}"
+        )
+    return "\n".join(lines)
+
+
+def summary(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
+    """Worst figures per model, inside and outside the frame."""
+    out: dict[str, dict[str, float | None]] = {}
+    for model in sorted({r["model"] for r in rows}):
+        for inside in (True, False):
+            sel = [
+                r
+                for r in rows
+                if r["model"] == model
+                and r["inside_frame"] == inside
+                and r.get("nonlinearity_pct") is not None
+            ]
+            key = f"{model}_{'inside' if inside else 'outside'}"
+            out[key] = {
+                "max_nonlinearity_pct": max((r["nonlinearity_pct"] for r in sel), default=None),
+                "max_abs_length_error_pct": max((abs(r["length_error_pct"]) for r in sel), default=None),
+            }
+    return out
+
+
+def plot_verification(rows: Sequence[dict[str, Any]], path: Path) -> Path:
+    """Bar plot of nonlinearity and length error per verification scan and model (matplotlib)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    models = sorted({r["model"] for r in rows})
+    pts = [r for r in rows if r["model"] == models[0]]
+    labels = [f"{r['range_um']:g} um\n{r['frequency_hz']:g} Hz\n{r['offset_um']:+g} um" for r in pts]
+    fig, axes = plt.subplots(2, 1, figsize=(max(6.0, 1.1 * len(pts)), 6.5), sharex=True)
+    width = 0.8 / len(models)
+    x = np.arange(len(pts))
+    for k, model in enumerate(models):
+        sel = [r for r in rows if r["model"] == model]
+        nl = [math.nan if r.get("nonlinearity_pct") is None else r["nonlinearity_pct"] for r in sel]
+        le = [math.nan if r.get("length_error_pct") is None else r["length_error_pct"] for r in sel]
+        axes[0].bar(x + k * width, nl, width, label=model)
+        axes[1].bar(x + k * width, le, width, label=model)
+    for i, r in enumerate(pts):
+        if not r["inside_frame"]:
+            for a in axes:
+                a.axvspan(i - 0.45, i + 0.45 + width * (len(models) - 1), color="0.9", zorder=0)
+    axes[0].set_ylabel("nonlinearity %")
+    axes[0].axhline(0.2, color="k", ls=":", lw=0.8)
+    axes[1].set_ylabel("length error %")
+    axes[1].axhline(0.0, color="k", lw=0.8)
+    axes[1].set_xticks(x + width * (len(models) - 1) / 2, labels, fontsize=7)
+    axes[0].legend()
+    axes[0].set_title("Online correction on the stage (grey: outside the calibration frame)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def frame_summary(frame: Frame) -> str:
+    """One line describing the frame."""
+    (r0, r1), (f0, f1), (o0, o1) = frame.ranges_v, frame.frequencies_hz, frame.offsets_v
+    return (
+        f"{len(frame.scans)} scans on {frame.axis}: {r0:g}-{r1:g} V p-p, {f0:g}-{f1:g} Hz, "
+        f"offsets {o0:+g}..{o1:+g} V, ~{frame.duration_s:.0f} s"
+    )
