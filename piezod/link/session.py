@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import queue
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -1097,6 +1098,8 @@ class BoardSession:
             if not r.done.is_set():
                 r.error = LinkClosedError(f"{self.url}: connection closed")
                 r.done.set()
+        with contextlib.suppress(LinkError):
+            conn.transport.close()  # wakes a read or write in progress
         for t in (conn.reader, conn.writer):
             if t is not None and t is not threading.current_thread():
                 t.join(timeout=self.settings.write_timeout_s + 1.0)
@@ -1707,6 +1710,59 @@ class BoardSession:
         return int(self.capabilities.fifo_depth_samples - st.fifo_free_samples)
 
 
+class EventQueue:
+    """A bounded queue of a session's events, for a consumer that polls instead of a callback.
+
+    Parameters
+    ----------
+    session
+        The session to subscribe to.
+    kinds
+        Event classes kept (e.g. ``(SensorBlock,)``); others are ignored.
+    maxsize
+        Events kept at most; when the consumer falls behind, new events are counted in
+        :attr:`dropped` (and logged once) instead of growing without bound.
+    """
+
+    def __init__(
+        self,
+        session: BoardSession,
+        kinds: tuple[type[LinkEvent], ...] = (LinkEvent,),
+        maxsize: int = 10_000,
+    ) -> None:
+        self.kinds = kinds
+        self.dropped = 0
+        self._q: queue.Queue[LinkEvent] = queue.Queue(maxsize)
+        self._unsubscribe = session.subscribe(self._put)
+
+    def _put(self, ev: LinkEvent) -> None:
+        if not isinstance(ev, self.kinds):
+            return
+        try:
+            self._q.put_nowait(ev)
+        except queue.Full:
+            if not self.dropped:
+                log.error("event queue full (%d): the consumer falls behind; counting drops", self._q.maxsize)
+            self.dropped += 1
+
+    def get(self, timeout_s: float | None = None) -> LinkEvent:
+        """The next event; raises :class:`queue.Empty` after ``timeout_s``."""
+        return self._q.get(timeout=timeout_s)
+
+    def drain(self) -> list[LinkEvent]:
+        """Every event queued now."""
+        out: list[LinkEvent] = []
+        while True:
+            try:
+                out.append(self._q.get_nowait())
+            except queue.Empty:
+                return out
+
+    def close(self) -> None:
+        """Stop collecting."""
+        self._unsubscribe()
+
+
 __all__ = [
     "DEFAULT_AXIS_CHANNELS",
     "BoardCounter",
@@ -1715,6 +1771,7 @@ __all__ = [
     "BoardSession",
     "ChannelPlan",
     "DecodeFailure",
+    "EventQueue",
     "FaultFlagsRaised",
     "HostLimitFault",
     "LinkCounters",

@@ -318,6 +318,7 @@ class Streamer:
         self._limit_violation = False
         self._link_down: LinkError | None = None
         self._gap_hint = False
+        self._gap_pending = False
         self._seen_count = -1
         self._thread: threading.Thread | None = None
         self._quit = threading.Event()
@@ -462,6 +463,7 @@ class Streamer:
         self._inflight.clear()
         self._raw_gaps = None
         self._raw_underruns = None
+        self._gap_pending = False
         self._running_seen = False
         self._last_rewind = -1e9
         self._run = RunRecord(start_index, start_index)
@@ -577,17 +579,21 @@ class Streamer:
         gaps = (st.index_gaps, st.overflows)
         if self._raw_gaps is None:
             self._raw_gaps = gaps
-        grew = gaps != self._raw_gaps or self._gap_hint
+        if gaps != self._raw_gaps or self._gap_hint:
+            self._gap_pending = True
         self._raw_gaps = gaps
         self._gap_hint = False
         if w >= self._next_index:
+            self._gap_pending = False
             return False
-        # frames sent before a rewind may still report gaps for about one round trip
+        # frames sent before a rewind may still report gaps for about one round trip: a gap seen
+        # then is acted on when that time is over (an extra rewind costs duplicates only)
         rtt = 2 * self.status_period_s + 0.005
         # a STATUS generated this long after our last frame must show it (else it was lost); the
         # floor covers a board (or simulator) that is busy for a few status periods
         settle = max(2 * self.status_period_s, STALL_FLOOR_S)
-        if grew and now - self._last_rewind > rtt:
+        if self._gap_pending and now - self._last_rewind > rtt:
+            self._gap_pending = False
             self._rewind(w, now, "index gap / overflow reported")
         elif st_time - self._last_send > settle and now - self._last_rewind > settle:
             self._rewind(w, now, "write_index stalled")

@@ -97,6 +97,8 @@ class UsbTransport(Transport):
         self.ep_in = ep_in
         self._closed = False
         self._buf = array.array("B", bytes(READ_CHUNK))
+        self._busy = 0  # transfers in progress: the handle is released only when none is
+        self._idle = threading.Condition()
 
     @property
     def closed(self) -> bool:
@@ -110,34 +112,51 @@ class UsbTransport(Transport):
             return LinkClosedError(f"{self.url}: {what} failed: {exc}")
         return map_error(exc, self.url, what)
 
+    def _enter(self) -> None:
+        with self._idle:
+            if self._closed:
+                raise LinkClosedError(f"{self.url}: transport closed")
+            self._busy += 1
+
+    def _leave(self) -> None:
+        with self._idle:
+            self._busy -= 1
+            self._idle.notify_all()
+
     def read(self, max_bytes: int = READ_CHUNK) -> bytes:
-        if self._closed:
-            raise LinkClosedError(f"{self.url}: transport closed")
-        buf = self._buf if max_bytes >= len(self._buf) else array.array("B", bytes(max_bytes))
+        self._enter()
         try:
-            n = self.device.read(self.ep_in, buf, max(1, round(self.read_timeout_s * 1000)))
-        except usb.core.USBTimeoutError:
-            return b""
-        except Exception as exc:
-            raise self._error(exc, "bulk read") from exc
-        return buf[:n].tobytes()
+            buf = self._buf if max_bytes >= len(self._buf) else array.array("B", bytes(max_bytes))
+            try:
+                n = self.device.read(self.ep_in, buf, max(1, round(self.read_timeout_s * 1000)))
+            except usb.core.USBTimeoutError:
+                return b""
+            except Exception as exc:
+                raise self._error(exc, "bulk read") from exc
+            return buf[:n].tobytes()
+        finally:
+            self._leave()
 
     def write(self, data: bytes) -> None:
-        if self._closed:
-            raise LinkClosedError(f"{self.url}: transport closed")
         if not data:
             return
+        self._enter()
         try:
             n = self.device.write(self.ep_out, data, max(1, round(self.write_timeout_s * 1000)))
         except Exception as exc:
             raise self._error(exc, "bulk write") from exc
+        finally:
+            self._leave()
         if n != len(data):
             raise LinkTimeoutError(f"{self.url}: bulk write accepted {n} of {len(data)} bytes")
 
     def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
+        """Release the interface once the transfers in progress ended (they time out by themselves)."""
+        with self._idle:
+            if self._closed:
+                return
+            self._closed = True
+            self._idle.wait_for(lambda: self._busy == 0, timeout=self.write_timeout_s + 1.0)
         with contextlib.suppress(Exception):
             usb.util.release_interface(self.device, self.interface)
         with contextlib.suppress(Exception):
