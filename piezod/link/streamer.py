@@ -338,8 +338,11 @@ class Streamer:
         """The feeding thread is alive."""
         return self._thread is not None and self._thread.is_alive()
 
-    def start(self, start_index: int = 0, *, timeout_s: float = 5.0) -> None:
+    def start(self, start_index: int = 0, *, keep_staged: bool = False, timeout_s: float = 5.0) -> None:
         """Send START at ``start_index`` (prefill = the lead) and start feeding.
+
+        After a run ended by a fault the source decides how to re-enter: samples computed for
+        the old run but never sent are dropped unless ``keep_staged``.
 
         Raises
         ------
@@ -351,6 +354,9 @@ class Streamer:
         self._error = None
         self._limit_violation = False
         self._link_down = None
+        if not keep_staged:
+            self._staged.clear()
+            self._staged_rows = 0
         self._begin_run(start_index, timeout_s)
         self._quit.clear()
         self._done.clear()
@@ -517,15 +523,15 @@ class Streamer:
             limit = min(self._credit, target)
             if self._finishing:
                 if self._end_index is None:
-                    self._end_index = self._sent_hw + self._staged_rows
+                    self._end_index = self._data_end()
                     self._pad_short_run()
-                limit = min(self._credit, self._sent_hw + self._staged_rows)
+                limit = min(self._credit, self._data_end())
             self._send_until(limit, urgent=self._next_index - est_played - 1 < self.lead_samples, now=now)
             if (
                 self._finishing
                 and not self._stop_sent
                 and self._end_index is not None
-                and self._next_index >= self._sent_hw + self._staged_rows
+                and self._next_index >= self._data_end()
                 and (self._running_seen or self._end_index <= self._run_start())
             ):
                 if self._end_index > self._run_start():
@@ -535,6 +541,10 @@ class Streamer:
                 self._stop_sent = True
             self._wake.wait(wait)
             self._wake.clear()
+
+    def _data_end(self) -> int:
+        """Index after the last row computed (staged rows follow ``next_index``, also after a rewind)."""
+        return self._next_index + self._staged_rows
 
     def _pad_short_run(self) -> None:
         """A run shorter than its prefill would never start: hold its last row up to the prefill.
@@ -660,7 +670,7 @@ class Streamer:
                 return False
             volts = self.source.next_block(self.block_samples)
             codes, bad = self.converter.convert(volts)
-            first = self._sent_hw + self._staged_rows
+            first = self._data_end()
             if bad.any():
                 self._report_clamp(np.asarray(volts, dtype=np.float64), bad, first)
             self._staged.append(codes)
