@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import queue
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -13,6 +15,7 @@ import pytest
 from fake_board import FakeBoard
 
 from firmware_proto import HEADER_SIZE, BoardState, Capabilities, FaultFlags, MessageType, NakReason
+from piezod.cli import main
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
 from piezod.errors import ConfigError, LinkTimeoutError, SafetyError, VersionMismatchError
 from piezod.link.session import (
@@ -467,3 +470,28 @@ def test_unplug_reconnects_and_reports_the_watchdog(board: FakeBoard, config: Sc
         time.sleep(0.3)
         streamer.finish()
     assert [r.ended_by for r in streamer.stats.runs] == ["link", "stop"]
+
+
+# -- piezod probe ---------------------------------------------------------------------------------
+
+
+def test_probe_prints_the_capabilities(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], board: FakeBoard
+) -> None:
+    sock = str(tmp_path / "board.sock")
+    board.serve_unix(sock)
+    out = tmp_path / "caps.json"
+    assert main(["probe", f"unix://{sock}", "--json", str(out)]) == 0
+    info = json.loads(out.read_text())
+    assert info["n_channels"] == 3 and info["fifo_depth_samples"] == 16384
+    assert info["amplifier_ranges_v"] == [[-250.0, 250.0]] * 3
+    assert info["firmware_version"] == "0.9.1" and info["board_serial"] == 0xB0A4D
+    table = capsys.readouterr().out
+    assert "FIFO" in table and "16,384 samples/channel" in table and "amplifier 2" in table
+    assert board.config is None  # probing changes nothing on the board
+
+
+def test_probe_bad_url_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["probe", str(tmp_path / "ttyNONE")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("piezod probe: error:") and "ttyNONE" in err[0]
