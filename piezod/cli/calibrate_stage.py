@@ -14,8 +14,8 @@ from piezod.errors import CalibrationError
 from piezod.progress import progress_bar
 from piezod.service.engine import Engine
 from piezod.stagecal import (
+    AnalysisWorker,
     default_frame,
-    fit_thesis,
     format_table,
     frame_summary,
     plot_verification,
@@ -45,7 +45,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
     print(f"calibration frame: {frame_summary(frame)}", file=say)
     t_start = time.monotonic()
     report: dict[str, Any] = {}
-    with board_url(args, config_path) as url:
+    with board_url(args, config_path) as url, AnalysisWorker() as worker:
         engine = Engine(base, url, recording_dir=recdir)
         engine.open()
         try:
@@ -57,7 +57,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     shown[0] = round(t, 1)
 
                 frame_path = run_frame(engine, frame, recdir / "frame.csv", progress=tick)
-            fitted = fit_thesis(frame_path, base, axis)
+            fitted = worker.fit_thesis(frame_path, base, axis)
             calibrated = fitted.config
             dump_config(
                 calibrated,
@@ -71,7 +71,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
             if not args.no_verify:
                 engine.set_axis_model(axis, calibrated.axes[axis])
                 points = verification_points(calibrated, frame, reduced=reduced, axis=axis)
-                rows = verify(engine, points, recdir, "thesis")
+                rows = verify(engine, points, recdir, "thesis", worker)
                 print(format_table(rows), file=say)
                 report["verification"] = rows
                 report["verification_summary"] = summary(rows)

@@ -952,6 +952,14 @@ class Engine:
             new.adopt_state(old)
             self.drivers[axis] = new
 
+    def healthy(self) -> bool:
+        """Streaming runs and the board reports in time (the systemd watchdog is pinged only then)."""
+        streamer, session = self._streamer, self._session
+        if streamer is None or session is None or not streamer.running or not session.connected:
+            return False
+        with self._lock:
+            return self._state not in ("disconnected", "starting")
+
     # -- waiting (piezod scan) -------------------------------------------------------------------
 
     def wait_idle(self, timeout_s: float | None = None, poll_s: float = 0.05) -> EngineState:

@@ -1,0 +1,132 @@
+"""``piezod serve``: the daemon. Engine + control API + systemd notifications + signals.
+
+Start-up: load the scanner config, connect to the board (or start the simulator for
+``--sim``), start streaming (hold), serve the API, then tell systemd ``READY=1``. While
+streaming is healthy the systemd watchdog is pinged; a stalled stream stops the pings and
+systemd restarts the service (``Restart=on-failure``). SIGTERM / SIGINT: ``STOPPING=1``, stop
+the API, ramp the outputs to the safe values, flush and close the recordings, close the link,
+exit 0.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType
+
+from piezod.config import ScannerConfig
+from piezod.service.api import EventHub, create_app
+from piezod.service.engine import Engine
+from piezod.service.sdnotify import SystemdNotifier
+from piezod.service.server import ApiServer
+
+log = logging.getLogger("piezod.daemon")
+
+
+def default_api_spec(scanner: str) -> str:
+    """``unix:/run/piezod/<scanner>.sock`` when that directory is writable, else a per-user socket."""
+    run = Path("/run/piezod")
+    if run.is_dir() and os.access(run, os.W_OK):
+        return f"unix:{run / (scanner + '.sock')}"
+    base = os.environ.get("XDG_RUNTIME_DIR")
+    if base and os.access(base, os.W_OK):
+        return f"unix:{Path(base) / f'piezod-{scanner}.sock'}"
+    d = Path(f"/tmp/piezod-{os.getuid()}")
+    d.mkdir(mode=0o700, exist_ok=True)
+    return f"unix:{d / (scanner + '.sock')}"
+
+
+@dataclass
+class Daemon:
+    """A running daemon (engine + API)."""
+
+    engine: Engine
+    server: ApiServer
+    hub: EventHub
+    notifier: SystemdNotifier
+    api_spec: str
+
+    def run_until_stopped(self, stop: threading.Event) -> None:
+        """Serve until ``stop`` is set; ping the watchdog while streaming is healthy."""
+        interval = self.notifier.watchdog_interval_s or 1.0
+        last_state = ""
+        while not stop.wait(min(interval, 1.0)):
+            st = self.engine.status()
+            if st.state != last_state:
+                self.notifier.status(f"{st.state}; API {self.api_spec}")
+                last_state = st.state
+            if self.engine.healthy():
+                self.notifier.watchdog()
+
+    def shutdown(self) -> None:
+        """Stop the API, ramp to safe, close recordings and the link."""
+        self.notifier.stopping("ramping to the safe values")
+        try:
+            self.server.stop()
+        finally:
+            self.hub.close()
+            self.engine.close(ramp=True)
+            self.notifier.close()
+
+
+@contextlib.contextmanager
+def running_daemon(
+    config: ScannerConfig,
+    url: str,
+    *,
+    api_spec: str | None = None,
+    recording_dir: Path | None = None,
+    notifier: SystemdNotifier | None = None,
+    before_ready: Callable[[Engine], None] | None = None,
+) -> Iterator[Daemon]:
+    """Start engine and API; yield the daemon; shut it down (ramping to safe) on exit."""
+    notifier = notifier or SystemdNotifier.from_env()
+    hub = EventHub()
+    engine = Engine(config, url, recording_dir=recording_dir, on_fault=hub.publish_fault)
+    notifier.status(f"connecting to the board at {url}")
+    engine.open()
+    spec = api_spec or default_api_spec(config.name)
+    server = ApiServer(create_app(engine, events=hub), spec, config.api)
+    try:
+        server.start()
+    except BaseException:
+        engine.close(ramp=True)
+        raise
+    daemon = Daemon(engine, server, hub, notifier, spec)
+    try:
+        if before_ready is not None:
+            before_ready(engine)
+        notifier.ready(f"streaming {len(engine.drivers)} axes at {engine.rate_hz:g} S/s; API {spec}")
+        yield daemon
+    finally:
+        daemon.shutdown()
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGTERM or SIGINT (installed in the main thread)."""
+    stop = threading.Event()
+
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        log.info("signal %s: shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+    return stop
+
+
+def wait_started(check: Callable[[], bool], timeout_s: float) -> bool:
+    """Poll ``check`` until true or the timeout."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if check():
+            return True
+        time.sleep(0.05)
+    return False
