@@ -16,6 +16,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from piezod.errors import ConfigError
+from piezod.model.dynamic import DynamicParams
 from piezod.model.params import ThesisParams
 
 AxisName = Literal["x", "y", "z"]
@@ -43,6 +44,41 @@ class ThesisModelConfig(StrictModel):
         return ThesisParams(**self.model_dump())
 
 
+class DynamicModelConfig(StrictModel):
+    """Parameters of the time-domain model (``model: dynamic``): ODE (2.21) + log-spaced creep.
+
+    See :mod:`piezod.model.dynamic`. The creep weights follow from ``creep_pct_per_decade``
+    and ``creep_exponent`` over the fixed spread of relaxation times.
+    """
+
+    alpha_per_v: float = Field(gt=0, lt=1.0, description="hysteresis transition rate alpha (1/V)")
+    b_um_per_v: float = Field(gt=0, lt=100.0, description="fast (hysteretic) sensitivity b (um/V)")
+    u_um_per_v: float = Field(gt=0, lt=100.0, description="slope after a reversal u (um/V)")
+    creep_pct_per_decade: float = Field(
+        ge=0, le=20, description="creep per decade of time at 1 s (% of the hysteretic motion)"
+    )
+    creep_exponent: float = Field(
+        default=0.0, ge=-0.5, le=0.5, description="creep per decade scales as (t / 1 s)^exponent"
+    )
+    creep_tau_min_s: float = Field(default=1e-3, gt=0, le=1e3, description="shortest relaxation time (s)")
+    creep_tau_max_s: float = Field(default=1e5, gt=0, le=1e9, description="longest relaxation time (s)")
+    creep_per_decade: int = Field(default=3, ge=1, le=20, description="relaxation times per decade")
+
+    @model_validator(mode="after")
+    def _check_model(self) -> DynamicModelConfig:
+        if not self.creep_tau_max_s > self.creep_tau_min_s:
+            raise ValueError(
+                f"creep_tau_max_s ({self.creep_tau_max_s}) must exceed "
+                f"creep_tau_min_s ({self.creep_tau_min_s})"
+            )
+        self.params()
+        return self
+
+    def params(self) -> DynamicParams:
+        """The frozen model parameter object."""
+        return DynamicParams(**self.model_dump())
+
+
 class AxisConfig(StrictModel):
     """One scanner axis: its voltage limits, safety settings and model."""
 
@@ -54,6 +90,9 @@ class AxisConfig(StrictModel):
     )
     model: Literal["thesis", "dynamic"] = "thesis"
     thesis: ThesisModelConfig
+    dynamic: DynamicModelConfig | None = Field(
+        default=None, description="time-domain model parameters (required by model: dynamic)"
+    )
 
     @model_validator(mode="after")
     def _check_limits(self) -> AxisConfig:
@@ -66,6 +105,8 @@ class AxisConfig(StrictModel):
                 f"safe_voltage_v ({self.safe_voltage_v}) must lie inside "
                 f"[{self.voltage_min_v}, {self.voltage_max_v}]"
             )
+        if self.model == "dynamic" and self.dynamic is None:
+            raise ValueError("model: dynamic needs a dynamic: section (piezod calibrate writes it)")
         return self
 
 

@@ -148,6 +148,11 @@ class AxisDriver:
         return self._state
 
     @property
+    def dynamic_state(self) -> DynamicState | None:
+        """The dynamic model's state (``model: dynamic``), else None."""
+        return None if self.dynamic is None else self._dynamic_state()
+
+    @property
     def voltage_v(self) -> float:
         """The last voltage."""
         return self._state.voltage_v
