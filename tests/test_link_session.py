@@ -400,7 +400,8 @@ def test_underrun_is_reported_and_the_run_ends(board: FakeBoard, config: Scanner
             return self.inner.next_block(n)
 
     with BoardSession.open(transport_factory=board.connect, config=config, sample_rate_hz=RATE) as s:
-        streamer = Streamer(s, Slow(), lead_s=0.05)
+        first_blocks: list[MatchedBlock] = []
+        streamer = Streamer(s, Slow(), lead_s=0.05, on_block=first_blocks.append)
         streamer.start(0)
         assert streamer.wait(5.0)
         run = streamer.stats.runs[0]
@@ -410,11 +411,30 @@ def test_underrun_is_reported_and_the_run_ends(board: FakeBoard, config: Scanner
         assert run.last_played_index == board.last_played
         assert streamer.stats.unexplained_output_loss == 0
         assert s.status is not None and s.status.fault_flags & FaultFlags.UNDERRUN
-        # the caller restarts at a fresh index
-        streamer.start(run.end_index + 1000)
+        # the caller restarts at a fresh index, on the same streamer ...
+        restart = run.end_index + 1000
+        streamer.start(restart)
         time.sleep(0.3)
         streamer.finish()
-    assert [r.ended_by for r in streamer.stats.runs] == ["underrun", "stop"]
+        assert [r.ended_by for r in streamer.stats.runs] == ["underrun", "stop"]
+        # ... or on a new one while the old one is still subscribed: each delivers its own rows only
+        again = streamer.stats.runs[1].end_index + 1000
+        second_blocks: list[MatchedBlock] = []
+        old = Streamer(s, _source(), lead_s=0.05, on_block=first_blocks.append)
+        old.start(again)
+        time.sleep(0.2)
+        s.stop()  # the run ends; `old` stays subscribed (never finished), as in a daemon's restart
+        assert old.wait(5.0) and old.stats.runs[0].ended_by == "stopped"
+        newer = Streamer(s, _source(), lead_s=0.05, on_block=second_blocks.append)
+        newer.start(again + 100_000)
+        time.sleep(0.3)
+        newer.finish()
+    old_idx = np.concatenate([b.indices for b in first_blocks])
+    new_idx = np.concatenate([b.indices for b in second_blocks])
+    assert old_idx.max() < again + 100_000 <= new_idx.min()
+    assert not np.isnan(np.concatenate([b.commanded_v for b in second_blocks], axis=1)).any()
+    # the first run's tail arrived and was matched up to the last sample played
+    assert run.last_played_index in set(old_idx.tolist())
 
 
 # -- link loss ----------------------------------------------------------------------------------

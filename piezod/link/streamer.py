@@ -295,8 +295,9 @@ class Streamer:
         self.stats = StreamStats()
         cap = max(lead_samples_for(self.rate_hz, history_s), 4 * fifo)
         self._hist = np.zeros((cap, self.converter.n_channels), dtype=np.int16)
-        self._hist_lo = 0
-        self._hist_hi = 0
+        # index ranges [lo, hi) written into the ring, one per run (runs never overlap in index)
+        self._hist_ranges: deque[list[int]] = deque(maxlen=16)
+        self._hist_top = 0
         self._hist_lock = threading.Lock()
         self._staged: deque[npt.NDArray[np.int16]] = deque()
         self._staged_rows = 0
@@ -443,8 +444,12 @@ class Streamer:
     def _match(self, block: SensorBlock) -> None:
         idx = block.indices
         with self._hist_lock:
-            lo, hi = max(self._hist_lo, self._hist_hi - self._hist.shape[0]), self._hist_hi
-            known = (idx >= lo) & (idx < hi)
+            known = np.zeros(idx.shape, dtype=bool)
+            for lo, hi in self._hist_ranges:
+                known |= (idx >= lo) & (idx < hi)
+            known &= idx >= self._hist_top - self._hist.shape[0]  # not overwritten in the ring yet
+            if not known.any():
+                return  # another streamer's run (or too old): not ours to deliver
             codes = self._hist[idx % self._hist.shape[0]]
         volts = self.converter.to_volts(codes)
         if not known.all():
@@ -475,7 +480,7 @@ class Streamer:
         self._run = RunRecord(start_index, start_index)
         self.stats.runs.append(self._run)
         with self._hist_lock:
-            self._hist_lo = self._hist_hi = start_index
+            self._hist_ranges.append([start_index, start_index])
 
     def _main(self) -> None:
         try:
@@ -751,7 +756,8 @@ class Streamer:
         idx = (new_from + np.arange(sub.shape[0])) % cap
         with self._hist_lock:
             self._hist[idx] = sub
-            self._hist_hi = new_from + sub.shape[0]
+            self._hist_top = new_from + sub.shape[0]
+            self._hist_ranges[-1][1] = self._hist_top
 
 
 class TriangleSource:
