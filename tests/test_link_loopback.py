@@ -56,7 +56,7 @@ def _wait_for(items: list[LinkEvent], kind: type[Any], timeout: float = 10.0) ->
 def test_stream_three_axes_at_100k_without_underruns(config: ScannerConfig, sim: Any) -> None:
     rate_hz = 100_000
     cfg = bench_config(config, 3, rate_hz)
-    result = stream_bench(sim.path, cfg, rate_hz=rate_hz, seconds=1.2, board_pid=sim.pid)
+    result = stream_bench(sim.path, cfg, rate_hz=rate_hz, seconds=1.2, lead_s=0.15, board_pid=sim.pid)
     assert result["underruns"] == 0 and result["run_ends"] == ["stop"]
     assert result["samples_sent"] == result["samples_played"] == result["samples_read"] >= 1.0 * rate_hz
     assert result["unexplained_loss"] == 0 and result["crc_errors"] == 0
@@ -189,6 +189,7 @@ from piezod.link.session import BoardSession, LinkSettings
 from piezod.link.streamer import Streamer
 rate = 20000
 cfg = bench_config(load_config(default_sim_config_path()), 3, rate)
+cfg = cfg.model_copy(update={"service": cfg.service.model_copy(update={"ramp_rate_v_per_s": 2000.0})})
 s = BoardSession.open(sys.argv[1], config=cfg, sample_rate_hz=rate,
                       settings=LinkSettings(heartbeat_timeout_ms=int(sys.argv[2])))
 st = Streamer(s, triangle_for(cfg, rate), lead_s=0.1)
