@@ -515,3 +515,79 @@ def test_probe_bad_url_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main(["probe", str(tmp_path / "ttyNONE")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("piezod probe: error:") and "ttyNONE" in err[0]
+
+
+# -- go-back-N decisions, on synthetic STATUS frames (no threads, no clock) -------------------------
+
+
+class StubSession:
+    """Just what a Streamer needs to decide; records the frames it would send."""
+
+    def __init__(self, config: ScannerConfig) -> None:
+        self.capabilities = _caps()
+        self.plan = plan_channels(config, self.capabilities, LinkSettings(), sample_rate_hz=RATE)
+        self.sent: list[tuple[int, int]] = []
+
+    def subscribe(self, cb: Any) -> Any:
+        return lambda: None
+
+    def start(self, start_index: int, prefill: int, timeout_s: float | None = None) -> int:
+        return 0
+
+    def send_samples(self, first: int, codes: Any) -> int:
+        self.sent.append((first, codes.shape[0]))
+        return 0
+
+    def emit(self, ev: Any) -> None:
+        pass
+
+
+def _caps() -> Capabilities:
+    return Capabilities(0, 1, (1, 0, 0), 16, 16, 1000, 100, 200_000, 0, 16384, 1, ((-250.0, 250.0),) * 3)
+
+
+def _running(w: int, played: int, gaps: int = 0) -> Any:
+    from firmware_proto import Status
+
+    return Status(BoardState.RUNNING, FaultFlags.NONE, w, played, 16384 - (w - played - 1), index_gaps=gaps)
+
+
+def _streamer_with_1100_sent(config: ScannerConfig) -> tuple[Streamer, StubSession]:
+    stub = StubSession(config)
+    st = Streamer(stub, _source(), lead_s=0.05, frame_samples=100)  # type: ignore[arg-type]
+    st._begin_run(0, 1.0)
+    st._send_until(1100, urgent=True, now=0.0)
+    st._last_send = 0.0  # synthetic time from here on
+    assert st.next_index == 1100 and len(stub.sent) == 11
+    return st, stub
+
+
+def test_go_back_n_after_a_stall_of_write_index(config: ScannerConfig) -> None:
+    st, stub = _streamer_with_1100_sent(config)
+    st._on_status(_running(1000, 10), 0.20, 0.20, new=True)  # write_index just moved to 1000
+    assert st.next_index == 1100 and st.stats.rewinds == 0
+    st._on_status(_running(1000, 200), 0.30, 0.30, new=True)  # stuck for 100 ms, nothing sent since
+    assert st.stats.rewinds == 1 and st.next_index == 1000
+    st._send_until(1100, urgent=True, now=0.3)
+    assert stub.sent[-1] == (1000, 100) and st.stats.rows_resent == 100
+
+
+def test_no_go_back_n_while_write_index_moves(config: ScannerConfig) -> None:
+    st, _ = _streamer_with_1100_sent(config)
+    for i, w in enumerate((300, 500, 700, 900, 1000)):  # a slow board still taking frames in
+        st._on_status(_running(w, 10 * i), 0.2 + 0.1 * i, 0.2 + 0.1 * i, new=True)
+    assert st.stats.rewinds == 0 and st.next_index == 1100
+
+
+def test_go_back_n_on_a_reported_gap_after_the_guard(config: ScannerConfig) -> None:
+    st, _ = _streamer_with_1100_sent(config)
+    st._on_status(_running(600, 5, gaps=0), 0.005, 0.005, new=True)  # the run's first STATUS
+    assert st.stats.rewinds == 0
+    st._on_status(_running(600, 10, gaps=1), 0.010, 0.010, new=True)
+    assert st.stats.rewinds == 1 and st.next_index == 600
+    st._send_until(1100, urgent=True, now=0.011)
+    st._last_send = 0.011
+    st._on_status(_running(600, 20, gaps=3), 0.020, 0.020, new=True)  # frames sent before the rewind
+    assert st.stats.rewinds == 1  # within one round trip: wait
+    st._on_status(_running(600, 30, gaps=3), 0.040, 0.040, new=False)
+    assert st.stats.rewinds == 2 and st.next_index == 600  # still stuck once the guard is over

@@ -320,6 +320,8 @@ class Streamer:
         self._link_down: LinkError | None = None
         self._gap_hint = False
         self._gap_pending = False
+        self._w_seen = -1
+        self._w_changed_at = 0.0
         self._seen_count = -1
         self._thread: threading.Thread | None = None
         self._quit = threading.Event()
@@ -579,6 +581,8 @@ class Streamer:
             self._credit = credit
         while self._inflight and self._inflight[0][0] + self._inflight[0][1].shape[0] <= w:
             self._inflight.popleft()
+        if w != self._w_seen:
+            self._w_seen, self._w_changed_at = w, st_time
         if new and st.state == BoardState.RUNNING:
             self._running_seen = True
             if not self._finishing and st.last_played_index != NO_INDEX:
@@ -604,13 +608,18 @@ class Streamer:
         # frames sent before a rewind may still report gaps for about one round trip: a gap seen
         # then is acted on when that time is over (an extra rewind costs duplicates only)
         rtt = 2 * self.status_period_s + 0.005
-        # a STATUS generated this long after our last frame must show it (else it was lost); the
-        # floor covers a board (or simulator) that is busy for a few status periods
+        # a STATUS generated this long after our last frame must show it (else it was lost), unless
+        # the board is still taking in what is on the way (write_index moving): a busy board is not
+        # a lost frame; the floor covers a board (or simulator) busy for a few status periods
         settle = max(2 * self.status_period_s, STALL_FLOOR_S)
         if self._gap_pending and now - self._last_rewind > rtt:
             self._gap_pending = False
             self._rewind(w, now, "index gap / overflow reported")
-        elif st_time - self._last_send > settle and now - self._last_rewind > settle:
+        elif (
+            st_time - self._last_send > settle
+            and st_time - self._w_changed_at > settle
+            and now - self._last_rewind > settle
+        ):
             self._rewind(w, now, "write_index stalled")
         return False
 
