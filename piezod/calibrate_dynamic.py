@@ -1,0 +1,1173 @@
+"""Calibration of the dynamic model (:mod:`piezod.model.dynamic`) from recordings of any waveform.
+
+What is simulated: the whole session, in time order
+---------------------------------------------------
+The creep elements remember the past for up to ``creep_tau_max_s`` (a day), far longer than
+one experiment: a scan at +50 V still relaxes from the scan at -50 V before it. Simulating
+each experiment from a guessed state would leave that relaxation unexplained (or need one
+free state per slow element and experiment), so the model is run through the *session*:
+from rest at ``rest_voltage_v`` at ``t = 0`` through every recorded experiment in the order
+of ``t`` (the recording format's ``t`` is continuous over a session), with the unrecorded
+stretches between experiments reconstructed the way a calibration frame produces them
+(:func:`hil_sim.session.run_session`, the daemon's programs): a move at the slew rate to the
+next start voltage, a hold there, then -- for a periodic experiment -- as many settling loops
+(copies of its first recorded loop) as fit into the rest of the gap (at most
+``max_preroll_loops``). Per experiment a position offset ``c_e`` (sensor zero, drift) is a
+nuisance parameter, eliminated by projection (residuals and Jacobian centred per experiment).
+
+Decimation without changing the hysteresis
+------------------------------------------
+The hysteresis ODE is rate independent, and along a monotone voltage path its state at the
+end depends only on the end points. The fit therefore runs the ODE on a subsequence that
+keeps every ``k``-th sample *and* every turning point of the voltage: exact at the kept
+samples for any waveform. The creep elements run on the uniform ``k``-sample grid (first-order
+hold, exact for a drive linear between grid points; ``k`` gives about
+``max_samples_per_loop`` samples per loop of a periodic experiment and at most
+``max_samples_per_experiment`` samples otherwise). Holds are one step of their full length,
+moves a few dozen steps.
+
+Structure of the fit
+--------------------
+With ``y = x_h - b V`` the ODE state at rest is 0, so ``x_h = b V + delta Y_alpha`` with
+``delta = (b - u) / alpha`` and ``Y_alpha`` the solution for ``delta = 1``; the creep deviations
+are linear in the drive, so ``x = (1 + W)(b V + delta Y) + (b E[V] + delta E[Y]) w`` where
+``E[.]`` (one column per creep element) does not depend on any parameter but ``alpha``.
+``E[V]`` is computed once, ``E[Y]`` once per ``alpha``; the Jacobian is analytic except for
+``d/d alpha`` (one extra simulation). Parameters: ``alpha, b, u`` (fitted in logs),
+``creep_pct_per_decade`` and ``creep_exponent``; the spread of relaxation times
+(``creep_tau_min_s``, ``creep_tau_max_s``, ``creep_per_decade``) is structure, not fitted.
+``creep_exponent`` is held at 0 (the logarithmic law) unless the frame spans at least
+``min_decades_for_exponent`` decades of time scales, or when asked (``fix``).
+
+Fit error per experiment (2.26)-(2.27): ``sigma_e = sqrt(LSF_e / (n_e - nu))`` relative to the
+distance ``Delta x_e`` covered by the fitted positions, in %.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares, minimize_scalar
+from scipy.special import digamma
+
+from piezod import __version__
+from piezod.config import AxisConfig, DynamicModelConfig, ScannerConfig, ThesisModelConfig
+from piezod.errors import CalibrationError, ModelError
+from piezod.model.dynamic import (
+    MAX_TOTAL_CREEP,
+    DynamicParams,
+    creep_element_deviations,
+    creep_taus,
+    creep_weights,
+    foh_coefficients,
+)
+from piezod.model.ode import HysteresisState, hysteresis_step
+from piezod.model.params import HysteresisParams, ThesisParams
+from piezod.recording import Experiment
+
+F64 = NDArray[np.float64]
+
+#: Fitted parameters, in this order.
+PARAM_NAMES: tuple[str, ...] = (
+    "alpha_per_v",
+    "b_um_per_v",
+    "u_um_per_v",
+    "creep_pct_per_decade",
+    "creep_exponent",
+)
+_LOWER = np.array([math.log(1e-6), math.log(1e-6), math.log(1e-6), 0.0, -0.5])
+_UPPER = np.array([math.log(0.5), math.log(99.0), math.log(99.0), 20.0, 0.5])
+_MOVE_STEPS = 32
+
+
+# ------------------------------------------------------------------------------------- session layout
+
+
+@dataclass(frozen=True, slots=True)
+class ExperimentLayout:
+    """How one experiment enters the session simulation.
+
+    Attributes
+    ----------
+    label, axis, path, kind
+        Identification; ``kind`` from :func:`piezod.recording.infer_scan`.
+    t_start_s, duration_s
+        Time of the first recorded sample and the recorded duration (s).
+    frequency_hz, v_min, v_max
+        Loop frequency (nan when not periodic) and the voltage span.
+    stride
+        Recorded samples per grid step.
+    gap_s
+        Unrecorded time before the experiment (s).
+    move_s, hold_s, preroll_loops
+        The gap's reconstruction: move at the slew rate, hold, settling loops.
+    """
+
+    label: str
+    axis: str | None
+    path: str | None
+    kind: str
+    t_start_s: float
+    duration_s: float
+    frequency_hz: float
+    v_min: float
+    v_max: float
+    stride: int
+    gap_s: float
+    move_s: float
+    hold_s: float
+    preroll_loops: int
+
+
+@dataclass(frozen=True, eq=False)
+class DynamicCalibrationData:
+    """A session prepared for the dynamic fit (:func:`prepare_dynamic`).
+
+    Attributes
+    ----------
+    hysteresis_voltage_v
+        The voltage subsequence the ODE runs on (grid samples and every turning point).
+    grid_index
+        Positions of the creep-grid samples in ``hysteresis_voltage_v``.
+    pieces
+        ``(dt_s, start, stop)`` over the grid: stretches of uniform sample interval.
+    compared
+        Grid positions of the compared (recorded) samples, experiments contiguous.
+    position_um
+        Measured positions there.
+    starts, counts
+        First compared sample and number of compared samples per experiment.
+    rest_voltage_v
+        Voltage the stage rested at before ``t = 0``.
+    experiments
+        Per-experiment layout.
+    """
+
+    hysteresis_voltage_v: F64
+    grid_index: NDArray[np.intp]
+    pieces: tuple[tuple[float, int, int], ...]
+    compared: NDArray[np.intp]
+    position_um: F64
+    starts: NDArray[np.intp]
+    counts: NDArray[np.intp]
+    rest_voltage_v: float
+    experiments: tuple[ExperimentLayout, ...]
+
+    @property
+    def n_experiments(self) -> int:
+        """Number of experiments."""
+        return len(self.experiments)
+
+    @property
+    def grid_voltage_v(self) -> F64:
+        """Voltage at the grid samples."""
+        out: F64 = self.hysteresis_voltage_v[self.grid_index]
+        return out
+
+    def time_scales_s(self) -> tuple[float, float]:
+        """Shortest and longest time scale the frame shows: a quarter loop / a ramp; the session."""
+        short = [
+            0.25 / e.frequency_hz if math.isfinite(e.frequency_hz) else e.duration_s for e in self.experiments
+        ]
+        last = self.experiments[-1]
+        return min(short), last.t_start_s + last.duration_s
+
+
+class _Builder:
+    def __init__(self, rest_v: float) -> None:
+        self.v: list[F64] = []
+        self.grid: list[NDArray[np.intp]] = []
+        self.n_v = 0
+        self.n_grid = 0
+        self.pieces: list[tuple[float, int, int]] = []
+        self.compared: list[NDArray[np.intp]] = []
+        self.positions: list[F64] = []
+        self.v_last = rest_v
+
+    def piece(
+        self,
+        v: F64,
+        grid_local: NDArray[np.intp],
+        dt_s: float,
+        compare_local: NDArray[np.intp] | None = None,
+        positions: F64 | None = None,
+    ) -> None:
+        """Append ODE samples ``v``, of which ``grid_local`` are on a uniform grid of ``dt_s``."""
+        if grid_local.size == 0:
+            return
+        self.v.append(v)
+        self.grid.append(self.n_v + grid_local)
+        self.pieces.append((dt_s, self.n_grid, self.n_grid + grid_local.size))
+        if compare_local is not None and positions is not None:
+            self.compared.append(self.n_grid + compare_local)
+            self.positions.append(positions)
+        self.n_v += v.size
+        self.n_grid += grid_local.size
+        self.v_last = float(v[-1])
+
+
+def _turning_points(v: F64) -> NDArray[np.intp]:
+    """Samples where the direction of ``v`` changes (held samples belong to their run)."""
+    s = np.sign(np.diff(v))
+    moving = np.flatnonzero(s)
+    if moving.size < 2:
+        return np.empty(0, dtype=np.intp)
+    flips: NDArray[np.intp] = moving[1:][s[moving[1:]] != s[moving[:-1]]].astype(np.intp)
+    return flips
+
+
+def _sample_interval(e: Experiment) -> float:
+    if len(e) < 2:
+        raise CalibrationError(f"experiment {e.describe()}: needs at least 2 samples, has {len(e)}")
+    steps = np.diff(e.t_s)
+    dt = float(np.median(steps))
+    bad = np.flatnonzero(np.abs(steps - dt) > 0.01 * dt)
+    if bad.size:
+        j = int(bad[0])
+        line = None if e.line_numbers is None else int(e.line_numbers[j + 1])
+        where = f" (line {line})" if line is not None else ""
+        raise CalibrationError(
+            f"experiment {e.describe()}: sample times are not uniform: step {steps[j]:.6g} s at "
+            f"t = {e.t_s[j + 1]:.6g} s{where}, median {dt:.6g} s"
+        )
+    return dt
+
+
+def prepare_dynamic(
+    experiments: Sequence[Experiment],
+    *,
+    max_samples_per_loop: int = 512,
+    max_samples_per_experiment: int = 8192,
+    slew_rate_v_per_s: float = 2000.0,
+    rest_voltage_v: float = 0.0,
+    max_preroll_loops: int = 8,
+) -> DynamicCalibrationData:
+    """Lay out a session of experiments (any waveforms, one axis) for the dynamic fit.
+
+    Parameters
+    ----------
+    experiments
+        The recorded experiments; sorted by time here, they must not overlap in ``t``.
+    max_samples_per_loop
+        Grid density of periodic experiments (samples per loop, at most).
+    max_samples_per_experiment
+        Grid samples of a non-periodic experiment, at most.
+    slew_rate_v_per_s
+        Rate of the unrecorded moves between experiments (the axis's slew rate).
+    rest_voltage_v
+        Voltage the stage rested at before ``t = 0`` (the safe voltage).
+    max_preroll_loops
+        Most settling loops assumed before a periodic experiment.
+
+    Raises
+    ------
+    CalibrationError
+        No experiments, several axes, overlapping or non-uniform sample times, or too few samples.
+    """
+    if not experiments:
+        raise CalibrationError("no experiments to calibrate")
+    if max_samples_per_loop < 16 or max_samples_per_experiment < 16:
+        raise CalibrationError("max_samples_per_loop and max_samples_per_experiment must be >= 16")
+    if not (math.isfinite(slew_rate_v_per_s) and slew_rate_v_per_s > 0):
+        raise CalibrationError(f"slew_rate_v_per_s must be > 0, got {slew_rate_v_per_s!r}")
+    axes = {e.axis for e in experiments if e.axis is not None}
+    if len(axes) > 1:
+        raise CalibrationError(f"experiments of several axes ({', '.join(sorted(axes))}): calibrate one axis")
+    order = sorted(experiments, key=lambda e: float(e.t_s[0]))
+    builder = _Builder(float(rest_voltage_v))
+    layouts: list[ExperimentLayout] = []
+    starts: list[int] = []
+    counts: list[int] = []
+    t_prev = 0.0
+    prev: Experiment | None = None
+    n_compared = 0
+    for e in order:
+        dt = _sample_interval(e)
+        t0 = float(e.t_s[0])
+        if prev is not None and t0 <= t_prev:
+            raise CalibrationError(
+                f"experiments {prev.describe()} and {e.describe()} overlap in time "
+                f"(t = {t0:.6g} s <= {t_prev:.6g} s): one session, continuous t, is needed"
+            )
+        v = np.asarray(e.voltage_v, dtype=np.float64)
+        n = v.size
+        info = e.scan()
+        periodic = bool(info.is_periodic)
+        freq = float(info.frequency_hz) if periodic else math.nan
+        if periodic:
+            per_loop = 1.0 / (freq * dt)
+            stride = max(1, math.floor(per_loop / max_samples_per_loop))
+            loop = round(per_loop)
+        else:
+            per_loop = math.nan
+            stride = max(1, math.ceil(n / max_samples_per_experiment))
+            loop = 0
+        gap = max(0, round((t0 - t_prev) / dt) - 1) if prev is not None or t0 > 0.0 else 0
+        v_from = builder.v_last
+        # where the experiment started: one sample before its first, on the same slope
+        v_start = 2.0 * float(v[0]) - float(v[1])
+        move = math.ceil(abs(v_start - v_from) / slew_rate_v_per_s / dt - 1e-6)
+        n_pre = 0
+        pre = 0
+        if periodic and 0 < loop <= n:
+            # whole loops that fit after the move (a sample or two of the move may be short)
+            n_pre = max(0, min(max_preroll_loops, math.floor((gap - move) / per_loop + 0.05)))
+            pre = min(gap, round(n_pre * per_loop))
+            v_start = float(v[(-pre - 1) % loop])
+        move = min(move, gap - pre)
+        hold = gap - pre - move
+        if move + hold == 0:
+            v_start = v_from  # no room: the first sample follows the previous one directly
+        # the move (monotone: exact for the ODE), then the hold (one step) at the start voltage
+        if move > 0:
+            steps = min(move, _MOVE_STEPS)
+            frac = np.arange(1, steps + 1) / steps
+            mv = v_from + (v_start - v_from) * frac
+            builder.piece(mv, np.arange(steps, dtype=np.intp), move * dt / steps)
+        if hold > 0:
+            builder.piece(np.array([v_start]), np.zeros(1, dtype=np.intp), hold * dt)
+        # settling loops (the periodic extension of the first recorded loop backwards in time),
+        # then the recorded samples: grid every `stride` samples, ending on the last one
+        full = np.concatenate([v[np.arange(-pre, 0) % loop], v]) if pre else v
+        offset = pre
+        length = full.size
+        grid = np.arange((length - 1) % stride, length, stride, dtype=np.intp)
+        keep = np.union1d(grid, _turning_points(np.concatenate(([builder.v_last], full)))[:] - 1)
+        keep = keep[keep >= 0]
+        first = int(grid[0])
+        pos = np.asarray(e.position_um, dtype=np.float64)
+        for lo_i, hi_i, dt_piece in ((-1, first, (first + 1) * dt), (first, length - 1, stride * dt)):
+            sel = keep[(keep > lo_i) & (keep <= hi_i)]
+            gl = np.flatnonzero(np.isin(sel, grid)).astype(np.intp)
+            on_grid = sel[gl]
+            rec = on_grid >= offset
+            builder.piece(
+                full[sel], gl, dt_piece, np.flatnonzero(rec).astype(np.intp), pos[on_grid[rec] - offset]
+            )
+        m = int(sum(c.size for c in builder.compared)) - n_compared
+        starts.append(n_compared)
+        counts.append(m)
+        n_compared += m
+        layouts.append(
+            ExperimentLayout(
+                label=e.label,
+                axis=e.axis,
+                path=e.path,
+                kind=str(info.kind),
+                t_start_s=t0,
+                duration_s=float(e.t_s[-1] - t0),
+                frequency_hz=freq,
+                v_min=float(v.min()),
+                v_max=float(v.max()),
+                stride=stride,
+                gap_s=gap * dt,
+                move_s=move * dt,
+                hold_s=hold * dt,
+                preroll_loops=n_pre,
+            )
+        )
+        t_prev = float(e.t_s[-1])
+        prev = e
+    if min(counts) < 8:
+        bad = layouts[int(np.argmin(counts))]
+        raise CalibrationError(f"experiment {bad.label!r}: too few samples for the fit ({min(counts)})")
+    return DynamicCalibrationData(
+        hysteresis_voltage_v=np.concatenate(builder.v),
+        grid_index=np.concatenate(builder.grid),
+        pieces=tuple(builder.pieces),
+        compared=np.concatenate(builder.compared),
+        position_um=np.concatenate(builder.positions),
+        starts=np.asarray(starts, dtype=np.intp),
+        counts=np.asarray(counts, dtype=np.intp),
+        rest_voltage_v=float(rest_voltage_v),
+        experiments=tuple(layouts),
+    )
+
+
+# ------------------------------------------------------------------------------------------- the model
+
+
+@dataclass(frozen=True, slots=True)
+class CreepStructure:
+    """The fixed spread of relaxation times (not fitted)."""
+
+    tau_min_s: float = 1e-3
+    tau_max_s: float = 1e5
+    per_decade: int = 3
+
+    @property
+    def taus_s(self) -> F64:
+        """The relaxation times (s)."""
+        return creep_taus(self.tau_min_s, self.tau_max_s, self.per_decade)
+
+
+def _hysteresis_unit(data: DynamicCalibrationData, alpha: float) -> F64:
+    """``Y_alpha`` at the grid samples: ``x_h - b V`` of the ODE with ``delta = 1``, from rest."""
+    v = data.hysteresis_voltage_v
+    v0 = data.rest_voltage_v
+    xh, _ = hysteresis_step(HysteresisParams(alpha, 1.0, 1.0 - alpha), v, HysteresisState(v0, v0))
+    y: F64 = (xh - v)[data.grid_index]
+    return y
+
+
+#: Elements with ``n dt / tau`` up to this are evaluated in closed form (one cumulative sum).
+_CLOSED_FORM_SPAN = 400.0
+
+
+class _Deviations:
+    """The creep deviations operator of a session: drive on the grid -> ``E`` at the compared samples.
+
+    Linear in the drive, from rest. Per stretch of uniform ``dt`` the slow elements (``n h <= 400``)
+    use the closed form ``e[j] = a^j (a e[-1] + g sum_{l<=j} a^-l dd[l])`` with cached growth
+    tables; the fast ones the recursion (:func:`piezod.model.dynamic.creep_element_deviations`).
+    The session is simulated once per ``alpha`` in the fit, so the tables pay off.
+    """
+
+    def __init__(self, data: DynamicCalibrationData, taus: F64) -> None:
+        self.data = data
+        self.taus = taus
+        self.plans: list[tuple[float, int, int, F64, F64, NDArray[np.bool_], F64 | None]] = []
+        for dt_s, start, stop in data.pieces:
+            n = stop - start
+            a, _, b0 = foh_coefficients(taus, dt_s)
+            h = dt_s / taus
+            slow = (h * n <= _CLOSED_FORM_SPAN) if n > 1 else np.zeros(taus.size, dtype=bool)
+            grow = np.exp(np.outer(np.arange(n, dtype=np.float64), h[slow])) if slow.any() else None
+            self.plans.append((dt_s, start, stop, a, -(1.0 - b0), slow, grow))
+
+    def __call__(self, drive: F64, drive_rest: float) -> F64:
+        cmp = self.data.compared
+        m = self.taus.size
+        out = np.empty((cmp.size, m))
+        e = np.zeros(m)
+        d_prev = drive_rest
+        for dt_s, start, stop, a, g, slow, grow in self.plans:
+            d = drive[start:stop]
+            if stop - start == 1:
+                blk = (a * e + g * (float(d[0]) - d_prev))[None, :]
+            else:
+                blk = np.empty((stop - start, m))
+                dd = np.diff(d, prepend=d_prev)
+                if grow is not None:
+                    acc = np.cumsum(dd[:, None] * grow, axis=0)
+                    acc *= g[slow]
+                    acc += (a * e)[slow]
+                    acc /= grow
+                    blk[:, slow] = acc
+                fast = ~slow
+                if fast.any():
+                    blk[:, fast] = creep_element_deviations(self.taus[fast], dt_s, d, d_prev, e[fast])
+            lo, hi = np.searchsorted(cmp, [start, stop])
+            if hi > lo:
+                out[lo:hi] = blk[cmp[lo:hi] - start]
+            e = blk[-1]
+            d_prev = float(d[-1])
+        return out
+
+
+class _Model:
+    """The session model ``x(theta)`` at the compared samples, with cached per-alpha simulations."""
+
+    def __init__(self, data: DynamicCalibrationData, creep: CreepStructure) -> None:
+        self.data = data
+        self.taus = creep.taus_s
+        self.log_taus = np.log(self.taus)
+        self.unit_weights = creep_weights(self.taus, 1.0, 0.0)
+        v = data.grid_voltage_v
+        self.v = v[data.compared]
+        self.deviations = _Deviations(data, self.taus)
+        self.e_v = self.deviations(v, data.rest_voltage_v)
+        self._alpha: float | None = None
+        self._y: F64 = np.empty(0)
+        self._e_y: F64 = np.empty((0, 0))
+        self.simulations = 0
+
+    def hysteresis_parts(self, alpha: float) -> tuple[F64, F64]:
+        """``Y_alpha`` and ``E[Y_alpha]`` at the compared samples (cached for the last alpha)."""
+        if self._alpha != alpha:
+            y = _hysteresis_unit(self.data, alpha)
+            self._e_y = self.deviations(y, 0.0)
+            self._y = y[self.data.compared]
+            self._alpha = alpha
+            self.simulations += 1
+        return self._y, self._e_y
+
+    def shape(self, beta: float) -> F64:
+        """Weights per unit ``gamma`` (``creep_weights`` with ``gamma = 1``)."""
+        out: F64 = self.unit_weights * np.exp(beta * self.log_taus) / math.gamma(1.0 - beta)
+        return out
+
+    def weights(self, gamma: float, beta: float) -> F64:
+        return gamma * self.shape(beta)
+
+    def positions(self, z: F64) -> F64:
+        alpha, b, u = np.exp(z[:3])
+        w = self.weights(z[3], z[4])
+        y, e_y = self.hysteresis_parts(float(alpha))
+        delta = (b - u) / alpha
+        total = float(w.sum())
+        out: F64 = (1.0 + total) * (b * self.v + delta * y) + (b * self.e_v + delta * e_y) @ w
+        return out
+
+    def jacobian(self, z: F64) -> F64:
+        alpha, b, u = (float(c) for c in np.exp(z[:3]))
+        gamma, beta = float(z[3]), float(z[4])
+        w = self.weights(gamma, beta)
+        total = float(w.sum())
+        y, e_y = self.hysteresis_parts(alpha)
+        delta = (b - u) / alpha
+        hyst_y = (1.0 + total) * y + e_y @ w
+        hyst_v = (1.0 + total) * self.v + self.e_v @ w
+        # d/d ln(alpha): delta = (b - u) / alpha and Y_alpha change
+        step = 1e-6
+        y2, e_y2 = self.hysteresis_parts(alpha * math.exp(step))
+        dy = ((1.0 + total) * y2 + e_y2 @ w - hyst_y) / step
+        J = np.empty((y.size, 5))
+        J[:, 0] = -delta * hyst_y + delta * dy
+        J[:, 1] = b * (hyst_v + hyst_y / alpha)
+        J[:, 2] = -u * hyst_y / alpha
+        d_lin = b * self.v + delta * y
+        e_lin = b * self.e_v + delta * e_y
+        dw_g = self.shape(beta)
+        J[:, 3] = float(dw_g.sum()) * d_lin + e_lin @ dw_g
+        dw_b = w * (self.log_taus + float(digamma(1.0 - beta)))
+        J[:, 4] = float(dw_b.sum()) * d_lin + e_lin @ dw_b
+        return J
+
+
+def _centre(data: DynamicCalibrationData, a: NDArray[np.float64]) -> NDArray[np.float64]:
+    sums = np.add.reduceat(a, data.starts, axis=0)
+    means = sums / (data.counts if a.ndim == 1 else data.counts[:, None])
+    out: NDArray[np.float64] = a - np.repeat(means, data.counts, axis=0)
+    return out
+
+
+# --------------------------------------------------------------------------------------------- start
+
+
+def _linear_b_delta(data: DynamicCalibrationData, col_b: F64, col_d: F64) -> tuple[float, float, float]:
+    """Least squares of ``x = b col_b + delta col_d + c_e``: (rss, b, delta)."""
+    A = _centre(data, np.column_stack([col_b, col_d]))
+    x = _centre(data, data.position_um)
+    sol, *_ = np.linalg.lstsq(A, x, rcond=None)
+    r = A @ sol - x
+    return float(r @ r), float(sol[0]), float(sol[1])
+
+
+def auto_start(
+    data: DynamicCalibrationData, model: _Model, *, creep_pct: float | None = None, exponent: float = 0.0
+) -> F64:
+    """A start ``(ln alpha, ln b, ln u, gamma, beta)`` from the data alone.
+
+    ``alpha`` by a grid and a scalar search with the creep of the hysteretic part neglected
+    (then the model is linear in ``b`` and ``delta``), then ``gamma`` on a grid (unless
+    given) with ``b`` and ``delta`` solved linearly.
+    """
+    v_span = max(e.v_max - e.v_min for e in data.experiments)
+    v_small = min(max(e.v_max - e.v_min, 1e-3) for e in data.experiments)
+    gamma0 = 1.0 if creep_pct is None else creep_pct
+    w0 = model.weights(gamma0, exponent)
+    hyst_v = (1.0 + float(w0.sum())) * model.v + model.e_v @ w0
+
+    def rss_alpha(log_alpha: float) -> float:
+        alpha = math.exp(log_alpha)
+        y = _hysteresis_unit(data, alpha)[data.compared]
+        return _linear_b_delta(data, hyst_v, (1.0 + float(w0.sum())) * y)[0]
+
+    grid = np.linspace(math.log(0.02 / v_span), math.log(min(20.0 / v_small, 0.45)), 32)
+    rss = np.array([rss_alpha(float(g)) for g in grid])
+    k = int(np.argmin(rss))
+    best = minimize_scalar(
+        rss_alpha,
+        bounds=(float(grid[max(k - 1, 0)]), float(grid[min(k + 1, grid.size - 1)])),
+        method="bounded",
+        options={"xatol": 1e-4},
+    )
+    log_alpha = float(best.x) if best.fun <= rss[k] else float(grid[k])
+    alpha = math.exp(log_alpha)
+    y, e_y = model.hysteresis_parts(alpha)
+    gammas = [gamma0] if creep_pct is not None else [0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0]
+    best_fit = (math.inf, 0.0, 0.0, gamma0)
+    for g in gammas:
+        w = model.weights(g, exponent)
+        tot = 1.0 + float(w.sum())
+        fit = _linear_b_delta(data, tot * model.v + model.e_v @ w, tot * y + e_y @ w)
+        if fit[0] < best_fit[0]:
+            best_fit = (fit[0], fit[1], fit[2], g)
+    _, b, delta, gamma = best_fit
+    if not (b > 0 and delta > 0):
+        raise CalibrationError(
+            "the data show no hysteresis of the modelled orientation (trace below retrace): "
+            f"b = {b:.4g} um/V, (b - u)/alpha = {delta:.4g} um"
+        )
+    u = max(b - alpha * delta, 1e-3 * b)
+    return np.array([log_alpha, math.log(b), math.log(u), gamma, exponent])
+
+
+# ----------------------------------------------------------------------------------------------- fit
+
+
+@dataclass(frozen=True, eq=False)
+class DynamicExperimentFit:
+    """Fit summary of one experiment.
+
+    Attributes
+    ----------
+    layout
+        How it entered the session (kind, time, stride, reconstructed gap).
+    n
+        Compared samples.
+    position_offset_um
+        Fitted position offset ``c_e``.
+    range_um
+        Distance covered by the fitted positions (``Delta x_e`` of (2.27)).
+    sigma_um
+        ``sigma_e`` of (2.26).
+    fit_error_pct
+        ``100 sigma_e / Delta x_e`` (2.27).
+    rms_um
+        RMS residual.
+    """
+
+    layout: ExperimentLayout
+    n: int
+    position_offset_um: float
+    range_um: float
+    sigma_um: float
+    fit_error_pct: float
+    rms_um: float
+
+    @property
+    def label(self) -> str:
+        """Experiment label."""
+        return self.layout.label
+
+
+@dataclass(frozen=True, eq=False)
+class DynamicCalibrationResult:
+    """Result of :func:`fit_dynamic` (values in the units of the parameter names).
+
+    Attributes
+    ----------
+    params
+        The fitted model (with the creep structure used).
+    stderr
+        Standard error per fitted parameter name (0 for held ones).
+    correlations
+        Correlation matrix of the free parameters (order of ``free``).
+    free, fixed
+        Names of the fitted and of the held parameters.
+    at_bounds
+        Free parameters that ended on a bound.
+    condition_number
+        Of the column-normalised, offset-projected Jacobian.
+    experiments
+        Per-experiment summaries, in time order.
+    residuals_um
+        Measured minus fitted position at the compared samples.
+    cost, n, nfev, simulations, success, message, seconds
+        Solver summary (``simulations``: runs of the session's ODE + creep for new ``alpha``).
+    warnings
+        Things the user should know.
+    """
+
+    params: DynamicParams
+    stderr: Mapping[str, float]
+    correlations: F64
+    free: tuple[str, ...]
+    fixed: tuple[str, ...]
+    at_bounds: tuple[str, ...]
+    condition_number: float
+    experiments: tuple[DynamicExperimentFit, ...]
+    residuals_um: F64
+    cost: float
+    n: int
+    nfev: int
+    simulations: int
+    success: bool
+    message: str
+    seconds: float
+    warnings: tuple[str, ...] = field(default=())
+
+    @property
+    def values(self) -> dict[str, float]:
+        """Fitted parameter name -> value."""
+        return {k: float(getattr(self.params, k)) for k in PARAM_NAMES}
+
+    @property
+    def fit_error_pct(self) -> float:
+        """Worst experiment's fit error (2.27), in %."""
+        return max(e.fit_error_pct for e in self.experiments)
+
+    @property
+    def worst(self) -> DynamicExperimentFit:
+        """The experiment with the largest fit error."""
+        return max(self.experiments, key=lambda e: e.fit_error_pct)
+
+
+def _to_z(p: DynamicParams) -> F64:
+    return np.array(
+        [
+            math.log(p.alpha_per_v),
+            math.log(p.b_um_per_v),
+            math.log(p.u_um_per_v),
+            p.creep_pct_per_decade,
+            p.creep_exponent,
+        ]
+    )
+
+
+def fit_dynamic(
+    data: DynamicCalibrationData,
+    *,
+    creep: CreepStructure | None = None,
+    start: DynamicParams | None = None,
+    fix: Iterable[str] = (),
+    min_decades_for_exponent: float = 2.0,
+    max_nfev: int = 200,
+    on_eval: Callable[[int], None] | None = None,
+) -> DynamicCalibrationResult:
+    """Fit the dynamic model to a prepared session by least squares with per-experiment offsets.
+
+    Parameters
+    ----------
+    data
+        The session (:func:`prepare_dynamic`).
+    creep
+        Spread of the relaxation times (default: that of ``start``, else 1 ms ... 1e5 s, 3 per decade).
+    start
+        Parameters to start from (e.g. a config's); the automatic start is computed as well
+        and the better one is used. Held parameters take its values (else the automatic start's;
+        ``creep_exponent`` 0).
+    fix
+        Names of :data:`PARAM_NAMES` to hold.
+    min_decades_for_exponent
+        ``creep_exponent`` is held at its start value unless the frame's time scales (a quarter
+        of the fastest loop to the session length) span at least this many decades.
+    max_nfev
+        Evaluation budget of the solver.
+    on_eval
+        Called with the running number of model evaluations (progress display).
+
+    Raises
+    ------
+    CalibrationError
+        Unknown names, data without hysteresis, a solver failure or parameters outside the
+        model's domain.
+    """
+    t0 = time.perf_counter()
+    fixed = set(fix)
+    unknown = fixed - set(PARAM_NAMES)
+    if unknown:
+        raise CalibrationError(f"unknown parameter(s) to fix: {', '.join(sorted(unknown))}")
+    warnings: list[str] = []
+    short_s, long_s = data.time_scales_s()
+    decades = math.log10(long_s / short_s) if short_s > 0 else 0.0
+    if "creep_exponent" not in fixed and decades < min_decades_for_exponent:
+        fixed.add("creep_exponent")
+        warnings.append(
+            f"the frame spans {decades:.1f} decades of time: creep_exponent held at its start value"
+        )
+    if creep is None:
+        creep = (
+            CreepStructure(start.creep_tau_min_s, start.creep_tau_max_s, start.creep_per_decade)
+            if start is not None
+            else CreepStructure()
+        )
+    model = _Model(data, creep)
+    nfev = [0]
+
+    def count() -> None:
+        nfev[0] += 1
+        if on_eval is not None:
+            on_eval(nfev[0])
+
+    exponent0 = start.creep_exponent if start is not None else 0.0
+    gamma_held = (
+        start.creep_pct_per_decade if (start is not None and "creep_pct_per_decade" in fixed) else None
+    )
+    try:
+        z_auto = auto_start(data, model, creep_pct=gamma_held, exponent=exponent0)
+    except (ModelError, FloatingPointError) as exc:
+        raise CalibrationError(f"the automatic start failed: {exc}") from exc
+    candidates = [z_auto]
+    if start is not None:
+        z_start = _to_z(start)
+        for k in fixed:
+            j = PARAM_NAMES.index(k)
+            z_auto[j] = z_start[j]
+        candidates.append(z_start)
+    lo, hi = _LOWER, _UPPER
+    best_z, best_cost = candidates[0], math.inf
+    for cand in candidates:
+        z = np.clip(cand, lo + 1e-9, hi - 1e-9)
+        count()
+        c = float(np.sum(_centre(data, model.positions(z) - data.position_um) ** 2))
+        if c < best_cost:
+            best_z, best_cost = z, c
+    free = tuple(k for k in PARAM_NAMES if k not in fixed)
+    mask = np.array([k in free for k in PARAM_NAMES])
+    z_full = best_z.copy()
+
+    def full(zf: F64) -> F64:
+        out = z_full.copy()
+        out[mask] = zf
+        return out
+
+    def resid(zf: F64) -> F64:
+        count()
+        return _centre(data, model.positions(full(zf)) - data.position_um)
+
+    def jac(zf: F64) -> F64:
+        return _centre(data, model.jacobian(full(zf))[:, mask])
+
+    try:
+        res = least_squares(
+            resid,
+            best_z[mask],
+            jac=jac,
+            bounds=(lo[mask], hi[mask]),
+            method="trf",
+            x_scale="jac",
+            ftol=1e-12,
+            xtol=1e-12,
+            gtol=1e-12,
+            max_nfev=max_nfev,
+        )
+    except (ValueError, ModelError, FloatingPointError) as exc:
+        raise CalibrationError(f"the fit failed: {exc}") from exc
+    z_sol = full(res.x)
+    alpha, b, u = (float(c) for c in np.exp(z_sol[:3]))
+    try:
+        params = DynamicParams(
+            alpha,
+            b,
+            u,
+            float(z_sol[3]),
+            float(z_sol[4]),
+            creep.tau_min_s,
+            creep.tau_max_s,
+            creep.per_decade,
+        )
+    except ModelError as exc:
+        raise CalibrationError(f"the fitted parameters leave the model's domain: {exc}") from exc
+    if params.total_creep >= MAX_TOTAL_CREEP:  # pragma: no cover - DynamicParams checks it
+        raise CalibrationError("fitted creep too large")
+
+    x = model.positions(z_sol)
+    offsets = np.add.reduceat(data.position_um - x, data.starts) / data.counts
+    fitted = x + np.repeat(offsets, data.counts)
+    resid_um = data.position_um - fitted
+    p_free = int(mask.sum())
+    lsf = np.add.reduceat(resid_um**2, data.starts)
+    sigma = np.sqrt(lsf / np.maximum(data.counts - p_free, 1))
+    rng = np.maximum.reduceat(fitted, data.starts) - np.minimum.reduceat(fitted, data.starts)
+    err_pct = 100.0 * sigma / np.where(rng > 0, rng, np.nan)
+    rms = np.sqrt(lsf / data.counts)
+
+    n_exp = data.n_experiments
+    dof = max(resid_um.size - p_free - n_exp, 1)
+    s2 = float(resid_um @ resid_um) / dof
+    Jc = np.asarray(res.jac, dtype=np.float64)
+    norms = np.linalg.norm(Jc, axis=0)
+    norms[norms == 0] = 1.0
+    _, sv, vt = np.linalg.svd(Jc / norms, full_matrices=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    inv_sv2 = np.where(sv > sv[0] * 1e-13, 1.0 / np.maximum(sv, 1e-300) ** 2, np.inf)
+    cov = (vt.T * inv_sv2) @ vt / np.outer(norms, norms) * s2
+    sd_z = np.sqrt(np.abs(np.diag(cov)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(sd_z, sd_z)
+    scale = np.array([alpha, b, u, 1.0, 1.0])  # d value / d z
+    stderr = dict.fromkeys(PARAM_NAMES, 0.0)
+    for j, k in enumerate(free):
+        stderr[k] = float(scale[PARAM_NAMES.index(k)] * sd_z[j])
+    span = hi - lo
+    at_bounds = tuple(
+        k
+        for k in free
+        if min(
+            z_sol[PARAM_NAMES.index(k)] - lo[PARAM_NAMES.index(k)],
+            hi[PARAM_NAMES.index(k)] - z_sol[PARAM_NAMES.index(k)],
+        )
+        < 1e-6 * span[PARAM_NAMES.index(k)]
+    )
+    if at_bounds:
+        warnings.append(f"on a bound (standard errors not meaningful): {', '.join(at_bounds)}")
+    if cond > 1e8:
+        warnings.append(f"ill-conditioned: condition number {cond:.3g}; see the correlations")
+    if not u < b:
+        warnings.append("u >= b: the loop shape is not that of a piezo (check the data)")
+    if not res.success:
+        warnings.append(f"solver did not converge: {res.message}")
+    exps = tuple(
+        DynamicExperimentFit(
+            layout=data.experiments[i],
+            n=int(data.counts[i]),
+            position_offset_um=float(offsets[i]),
+            range_um=float(rng[i]),
+            sigma_um=float(sigma[i]),
+            fit_error_pct=float(err_pct[i]),
+            rms_um=float(rms[i]),
+        )
+        for i in range(n_exp)
+    )
+    resid_um.setflags(write=False)
+    return DynamicCalibrationResult(
+        params=params,
+        stderr=MappingProxyType(stderr),
+        correlations=corr,
+        free=free,
+        fixed=tuple(k for k in PARAM_NAMES if k in fixed),
+        at_bounds=at_bounds,
+        condition_number=cond,
+        experiments=exps,
+        residuals_um=resid_um,
+        cost=float(res.cost),
+        n=int(resid_um.size),
+        nfev=nfev[0],
+        simulations=model.simulations,
+        success=bool(res.success),
+        message=str(res.message),
+        seconds=time.perf_counter() - t0,
+        warnings=tuple(warnings),
+    )
+
+
+def calibrate_dynamic(
+    experiments: Sequence[Experiment],
+    *,
+    creep: CreepStructure | None = None,
+    start: DynamicParams | None = None,
+    fix: Iterable[str] = (),
+    max_samples_per_loop: int = 512,
+    max_samples_per_experiment: int = 8192,
+    slew_rate_v_per_s: float = 2000.0,
+    rest_voltage_v: float = 0.0,
+    max_preroll_loops: int = 8,
+    on_eval: Callable[[int], None] | None = None,
+) -> DynamicCalibrationResult:
+    """:func:`prepare_dynamic` the experiments and :func:`fit_dynamic` them (see there)."""
+    data = prepare_dynamic(
+        experiments,
+        max_samples_per_loop=max_samples_per_loop,
+        max_samples_per_experiment=max_samples_per_experiment,
+        slew_rate_v_per_s=slew_rate_v_per_s,
+        rest_voltage_v=rest_voltage_v,
+        max_preroll_loops=max_preroll_loops,
+    )
+    return fit_dynamic(data, creep=creep, start=start, fix=fix, on_eval=on_eval)
+
+
+# -------------------------------------------------------------------------------------------- output
+
+
+def _finite(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+def result_json(result: DynamicCalibrationResult, *, inputs: Sequence[str] = ()) -> dict[str, Any]:
+    """The JSON document of a dynamic calibration (keys of DESIGN section 4, plus more)."""
+    corr = {
+        a: {b: float(result.correlations[i, j]) for j, b in enumerate(result.free)}
+        for i, a in enumerate(result.free)
+    }
+    p = result.params
+    return {
+        "model": "dynamic",
+        "params": result.values,
+        "creep_structure": {
+            "creep_tau_min_s": p.creep_tau_min_s,
+            "creep_tau_max_s": p.creep_tau_max_s,
+            "creep_per_decade": p.creep_per_decade,
+            "elements": int(p.taus_s.size),
+            "total_creep": p.total_creep,
+        },
+        "stderr": dict(result.stderr),
+        "fit_error_pct": result.fit_error_pct,
+        "experiments": [
+            {
+                "label": e.label,
+                "axis": e.layout.axis,
+                "path": e.layout.path,
+                "kind": e.layout.kind,
+                "t_start_s": e.layout.t_start_s,
+                "duration_s": e.layout.duration_s,
+                "range_v": e.layout.v_max - e.layout.v_min,
+                "offset_v": 0.5 * (e.layout.v_max + e.layout.v_min),
+                "v_min": e.layout.v_min,
+                "v_max": e.layout.v_max,
+                "frequency_hz": _finite(e.layout.frequency_hz),
+                "stride": e.layout.stride,
+                "gap_s": e.layout.gap_s,
+                "preroll_loops": e.layout.preroll_loops,
+                "range_um": e.range_um,
+                "position_offset_um": e.position_offset_um,
+                "sigma_um": e.sigma_um,
+                "rms_um": e.rms_um,
+                "fit_error_pct": e.fit_error_pct,
+                "n": e.n,
+            }
+            for e in result.experiments
+        ],
+        "correlations": corr,
+        "condition_number": result.condition_number,
+        "free": list(result.free),
+        "fixed": list(result.fixed),
+        "at_bounds": list(result.at_bounds),
+        "n": result.n,
+        "n_experiments": len(result.experiments),
+        "cost": result.cost,
+        "nfev": result.nfev,
+        "simulations": result.simulations,
+        "success": result.success,
+        "message": result.message,
+        "seconds": result.seconds,
+        "warnings": list(result.warnings),
+        "inputs": list(inputs),
+    }
+
+
+def dynamic_model_config(params: DynamicParams) -> DynamicModelConfig:
+    """The ``dynamic:`` config section of ``params``.
+
+    Raises
+    ------
+    CalibrationError
+        The values do not fit the config schema.
+    """
+    try:
+        return DynamicModelConfig(
+            alpha_per_v=params.alpha_per_v,
+            b_um_per_v=params.b_um_per_v,
+            u_um_per_v=params.u_um_per_v,
+            creep_pct_per_decade=params.creep_pct_per_decade,
+            creep_exponent=params.creep_exponent,
+            creep_tau_min_s=params.creep_tau_min_s,
+            creep_tau_max_s=params.creep_tau_max_s,
+            creep_per_decade=params.creep_per_decade,
+        )
+    except ValueError as exc:
+        raise CalibrationError(f"fitted dynamic parameters are outside the config limits: {exc}") from exc
+
+
+def calibrated_config(
+    result: DynamicCalibrationResult,
+    *,
+    axis: str = "x",
+    base: ScannerConfig | None = None,
+    thesis: ThesisParams | None = None,
+    inputs: Sequence[str] = (),
+    voltage_span_v: tuple[float, float] | None = None,
+    name: str = "calibrated",
+) -> ScannerConfig:
+    """The scanner config with ``model: dynamic`` and the fitted ``dynamic:`` section on ``axis``.
+
+    The ``thesis:`` section is kept (from ``base``, or ``thesis`` when given, which replaces
+    it): the engine still plans periodic scans with it. Provenance goes to
+    ``calibration.dynamic`` (other keys of ``calibration`` are kept).
+
+    Parameters
+    ----------
+    result
+        The dynamic fit.
+    axis
+        The calibrated axis.
+    base
+        Scanner to start from (limits, other axes, thesis parameters kept).
+    thesis
+        Thesis parameters for the axis (required without ``base``).
+    inputs
+        Recording files, for the provenance.
+    voltage_span_v
+        Lowest and highest recorded voltage (needed without ``base``).
+    name
+        Scanner name without ``base``.
+
+    Raises
+    ------
+    CalibrationError
+        The parameters do not fit the config schema, or the base / thesis parameters are missing.
+    """
+    section = dynamic_model_config(result.params)
+    prov: dict[str, Any] = {
+        "tool": f"piezod calibrate {__version__} (dynamic model)",
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "axis": axis,
+        "recordings": list(inputs),
+        "n_experiments": len(result.experiments),
+        "n_samples": result.n,
+        "fit_error_pct": round(result.fit_error_pct, 6),
+        "stderr": {k: float(f"{v:.6g}") for k, v in result.stderr.items()},
+        "fixed": list(result.fixed),
+        "condition_number": float(f"{result.condition_number:.4g}"),
+    }
+    thesis_cfg = None
+    if thesis is not None:
+        try:
+            thesis_cfg = ThesisModelConfig(**{k: getattr(thesis, k) for k in ThesisModelConfig.model_fields})
+        except ValueError as exc:
+            raise CalibrationError(f"thesis parameters are outside the config limits: {exc}") from exc
+    if base is not None:
+        if axis not in base.axes:
+            raise CalibrationError(f"the base config has no axis {axis!r} (axes: {', '.join(base.axes)})")
+        update: dict[str, Any] = {"model": "dynamic", "dynamic": section}
+        if thesis_cfg is not None:
+            update["thesis"] = thesis_cfg
+        data = base.model_dump()
+        data["axes"][axis] = base.axes[axis].model_copy(update=update).model_dump()
+        data["calibration"] = {**(base.calibration or {}), "dynamic": prov}
+        try:
+            return ScannerConfig.model_validate(data)
+        except ValueError as exc:
+            raise CalibrationError(f"cannot build the calibrated config: {exc}") from exc
+    if thesis_cfg is None:
+        raise CalibrationError("without a base config the thesis parameters are needed (thesis=...)")
+    if axis != "x":
+        raise CalibrationError(f"calibrating axis {axis!r} needs a base config (a scanner with an x axis)")
+    if voltage_span_v is None:
+        raise CalibrationError("without a base config the recorded voltage span is needed")
+    vlo = math.floor(voltage_span_v[0])
+    vhi = max(math.ceil(voltage_span_v[1]), vlo + 1)
+    try:
+        ax = AxisConfig(
+            voltage_min_v=vlo,
+            voltage_max_v=vhi,
+            safe_voltage_v=float(min(max(0.0, vlo), vhi)),
+            model="dynamic",
+            thesis=thesis_cfg,
+            dynamic=section,
+        )
+        return ScannerConfig(
+            name=name,
+            description="written by piezod calibrate from recordings (voltage limits = recorded span)",
+            axes={"x": ax},
+            calibration={"dynamic": prov},
+        )
+    except ValueError as exc:
+        raise CalibrationError(f"cannot build the calibrated config: {exc}") from exc
+
+
+__all__ = [
+    "PARAM_NAMES",
+    "CreepStructure",
+    "DynamicCalibrationData",
+    "DynamicCalibrationResult",
+    "DynamicExperimentFit",
+    "ExperimentLayout",
+    "auto_start",
+    "calibrate_dynamic",
+    "calibrated_config",
+    "dynamic_model_config",
+    "fit_dynamic",
+    "prepare_dynamic",
+    "result_json",
+]
