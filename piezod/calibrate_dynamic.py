@@ -9,11 +9,14 @@ free state per slow element and experiment), so the model is run through the *se
 from rest at ``rest_voltage_v`` at ``t = 0`` through every recorded experiment in the order
 of ``t`` (the recording format's ``t`` is continuous over a session), with the unrecorded
 stretches between experiments reconstructed the way a calibration frame produces them
-(:func:`hil_sim.session.run_session`, the daemon's programs): a move at the slew rate to the
-next start voltage, a hold there, then -- for a periodic experiment -- as many settling loops
-(copies of its first recorded loop) as fit into the rest of the gap (at most
-``max_preroll_loops``). Per experiment a position offset ``c_e`` (sensor zero, drift) is a
-nuisance parameter, eliminated by projection (residuals and Jacobian centred per experiment).
+(:func:`hil_sim.session.run_session`, the daemon's programs): a move at ``slew_rate_v_per_s``
+to the next start voltage, a hold there, then -- for a periodic experiment -- as many settling
+loops (the periodic extension of its first recorded loop) as fit into the rest of the gap (at
+most ``max_preroll_loops``). Before the first experiment the stage rests at ``rest_voltage_v``
+until the move. The start voltage of an experiment is one sample before its first, on the same
+slope (or the periodic predecessor after settling loops), so that its turning point is kept.
+Per experiment a position offset ``c_e`` (sensor zero, drift) is a nuisance parameter,
+eliminated by projection (residuals and Jacobian centred per experiment).
 
 Decimation without changing the hysteresis
 ------------------------------------------
@@ -326,14 +329,20 @@ def prepare_dynamic(
         hold = gap - pre - move
         if move + hold == 0:
             v_start = v_from  # no room: the first sample follows the previous one directly
-        # the move (monotone: exact for the ODE), then the hold (one step) at the start voltage
+        # the move (monotone: exact for the ODE) and the hold (one step): before the first
+        # experiment the stage rests at the rest voltage until it moves (the daemon idles, then
+        # ramps to a program's start); between experiments it holds at the next start voltage
+        # (hil_sim.session's pause)
+        steps = min(move, _MOVE_STEPS)
+        frac = np.arange(1, steps + 1) / max(steps, 1)
+        v_hold = v_from if prev is None else v_start
+        if hold > 0 and prev is None:
+            builder.piece(np.array([v_hold]), np.zeros(1, dtype=np.intp), hold * dt)
         if move > 0:
-            steps = min(move, _MOVE_STEPS)
-            frac = np.arange(1, steps + 1) / steps
             mv = v_from + (v_start - v_from) * frac
             builder.piece(mv, np.arange(steps, dtype=np.intp), move * dt / steps)
-        if hold > 0:
-            builder.piece(np.array([v_start]), np.zeros(1, dtype=np.intp), hold * dt)
+        if hold > 0 and prev is not None:
+            builder.piece(np.array([v_hold]), np.zeros(1, dtype=np.intp), hold * dt)
         # settling loops (the periodic extension of the first recorded loop backwards in time),
         # then the recorded samples: grid every `stride` samples, ending on the last one
         full = np.concatenate([v[np.arange(-pre, 0) % loop], v]) if pre else v
