@@ -428,3 +428,21 @@ def test_benchmark_dynamic_inverse_block(benchmark: Any) -> None:
     )
     v, _ = benchmark(dynamic_inverse, SIM_X, blocks[0], dt, state0)
     assert v.size == blocks[0].size
+
+
+def test_a_dynamic_driver_adopts_the_state_of_the_one_it_replaces() -> None:
+    old = _driver()
+    old.corrected(np.linspace(0.0, 20.0, 800))
+    old.hold(300)
+    new = _driver()
+    new.adopt_state(old)
+    assert new.voltage_v == old.voltage_v
+    assert new.position_um == pytest.approx(old.position_um, abs=1e-12)  # same parameters: same state
+    thesis = AxisDriver("x", AxisConfig(voltage_min_v=-230, voltage_max_v=230, thesis=THESIS), 1000.0)
+    thesis.corrected(np.linspace(0.0, 5.0, 300))
+    new.adopt_state(thesis)
+    assert new.voltage_v == thesis.voltage_v
+    state = new.dynamic_state
+    assert state is not None and not state.creep_um.any()  # creep restarts relaxed
+    v = new.corrected(np.full(5, new.position_um)).voltage_v
+    np.testing.assert_allclose(v, thesis.voltage_v, atol=1e-9)  # nothing moves at the adopted point

@@ -88,6 +88,22 @@ def _plan(
     )
 
 
+def _adopted_dynamic_state(params: DynamicParams, other: AxisDriver) -> DynamicState:
+    """``model: dynamic`` taking over from ``other``: its voltage, its hysteretic distance from the
+    centre line rescaled to the new loop width, its creep deviations if it had the same elements."""
+    v = other.voltage_v
+    old = other.dynamic.hysteresis if other.dynamic is not None else other.params.hysteresis
+    eta = (other.state.position_um - old.b_um_per_v * v) * params.hysteresis.delta_um / old.delta_um
+    xh = params.b_um_per_v * v + eta
+    dyn = other.dynamic_state
+    e = np.zeros(params.taus_s.size)
+    if dyn is not None and other.dynamic is not None and np.array_equal(other.dynamic.taus_s, params.taus_s):
+        e = np.array(dyn.creep_um)
+    return DynamicState(
+        HysteresisState(v, xh), (1.0 + params.total_creep) * xh + float(params.weights @ e), e
+    )
+
+
 @dataclass(frozen=True, slots=True)
 class AxisOutput:
     """Voltages for one block of one axis.
@@ -226,6 +242,10 @@ class AxisDriver:
 
     def adopt_state(self, other: AxisDriver) -> None:
         """Continue from another driver's last voltage and position (new parameters, same stage)."""
+        if self.dynamic is not None:
+            self._dyn = _adopted_dynamic_state(self.dynamic, other)
+            self._state = self._dyn.hysteresis
+            return
         v = other.voltage_v
         eta = other.state.position_um - other.params.b_um_per_v * v
         # keep the distance from the branch centre line b V, rescaled to the new loop width
