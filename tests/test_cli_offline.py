@@ -100,11 +100,14 @@ def test_json_to_stdout_moves_the_table_to_stderr(
     assert "worst fit error" in cap.err
 
 
-def test_on_stage_calibration_is_not_available_yet(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["calibrate", "--sim", "--out", "x.yaml"]) == 2
-    assert "not available yet" in _one_line_error(capsys, "piezod calibrate: error:")
-    assert main(["calibrate", "--port", "/dev/ttyUSB0"]) == 2
-    assert "not available yet" in _one_line_error(capsys, "piezod calibrate: error:")
+def test_on_stage_calibration_arguments_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
+    # (the on-stage run itself is tested in tests/test_stagecal.py)
+    assert main(["calibrate", "--sim"]) == 2
+    assert "--out F.yaml is required" in _one_line_error(capsys, "piezod calibrate: error:")
+    assert main(["calibrate", "--sim", "--out", "x.yaml", "rec.csv"]) == 2
+    assert "not both" in _one_line_error(capsys, "piezod calibrate: error:")
+    assert main(["calibrate", "--port", "/dev/ttyUSB0", "--out", "x.yaml"]) == 2
+    assert "--config F is required" in _one_line_error(capsys, "piezod calibrate: error:")
     assert main(["calibrate"]) == 2
     assert "no recordings" in _one_line_error(capsys, "piezod calibrate: error:")
 

@@ -642,21 +642,25 @@ class Engine:
                 self.fault("host", "STREAM", f"streaming ended: {exc}")
             if how not in (None, "stop"):
                 self.fault("host", "STREAM_END", f"streaming run ended by {how}")
-            # The board ramped to safe or holds: forget the history.
-            for d in self.drivers.values():
-                d.reset(d.config.safe_voltage_v if how in ("watchdog", "link") else d.voltage_v)
             self._end_recording()
             with self._lock:
                 self._state = "disconnected" if how == "link" else "fault"
                 self._fault_latched = True
             # Wait for the session to be usable again, then stream (hold) again.
             session = self._session
-            while not self._closing.is_set() and session is not None and not session.connected:
+            if session is None:
+                return
+            while not self._closing.is_set() and not session.connected:
                 time.sleep(0.1)
             if self._closing.is_set():
                 return
             self._index = max(self._index, streamer.next_index) + int(self.rate_hz)
             try:
+                # After any abnormal end the outputs go to the safe values (the board's ramp after a
+                # watchdog, or the reconfiguration here), and the model forgets the history.
+                session.prepare_restart(timeout_s=10.0)
+                for d in self.drivers.values():
+                    d.reset(d.config.safe_voltage_v)
                 self._start_stream()
             except (LinkError, PiezodError) as exc:
                 self.fault("link", "RESTART", f"cannot restart streaming: {exc}")
