@@ -513,7 +513,7 @@ def creep_element_deviations(
 
 
 #: Blocks are processed in chunks of at most this many samples by the filter-bank tables.
-_CHUNK = 4096
+_CHUNK = 2048
 
 
 @dataclass(frozen=True, eq=False)
@@ -570,7 +570,7 @@ class _Bank:
         return out, s
 
 
-@lru_cache(maxsize=32)
+@lru_cache(maxsize=16)  # at most ~1.2 MB each
 def _tables_cached(bank: _Bank, n: int) -> _BankTables:
     return _bank_tables(bank.log_abs_p, bank.neg_p, bank.g, bank.o, n)
 
@@ -582,7 +582,8 @@ def _banks(params: DynamicParams, dt_s: float) -> tuple[_Bank, _Bank]:
     h = dt_s / params.taus_s
     fwd = _Bank(-h, np.zeros(h.size, dtype=bool), -disc.one_minus_b0, disc.w)
     rho = disc.rates
-    inv = _Bank(np.log(np.abs(disc.q)), disc.q < 0.0, -disc.q * disc.gain, np.ones(rho.size))
+    log_q = np.log(np.maximum(np.abs(disc.q), 1e-300))
+    inv = _Bank(log_q, disc.q < 0.0, -disc.q * disc.gain, np.ones(rho.size))
     return fwd, inv
 
 
