@@ -77,6 +77,8 @@ def stream_bench(
         caps = session.capabilities
         assert plan is not None and caps is not None
         source = triangle_for(config, rate_hz)
+        if lead_s is None:
+            lead = min(lead, 0.6 * caps.fifo_depth_samples / float(rate_hz))  # the config's lead may not fit
         streamer = Streamer(session, source, lead_s=lead, auto_restart=auto_restart)
         cpu0, wall0 = time.process_time(), time.monotonic()
         board_cpu0 = _proc_cpu_s(board_pid) if board_pid is not None else None

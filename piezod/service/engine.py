@@ -527,6 +527,23 @@ class Recorder(threading.Thread):
         )
 
 
+def capped_lead_s(lead_s: float, session: BoardSession, rate_hz: float) -> float:
+    """The lead, capped at 60 % of the board FIFO (at high sample rates a long lead does not fit)."""
+    caps = session.capabilities
+    if caps is None:
+        return lead_s
+    fit = 0.6 * caps.fifo_depth_samples / rate_hz
+    if lead_s > fit:
+        log.info(
+            "lead %.0f ms capped at %.0f ms: the board FIFO holds %d samples",
+            1e3 * lead_s,
+            1e3 * fit,
+            caps.fifo_depth_samples,
+        )
+        return fit
+    return lead_s
+
+
 class Engine:
     """The daemon's streaming engine (implements :class:`~piezod.service.schemas.EngineControl`).
 
@@ -614,7 +631,7 @@ class Engine:
 
     def _start_stream(self) -> None:
         assert self._session is not None
-        lead = self.config.service.lead_ms / 1000.0
+        lead = capped_lead_s(self.config.service.lead_ms / 1000.0, self._session, self.rate_hz)
         block = max(1, round(self.rate_hz * self.config.service.block_ms / 1000.0))
         self._streamer = Streamer(
             self._session, self, lead_s=lead, block_samples=block, on_block=self._on_block
