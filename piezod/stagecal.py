@@ -313,6 +313,15 @@ def _linearity_here(path: Path, axis: AxisName) -> tuple[float, float]:
     return float(e.nonlinearity_pct), float(e.length_error_pct)
 
 
+def _synth_here(path: Path) -> None:
+    from piezod.recording import write_recording
+    from piezod.synth import MEDIUM_TUBE, calibration_plan, synth_session
+
+    plan = calibration_plan([180.0, 280.0, 380.0], [0.2, 0.5, 1.0, 2.0], [0.0])
+    session = synth_session(MEDIUM_TUBE, plan, samples_per_loop=1024, seed=0)
+    write_recording(path, session.recording)
+
+
 class AnalysisWorker:
     """A persistent worker process for the CPU-heavy analysis a daemon process must not run.
 
@@ -333,6 +342,10 @@ class AnalysisWorker:
     def linearity(self, path: Path, axis: AxisName = "x") -> tuple[float, float]:
         """(nonlinearity %, length error %) of the first experiment of ``axis`` in ``path``."""
         return self._pool.submit(_linearity_here, path, axis).result()
+
+    def synth_frame(self, path: Path) -> None:
+        """Write a synthetic 12-experiment calibration session (for benchmarks) to ``path``."""
+        self._pool.submit(_synth_here, path).result()
 
     def close(self) -> None:
         """Stop the worker process."""

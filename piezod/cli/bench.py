@@ -35,6 +35,13 @@ def register(sub: Any) -> None:
     stream.add_argument("--axes", type=int, default=3, metavar="N", help="number of axes streamed")
     stream.add_argument("--rate-hz", type=float, default=100_000.0, metavar="R", help="samples/s per axis")
     stream.add_argument("--seconds", type=float, default=60.0, metavar="S", help="duration (s)")
+    stream.add_argument(
+        "--api-load", action="store_true", help="stream with the daemon while its API is polled"
+    )
+    stream.add_argument(
+        "--api-clients", type=int, default=2, metavar="N", help="polling clients (--api-load)"
+    )
+    stream.add_argument("--with-fit", action="store_true", help="also run calibration fits (--api-load)")
     p.set_defaults(func=run)
 
 
@@ -65,6 +72,24 @@ def _run_inverse(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _run_stream(args: argparse.Namespace) -> dict[str, Any]:
+    if getattr(args, "api_load", False):
+        from piezod.service.bench import run_api_load_bench
+
+        result = run_api_load_bench(args)
+        keys = (
+            "underruns",
+            "crc_errors",
+            "samples_sent",
+            "samples_read",
+            "api_requests_per_s",
+            "fits_completed",
+        )
+        print(", ".join(f"{k} {result[k]}" for k in keys if k in result), file=human_stream(args))
+        return result
+    return _run_link_stream(args)
+
+
+def _run_link_stream(args: argparse.Namespace) -> dict[str, Any]:
     try:
         module = importlib.import_module(STREAM_BENCH_MODULE)
     except ModuleNotFoundError as exc:
