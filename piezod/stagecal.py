@@ -242,11 +242,12 @@ def verify(
     rows: list[dict[str, Any]] = []
     for i, pt in enumerate(points):
         name = f"verify-{model}-{i:02d}"
+        n_lines = 1 if pt.frequency_hz < 0.1 else lines  # a 0.02 Hz line takes 50 s
         path = directory / f"{name}.csv"
         req = ScanRequest(
             range_um=pt.range_um,
             line_rate_hz=pt.frequency_hz,
-            lines=lines,
+            lines=n_lines,
             slow_range_um=0.0,
             offset_x_um=pt.offset_um,
             name=name,
@@ -273,7 +274,7 @@ def verify(
             rows.append(row)
             continue
         engine.start_scan(req, path=path)
-        total = (lines + 2) / pt.frequency_hz
+        total = (n_lines + 2) / pt.frequency_hz
         t0 = time.monotonic()
         while engine.status().state == "scanning":
             if progress is not None:
@@ -308,6 +309,20 @@ def _fit_thesis_here(frame_path: Path, axis: AxisName, base: ScannerConfig) -> T
     return ThesisFit(result_json(result, inputs=[str(frame_path)]), config, float(result.fit_error_pct))
 
 
+def _fit_dynamic_here(
+    frame_path: Path, axis: AxisName, base: ScannerConfig, ramp_v_per_s: float, rest_voltage_v: float
+) -> ThesisFit:
+    from piezod import calibrate_dynamic as cd
+
+    result = cd.calibrate_dynamic(
+        read_experiments([frame_path], axis=axis),
+        slew_rate_v_per_s=ramp_v_per_s,
+        rest_voltage_v=rest_voltage_v,
+    )
+    config = cd.calibrated_config(result, axis=axis, base=base, inputs=[str(frame_path)])
+    return ThesisFit(cd.result_json(result, inputs=[str(frame_path)]), config, float(result.fit_error_pct))
+
+
 def _linearity_here(path: Path, axis: AxisName) -> tuple[float, float]:
     e = linearity(read_experiments([path], axis=axis)).experiments[0]
     return float(e.nonlinearity_pct), float(e.length_error_pct)
@@ -338,6 +353,24 @@ class AnalysisWorker:
     def fit_thesis(self, frame_path: Path, base: ScannerConfig, axis: AxisName = "x") -> ThesisFit:
         """Fit the thesis model (3.8) to the frame recording."""
         return self._pool.submit(_fit_thesis_here, frame_path, axis, base).result()
+
+    def fit_dynamic(
+        self,
+        frame_path: Path,
+        base: ScannerConfig,
+        axis: AxisName,
+        *,
+        ramp_v_per_s: float,
+        rest_voltage_v: float,
+    ) -> ThesisFit:
+        """Fit the time-domain model (``model: dynamic``) to the frame recording of a session.
+
+        ``base`` should already hold the fitted thesis parameters (they are kept); the ramp
+        rate and the rest voltage let the fit rebuild the unrecorded stretches of the session.
+        """
+        return self._pool.submit(
+            _fit_dynamic_here, frame_path, axis, base, ramp_v_per_s, rest_voltage_v
+        ).result()
 
     def linearity(self, path: Path, axis: AxisName = "x") -> tuple[float, float]:
         """(nonlinearity %, length error %) of the first experiment of ``axis`` in ``path``."""
@@ -421,12 +454,15 @@ def plot_verification(rows: Sequence[dict[str, Any]], path: Path) -> Path:
             for a in axes:
                 a.axvspan(i - 0.45, i + 0.45 + width * (len(models) - 1), color="0.9", zorder=0)
     axes[0].set_ylabel("nonlinearity %")
-    axes[0].axhline(0.2, color="k", ls=":", lw=0.8)
+    axes[0].axhline(0.2, color="k", ls=":", lw=0.8, label="one pixel (0.2 %)")
+    axes[0].axhline(0.05, color="g", ls="--", lw=0.8, label="target in frame (0.05 %)")
     axes[1].set_ylabel("length error %")
     axes[1].axhline(0.0, color="k", lw=0.8)
+    for y in (-1.0, 1.0):
+        axes[1].axhline(y, color="r", ls=":", lw=0.8)
     axes[1].set_xticks(x + width * (len(models) - 1) / 2, labels, fontsize=7)
     axes[0].legend()
-    axes[0].set_title("Online correction on the stage (grey: outside the calibration frame)")
+    axes[0].set_title("Online correction on the stage (grey: outside the frame)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -57,21 +57,36 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     shown[0] = round(t, 1)
 
                 frame_path = run_frame(engine, frame, recdir / "frame.csv", progress=tick)
+            rest_v = base.axes[axis].safe_voltage_v
             fitted = worker.fit_thesis(frame_path, base, axis)
-            calibrated = fitted.config
+            print(f"thesis model (3.8) fitted: worst fit error {fitted.fit_error_pct:.3f} %", file=say)
+            dynamic = worker.fit_dynamic(
+                frame_path,
+                fitted.config,
+                axis,
+                ramp_v_per_s=base.service.ramp_rate_v_per_s,
+                rest_voltage_v=rest_v,
+            )
+            print(f"dynamic model fitted: worst fit error {dynamic.fit_error_pct:.3f} %", file=say)
+            calibrated = dynamic.config
             dump_config(
                 calibrated,
                 out,
-                header=f"calibrated on the stage by piezod calibrate ({frame_summary(frame)})",
+                header=(
+                    f"calibrated on the stage by piezod calibrate ({frame_summary(frame)}); "
+                    "model: dynamic, the thesis parameters kept beside it"
+                ),
             )
-            print(f"thesis model fitted: worst fit error {fitted.fit_error_pct:.3f} % -> {out}", file=say)
+            print(f"-> {out}", file=say)
             report = dict(fitted.report)
+            report["dynamic"] = dynamic.report
             report["frame"] = {"summary": frame_summary(frame), "recording": str(frame_path)}
             rows: list[dict[str, Any]] = []
             if not args.no_verify:
-                engine.set_axis_model(axis, calibrated.axes[axis])
                 points = verification_points(calibrated, frame, reduced=reduced, axis=axis)
-                rows = verify(engine, points, recdir, "thesis", worker)
+                for model in ("thesis", "dynamic"):
+                    engine.set_axis_model(axis, calibrated.axes[axis].model_copy(update={"model": model}))
+                    rows += verify(engine, points, recdir, model, worker)
                 print(format_table(rows), file=say)
                 report["verification"] = rows
                 report["verification_summary"] = summary(rows)
