@@ -1,0 +1,218 @@
+"""The audit report: a text summary for the scientist and the JSON document of DESIGN section 4."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import IO, Any
+
+import numpy as np
+
+from piezod.audit.decide import AuditResult, CandidateResult
+from piezod.audit.evidence import Structure
+
+_MEANING = {
+    "none": "the model explains the data to the noise",
+    "unexplained": "structure above the noise that no candidate explains",
+    "drift": "position drifts linearly in time",
+    "thermal": "sensitivity changes slowly over the session",
+    "stiffness": "position-dependent stiffness (length error depends on offset)",
+    "polarity": "sensitivity differs for the two voltage polarities",
+    "resonance": "mechanical ringing after turning points",
+    "delay": "sensor or amplifier lag: the loop opens with speed",
+    "saturation": "response compresses at large excursions",
+    "creep": "creep law wrong: frequency dependence not as modelled",
+}
+
+
+def _num(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def _candidate_json(c: CandidateResult) -> dict[str, Any]:
+    return {
+        "effect": c.effect,
+        "round": c.round,
+        "tested": c.fit is not None,
+        "note": c.testable,
+        "params": {k: _num(v) for k, v in c.params.items()},
+        "gain": _num(c.gain),
+        "heldout_rms_before_um": _num(c.heldout_rms_before_um),
+        "heldout_rms_after_um": _num(c.heldout_rms_after_um),
+        "rms_um": _num(c.rms_um),
+        "bic_delta": _num(c.bic_delta),
+        "eligible": c.eligible,
+    }
+
+
+def _structure_json(s: Structure) -> dict[str, Any]:
+    return {
+        "rms_um": s.rms_um,
+        "noise_ratio": s.noise_ratio,
+        "correlations": s.correlations,
+        "negative_minus_positive_um": s.negative_minus_positive_um,
+        "spectral_peak_hz": s.spectral_peak_hz,
+        "loop_closure_um": s.loop_closure_um,
+        "bins": s.bins,
+        "experiments": s.per_experiment,
+    }
+
+
+def result_json(
+    result: AuditResult, *, inputs: Sequence[str] = (), validate: Sequence[str] = ()
+) -> dict[str, Any]:
+    """The JSON document of ``piezod audit --json`` (DESIGN section 4, more keys welcome).
+
+    Keys the checks read: ``cause``, ``findings[]`` (``effect, evidence, gain,
+    heldout_rms_before_um, heldout_rms_after_um``) and ``baseline`` (``rms_um, heldout_rms_um``).
+    """
+    base_params, _ = result.base_fit.model.public(result.base_fit.p)
+    final_base, final_ext = result.final_fit.model.public(result.final_fit.p)
+    opts = result.options
+    return {
+        "cause": result.cause,
+        "cause_meaning": _MEANING.get(result.cause, ""),
+        "findings": [
+            {
+                "effect": f.effect,
+                "evidence": f.evidence,
+                "gain": _num(f.gain),
+                "heldout_rms_before_um": _num(f.heldout_rms_before_um),
+                "heldout_rms_after_um": _num(f.heldout_rms_after_um),
+                "params": {k: _num(v) for k, v in f.params.items()},
+                "bic_delta": _num(f.bic_delta),
+                "rms_um": _num(f.rms_um),
+                "round": f.round,
+            }
+            for f in result.findings
+        ],
+        "baseline": {
+            "model": "thesis (3.8)" if result.base_kind == "thesis" else "hysteresis ODE (2.21)",
+            "params": base_params,
+            "rms_um": result.base_fit.rms_um,
+            "heldout_rms_um": result.base_heldout.rms_um,
+            "noise_floor_um": _num(result.noise_floor_um),
+            "structure_ratio": _num(result.structure_ratio),
+            "bic": result.base_fit.bic,
+            "n_samples": result.base_fit.n,
+            "n_parameters": result.base_fit.k,
+        },
+        "final": {
+            "effects": list(result.final_fit.model.effects),
+            "params": final_base,
+            "extension_params": final_ext,
+            "rms_um": result.final_fit.rms_um,
+            "heldout_rms_um": result.final_heldout.rms_um,
+            "gain": result.base_heldout.rms_um / result.final_heldout.rms_um,
+            "structure_ratio": _num(result.final_structure_ratio),
+        },
+        "candidates": [_candidate_json(c) for c in result.candidates],
+        "rounds": [[_candidate_json(c) for c in rnd] for rnd in result.rounds],
+        "heldout": {
+            "method": result.heldout_method,
+            "validation_gain": result.base_heldout.gains,
+        },
+        "residuals": {
+            "baseline": _structure_json(result.base_structure),
+            "final": _structure_json(result.final_structure),
+            "noise_floor_per_experiment_um": [_num(v) for v in result.noise_per_experiment_um],
+        },
+        "decision": {
+            "bic_min": opts.bic_min,
+            "gain_min": opts.gain_min,
+            "structure_max": opts.structure_max,
+            "rule": "greedy forward selection: a candidate is eligible when the BIC falls by more than "
+            "bic_min and the held-out RMS by the factor gain_min; the eligible one with the largest "
+            "held-out gain joins the model; cause = the first finding, else none (residual at the "
+            "noise floor) or unexplained",
+        },
+        "n_experiments": result.data.n_experiments,
+        "n_samples": result.data.n,
+        "notes": list(result.notes),
+        "seconds": result.seconds,
+        "inputs": list(inputs),
+        "validate": list(validate),
+    }
+
+
+def print_summary(result: AuditResult, out: IO[str]) -> None:
+    """The human-readable report."""
+    b = result.base_fit
+    kind = "thesis model (3.8)" if result.base_kind == "thesis" else "hysteresis ODE (2.21)"
+    pr = print
+    pr(
+        f"audit: {result.data.n_experiments} experiments, {result.data.n} samples, baseline {kind}; "
+        f"held-out: {result.heldout_method}; {result.seconds:.1f} s",
+        file=out,
+    )
+    params, _ = b.model.public(b.p)
+    pr("baseline parameters: " + ", ".join(f"{k} = {v:.5g}" for k, v in params.items()), file=out)
+    pr(
+        f"baseline: rms {b.rms_um:.4g} um, held-out {result.base_heldout.rms_um:.4g} um, noise floor "
+        f"{result.noise_floor_um:.4g} um (ratio {result.structure_ratio:.2f})",
+        file=out,
+    )
+    _print_structure(result.base_structure, out)
+    pr("", file=out)
+    pr(f"{'candidate':<11} {'gain':>7} {'held-out um':>12} {'BIC delta':>11}  parameters", file=out)
+    for c in result.candidates:
+        if c.fit is None:
+            pr(f"{c.effect:<11} {'-':>7} {'-':>12} {'-':>11}  not tested: {c.testable}", file=out)
+            continue
+        ptxt = ", ".join(f"{k} {v:.4g}" for k, v in c.params.items())
+        mark = " *" if c.eligible else "  "
+        note = f" [{c.testable}]" if c.testable else ""
+        nums = f"{c.gain:7.3f} {c.heldout_rms_after_um:12.4g} {c.bic_delta:11.4g}"
+        pr(f"{c.effect:<11} {nums}{mark}{ptxt}{note}", file=out)
+    pr(
+        "(* eligible: BIC falls by more than "
+        f"{result.options.bic_min:g} and held-out gain >= {result.options.gain_min:g})",
+        file=out,
+    )
+    pr("", file=out)
+    for k, f in enumerate(result.findings, start=1):
+        pr(f"finding {k}: {f.effect} ({_MEANING.get(f.effect, '')})", file=out)
+        pr(f"  {f.evidence}", file=out)
+    if result.findings:
+        fin = result.final_fit
+        pr(
+            f"final model (baseline + {' + '.join(fin.model.effects)}): rms {fin.rms_um:.4g} um, held-out "
+            f"{result.final_heldout.rms_um:.4g} um (overall gain "
+            f"{result.base_heldout.rms_um / result.final_heldout.rms_um:.3g}), ratio to noise "
+            f"{result.final_structure_ratio:.2f}",
+            file=out,
+        )
+    for note in result.notes[1:]:
+        pr(f"note: {note}", file=out)
+    pr(f"cause: {result.cause} ({_MEANING.get(result.cause, '')})", file=out)
+
+
+def _print_structure(s: Structure, out: IO[str]) -> None:
+    c = s.correlations
+    if len(s.per_experiment) < 3:
+        _print_extra(s, out)
+        return
+
+    def f(v: float) -> str:
+        return "  nan" if not math.isfinite(v) else f"{v:+.2f}"
+
+    print(
+        "residual structure: per-experiment sensitivity error vs session time "
+        f"{f(c['gain_error_vs_time'])}, offset {f(c['gain_error_vs_offset'])}, range "
+        f"{f(c['gain_error_vs_range'])}, log f {f(c['gain_error_vs_log_frequency'])}; loop opening vs f "
+        f"{f(c['opening_error_vs_frequency'])}; trend vs time {f(c['slope_vs_time'])}",
+        file=out,
+    )
+    _print_extra(s, out)
+
+
+def _print_extra(s: Structure, out: IO[str]) -> None:
+    extra = []
+    if math.isfinite(s.negative_minus_positive_um):
+        extra.append(f"mean residual V<0 minus V>0 {s.negative_minus_positive_um:+.3g} um")
+    if s.spectral_peak_hz:
+        extra.append(f"spectral peak at {s.spectral_peak_hz:.4g} Hz")
+    if s.loop_closure_um:
+        extra.append(f"loop-to-loop change (model-free) median {float(np.median(s.loop_closure_um)):.3g} um")
+    if extra:
+        print("  " + "; ".join(extra), file=out)
