@@ -142,6 +142,18 @@ class ServiceConfig(StrictModel):
         default=500, ge=50, le=60_000, description="board watchdog timeout (ms)"
     )
     ramp_rate_v_per_s: float = Field(default=200.0, gt=0, le=1e5, description="ramp-to-safe rate (V/s)")
+    sensitivity_tracking: bool = Field(
+        default=True, description="correct slow sensitivity drift from the sensor readback of corrected scans"
+    )
+    sensitivity_gain: float = Field(
+        default=0.25, gt=0, le=1, description="fraction of a line's measured length error corrected per line"
+    )
+    sensitivity_max_step_pct: float = Field(
+        default=0.05, gt=0, le=1, description="largest change of the tracked sensitivity per line (%)"
+    )
+    sensitivity_limit_pct: float = Field(
+        default=3.0, gt=0, le=20, description="largest total correction of the tracked sensitivity (%)"
+    )
 
 
 class ScannerConfig(StrictModel):

@@ -68,6 +68,7 @@ from piezod.service.schemas import (
     ScanRequest,
     Status,
 )
+from piezod.service.tracking import SensitivityTracker
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +109,7 @@ class Chunk:
     direction: NDArray[np.int8]
     record: NDArray[np.bool_]
     label: int = -1
+    corrected: bool = False
 
 
 class Job:
@@ -238,6 +240,10 @@ class ScanJob(Job):
                 tgt = block.x_um if name == "x" else block.y_um
                 targets[i] = tgt
                 plan = self._plans.get(name)
+                scale = engine.tracked_scale(name) if self.request.correction else 1.0
+                if scale != 1.0 and plan is not None:
+                    # the stage is `scale` times as sensitive as the model: shorten the travel
+                    tgt = plan.center_um + (tgt - plan.center_um) / scale
                 if self.request.correction or plan is None:
                     volts[i] = engine.drive(d, d.corrected(tgt))
                 else:
@@ -250,7 +256,9 @@ class ScanJob(Job):
                 volts, targets, np.full(m, -1, dtype=np.int64), block.fast_direction, np.zeros(m, bool)
             )
         record = np.full(m, self.request.record)
-        return Chunk(volts, targets, block.line, block.fast_direction, record, self.label)
+        return Chunk(
+            volts, targets, block.line, block.fast_direction, record, self.label, self.request.correction
+        )
 
     @property
     def params(self) -> RasterParams:
@@ -341,6 +349,7 @@ class TargetRing:
         self.record = np.zeros(capacity, dtype=bool)
         self.recording = np.full(capacity, -1, dtype=np.int64)
         self.label = np.full(capacity, -1, dtype=np.int64)
+        self.corrected = np.zeros(capacity, dtype=bool)
         self.hi = 0
         self.lock = threading.Lock()
 
@@ -354,6 +363,7 @@ class TargetRing:
             self.record[slots] = chunk.record
             self.recording[slots] = recording_id if chunk.record.any() else -1
             self.label[slots] = chunk.label
+            self.corrected[slots] = chunk.corrected
             self.hi = max(self.hi, first + n)
 
     def get(self, idx: NDArray[np.int64]) -> tuple[Any, ...]:
@@ -368,6 +378,7 @@ class TargetRing:
                 self.record[slots] & known,
                 np.where(known, self.recording[slots], -1),
                 self.label[slots].copy(),
+                self.corrected[slots].copy(),
             )
 
 
@@ -386,6 +397,7 @@ class _OpenRecording:
 class _LineAccumulator:
     line: int = -1
     direction: int = 0
+    corrected: bool = False
     target: list[FloatArray] = field(default_factory=list)
     position: list[FloatArray] = field(default_factory=list)
 
@@ -453,10 +465,10 @@ class Recorder(threading.Thread):
             log.info("recording %s closed (%d rows)", rec.path, rec.rows)
 
     def _write(self, block: MatchedBlock, meta: tuple[Any, ...]) -> None:
-        targets, line, direction, record, rec_id, label = meta
+        targets, line, direction, record, rec_id, label, corrected = meta
         rate = self.engine.rate_hz
         t = block.indices / rate
-        self._line_stats(block, targets, line, direction)
+        self._line_stats(block, targets, line, direction, corrected)
         if not record.any():
             return
         for ident in np.unique(rec_id[record]):
@@ -480,7 +492,12 @@ class Recorder(threading.Thread):
                 rec.rows += int(sel.sum())
 
     def _line_stats(
-        self, block: MatchedBlock, targets: FloatArray, line: NDArray[np.int64], direction: NDArray[np.int8]
+        self,
+        block: MatchedBlock,
+        targets: FloatArray,
+        line: NDArray[np.int64],
+        direction: NDArray[np.int8],
+        corrected: NDArray[np.bool_],
     ) -> None:
         if "x" not in block.axes:
             return
@@ -497,6 +514,7 @@ class Recorder(threading.Thread):
                 self._finish_line()
                 acc.line, acc.direction = ln, dr
                 acc.target, acc.position = [], []
+                acc.corrected = bool(corrected[seg[0]])
             if ln >= 0:
                 acc.target.append(targets[ix, seg])
                 acc.position.append(block.position_um[ix, seg])
@@ -523,7 +541,8 @@ class Recorder(threading.Thread):
                 direction="trace" if acc.direction > 0 else "retrace",
                 nonlinearity_pct=float(100.0 * np.std(resid) / measured) if measured else math.inf,
                 length_error_pct=float(100.0 * (measured - nominal) / nominal),
-            )
+            ),
+            acc.corrected,
         )
 
 
@@ -604,6 +623,18 @@ class Engine:
         self._closing = threading.Event()
         self._supervisor: threading.Thread | None = None
         self._idle_cb: list[Callable[[], None]] = []
+        svc = config.service
+        self._trackers: dict[str, SensitivityTracker] = (
+            {
+                "x": SensitivityTracker(
+                    gain=svc.sensitivity_gain,
+                    max_step=svc.sensitivity_max_step_pct / 100.0,
+                    limit=svc.sensitivity_limit_pct / 100.0,
+                )
+            }
+            if svc.sensitivity_tracking and "x" in config.axes
+            else {}
+        )
         self._labels: list[str] = []
         self._label_ids: dict[str, int] = {}
 
@@ -856,6 +887,7 @@ class Engine:
             position_um={n: d.position_um for n, d in self.drivers.items()},
             voltage_v={n: d.voltage_v for n, d in self.drivers.items()},
             recording=self._recording_name,
+            sensitivity_scale={a: t.scale for a, t in self._trackers.items()},
         )
 
     def check_scan(self, request: ScanRequest) -> None:
@@ -1060,9 +1092,18 @@ class Engine:
             names = np.array([*self._labels, ""], dtype=str)
         return names[np.where(ids >= 0, ids, len(names) - 1)]
 
-    def set_line_linearity(self, value: LineLinearity) -> None:
-        """Called by the recorder when a line completes."""
+    def set_line_linearity(self, value: LineLinearity, corrected: bool) -> None:
+        """Called by the recorder when a line of the fast axis completes (feeds the tracker)."""
         self._last_line = value
+        tracker = self._trackers.get("x")
+        if corrected and tracker is not None:
+            # the line was scanned with the scale in force then: its error is what remains
+            tracker.update(1.0 + value.length_error_pct / 100.0)
+
+    def tracked_scale(self, axis: str) -> float:
+        """The tracked sensitivity of ``axis`` relative to its model (1 without tracking)."""
+        tracker = self._trackers.get(axis)
+        return 1.0 if tracker is None else tracker.scale
 
     def fault(self, source: FaultSource, code: str, message: str, index: int | None = None) -> None:
         """Record a fault (and tell the listener); repeats of one kind within a second are counted only."""
