@@ -9,7 +9,7 @@ from pathlib import Path
 
 from piezod.cli._common import add_port_options, board_url, human_stream, scanner_config_path
 from piezod.config import load_config
-from piezod.errors import BoardFaultError
+from piezod.errors import BoardFaultError, ConfigError
 from piezod.progress import progress_bar
 from piezod.service.engine import Engine
 from piezod.service.schemas import ScanRequest
@@ -27,6 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--offset-um", type=float, default=0.0, help="fast-axis offset of the image centre (um)")
     p.add_argument("--slow-range-um", type=float, default=None, help="slow-axis range (default: range)")
     p.add_argument("--no-correction", action="store_true", help="drive the plain triangle (no model)")
+    p.add_argument(
+        "--model", choices=("thesis", "dynamic"), help="override the scanner config's model on every axis"
+    )
     p.add_argument("--out", required=True, metavar="REC.csv", help="the recording to write")
     p.set_defaults(func=run)
 
@@ -36,6 +39,19 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     config_path = scanner_config_path(args)
     config = load_config(config_path)
+    if args.model:
+        if args.model == "dynamic" and config.axes["x"].dynamic is None:
+            raise ConfigError(
+                f"{config_path}: --model dynamic needs a 'dynamic:' section on axis x (calibrate first)"
+            )
+        # axes without what the model needs keep their own model
+        axes = {
+            name: ax.model_copy(update={"model": args.model})
+            if args.model == "thesis" or ax.dynamic is not None
+            else ax
+            for name, ax in config.axes.items()
+        }
+        config = config.model_copy(update={"axes": axes})
     out = Path(args.out)
     request = ScanRequest(
         range_um=args.range_um,
@@ -70,7 +86,8 @@ def run(args: argparse.Namespace) -> int:
     if state != "idle":
         faults = "; ".join(f"{f.code}: {f.message}" for f in status.faults[-3:])
         raise BoardFaultError(f"the scan ended in state {state}: {faults}")
-    mode = "corrected (thesis model)" if request.correction else "uncorrected (plain triangle)"
+    model = config.axes["x"].model
+    mode = f"corrected ({model} model)" if request.correction else "uncorrected (plain triangle)"
     print(
         f"scanned {request.lines} lines of {request.range_um:g} um at {request.line_rate_hz:g} Hz, {mode}",
         file=say,
