@@ -75,6 +75,8 @@ log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 FaultSource = Literal["board", "host", "link"]
 
+#: A block computation slower than this (s) is logged with its cause.
+SLOW_BLOCK_S = 0.05
 #: Faults of one (source, code) closer together than this (s) are counted, not listed again.
 FAULT_REPEAT_S = 1.0
 #: Lines scanned before the recording of a scan starts (the loop settles, thesis section 3.1.2).
@@ -743,7 +745,9 @@ class Engine:
         """The next ``n`` samples for the board: volts ``(axes, n)``."""
         out = np.empty((len(self.drivers), n))
         filled = 0
+        t_call = time.monotonic()
         with self._lock:
+            t_locked = time.monotonic()
             while filled < n:
                 job = self._job
                 try:
@@ -760,6 +764,16 @@ class Engine:
                     filled += m
                 if job.done:
                     self._job_finished(job, self._index + filled)
+        t_done = time.monotonic()
+        if t_done - t_call > SLOW_BLOCK_S:
+            # a block must be computed in a fraction of the lead; say where the time went
+            log.warning(
+                "slow block: %d samples took %.0f ms (%.0f ms waiting for the engine lock), job %s",
+                n,
+                1e3 * (t_done - t_call),
+                1e3 * (t_locked - t_call),
+                type(self._job).__name__,
+            )
         self._index += n
         return out
 
