@@ -203,7 +203,7 @@ class RasterGenerator:
     def done(self) -> bool:
         """True when a finite number of frames has been produced."""
         p = self._params
-        return p.frames > 0 and self._line_at(self._next) >= p.frames * p.lines
+        return p.frames > 0 and self._next >= self._line_start(p.frames * p.lines)
 
     def total_samples(self) -> int:
         """Samples of the whole scan with the current parameters (finite ``frames`` only)."""
@@ -226,10 +226,20 @@ class RasterGenerator:
         self._pending = new
         return new
 
-    def _line_at(self, index: int) -> int:
+    def _lines_at(self, index: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Line of each sample index: line k holds ``[_line_start(k), _line_start(k + 1))``."""
         p = self._params
         spl = self.sample_rate_hz / p.line_rate_hz
-        return self._segment_line0 + math.floor((index - self._segment_start) / spl + 1e-9)
+        rel = index - self._segment_start
+        k = np.floor(rel / spl).astype(np.int64)
+        # the boundaries are integers (rounded); floating point may put k one off either way
+        k += (np.round((k + 1) * spl) <= rel).astype(np.int64)
+        k -= (np.round(k * spl) > rel).astype(np.int64)
+        out: NDArray[np.int64] = self._segment_line0 + k
+        return out
+
+    def _line_at(self, index: int) -> int:
+        return int(self._lines_at(np.array([index], dtype=np.int64))[0])
 
     def _line_start(self, line: int) -> int:
         p = self._params
@@ -261,6 +271,8 @@ class RasterGenerator:
             if p.frames > 0:
                 end = self._line_start(p.frames * p.lines)
                 take = min(take, end - self._next)
+            if take <= 0:
+                raise SafetyError(f"scan generator made no progress at sample {self._next} (internal error)")
             part = self._render(self._next, take)
             parts.append(part)
             self._next += take
@@ -287,13 +299,14 @@ class RasterGenerator:
 
     def _render(self, start: int, n: int) -> ScanBlock:
         p = self._params
-        fs = self.sample_rate_hz
-        idx = np.arange(start, start + n, dtype=np.float64)
-        # Line phase in [0, 1): trace on [0, 0.5), retrace on [0.5, 1).
-        lines_f = self._segment_line0 + (idx - self._segment_start) * p.line_rate_hz / fs
-        line = np.floor(lines_f + 1e-9).astype(np.int64)
-        phase = lines_f - line
-        phase = np.clip(phase, 0.0, 1.0)
+        spl = self.sample_rate_hz / p.line_rate_hz
+        idx = np.arange(start, start + n, dtype=np.int64)
+        line = self._lines_at(idx)
+        # Line phase in [0, 1) over the line's own (integer) samples: trace on [0, 0.5), retrace on [0.5, 1).
+        k = line - self._segment_line0
+        first = np.round(k * spl)
+        length = np.round((k + 1) * spl) - first
+        phase = (idx - self._segment_start - first) / length
         tri = np.where(phase < 0.5, 2.0 * phase, 2.0 - 2.0 * phase)  # 0 -> 1 -> 0
         half = 0.5 * p.fast_travel_um
         fast = -half + 2.0 * half * tri

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from piezod.errors import SafetyError
 from piezod.scan import RasterGenerator, RasterParams, move_profile, slew_limit
@@ -104,3 +106,39 @@ def test_slew_limit_clamps_only_when_needed() -> None:
     assert changed == 0 and np.array_equal(out, v)
     out, changed = slew_limit(np.array([0.0, 3.0, 3.0]), 0.0, 1.0)
     assert changed == 2 and np.array_equal(out, [0.0, 1.0, 2.0])
+
+
+def test_non_integer_samples_per_line_terminate() -> None:
+    """Regression: 20 kS/s at 0.63 Hz (31746.03 samples/line) looped forever at the end of the scan."""
+    gen = RasterGenerator(
+        RasterParams(range_um=17.0, line_rate_hz=0.63, lines=4, slow_range_um=0.0), 20_000.0
+    )
+    total = gen.total_samples()
+    assert total == round(4 * 20_000.0 / 0.63)
+    s = _all(gen, block=400)
+    assert s["fast_um"].size == total
+    assert np.array_equal(np.unique(s["line"]), np.arange(4))
+
+
+@given(
+    st.floats(1_000.0, 100_000.0),
+    st.floats(0.01, 20.0),
+    st.integers(1, 5),
+    st.integers(1, 3),
+    st.integers(64, 5000),
+)
+def test_scans_end_with_whole_lines_for_any_rates(
+    fs: float, f: float, lines: int, frames: int, block: int
+) -> None:
+    if fs / f < 8 or fs / f * lines * frames > 60_000:
+        return
+    gen = RasterGenerator(RasterParams(range_um=10.0, line_rate_hz=f, lines=lines, frames=frames), fs)
+    total = gen.total_samples()
+    s = _all(gen, block=block)
+    assert s["fast_um"].size == total
+    counts = np.bincount(s["line"])
+    spl = fs / f
+    expected = np.diff(np.round(np.arange(lines * frames + 1) * spl))
+    assert np.array_equal(counts, expected)
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    assert np.allclose(s["fast_um"][starts], -5.0)  # every line starts at the start of its trace
