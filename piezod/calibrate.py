@@ -75,6 +75,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from piezod import __version__
 from piezod.config import AxisConfig, ScannerConfig, ThesisModelConfig
 from piezod.errors import CalibrationError, ModelError
+from piezod.fitstats import at_bounds, fit_warnings, jacobian_covariance
 from piezod.model.params import ThesisParams
 from piezod.recording import Experiment
 
@@ -742,18 +743,10 @@ def fit(
     # Covariance from the (projected) Jacobian and the residual variance.
     p_free = int(mask.sum())
     dof = max(np.size(resid_for_dof) - p_free - n_exp, 1)
-    s2 = float(np.sum(np.asarray(resid_for_dof) ** 2)) / dof
-    Jc = np.asarray(jac_for_cov, dtype=np.float64)
-    norms = np.linalg.norm(Jc, axis=0)
-    norms[norms == 0] = 1.0
-    _, sv, vt = np.linalg.svd(Jc / norms, full_matrices=False)
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
-    inv_sv2 = np.where(sv > sv[0] * 1e-13, 1.0 / np.maximum(sv, 1e-300) ** 2, np.inf)
-    cov_all = (vt.T * inv_sv2) @ vt / np.outer(norms, norms) * s2
-    cov = cov_all[:p_free, :p_free]
-    sd_z = np.sqrt(np.abs(np.diag(cov)))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.outer(sd_z, sd_z)
+    fitcov = jacobian_covariance(jac_for_cov, float(np.sum(np.asarray(resid_for_dof) ** 2)), dof)
+    cond = fitcov.condition_number
+    sd_z = fitcov.sd[:p_free]
+    corr = fitcov.corr[:p_free, :p_free]
     vals = np.array([getattr(params, k) for k in PARAM_NAMES])
     dz = np.where(_LOG, vals, 1.0)
     dz[5] = 1.0 / a2_scale
@@ -761,23 +754,8 @@ def fit(
     for j, k in enumerate(free):
         stderr[k] = float(abs(dz[PARAM_NAMES.index(k)]) * sd_z[j])
 
-    warnings = list(notes)
-    span = hi - lo
-    at_bounds = tuple(
-        k
-        for k in free
-        if min(
-            z_sol[PARAM_NAMES.index(k)] - lo[PARAM_NAMES.index(k)],
-            hi[PARAM_NAMES.index(k)] - z_sol[PARAM_NAMES.index(k)],
-        )
-        < 1e-6 * span[PARAM_NAMES.index(k)]
-    )
-    if at_bounds:
-        warnings.append(f"on a bound (standard errors not meaningful): {', '.join(at_bounds)}")
-    if cond > 1e8:
-        warnings.append(f"ill-conditioned: condition number {cond:.3g}; see the correlations")
-    if params.u_um_per_v >= params.b_um_per_v:
-        warnings.append("u >= b: the loop shape is not that of a piezo (check the data)")
+    bounded = at_bounds(PARAM_NAMES, free, z_sol, lo, hi)
+    warnings = list(notes) + fit_warnings(bounded, cond, params.u_um_per_v, params.b_um_per_v)
     vh = 0.5 * (data.v_max - data.v_min)
     kk = (1.0 - params.a1 * np.exp(-1.0 / (data.frequency_hz * params.tau_s))) * (
         params.a2_per_v * vh + params.a3
@@ -812,7 +790,7 @@ def fit(
         correlations=corr,
         free=free,
         fixed=fixed,
-        at_bounds=at_bounds,
+        at_bounds=bounded,
         condition_number=cond,
         experiments=exps,
         residuals_um=resid_um,

@@ -64,6 +64,7 @@ from scipy.special import digamma
 from piezod import __version__
 from piezod.config import AxisConfig, DynamicModelConfig, ScannerConfig, ThesisModelConfig
 from piezod.errors import CalibrationError, ModelError
+from piezod.fitstats import at_bounds, fit_warnings, jacobian_covariance
 from piezod.model.dynamic import (
     MAX_TOTAL_CREEP,
     DynamicParams,
@@ -884,37 +885,14 @@ def fit_dynamic(
 
     n_exp = data.n_experiments
     dof = max(resid_um.size - p_free - n_exp, 1)
-    s2 = float(resid_um @ resid_um) / dof
-    Jc = np.asarray(res.jac, dtype=np.float64)
-    norms = np.linalg.norm(Jc, axis=0)
-    norms[norms == 0] = 1.0
-    _, sv, vt = np.linalg.svd(Jc / norms, full_matrices=False)
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
-    inv_sv2 = np.where(sv > sv[0] * 1e-13, 1.0 / np.maximum(sv, 1e-300) ** 2, np.inf)
-    cov = (vt.T * inv_sv2) @ vt / np.outer(norms, norms) * s2
-    sd_z = np.sqrt(np.abs(np.diag(cov)))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.outer(sd_z, sd_z)
+    fitcov = jacobian_covariance(res.jac, float(resid_um @ resid_um), dof)
+    cond, sd_z, corr = fitcov.condition_number, fitcov.sd, fitcov.corr
     scale = np.array([alpha, b, u, 1.0, 1.0])  # d value / d z
     stderr = dict.fromkeys(PARAM_NAMES, 0.0)
     for j, k in enumerate(free):
         stderr[k] = float(scale[PARAM_NAMES.index(k)] * sd_z[j])
-    span = hi - lo
-    at_bounds = tuple(
-        k
-        for k in free
-        if min(
-            z_sol[PARAM_NAMES.index(k)] - lo[PARAM_NAMES.index(k)],
-            hi[PARAM_NAMES.index(k)] - z_sol[PARAM_NAMES.index(k)],
-        )
-        < 1e-6 * span[PARAM_NAMES.index(k)]
-    )
-    if at_bounds:
-        warnings.append(f"on a bound (standard errors not meaningful): {', '.join(at_bounds)}")
-    if cond > 1e8:
-        warnings.append(f"ill-conditioned: condition number {cond:.3g}; see the correlations")
-    if not u < b:
-        warnings.append("u >= b: the loop shape is not that of a piezo (check the data)")
+    bounded = at_bounds(PARAM_NAMES, free, z_sol, lo, hi)
+    warnings += fit_warnings(bounded, cond, u, b)
     if not res.success:
         warnings.append(f"solver did not converge: {res.message}")
     exps = tuple(
@@ -936,7 +914,7 @@ def fit_dynamic(
         correlations=corr,
         free=free,
         fixed=tuple(k for k in PARAM_NAMES if k in fixed),
-        at_bounds=at_bounds,
+        at_bounds=bounded,
         condition_number=cond,
         experiments=exps,
         residuals_um=resid_um,
