@@ -212,11 +212,11 @@ class Resonance(Candidate):
         lo, _ = self._f_range(sc)
         # Far above the Nyquist frequency the filter is the identity: the baseline is nested.
         return np.array([math.log(lo), math.log(0.5)]), np.array(
-            [math.log(100.0 * sc.max_rate_hz), math.log(300.0)]
+            [math.log(1e3 * sc.max_rate_hz), math.log(300.0)]
         )
 
     def neutral(self, sc: Scales) -> F64:
-        return np.array([math.log(100.0 * sc.max_rate_hz), math.log(0.5)])
+        return np.array([math.log(1e3 * sc.max_rate_hz), math.log(300.0)])
 
     def grid_from_residual(self, sc: Scales, geo: Geometry, rows: NDArray[np.bool_], r: F64) -> list[F64]:
         lo, hi = self._f_range(sc)
@@ -355,11 +355,14 @@ class AuditModel:
         Active extensions (at most one per effect).
     scales
         Training-data scales.
+    memo
+        The last few baseline-stage results (a cache; the arrays are not modified).
     """
 
     base: ThesisBase | OdeBase
     candidates: tuple[Candidate, ...]
     scales: Scales
+    memo: dict[object, tuple[F64, tuple[F64, ...]]] = field(default_factory=dict, repr=False)
 
     @property
     def n_base(self) -> int:
@@ -435,22 +438,33 @@ class AuditModel:
             vmin = np.where(vmin < 0.0, vmin * fac, vmin)
             vmax = np.where(vmax < 0.0, vmax * fac, vmax)
         zb = p[: self.n_base]
-        nuis: list[F64] = []
-        if isinstance(self.base, ThesisBase):
-            k_extra = None
-            if "creep" in phi:
-                k_extra = float(phi["creep"][0]) * geo.log_f
-            if "polarity" in phi:
-                x = self.base.evaluate(zb, geo, v, vmin, vmax, k_extra)
-            else:
-                x = self.base.evaluate(zb, geo, k_extra=k_extra)
-            if "creep" in phi:
-                x = x * (1.0 + float(phi["creep"][1]) * geo.log_f[geo.exp])
+        # The baseline stage depends only on the baseline parameters and the voltage / creep
+        # hooks: remembered, so that varying a candidate's parameters does not recompute it.
+        hooks = tuple(float(v) for k in ("polarity", "creep") if k in phi for v in phi[k])
+        key = (id(geo), zb.tobytes(), hooks)
+        hit = self.memo.get(key)
+        if hit is not None:
+            x, nuis = hit[0], list(hit[1])
         else:
-            x, decay = self.base.evaluate(zb, geo, v)
-            nuis.append(decay)
-            if "creep" in phi:
-                x = x + float(phi["creep"][0]) * _creep_bank(x, geo, self.scales.creep_taus_s)
+            nuis = []
+            if isinstance(self.base, ThesisBase):
+                k_extra = None
+                if "creep" in phi:
+                    k_extra = float(phi["creep"][0]) * geo.log_f
+                if "polarity" in phi:
+                    x = self.base.evaluate(zb, geo, v, vmin, vmax, k_extra)
+                else:
+                    x = self.base.evaluate(zb, geo, k_extra=k_extra)
+                if "creep" in phi:
+                    x = x * (1.0 + float(phi["creep"][1]) * geo.log_f[geo.exp])
+            else:
+                x, decay = self.base.evaluate(zb, geo, v)
+                nuis.append(decay)
+                if "creep" in phi:
+                    x = x + float(phi["creep"][0]) * _creep_bank(x, geo, self.scales.creep_taus_s)
+            if len(self.memo) >= 4:
+                self.memo.pop(next(iter(self.memo)))
+            self.memo[key] = (x, tuple(nuis))
         if "thermal" in phi:
             x = x * (1.0 + float(phi["thermal"][0]) / self.scales.session_s * geo.t_rel_s)
         if "stiffness" in phi:
@@ -481,52 +495,55 @@ class AuditModel:
 def spectral_peak(geo: Geometry, rows: NDArray[np.bool_], r: F64, f_lo: float, f_hi: float) -> float | None:
     """Frequency of the strongest narrow excess of the residual spectrum in ``[f_lo, f_hi]`` (Hz).
 
-    Ringing follows the turning points, so the spectra are taken from short windows right after
-    every reversal of the voltage (up to 256 samples or half a half-period; the whole experiment
-    when it never reverses), in the experiments that resolve ``f_lo``. They are normalised by
-    their median, pooled on log-spaced bins and divided by a running median (the background).
+    Ringing follows the reversals of the voltage and decays, so the spectra are taken from the
+    residual right after every reversal (the first sample of a periodic experiment included),
+    tapered by ``exp(-k / K)`` for a few decay lengths ``K``, in the experiments that resolve
+    ``f_lo``. They are normalised by their median, pooled on log-spaced bins and divided by a
+    running median (the background); the decay length with the clearest peak wins.
     """
     full = np.zeros(geo.data.n)
     full[rows] = r
     edges = np.exp(np.linspace(math.log(f_lo), math.log(f_hi), 301))
-    acc = np.zeros(edges.size - 1)
-    cnt = np.zeros(edges.size - 1)
+    centres = np.sqrt(edges[:-1] * edges[1:])
     data = geo.data
-    for i, sl in enumerate(geo.slices):
-        dt = float(geo.dt_s[i])
-        if 0.5 / dt <= 2.0 * f_lo:
+    best: tuple[float, float] | None = None
+    for decay in (12, 48, 192):
+        length = 4 * decay
+        taper = np.exp(-np.arange(length) / decay)
+        acc = np.zeros(edges.size - 1)
+        cnt = np.zeros(edges.size - 1)
+        for i, sl in enumerate(geo.slices):
+            dt = float(geo.dt_s[i])
+            y = full[sl]
+            if 0.5 / dt <= 2.0 * f_lo or y.size < length:
+                continue
+            turns = np.flatnonzero(np.diff(data.direction[sl]) != 0) + 1
+            if geo.period[i] > 0:
+                turns = np.concatenate(([0], turns))
+            starts = turns[turns + length <= y.size]
+            if starts.size == 0:
+                continue
+            seg = y[starts[:, None] + np.arange(length)[None, :]]
+            seg = seg - seg.mean(axis=1, keepdims=True)
+            pw = np.mean(np.abs(np.fft.rfft(seg * taper, n=2 * length, axis=1)) ** 2, axis=0)
+            f = np.fft.rfftfreq(2 * length, dt)
+            med = float(np.median(pw[1:])) or 1.0
+            k = np.searchsorted(edges, f[1:]) - 1
+            ok = (k >= 0) & (k < acc.size)
+            np.add.at(acc, k[ok], pw[1:][ok] / med)
+            np.add.at(cnt, k[ok], 1.0)
+        good = cnt > 0
+        if good.sum() < 8:
             continue
-        y = full[sl]
-        s = data.direction[sl]
-        turns = np.flatnonzero(np.diff(s) != 0) + 1
-        per = int(geo.period[i])
-        length = min(256, per // 4) if per else min(256, y.size)
-        if turns.size == 0 or length < 16:
-            turns, length = np.array([0]), min(y.size, 4096)
-        starts = turns[turns + length <= y.size]
-        if starts.size == 0:
-            continue
-        seg = y[starts[:, None] + np.arange(length)[None, :]]
-        seg = seg - seg.mean(axis=1, keepdims=True)
-        nfft = 2 * length
-        pw = np.mean(np.abs(np.fft.rfft(seg * np.hanning(length), n=nfft, axis=1)) ** 2, axis=0)
-        f = np.fft.rfftfreq(nfft, dt)
-        med = float(np.median(pw[1:])) or 1.0
-        k = np.searchsorted(edges, f[1:]) - 1
-        ok = (k >= 0) & (k < acc.size)
-        np.add.at(acc, k[ok], pw[1:][ok] / med)
-        np.add.at(cnt, k[ok], 1.0)
-    good = cnt > 0
-    if good.sum() < 8:
-        return None
-    centres = np.sqrt(edges[:-1] * edges[1:])[good]
-    level = acc[good] / cnt[good]
-    half = 15
-    pad = np.pad(level, half, mode="edge")
-    background = np.array([np.median(pad[j : j + 2 * half + 1]) for j in range(level.size)])
-    excess = level / np.maximum(background, 1e-300)
-    j = int(np.argmax(excess))
-    return float(centres[j]) if excess[j] > 2.0 else None
+        level = acc[good] / cnt[good]
+        half = 15
+        pad = np.pad(level, half, mode="edge")
+        background = np.array([np.median(pad[j : j + 2 * half + 1]) for j in range(level.size)])
+        excess = level / np.maximum(background, 1e-300)
+        j = int(np.argmax(excess))
+        if excess[j] > 2.0 and (best is None or excess[j] > best[1]):
+            best = (float(centres[good][j]), float(excess[j]))
+    return None if best is None else best[0]
 
 
 def _per_experiment(x: F64, geo: Geometry, fn: object) -> F64:

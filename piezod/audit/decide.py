@@ -411,7 +411,7 @@ def run_audit(
             f.bic_delta,
             f.heldout_rms_before_um,
             f.heldout_rms_after_um,
-            None if runner is None else (runner.effect, runner.gain),
+            None if runner is None else (runner.effect, runner.gain, runner.testable),
             data,
         )
         explained.append(replace(f, evidence=text))

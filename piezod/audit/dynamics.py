@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import expm
-from scipy.signal import lfilter, lfilter_zi
+from scipy.signal import lfilter
 
 F64 = NDArray[np.float64]
 
@@ -44,20 +44,19 @@ def history(x: F64, period: int, m: int) -> F64:
 def _run_with_history(b: F64, a: F64, x: F64, period: int, m: int) -> F64:
     pre = history(x, period, m)
     xx = np.concatenate((pre, x))
-    zi = _rest_state(b, a) * xx[0]
+    zi = _rest_state_of(b, a) * xx[0]
     y, _ = lfilter(b, a, xx, zi=zi)
     out: F64 = y[pre.size :]
     return out
 
 
-@functools.lru_cache(maxsize=4096)
-def _rest_unit(b: tuple[float, ...], a: tuple[float, ...]) -> tuple[float, ...]:
-    return tuple(float(v) for v in lfilter_zi(np.asarray(b), np.asarray(a)))
-
-
-def _rest_state(b: F64, a: F64) -> F64:
+def _rest_state_of(b: F64, a: F64) -> F64:
     """Filter state of a steady unit input (every filter here has DC gain 1)."""
-    return np.asarray(_rest_unit(tuple(b.tolist()), tuple(a.tolist())))
+    if a.size == 2:
+        # First order, DC gain 1: the direct-form-II-transposed state is b1 - a1.
+        return np.array([b[1] - a[1]])
+    # Second order: z0 = b1 + b2 - a1 - a2, z1 = b2 - a2.
+    return np.array([b[1] + b[2] - a[1] - a[2], b[2] - a[2]])
 
 
 def lag_coefficients(tau_s: float, dt_s: float) -> tuple[F64, F64]:
@@ -109,6 +108,12 @@ def _resonance_tf(f0_hz: float, q: float, dt_s: float) -> tuple[tuple[float, ...
     return b, (1.0, float(-tr), float(det))
 
 
+@functools.lru_cache(maxsize=4096)
+def _resonance_arrays(f0_hz: float, q: float, dt_s: float) -> tuple[F64, F64]:
+    bt, at = _resonance_tf(f0_hz, q, dt_s)
+    return np.asarray(bt), np.asarray(at)
+
+
 def _resonance_tf_expm(f0_hz: float, q: float, dt_s: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """Reference implementation of :func:`_resonance_tf` through the matrix exponential (tests)."""
     w0 = 2.0 * math.pi * f0_hz
@@ -132,8 +137,7 @@ def _resonance_tf_expm(f0_hz: float, q: float, dt_s: float) -> tuple[tuple[float
 
 def resonance(x: F64, dt_s: float, f0_hz: float, q: float, period: int) -> F64:
     """``x`` through a unit-gain second-order resonance ``(f0, Q)`` (exact for linear segments)."""
-    bt, at = _resonance_tf(float(f0_hz), float(q), float(dt_s))
-    b, a = np.asarray(bt), np.asarray(at)
+    b, a = _resonance_arrays(float(f0_hz), float(q), float(dt_s))
     m = period
     if not m:
         decay = max(q, 0.5) / (math.pi * f0_hz)

@@ -144,7 +144,7 @@ def evidence(
     bic_delta: float,
     heldout_before: float,
     heldout_after: float,
-    runner_up: tuple[str, float] | None,
+    runner_up: tuple[str, float, str] | None,
     data: AuditData,
 ) -> str:
     """A sentence or two a scientist can check: what the residual shows and what the term explains.
@@ -160,7 +160,7 @@ def evidence(
     gain, bic_delta, heldout_before, heldout_after
         Its numbers.
     runner_up
-        The best other candidate of the round and its held-out gain.
+        The best other candidate of the round, its held-out gain and why it was not eligible.
     data
         The training data.
     """
@@ -247,5 +247,6 @@ def evidence(
         f"held-out RMS {heldout_before:.4g} -> {heldout_after:.4g} um (gain {gain:.3g}), BIC {bic_delta:+.4g}"
     )
     if runner_up is not None:
-        parts.append(f"next best candidate {runner_up[0]} (gain {runner_up[1]:.3g})")
+        why = f": {runner_up[2]}" if runner_up[2] else ""
+        parts.append(f"next best candidate {runner_up[0]} (gain {runner_up[1]:.3g}{why})")
     return "; ".join(parts)

@@ -262,13 +262,18 @@ def linear_start(problem: Problem, p: F64, cand_slice: slice, step: float = 1e-4
     return clipped
 
 
+def _cost(problem: Problem, p: F64) -> float:
+    r = problem.residual(p)
+    return float(r @ r) if np.all(np.isfinite(r)) else math.inf
+
+
 def fit_candidate(
     problem: Problem,
     parent: Fit,
     cand: Candidate,
     *,
     max_nfev: int | None = None,
-    polish_iter: int = 8,
+    polish_iter: int = 3,
 ) -> Fit:
     """Fit ``parent.model + cand`` on ``problem``'s rows: best start, the candidate alone, a joint polish.
 
@@ -287,17 +292,22 @@ def fit_candidate(
     starts.append(np.concatenate((parent.p, lin)))
     for g in cand.grid(model.scales):
         starts.append(np.concatenate((parent.p, g)))
-    for g in cand.grid_from_residual(model.scales, problem.geo, problem.rows, parent.residual):
+    suggested = cand.grid_from_residual(model.scales, problem.geo, problem.rows, parent.residual)
+    first_suggested = len(starts)
+    for g in suggested:
         starts.append(np.concatenate((parent.p, g)))
-    costs = []
-    for s in starts:
-        r = problem.residual(s)
-        costs.append(float(r @ r) if np.all(np.isfinite(r)) else math.inf)
-    best = starts[int(np.argmin(costs))]
-    # Candidate alone first (cheap), then everything jointly.
+    costs = np.array([_cost(problem, s) for s in starts])
+    # Candidate alone from the best start and from the best start the residual suggests (a
+    # mistuned resonance can cost more than a lag-like one before it is tuned), then jointly.
+    picks = [int(np.argmin(costs))]
+    if suggested:
+        picks.append(first_suggested + int(np.argmin(costs[first_suggested:])))
     only = np.zeros(model.size, dtype=bool)
     only[sl] = True
-    stage1 = problem.fit(best, free=only, max_nfev=40 * cand.size)
+    stage1 = min(
+        (problem.fit(starts[k], free=only, max_nfev=40 * cand.size) for k in dict.fromkeys(picks)),
+        key=lambda f: f.rss,
+    )
     # Baseline at its optimum, candidate fitted: a short joint polish moves everything together.
     return problem.fit(stage1.p, max_nfev=max_nfev, max_iter=polish_iter, rtol=1e-8)
 
@@ -363,7 +373,7 @@ def heldout_cv(
     *,
     refit: bool = False,
     max_nfev: int | None = None,
-    chord_steps: int = 4,
+    chord_steps: int = 2,
 ) -> HeldOut:
     """K-fold cross-validation over segments.
 

@@ -2,7 +2,8 @@
 
 :func:`write_plots` writes into a directory:
 
-* ``summary.png``    residual against time and voltage before / after, held-out gain per candidate;
+* ``summary.png``    residual of the fitted and of the held-out data before / after, residual
+  against voltage, held-out gain per candidate;
 * ``residuals.png``  baseline and final residual against session time, with the noise floor;
 * ``loops.png``      measured loops with the baseline and the final model, residual against voltage;
 * ``gains.png``      held-out gain and BIC change of every candidate in every round;
@@ -62,7 +63,7 @@ def write_plots(result: AuditResult, directory: str | os.PathLike[str]) -> list[
     ):
         fig = fn(plt, result)
         path = d / name
-        fig.savefig(path, dpi=90)
+        fig.savefig(path, dpi=80)
         plt.close(fig)
         written.append(path)
     return written
@@ -75,26 +76,35 @@ def _label(result: AuditResult) -> str:
 
 def _summary(plt: Any, result: AuditResult) -> Any:
     data = result.data
-    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8))
+    fig, ax = plt.subplots(2, 2, figsize=(11, 7))
     before = _full(result, result.base_fit.residual)
     after = _full(result, result.final_fit.residual)
-    t = data.t_s
-    ax[0].plot(t, before, ",", color="tab:red", alpha=0.5, label="baseline")
-    ax[0].plot(t, after, ",", color="tab:blue", alpha=0.5, label=_label(result))
-    ax[0].set_xlabel("session time (s)")
-    ax[0].set_ylabel("residual (um)")
-    ax[0].set_title("residual against time")
-    ax[0].legend(markerscale=20, fontsize=8, loc="upper right")
-    ax[1].plot(data.voltage_v, before, ",", color="tab:red", alpha=0.5)
-    ax[1].plot(data.voltage_v, after, ",", color="tab:blue", alpha=0.5)
-    ax[1].set_xlabel("voltage (V)")
-    ax[1].set_title("residual against voltage")
-    _gain_bars(ax[2], result, rounds=1)
-    fig.suptitle(
-        f"cause: {result.cause}    held-out RMS {result.base_heldout.rms_um:.3g} -> "
-        f"{result.final_heldout.rms_um:.3g} um ({result.heldout_method})",
-        fontsize=10,
+    label = _label(result)
+    a = ax[0, 0]
+    a.plot(data.t_s, before, ",", color="tab:red", alpha=0.6, rasterized=True, label="baseline")
+    a.plot(data.t_s, after, ",", color="tab:blue", alpha=0.6, rasterized=True, label=label)
+    a.set_xlabel("session time (s)")
+    a.set_ylabel("residual (um)")
+    a.set_title("fitted data: residual against time", fontsize=9)
+    a.legend(markerscale=25, fontsize=7, loc="upper right")
+    a = ax[0, 1]
+    ho_data = result.val_geo.data if result.val_geo is not None else data
+    for ho, color in ((result.base_heldout, "tab:red"), (result.final_heldout, "tab:blue")):
+        a.plot(ho_data.t_s[ho.rows], ho.residual, ",", color=color, alpha=0.6, rasterized=True)
+    a.set_xlabel("time (s)")
+    a.set_title(
+        f"held-out data ({result.heldout_method}): RMS {result.base_heldout.rms_um:.3g} -> "
+        f"{result.final_heldout.rms_um:.3g} um",
+        fontsize=9,
     )
+    a = ax[1, 0]
+    a.plot(data.voltage_v, before, ",", color="tab:red", alpha=0.6, rasterized=True)
+    a.plot(data.voltage_v, after, ",", color="tab:blue", alpha=0.6, rasterized=True)
+    a.set_xlabel("voltage (V)")
+    a.set_ylabel("residual (um)")
+    a.set_title("fitted data: residual against voltage", fontsize=9)
+    _gain_bars(ax[1, 1], result, rounds=1)
+    fig.suptitle(f"piezod audit: cause {result.cause}", fontsize=11)
     fig.tight_layout()
     return fig
 
@@ -146,7 +156,7 @@ def _loops(plt: Any, result: AuditResult) -> Any:
         v = data.voltage_v[sl]
         x = data.position_um[sl]
         a = ax[0, j]
-        a.plot(v, x, ",", color="0.4", label="measured")
+        a.plot(v, x, ",", color="0.4", label="measured", rasterized=True)
         a.plot(v, x - before[sl], lw=0.6, color="tab:red", label="baseline")
         a.plot(v, x - after[sl], lw=0.6, color="tab:blue", ls="--", label=_label(result))
         e = data.info[i]
@@ -154,9 +164,10 @@ def _loops(plt: Any, result: AuditResult) -> Any:
         a.set_title(f"{e.label[-24:]}\n{e.range_v:.0f} V p-p, {f}", fontsize=8)
         a.set_xlabel("voltage (V)")
         b = ax[1, j]
-        s = data.direction[sl]
-        b.scatter(v, before[sl], c=np.where(s > 0, "tab:red", "tab:orange"), s=0.5)
-        b.scatter(v, after[sl], c=np.where(s > 0, "tab:blue", "tab:cyan"), s=0.5)
+        up = data.direction[sl] > 0
+        for mask, c_before, c_after in ((up, "tab:red", "tab:blue"), (~up, "tab:orange", "tab:cyan")):
+            b.plot(v[mask], before[sl][mask], ",", color=c_before, rasterized=True)
+            b.plot(v[mask], after[sl][mask], ",", color=c_after, rasterized=True)
         b.set_xlabel("voltage (V)")
     ax[0, 0].set_ylabel("position (um)")
     ax[1, 0].set_ylabel("residual (um); red/orange baseline, blue/cyan final (trace/retrace)")
@@ -186,6 +197,11 @@ def _gain_bars(a: Any, result: AuditResult, rounds: int | None = None) -> None:
     a.axhline(1.0, color="k", lw=0.6)
     a.axhline(result.options.gain_min, color="tab:green", lw=0.6, ls="--")
     a.set_yscale("log")
+    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
+
+    a.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 1.2, 1.5, 2.0, 3.0, 5.0)))
+    a.yaxis.set_major_formatter(ScalarFormatter())
+    a.yaxis.set_minor_formatter(NullFormatter())
     a.set_xticks(np.arange(len(effects)) + 0.4 - width / 2)
     a.set_xticklabels(effects, rotation=45, fontsize=8)
     a.set_ylabel("held-out gain (RMS before / after)")

@@ -91,6 +91,8 @@ def frame_plan(
             )
     order = g.permutation(len(grid))
     grid = [grid[i] for i in order]
+    if n_references <= 0:
+        return tuple(grid)
     plan: list[PlannedExperiment] = []
     every = max(1, math.ceil(len(grid) / max(n_references - 1, 1)))
     k = 0

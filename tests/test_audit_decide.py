@@ -1,0 +1,195 @@
+"""The audit finds what was hidden, and only that (seeded sessions; the sweeps are ``slow``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from test_audit_sessions import EFFECT_IDS, sim_session, thesis_session
+
+from piezod.audit import run_audit
+from piezod.audit.synthetic import frame_plan, hidden_session
+from piezod.recording import Experiment, read_experiments, split_experiments
+from piezod.synth import random_params
+
+DATA = Path(__file__).resolve().parents[1] / "piezod" / "data" / "real" / "pi-p885"
+
+#: Mid-range magnitudes (random_effect's ranges) for the fast, deterministic tests.
+MID: dict[str, dict[str, Any]] = {
+    "drift": {"rate_nm_per_s": 1.5},
+    "thermal": {"rate_pct_per_hour": 2.5},
+    "stiffness": {"sensitivity_pct_per_um": 0.08},
+    "polarity": {"negative_sensitivity_pct": -6.0},
+    "resonance": {"f0_hz": 150.0, "q": 12.0},  # resolved by the small frame (fastest ~700 samples/s)
+    "delay": {"delay_s": 4e-4},
+    "saturation": {"x_sat_um": 100.0},
+    "creep": {"pct_per_decade": 4.0, "law": "k"},
+}
+
+
+def small_session(effects: dict[str, dict[str, Any]], seed: int) -> list[Experiment]:
+    """A small thesis-model frame: 3 ranges x 3 frequencies (0.05-5 Hz) + 3 references, 512 samples/loop."""
+    rng = np.random.default_rng(seed)
+    params = random_params(rng)
+    plan = frame_plan(
+        rng, ranges_v=(120.0, 260.0, 400.0), n_frequencies=3, frequency_hz=(0.05, 5.0), n_references=3
+    )
+    return split_experiments(hidden_session(params, plan, effects, samples_per_loop=512, seed=rng).recording)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_clean_thesis_stage_gives_none(seed: int) -> None:
+    result = run_audit(small_session({}, seed))
+    assert result.cause == "none"
+    assert result.findings == ()
+    assert result.structure_ratio < 1.1
+    assert all(not c.eligible for c in result.candidates)
+
+
+@pytest.mark.parametrize("effect", EFFECT_IDS)
+def test_a_hidden_effect_is_named(effect: str) -> None:
+    result = run_audit(small_session({effect: MID[effect]}, 3))
+    assert result.cause == effect
+    assert [f.effect for f in result.findings] == [effect]
+    finding = result.findings[0]
+    assert finding.gain > 1.01 and finding.heldout_rms_after_um < finding.heldout_rms_before_um
+    assert finding.evidence
+
+
+def test_two_hidden_effects_are_both_found() -> None:
+    result = run_audit(small_session({"drift": MID["drift"], "stiffness": MID["stiffness"]}, 4))
+    assert result.cause == "stiffness"  # the stronger one
+    assert sorted(f.effect for f in result.findings) == ["drift", "stiffness"]
+
+
+def test_fitted_parameters_recover_the_hidden_magnitude() -> None:
+    result = run_audit(small_session({"polarity": MID["polarity"], "delay": MID["delay"]}, 5))
+    got = {f.effect: f.params for f in result.findings}
+    assert got["polarity"]["negative_sensitivity_pct"] == pytest.approx(-6.0, abs=0.3)
+    delay = got["delay"]["delay_s"] + got["delay"]["lag_time_constant_s"]
+    assert delay == pytest.approx(4e-4, rel=0.1)
+
+
+def test_structure_that_no_candidate_explains_is_unexplained() -> None:
+    # A sensor nonlinearity none of the candidates has: a ripple with the position (4 um period).
+    exps = small_session({}, 6)
+    bent = [
+        Experiment(
+            e.label,
+            e.axis,
+            e.t_s,
+            e.voltage_v,
+            e.position_um + 0.03 * np.sin(2 * np.pi * e.position_um / 4.0),
+        )
+        for e in exps
+    ]
+    result = run_audit(bent)
+    assert result.cause == "unexplained"
+    assert result.structure_ratio > 1.15
+
+
+def test_p885_real_stack_names_a_cause_with_a_held_out_gain() -> None:
+    ident = read_experiments([DATA / "identification.csv"])
+    val = read_experiments([DATA / "validation.csv"])
+    result = run_audit(ident, val)
+    assert result.base_kind == "ode"
+    assert result.cause == "delay"
+    first = result.findings[0]
+    assert first.gain >= 1.2
+    lag = first.params["delay_s"] + first.params["lag_time_constant_s"]
+    assert 0.005 <= lag <= 0.03  # the documented one-sample (5 ms) sensor lag plus the amplifier's
+
+
+def test_a_single_recording_is_split_in_time() -> None:
+    rng = np.random.default_rng(7)
+    params = random_params(rng)
+    plan = frame_plan(rng, ranges_v=(200.0,), n_frequencies=1, frequency_hz=(1.0, 2.0), n_references=0)
+    (exp,) = split_experiments(hidden_session(params, plan, {}, samples_per_loop=512, seed=rng).recording)
+    many = Experiment(exp.label, None, exp.t_s, exp.voltage_v, exp.position_um)
+    result = run_audit([many])
+    assert "blocked split" in result.heldout_method
+    assert result.cause in ("none", "unexplained")
+
+
+# --------------------------------------------------------------------------------------------- sweeps
+
+
+def _sweep(
+    kind: str, n: int, base_seed: int
+) -> tuple[dict[str, Counter[str]], list[float], list[dict[str, Any]]]:
+    matrix: dict[str, Counter[str]] = {}
+    seconds: list[float] = []
+    rows: list[dict[str, Any]] = []
+    for hidden in ("none", *EFFECT_IDS):
+        matrix[hidden] = Counter()
+        for k in range(n):
+            seed = base_seed + 100 * (EFFECT_IDS.index(hidden) + 1 if hidden != "none" else 0) + k
+            effects = [] if hidden == "none" else [hidden]
+            make = thesis_session if kind == "thesis" else sim_session
+            exps, fx = make(effects, seed)
+            t0 = time.process_time()
+            result = run_audit(exps)
+            seconds.append(time.process_time() - t0)
+            matrix[hidden][result.cause] += 1
+            rows.append(
+                {
+                    "hidden": hidden,
+                    "seed": seed,
+                    "effects": fx,
+                    "cause": result.cause,
+                    "findings": [f.effect for f in result.findings],
+                    "cpu_s": seconds[-1],
+                }
+            )
+    return matrix, seconds, rows
+
+
+def _print_matrix(title: str, matrix: dict[str, Counter[str]], seconds: list[float]) -> None:
+    causes = ["none", *EFFECT_IDS, "unexplained"]
+    print(f"\n{title}: rows hidden, columns cause")
+    print(f"{'':>11} " + " ".join(f"{c[:6]:>6}" for c in causes))
+    for hidden, row in matrix.items():
+        print(f"{hidden:>11} " + " ".join(f"{row.get(c, 0):6d}" for c in causes))
+    print(f"cpu seconds per audit: median {np.median(seconds):.1f}, max {np.max(seconds):.1f}")
+
+
+@pytest.mark.slow
+def test_thesis_stage_confusion_matrix() -> None:
+    """10 thesis-model sessions per hidden effect (random magnitude and sign) and 10 clean ones."""
+    n = int(os.environ.get("AUDIT_SWEEP_N", "10"))
+    matrix, seconds, rows = _sweep("thesis", n, 5000)
+    _print_matrix("thesis-model stage", matrix, seconds)
+    out = os.environ.get("AUDIT_SWEEP_JSON")
+    if out:
+        Path(out).write_text(json.dumps(rows, indent=1))
+    for hidden, row in matrix.items():
+        assert row[hidden] >= 0.9 * n, (hidden, dict(row))
+    assert max(seconds) <= 60.0
+
+
+@pytest.mark.slow
+def test_simulated_stage_finds_the_hidden_effect() -> None:
+    """Sessions of hil_sim's stage (ODE + log creep): the hidden effect is among the findings.
+
+    The simulated stage creeps with a spread of relaxation times that (3.8) does not describe,
+    so ``creep`` is part of its clean state: a clean session gives ``creep`` (or ``none``), and
+    a hidden effect must be found as well (``creep`` and ``drift`` may accompany it: the creep
+    operator of the audit approximates the stage's).
+    """
+    n = int(os.environ.get("AUDIT_SIM_N", "3"))
+    matrix, seconds, rows = _sweep("sim", n, 7000)
+    _print_matrix("simulated stage (hil_sim)", matrix, seconds)
+    for row in rows:
+        allowed = {"creep", "drift"}
+        if row["hidden"] == "none":
+            assert row["cause"] in ("none", "creep"), row
+            assert set(row["findings"]) <= allowed, row
+        else:
+            assert row["hidden"] in row["findings"], row
+            assert set(row["findings"]) <= allowed | {row["hidden"]}, row
