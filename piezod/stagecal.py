@@ -266,6 +266,7 @@ def verify(
             # An earlier fault (e.g. an underrun while the fit ran) must not silently end the run:
             # it is reported with the next point, cleared, and the verification goes on.
             row["faults_before"] = [f"{f.source}/{f.code}: {f.message}" for f in before.faults[-3:]]
+            engine.wait_healthy()
             engine.stop()
         try:
             engine.check_scan(req)
@@ -273,15 +274,14 @@ def verify(
             row.update(nonlinearity_pct=None, length_error_pct=None, skipped=str(exc))
             rows.append(row)
             continue
-        engine.start_scan(req, path=path)
-        total = (n_lines + 2) / pt.frequency_hz
-        t0 = time.monotonic()
-        while engine.status().state == "scanning":
-            if progress is not None:
-                progress(f"verify {i + 1}/{len(points)}", min(time.monotonic() - t0, total))
-            time.sleep(0.1)
-        state = engine.wait_idle(10.0)
-        engine.wait_recorded()
+        state = _scan_once(engine, req, path, pt, i, len(points), n_lines, progress)
+        if state != "idle":
+            # A fault (an underrun on a loaded machine, a link hiccup) spoils the measurement, not
+            # the correction: report it and measure the point once more.
+            row["retried_after"] = [f"{f.source}/{f.code}: {f.message}" for f in engine.status().faults[-3:]]
+            engine.wait_healthy()
+            engine.stop()
+            state = _scan_once(engine, req, path, pt, i, len(points), n_lines, progress)
         if state != "idle":
             row.update(
                 nonlinearity_pct=None, length_error_pct=None, skipped=f"the scan ended in state {state}"
@@ -301,6 +301,29 @@ class ThesisFit:
     report: dict[str, Any]
     config: ScannerConfig
     fit_error_pct: float
+
+
+def _scan_once(
+    engine: Engine,
+    req: ScanRequest,
+    path: Path,
+    pt: VerifyPoint,
+    i: int,
+    n: int,
+    n_lines: int,
+    progress: Progress | None,
+) -> str:
+    """Scan one verification point; return the engine state afterwards."""
+    engine.start_scan(req, path=path)
+    total = (n_lines + 2) / pt.frequency_hz
+    t0 = time.monotonic()
+    while engine.status().state == "scanning":
+        if progress is not None:
+            progress(f"verify {i + 1}/{n}", min(time.monotonic() - t0, total))
+        time.sleep(0.1)
+    state = engine.wait_idle(10.0)
+    engine.wait_recorded()
+    return state
 
 
 def _fit_thesis_here(frame_path: Path, axis: AxisName, base: ScannerConfig) -> ThesisFit:

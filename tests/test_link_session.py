@@ -473,7 +473,8 @@ def test_unplug_reconnects_and_reports_the_watchdog(board: FakeBoard, config: Sc
         time.sleep(0.3)
         board.unplug(0.5)
         down = events.wait_for(LinkDown)
-        assert "end of stream" in str(down.error) or "closed" in str(down.error)
+        # the peer's close shows up as EOF, "closed" or a reset, depending on timing
+        assert any(w in str(down.error) for w in ("end of stream", "closed", "reset"))
         assert streamer.wait(5.0)
         assert streamer.stats.runs[0].ended_by == "link"
         back = events.wait_for(Reconnected)

@@ -1027,6 +1027,15 @@ class Engine:
         with self._lock:
             return self._state not in ("disconnected", "starting")
 
+    def wait_healthy(self, timeout_s: float = 15.0) -> bool:
+        """Wait until streaming runs again (e.g. after the supervisor's restart following a fault)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.healthy():
+                return True
+            time.sleep(0.05)
+        return False
+
     # -- waiting (piezod scan) -------------------------------------------------------------------
 
     def wait_idle(self, timeout_s: float | None = None, poll_s: float = 0.05) -> EngineState:
