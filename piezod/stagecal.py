@@ -238,8 +238,29 @@ def verify(
     lines: int = 4,
     progress: Progress | None = None,
 ) -> list[dict[str, Any]]:
-    """Scan each point online-corrected; nonlinearity and length error from the sensor readback."""
+    """Scan each point online-corrected; nonlinearity and length error from the sensor readback.
+
+    A model that was just switched in starts from a state adopted from the previous one (the
+    dynamic model's creep memory spans decades), so one unrecorded warm-up scan at the first
+    point's setting precedes the measurements.
+    """
     rows: list[dict[str, Any]] = []
+    if points:
+        first = points[0]
+        warm = ScanRequest(
+            range_um=first.range_um,
+            line_rate_hz=first.frequency_hz,
+            lines=4,
+            slow_range_um=0.0,
+            offset_x_um=first.offset_um,
+            record=False,
+        )
+        engine.check_scan(warm)
+        engine.start_scan(warm)
+        engine.wait_idle((4 + 3) / first.frequency_hz + 10.0)
+        if engine.status().state != "idle":
+            engine.wait_healthy()
+            engine.stop()
     for i, pt in enumerate(points):
         name = f"verify-{model}-{i:02d}"
         n_lines = 1 if pt.frequency_hz < 0.1 else lines  # a 0.02 Hz line takes 50 s
