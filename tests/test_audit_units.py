@@ -131,21 +131,29 @@ def test_noise_floor_of_a_noisy_triangle_scan() -> None:
 
 def test_creep_relaxations_match_a_bank_of_filters() -> None:
     rng = np.random.default_rng(4)
-    x = np.cumsum(rng.normal(size=3000))
+    period = 500
+    x = np.tile(5.0 * np.sin(2 * np.pi * np.arange(period) / period), 6) + 1.0
     dt = 1e-3
     taus = 10.0 ** np.arange(-3.5, 2.1, 0.5)
-    z0 = rng.normal(size=taus.size)
-    total, z_end = _relaxations(x, taus, z0, _relaxation_weights(x.size, dt, taus))
-    ref = np.zeros_like(x)
-    for j, tau in enumerate(taus):
-        if tau < 0.5 * dt:
-            ref += x
-            continue
-        b, a = lag_coefficients(float(tau), dt)
-        y, _ = lfilter(b, a, x, zi=[z0[j] * (-a[1]) + b[1] * x[0]])
-        ref += y
-        assert z_end[j] == pytest.approx(y[-1], abs=1e-9)
-    np.testing.assert_allclose(total, ref, atol=1e-8)
+    z_prev = rng.normal(size=taus.size)
+    for gap, per in ((0.0, 0), (0.3, period), (0.2, 0)):
+        total, z_end = _relaxations(x, taus, z_prev, gap, per, _relaxation_weights(x.size, dt, taus))
+        ref = np.zeros_like(x)
+        for j, tau in enumerate(taus):
+            if tau < 0.5 * dt:
+                ref += x
+                continue
+            b, a = lag_coefficients(float(tau), dt)
+            target = float(x[0])
+            if per:
+                # The periodic steady state: the fixed point of one period.
+                y0, _ = lfilter(b, a, x[:per], zi=[b[1] * x[0]])
+                target = float(y0[-1]) / -math.expm1(-per * dt / tau)
+            z0 = target + (z_prev[j] - target) * math.exp(-gap / tau)
+            y, _ = lfilter(b, a, x, zi=[z0 * (-a[1]) + b[1] * x[0]])
+            ref += y
+            assert z_end[j] == pytest.approx(y[-1], abs=1e-9)
+        np.testing.assert_allclose(total, ref, atol=1e-8)
 
 
 @pytest.fixture(scope="module")

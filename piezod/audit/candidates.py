@@ -556,36 +556,30 @@ def _per_experiment(x: F64, geo: Geometry, fn: object) -> F64:
 def _creep_bank(x: F64, geo: Geometry, taus: F64) -> F64:
     """Log creep operator: first-order relaxations of ``x`` with log-spaced time constants, per decade.
 
-    Every recording file is one session: the relaxations start at rest at the rest position (0,
-    the model position nearest to 0 V) at its first sample and carry on across its experiments;
-    between two experiments they relax toward the mean position of the later one (its settling
-    loops run in the gap).
+    Every recording file is one session that starts at rest at ``t = 0`` (relaxations at the rest
+    position 0, the model position nearest to 0 V). Between the end of one experiment and the
+    start of the next (the first one included) the stage is taken to run the next scan: every
+    relaxation moves from its last state toward the periodic steady state of the next
+    experiment (or toward its first position when it is not periodic) with its own time
+    constant, ``z = z_ss + (z_prev - z_ss) exp(-gap / tau)``.
     """
     per_decade = 3.0
     bank = np.zeros_like(x)
     data = geo.data
-    state: dict[str | None, tuple[F64, float, float]] = {}
+    state: dict[str | None, tuple[F64, float]] = {}
     for i, sl in enumerate(geo.slices):
         info = data.info[i]
         xe = x[sl]
         dt = float(geo.dt_s[i])
-        prev = state.get(info.path)
-        if prev is None:
-            z0 = np.zeros(taus.size)
-        else:
-            # Between experiments the stage usually runs the next scan's settling loops: relax
-            # toward the mean position of the next experiment.
-            z_prev, _, t_last = prev
-            gap = max(info.t_start_s - t_last, 0.0)
-            x_gap = float(np.mean(xe))
-            z0 = x_gap + (z_prev - x_gap) * np.exp(-gap / taus)
+        z_prev, t_prev = state.get(info.path, (np.zeros(taus.size), 0.0))
+        gap = max(info.t_start_s - t_prev, 0.0)
         key = ("creep", i, taus.size, float(taus[0]))
         weights = geo.cache.get(key)
         if weights is None:
             weights = geo.cache[key] = _relaxation_weights(xe.size, dt, taus)
-        total, z_end = _relaxations(xe, taus, z0, weights)  # type: ignore[arg-type]
+        total, z_end = _relaxations(xe, taus, z_prev, gap, int(geo.period[i]), weights)  # type: ignore[arg-type]
         bank[sl] = total
-        state[info.path] = (z_end, float(xe[-1]), info.t_end_s)
+        state[info.path] = (z_end, info.t_end_s)
     out: F64 = bank / per_decade
     return out
 
@@ -596,11 +590,12 @@ class _Weights:
 
     inst: NDArray[np.bool_]
     slow: NDArray[np.bool_]
-    fast: tuple[tuple[int, F64, F64], ...]
+    fast: tuple[tuple[int, F64, F64, F64], ...]
     decay: F64
+    grow: F64
     w_now: F64
     w_prev: F64
-    a: F64
+    dt: float
 
 
 def _relaxation_weights(n: int, dt: float, taus: F64) -> _Weights:
@@ -612,40 +607,55 @@ def _relaxation_weights(n: int, dt: float, taus: F64) -> _Weights:
     a = np.exp(-dt / tau)
     r = tau / dt * (1.0 - a)
     decay = np.exp(-np.arange(n)[None, :] * dt / tau)
+    steps = np.arange(1, n + 1) * dt
     return _Weights(
         inst=inst,
         slow=slow,
-        fast=tuple((j, *lag_coefficients(float(taus[j]), dt)) for j in np.flatnonzero(fast).tolist()),
+        fast=tuple(
+            (j, *lag_coefficients(float(taus[j]), dt), np.exp(-steps / float(taus[j])))
+            for j in np.flatnonzero(fast).tolist()
+        ),
         decay=decay,
+        grow=decay * a,
         w_now=(1.0 - r) / decay,
         w_prev=(r - a) / decay,
-        a=a[:, 0],
+        dt=dt,
     )
 
 
-def _relaxations(xe: F64, taus: F64, z0: F64, w: _Weights) -> tuple[F64, F64]:
-    """Sum over ``taus`` of first-order lags of ``xe`` (exact for linear segments) from states ``z0``.
+def _relaxations(xe: F64, taus: F64, z_prev: F64, gap: float, period: int, w: _Weights) -> tuple[F64, F64]:
+    """Sum over ``taus`` of first-order lags of ``xe`` (exact for linear segments), and their end states.
 
-    ``y_k = a y_{k-1} + b0 x_k + b1 x_{k-1}`` (``y_{-1} = z0``, ``x_{-1} = x_0``) has the closed form
-    ``y_k = a^k (a z0 + sum_{i<=k} a^-i u_i)``, evaluated for all slow time constants at once
-    (``a^-n`` stays finite); the few fast ones run through :func:`scipy.signal.lfilter`, those
-    shorter than half a sample follow ``x``.
+    Each lag is its zero-state response plus ``a^(k+1) z_start`` (``a = exp(-dt/tau)``), with
+    ``z_start`` relaxed over ``gap`` from ``z_prev`` toward the periodic steady state (the fixed
+    point of one period, ``Y_{P-1} / (1 - a^P)``) or toward ``x_0``. The zero-state response of
+    ``y_k = a y_{k-1} + b0 x_k + b1 x_{k-1}`` (``x_{-1} = x_0``) is ``a^k sum_{i<=k} a^-i u_i``,
+    evaluated for all slow time constants at once (``a^-n`` stays finite); the few fast ones run
+    through :func:`scipy.signal.lfilter`; those shorter than half a sample follow ``x``.
     """
     n = xe.size
     total = np.zeros(n)
     z_end = np.empty(taus.size)
+    relax = np.exp(-gap / taus)
+    per = period if 0 < period <= n else 0
     if w.inst.any():
         total += xe * float(w.inst.sum())
         z_end[w.inst] = xe[-1]
     if w.slow.any():
         x_prev = np.concatenate(([xe[0]], xe[:-1]))
-        acc = np.cumsum(w.w_now * xe[None, :] + w.w_prev * x_prev[None, :], axis=1)
-        acc += (w.a * z0[w.slow])[:, None]
-        y = w.decay * acc
+        zero = w.decay * np.cumsum(w.w_now * xe[None, :] + w.w_prev * x_prev[None, :], axis=1)
+        tau = taus[w.slow]
+        target = zero[:, per - 1] / -np.expm1(-per * w.dt / tau) if per else np.full(tau.size, xe[0])
+        z0 = target + (z_prev[w.slow] - target) * relax[w.slow]
+        y = zero + w.grow * z0[:, None]
         total += y.sum(axis=0)
         z_end[w.slow] = y[:, -1]
-    for j, b, a1 in w.fast:
-        y1, _ = lfilter(b, a1, xe, zi=[z0[j] * (-a1[1]) + b[1] * xe[0]])
+    for j, b, a1, grow1 in w.fast:
+        zero1, _ = lfilter(b, a1, xe, zi=[b[1] * xe[0]])
+        tau1 = float(taus[j])
+        target1 = float(zero1[per - 1]) / -math.expm1(-per * w.dt / tau1) if per else float(xe[0])
+        z01 = target1 + (float(z_prev[j]) - target1) * float(relax[j])
+        y1 = zero1 + grow1 * z01
         total += y1
         z_end[j] = y1[-1]
     return total, z_end

@@ -85,7 +85,7 @@ class AuditOptions:
 
     folds: int = 5
     bic_min: float = 10.0
-    gain_min: float = 1.01
+    gain_min: float = 1.003
     explain_min: float = 0.1
     structure_max: float = 1.15
     max_findings: int = 3

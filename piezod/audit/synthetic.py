@@ -19,7 +19,10 @@ delay           ``delay_s``                     ``x(t - d)``
 saturation      ``x_sat_um``                    ``x_sat tanh(x / x_sat)``
 creep           ``pct_per_decade``, ``law``     ``law="motion"``: the loop scaled by ``1 + c log10(f_ref/f)``;
                                                 ``law="k"``: ``c log10(f_ref/f)`` added to the frequency
-                                                factor of (3.5) (``c`` in units of 1/100)
+                                                factor of (3.5); ``law="log"``: that factor is
+                                                ``const + c log10(f_ref/f)``; ``law="spread"``: its
+                                                exponential averaged over ``tau/100 ... 100 tau``
+                                                with amplitude ``A1 + 4 c`` (``c`` in units of 1/100)
 ==============  ==============================  ==========================================
 """
 
@@ -147,6 +150,14 @@ def _loop_position(
     law = "motion" if creep is None else str(creep.get("law", "motion"))
     if law == "k":
         ff += c * math.log10(f_ref / f)
+    elif law == "log":
+        # (3.5)'s exponential replaced by a logarithm of the frequency, same value at f_ref.
+        ff = 1.0 - p.a1 * math.exp(-1.0 / (f_ref * p.tau_s)) + c * math.log10(f_ref / f)
+    elif law == "spread":
+        # A spread of relaxation times: exp(-1/(f tau)) averaged over tau / 100 ... 100 tau,
+        # with an amplitude of c per decade of time.
+        taus = p.tau_s * np.logspace(-2.0, 2.0, 17)
+        ff = 1.0 - (p.a1 + 4.0 * c) * float(np.mean(np.exp(-1.0 / (f * taus))))
     kk = ff * (p.a2_per_v * vh + p.a3)
     b_hat = p.b_um_per_v + kk * max_creep_um(p.hysteresis, v_min, v_max) / vh
     x: F64 = hysteresis_loop(p.hysteresis, v, s, v_min, v_max) + (b_hat - p.b_um_per_v) * (v - vc)
