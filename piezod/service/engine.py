@@ -25,6 +25,7 @@ import math
 import queue
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -114,15 +115,15 @@ class Chunk:
     corrected: bool = False
 
 
-class Job:
+class Job(ABC):
     """Something the engine streams: produces chunks until :attr:`done`."""
 
     state: EngineState = "idle"
     done = False
 
+    @abstractmethod
     def render(self, engine: Engine, n: int) -> Chunk:
         """The next ``n`` samples (fewer when the job ends inside them)."""
-        raise NotImplementedError  # abstract; every concrete job overrides it
 
 
 class HoldJob(Job):
