@@ -313,9 +313,13 @@ def run_audit(
         else:
             base, z0, warns = thesis_start(list(experiments))
             notes.extend(warns)
-        x0, _ = AuditModel(base, (), _scales(data, np.zeros(1))).evaluate(z0, geometry(data, 0.0, 1.0))
-        sc = _scales(data, x0)
-        return Problem(AuditModel(base, (), sc), geometry(data, sc.t_ref_s, sc.f_ref_hz), rows).fit(z0), sc
+        sc = _scales(data, np.ones(1))
+        geo_fit = geometry(data, sc.t_ref_s, sc.f_ref_hz)
+        fit = Problem(AuditModel(base, (), sc), geo_fit, rows).fit(z0)
+        # The candidates' scales refer to the fitted baseline (its largest excursion).
+        x_fit, _ = fit.model.evaluate(fit.p, geo_fit)
+        sc = _scales(data, x_fit)
+        return replace(fit, model=AuditModel(base, (), sc)), sc
 
     base_fit, scales = start_fit(kind)
     step("baseline")
