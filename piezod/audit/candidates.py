@@ -392,10 +392,6 @@ class AuditModel:
         """This model plus ``cand``."""
         return AuditModel(self.base, (*self.candidates, cand), self.scales)
 
-    def extend(self, p: F64, cand: Candidate, phi: F64) -> F64:
-        """Parameters of :meth:`with_candidate` from this model's ``p`` and the candidate's ``phi``."""
-        return np.concatenate((p, phi))
-
     def bounds(self) -> tuple[F64, F64]:
         """Internal bounds."""
         lo, hi = self.base.bounds()

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod.errors import RecordingError
-from piezod.recording import Experiment
+from piezod.recording import Experiment, ScanInfo
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.intp]
@@ -187,6 +187,7 @@ def build(
     *,
     blocks: int = 1,
     settle: bool = False,
+    scans: Sequence[ScanInfo] | None = None,
 ) -> AuditData:
     """Infer the scans and concatenate the experiments.
 
@@ -200,6 +201,8 @@ def build(
     settle
         Exclude a settling prefix of every experiment from fits (used with the ODE baseline,
         whose start-up transients the steady models do not describe).
+    scans
+        The experiments' :meth:`~piezod.recording.Experiment.scan` results, when already known.
 
     Raises
     ------
@@ -212,14 +215,14 @@ def build(
     infos: list[ExperimentInfo] = []
     starts: list[int] = []
     n = 0
-    for e in experiments:
+    for k, e in enumerate(experiments):
         if len(e) < MIN_SAMPLES:
             raise RecordingError(
                 f"experiment {e.describe()} has {len(e)} samples; the audit needs at least {MIN_SAMPLES}",
                 e.path,
                 e.first_line,
             )
-        info = e.scan()
+        info = e.scan() if scans is None else scans[k]
         t = np.asarray(e.t_s, dtype=np.float64)
         dts = np.diff(t)
         dt = float(np.median(dts))

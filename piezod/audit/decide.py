@@ -49,7 +49,7 @@ from piezod.audit.evidence import Structure, evidence, structure
 from piezod.audit.fitting import Fit, HeldOut, Problem, fit_candidate, folds_of, heldout_cv, heldout_validate
 from piezod.audit.residuals import noise_floor_data
 from piezod.errors import CalibrationError, PiezodError
-from piezod.recording import Experiment
+from piezod.recording import Experiment, ScanInfo
 
 F64 = NDArray[np.float64]
 
@@ -224,15 +224,13 @@ def _distinct(values: F64, rel: float = 0.05) -> int:
     return int(1 + np.count_nonzero(np.diff(lv) > rel)) if lv.size else 0
 
 
-def _choose_base(exps: Sequence[Experiment], val: Sequence[Experiment], forced: str | None) -> str:
+def _choose_base(train: Sequence[ScanInfo], val: Sequence[ScanInfo], forced: str | None) -> str:
     if forced is not None:
         if forced not in (THESIS, ODE):
             raise CalibrationError(f"unknown baseline {forced!r}; choose thesis or ode")
         return forced
-    infos = [e.scan() for e in (*exps, *val)]
-    if not all(i.is_scan for i in infos):
+    if not all(i.is_scan for i in (*train, *val)):
         return ODE
-    train = [e.scan() for e in exps]
     ranges = np.array([i.v_max - i.v_min for i in train])
     return THESIS if _distinct(ranges) >= 2 else ODE
 
@@ -297,13 +295,14 @@ def run_audit(
         raise PiezodError(f"unknown effect(s) {', '.join(unknown)}; choose from {', '.join(EFFECTS)}")
     step = on_step or (lambda _s: None)
     notes: list[str] = []
-    kind = _choose_base(experiments, validate, opts.base)
-    triangles = all(e.scan().is_scan for e in (*experiments, *validate))
+    scans = [e.scan() for e in experiments]
+    val_scans = [e.scan() for e in validate]
+    kind = _choose_base(scans, val_scans, opts.base)
     # Triangular scans start at a turning point after settling: no prefix to drop.
-    settle = not triangles
+    settle = not all(i.is_scan for i in (*scans, *val_scans))
     blocks = opts.folds if (len(experiments) == 1 and not validate) else 1
-    data = audit_data.build(experiments, blocks=blocks, settle=settle)
-    val = audit_data.build(validate, settle=settle) if validate else None
+    data = audit_data.build(experiments, blocks=blocks, settle=settle, scans=scans)
+    val = audit_data.build(validate, settle=settle, scans=val_scans) if validate else None
     rows = data.fit_mask
 
     def start_fit(which: str) -> tuple[Fit, Scales]:
