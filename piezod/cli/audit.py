@@ -25,7 +25,7 @@ def register(sub: Any) -> None:
             "single recording, or --validate recordings) and name the cause."
         ),
     )
-    p.add_argument("recordings", nargs="+", metavar="REC.csv", help="recordings to fit (DESIGN section 3)")
+    p.add_argument("recordings", nargs="+", metavar="REC.csv", help="recordings to fit (docs/formats.md)")
     p.add_argument(
         "--validate", nargs="+", default=[], metavar="REC.csv", help="held-out recordings (not fitted)"
     )

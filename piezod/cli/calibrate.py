@@ -26,7 +26,7 @@ def register(sub: Any) -> None:
             "are inferred from the voltage. Writes the scanner YAML (--out) and a JSON report (--json)."
         ),
     )
-    p.add_argument("recordings", nargs="*", metavar="REC.csv", help="recording files (DESIGN section 3)")
+    p.add_argument("recordings", nargs="*", metavar="REC.csv", help="recording files (docs/formats.md)")
     p.add_argument("--config", metavar="F", help="base scanner YAML: limits kept, start parameters taken")
     p.add_argument("--out", metavar="F.yaml", help="write the calibrated scanner config here")
     add_json_option(p)

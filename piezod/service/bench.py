@@ -3,7 +3,7 @@
 A fresh simulator on a pty, the daemon's engine scanning continuously (endless raster, fast axis
 corrected), its control API on a Unix socket, ``clients`` threads requesting ``/v1/status`` as
 fast as they can over the socket, and optionally (``with_fit``) a calibration fit running over and
-over in the daemon's analysis worker. Reports the streaming counts of DESIGN section 4 plus the
+over in the daemon's analysis worker. Reports the streaming counts of docs/formats.md plus the
 API's request rate, so the cost of the API and the fits on the stream is measured in one run.
 """
 

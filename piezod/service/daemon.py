@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import signal
 import threading
 import time
@@ -26,21 +25,9 @@ from piezod.service.api import EventHub, create_app
 from piezod.service.engine import Engine
 from piezod.service.sdnotify import SystemdNotifier
 from piezod.service.server import ApiServer
+from piezod.service.sockets import default_api_spec
 
 log = logging.getLogger("piezod.daemon")
-
-
-def default_api_spec(scanner: str) -> str:
-    """``unix:/run/piezod/<scanner>.sock`` when that directory is writable, else a per-user socket."""
-    run = Path("/run/piezod")
-    if run.is_dir() and os.access(run, os.W_OK):
-        return f"unix:{run / (scanner + '.sock')}"
-    base = os.environ.get("XDG_RUNTIME_DIR")
-    if base and os.access(base, os.W_OK):
-        return f"unix:{Path(base) / f'piezod-{scanner}.sock'}"
-    d = Path(f"/tmp/piezod-{os.getuid()}")
-    d.mkdir(mode=0o700, exist_ok=True)
-    return f"unix:{d / (scanner + '.sock')}"
 
 
 @dataclass

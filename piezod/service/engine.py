@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from firmware_proto import NO_INDEX
-from piezod.config import AxisConfig, AxisName, ScannerConfig
+from piezod.config import AxisConfig, AxisName, ScannerConfig, calibrated_axes
 from piezod.errors import (
     EngineStateError,
     LinkError,
@@ -197,7 +197,13 @@ class ScanJob(Job):
         settle = replace(params, lines=1, frames=SETTLE_LINES, bidirectional_slow=False)
         self._settle: RasterGenerator | None = RasterGenerator(settle, engine.rate_hz)
         self._gen = RasterGenerator(params, engine.rate_hz)
-        self.label = engine.label_id(request.name or "scan")
+        self._name = request.name or "scan"
+        self.label = engine.label_id(self._name)
+        engine.set_label_note(self.label, None)
+        # Changes (ctl change) start a new experiment "<name>.<part>" at the line where they apply.
+        self._part = 1
+        self._scanned = False
+        self._change_text: list[str] = []
         self._plans = engine.plans_for(params)
         self._plan_key: RasterParams | None = params
         for name, plan in self._plans.items():
@@ -212,9 +218,26 @@ class ScanJob(Job):
 
     def change(self, engine: Engine, change: ScanChange) -> RasterParams:
         updates = change.model_dump(exclude_none=True)
-        new = self._gen.change(**updates)
+        new = replace(self._gen.params, **updates)
         engine.plans_for(new)  # refuse before it takes effect
+        self._gen.change(**updates)
+        self._change_text.append(" ".join(f"{k}={v:g}" for k, v in updates.items()))
         return new
+
+    def _new_experiment(self, engine: Engine, start_index: int) -> None:
+        """New parameters took effect at ``start_index``: a new experiment, noted in the recording."""
+        if self._scanned:
+            self._part += 1
+            self.label = engine.label_id(f"{self._name}.{self._part}")
+        p = self._gen.params
+        engine.set_label_note(
+            self.label,
+            f"change: experiment {engine.label_names(np.array([self.label]))[0]} from "
+            f"t = {start_index / engine.rate_hz:.6f} s: {'; '.join(self._change_text)} "
+            f"(now range_um={p.range_um:g} line_rate_hz={p.line_rate_hz:g} "
+            f"offset_x_um={p.offset_x_um:g} offset_y_um={p.offset_y_um:g} rotation_deg={p.rotation_deg:g})",
+        )
+        self._change_text = []
 
     def render(self, engine: Engine, n: int) -> Chunk:
         if self._move is not None:
@@ -224,6 +247,9 @@ class ScanJob(Job):
             return chunk
         settling = self._settle is not None
         gen = self._settle if self._settle is not None else self._gen
+        change_at = None if settling else self._gen.pending_index
+        if change_at is not None and change_at > self._gen.next_index:
+            n = min(n, change_at - self._gen.next_index)  # a block never spans a change
         block = gen.next_block(n)
         if self._settle is not None and self._settle.done:
             self._settle = None
@@ -236,6 +262,8 @@ class ScanJob(Job):
             self._plans = engine.plans_for(self._gen.params)
             for name, plan in self._plans.items():
                 engine.drivers[name].use_plan(plan)
+            if not settling:
+                self._new_experiment(engine, engine.render_index)
         targets = np.full((len(engine.drivers), m), np.nan)
         volts = np.empty((len(engine.drivers), m))
         for i, (name, d) in enumerate(engine.drivers.items()):
@@ -259,6 +287,7 @@ class ScanJob(Job):
                 volts, targets, np.full(m, -1, dtype=np.int64), block.fast_direction, np.zeros(m, bool)
             )
         record = np.full(m, self.request.record)
+        self._scanned = True
         return Chunk(
             volts, targets, block.line, block.fast_direction, record, self.label, self.request.correction
         )
@@ -394,6 +423,7 @@ class _OpenRecording:
     targets: bool
     rows: int = 0
     done: bool = False
+    labels_seen: set[int] = field(default_factory=set)
 
 
 @dataclass
@@ -479,20 +509,28 @@ class Recorder(threading.Thread):
                 rec = self.recordings.get(int(ident))
             if rec is None:
                 continue
-            sel = record & (rec_id == ident)
-            names = self.engine.label_names(label[sel])
-            for i, axis in enumerate(block.axes):
-                if axis not in rec.axes:
-                    continue
-                rec.writer.write(
-                    t[sel],
-                    block.commanded_v[i, sel],
-                    block.position_um[i, sel],
-                    target_um=targets[i, sel] if rec.targets else None,
-                    axis=axis,
-                    experiment=names,
-                )
-                rec.rows += int(sel.sum())
+            rows = np.flatnonzero(record & (rec_id == ident))
+            # one run per experiment, so that a change's note precedes its experiment's rows
+            for run in np.split(rows, np.flatnonzero(np.diff(label[rows])) + 1):
+                lab = int(label[run[0]])
+                if lab not in rec.labels_seen:
+                    rec.labels_seen.add(lab)
+                    note = self.engine.label_note(lab)
+                    if note is not None:
+                        rec.writer.comment(note)
+                names = self.engine.label_names(label[run])
+                for i, axis in enumerate(block.axes):
+                    if axis not in rec.axes:
+                        continue
+                    rec.writer.write(
+                        t[run],
+                        block.commanded_v[i, run],
+                        block.position_um[i, run],
+                        target_um=targets[i, run] if rec.targets else None,
+                        axis=axis,
+                        experiment=names,
+                    )
+                    rec.rows += int(run.size)
 
     def _line_stats(
         self,
@@ -640,6 +678,9 @@ class Engine:
         )
         self._labels: list[str] = []
         self._label_ids: dict[str, int] = {}
+        self._label_notes: dict[int, str] = {}
+        #: Board sample index of the first sample the current job's render() produces.
+        self.render_index = 0
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -751,6 +792,7 @@ class Engine:
             t_locked = time.monotonic()
             while filled < n:
                 job = self._job
+                self.render_index = self._index + filled
                 try:
                     chunk = job.render(self, n - filled)
                 except (ModelError, SafetyError) as exc:
@@ -1081,13 +1123,27 @@ class Engine:
             "offset_y_um": request.offset_y_um,
             "rotation_deg": request.rotation_deg,
             "overscan": request.overscan,
-            "correction": "thesis" if request.correction else "none",
             "sample_rate_hz": self.rate_hz,
         }
         axes = tuple(a for a, plan in self.plans_for(params).items() if plan is not None) or ("x",)
+        meta["correction"] = self.correction_label(axes) if request.correction else "none"
+        uncal = [a for a in axes if a not in calibrated_axes(self.config)]
+        meta["calibrated"] = "no (axes " + ", ".join(uncal) + ")" if uncal else "yes"
         self._recorder.open(ident, path, meta, axes)
         self._recording_id = ident
         self._recording_name = path.name
+
+    def correction_label(self, axes: tuple[str, ...]) -> str:
+        """The model correcting ``axes`` now: ``dynamic``, ``thesis``, or per axis ``x=dynamic y=thesis``."""
+        with self._lock:
+            models = {
+                a: "dynamic" if self.drivers[a].dynamic is not None else "thesis"
+                for a in axes
+                if a in self.drivers
+            }
+        if len(set(models.values())) == 1:
+            return next(iter(models.values()))
+        return " ".join(f"{a}={m}" for a, m in models.items())
 
     def _end_recording(self, end_index: int | None = None) -> None:
         """Close the recording once the readback up to ``end_index`` (default: all computed) is in."""
@@ -1109,6 +1165,19 @@ class Engine:
                 self._label_ids[name] = len(self._labels)
                 self._labels.append(name)
             return self._label_ids[name]
+
+    def set_label_note(self, ident: int, note: str | None) -> None:
+        """A comment the recorder writes before the first row of experiment ``ident`` (None: none)."""
+        with self._lock:
+            if note is None:
+                self._label_notes.pop(ident, None)
+            else:
+                self._label_notes[ident] = note
+
+    def label_note(self, ident: int) -> str | None:
+        """The comment for experiment ``ident`` (see :meth:`set_label_note`)."""
+        with self._lock:
+            return self._label_notes.get(ident)
 
     def label_names(self, ids: NDArray[np.int64]) -> NDArray[np.str_]:
         """Label strings of label ids (``""`` for none)."""
