@@ -49,7 +49,8 @@ from piezod.audit.evidence import Structure, evidence, structure
 from piezod.audit.fitting import Fit, HeldOut, Problem, fit_candidate, folds_of, heldout_cv, heldout_validate
 from piezod.audit.residuals import noise_floor_data
 from piezod.errors import CalibrationError, PiezodError
-from piezod.recording import Experiment, ScanInfo
+from piezod.recording import Experiment
+from piezod.scan_inference import ScanInfo
 
 F64 = NDArray[np.float64]
 
