@@ -6,7 +6,7 @@ import argparse
 from typing import Any
 
 from piezod.audit import EFFECTS, AuditOptions, print_summary, result_json, run_audit
-from piezod.cli._common import add_json_option, human_stream, write_json
+from piezod.cli._common import add_json_option, human_stream, positive_int, write_json
 from piezod.errors import PiezodError
 from piezod.progress import progress_bar
 from piezod.recording import AXES, Experiment, read_experiments
@@ -33,7 +33,7 @@ def register(sub: Any) -> None:
     p.add_argument("--plots", metavar="DIR", help="write PNG plots into DIR (needs matplotlib)")
     p.add_argument("--axis", choices=AXES, help="audit this axis (default: the recordings' only axis)")
     p.add_argument(
-        "--folds", type=int, default=5, metavar="K", help="folds of the held-out split (default 5)"
+        "--folds", type=positive_int, default=5, metavar="K", help="folds of the held-out split (default 5)"
     )
     p.add_argument(
         "--baseline", choices=("thesis", "ode"), help="force the baseline (default: thesis for triangles)"
