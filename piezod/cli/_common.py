@@ -146,3 +146,17 @@ def recording_label(path: Path) -> str:
 
     label = re.sub(r"[^A-Za-z0-9._-]", "_", path.stem).lstrip("._-")[:100]
     return label or "scan"
+
+
+def input_file(text: str) -> str:
+    """argparse type: a path to an existing regular file (not a device such as /dev/zero, not a FIFO)."""
+    import os
+    import stat
+
+    try:
+        st = os.stat(text)
+    except OSError as exc:
+        raise argparse.ArgumentTypeError(f"{text}: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise argparse.ArgumentTypeError(f"{text}: not a regular file")
+    return text

@@ -6,7 +6,7 @@ import argparse
 from typing import Any
 
 from piezod.audit import EFFECTS, AuditOptions, print_summary, result_json, run_audit
-from piezod.cli._common import add_json_option, human_stream, positive_int, write_json
+from piezod.cli._common import add_json_option, human_stream, input_file, positive_int, write_json
 from piezod.errors import PiezodError
 from piezod.progress import progress_bar
 from piezod.recording import AXES, Experiment, read_experiments
@@ -25,7 +25,13 @@ def register(sub: Any) -> None:
             "single recording, or --validate recordings) and name the cause."
         ),
     )
-    p.add_argument("recordings", nargs="+", metavar="REC.csv", help="recordings to fit (DESIGN section 3)")
+    p.add_argument(
+        "recordings",
+        nargs="+",
+        type=input_file,
+        metavar="REC.csv",
+        help="recordings to fit (DESIGN section 3)",
+    )
     p.add_argument(
         "--validate", nargs="+", default=[], metavar="REC.csv", help="held-out recordings (not fitted)"
     )

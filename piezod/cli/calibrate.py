@@ -12,6 +12,7 @@ from piezod.cli._common import (
     add_json_option,
     add_port_options,
     human_stream,
+    input_file,
     nonneg_int,
     positive_float,
     write_json,
@@ -33,8 +34,15 @@ def register(sub: Any) -> None:
             "are inferred from the voltage. Writes the scanner YAML (--out) and a JSON report (--json)."
         ),
     )
-    p.add_argument("recordings", nargs="*", metavar="REC.csv", help="recording files (DESIGN section 3)")
-    p.add_argument("--config", metavar="F", help="base scanner YAML: limits kept, start parameters taken")
+    p.add_argument(
+        "recordings", nargs="*", type=input_file, metavar="REC.csv", help="recording files (DESIGN section 3)"
+    )
+    p.add_argument(
+        "--config",
+        type=input_file,
+        metavar="F",
+        help="base scanner YAML: limits kept, start parameters taken",
+    )
     p.add_argument("--out", metavar="F.yaml", help="write the calibrated scanner config here")
     add_json_option(p)
     p.add_argument(
@@ -52,7 +60,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument(
         "--max-samples-per-loop",
-        type=int,
+        type=nonneg_int,
         default=2048,
         metavar="N",
         help="keep every k-th sample so that a loop has at most N (0 = all; default 2048)",
