@@ -36,6 +36,13 @@ def register(sub: Any) -> None:
     stream.add_argument("--rate-hz", type=float, default=100_000.0, metavar="R", help="samples/s per axis")
     stream.add_argument("--seconds", type=float, default=60.0, metavar="S", help="duration (s)")
     stream.add_argument(
+        "--port",
+        default=None,
+        metavar="URL",
+        help="stream to this board (a pty, serial port or pyserial URL, e.g. the C firmware's host "
+        "build) instead of a fresh hil_sim",
+    )
+    stream.add_argument(
         "--api-load", action="store_true", help="stream with the daemon while its API is polled"
     )
     stream.add_argument(
