@@ -93,7 +93,14 @@ def test_driver_runs_a_family_axis_without_model_branches() -> None:
         creep_weights=list(SPEC.w),
         lag_time_constant_s=2e-4,
     )
-    cfg = AxisConfig(voltage_min_v=-230, voltage_max_v=230, thesis=THESIS, model="family", family=section)
+    cfg = AxisConfig(
+        voltage_min_v=-230,
+        voltage_max_v=230,
+        slew_rate_v_per_s=1e6,
+        thesis=THESIS,
+        model="family",
+        family=section,
+    )
     d = AxisDriver("x", cfg, 20_000.0)
     assert isinstance(d.model, FamilyAxisModel)
     targets = _smooth_targets(4000, 5e-5, 2)
