@@ -28,6 +28,7 @@ from piezod.linearity import linearity
 from piezod.progress import progress_bar
 from piezod.recording import RecordingWriter, read_experiments, read_recording, split_experiments
 from piezod.service import sockets
+from piezod.service.daemon import default_api_spec
 from piezod.service.engine import Engine
 from piezod.service.schemas import ScanChange, ScanRequest
 from piezod.stagecal import default_frame, frame_summary, verification_figure
@@ -155,11 +156,16 @@ def test_ctl_finds_the_daemon_where_serve_and_the_unit_put_it(
     """`ctl status` without --api reaches a daemon listening on serve's default socket."""
     monkeypatch.delenv("PIEZOD_API", raising=False)
     monkeypatch.setattr(sockets, "RUN_DIR", tmp_path / "run")  # no /run/piezod: a user's serve --sim
-    monkeypatch.setattr(sockets, "_user_tmp_dir", lambda: tmp_path / "user")
-    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    monkeypatch.setattr(sockets, "TMP_ROOT", tmp_path)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "xdg"))
     assert main(["ctl", "status"]) == 2
     assert "no running piezod found" in capsys.readouterr().err
-    spec = sockets.default_api_spec("fake-stage")  # what `piezod serve` listens on
+    # what `piezod serve` listens on: the per-user directory, then $XDG_RUNTIME_DIR
+    spec = default_api_spec("fake-stage", run_dir=tmp_path / "run", runtime_dir=None, tmp_root=tmp_path)
+    assert spec.startswith(f"unix:{tmp_path}/piezod-")
+    (tmp_path / "xdg").mkdir()
+    xdg_spec = default_api_spec("other", run_dir=tmp_path / "run", runtime_dir=str(tmp_path / "xdg"))
+    assert xdg_spec == f"unix:{tmp_path}/xdg/piezod-other.sock"
     rec = tmp_path / "rec"
     rec.mkdir()
     (rec / "scan-001.csv").write_text("t,voltage,position\n0,0,0\n", encoding="utf-8")

@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import math
 import queue
+import stat
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -1018,7 +1019,12 @@ class Engine:
         """The recordings in the recording directory."""
         out = []
         for p in sorted(self.recording_dir.glob("*.csv")):
-            st = p.stat()
+            try:
+                st = p.lstat()
+            except FileNotFoundError:  # removed since the listing
+                continue
+            if not stat.S_ISREG(st.st_mode):  # symlinks (dangling or not), directories: not served
+                continue
             out.append(
                 RecordingInfo(
                     name=p.name,
@@ -1136,11 +1142,7 @@ class Engine:
     def correction_label(self, axes: tuple[str, ...]) -> str:
         """The model correcting ``axes`` now: ``dynamic``, ``thesis``, or per axis ``x=dynamic y=thesis``."""
         with self._lock:
-            models = {
-                a: "dynamic" if self.drivers[a].dynamic is not None else "thesis"
-                for a in axes
-                if a in self.drivers
-            }
+            models = {a: self.drivers[a].model.kind for a in axes if a in self.drivers}
         if len(set(models.values())) == 1:
             return next(iter(models.values()))
         return " ".join(f"{a}={m}" for a, m in models.items())

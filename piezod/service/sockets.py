@@ -1,10 +1,11 @@
-"""Where a daemon's API socket lives, for ``serve`` (where to listen) and ``ctl`` (where to look).
+"""Where ``piezod ctl`` looks for a running daemon's API socket.
 
-``piezod serve`` listens on ``unix:<dir>/<scanner>.sock`` in the first usable of
-``/run/piezod`` (the systemd unit's ``RuntimeDirectory``; the unit passes
-``--api unix:/run/piezod/%i.sock``, the same path), ``$XDG_RUNTIME_DIR`` (as
-``piezod-<scanner>.sock``) and ``/tmp/piezod-<uid>``. ``piezod ctl`` without ``--api`` and
-without ``$PIEZOD_API`` looks in the same places and uses the one socket it finds.
+``piezod serve`` (:func:`piezod.service.daemon.default_api_spec`) listens on
+``unix:<dir>/<scanner>.sock`` in the first usable of ``/run/piezod`` (the systemd unit's
+``RuntimeDirectory``; the unit passes ``--api unix:/run/piezod/%i.sock``, the same path),
+``$XDG_RUNTIME_DIR`` (as ``piezod-<scanner>.sock``) and ``/tmp/piezod-<euid>``.
+``piezod ctl`` without ``--api`` and without ``$PIEZOD_API`` looks in the same places and
+uses the one socket it finds.
 """
 
 from __future__ import annotations
@@ -17,23 +18,12 @@ from piezod.errors import ConfigError
 
 #: The systemd unit's RuntimeDirectory.
 RUN_DIR = Path("/run/piezod")
+#: Where the per-user fallback directory ``piezod-<euid>`` lives.
+TMP_ROOT = Path("/tmp")
 
 
 def _user_tmp_dir() -> Path:
-    return Path(f"/tmp/piezod-{os.getuid()}")
-
-
-def default_api_spec(scanner: str) -> str:
-    """``unix:/run/piezod/<scanner>.sock`` when that directory is writable, else a per-user socket."""
-    run = RUN_DIR
-    if run.is_dir() and os.access(run, os.W_OK):
-        return f"unix:{run / (scanner + '.sock')}"
-    base = os.environ.get("XDG_RUNTIME_DIR")
-    if base and os.access(base, os.W_OK):
-        return f"unix:{Path(base) / f'piezod-{scanner}.sock'}"
-    d = _user_tmp_dir()
-    d.mkdir(mode=0o700, exist_ok=True)
-    return f"unix:{d / (scanner + '.sock')}"
+    return TMP_ROOT / f"piezod-{os.geteuid()}"
 
 
 def _is_socket(p: Path) -> bool:
@@ -44,7 +34,7 @@ def _is_socket(p: Path) -> bool:
 
 
 def running_api_sockets() -> list[Path]:
-    """API sockets of daemons in the places :func:`default_api_spec` puts them."""
+    """API sockets of daemons in the places ``serve`` puts them (see the module docstring)."""
     found: list[Path] = []
     places: list[tuple[Path, str]] = [(RUN_DIR, "*.sock")]
     base = os.environ.get("XDG_RUNTIME_DIR")
