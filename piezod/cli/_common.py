@@ -85,7 +85,7 @@ def board_url(args: argparse.Namespace, config_path: Path) -> Iterator[str]:
     from piezod.errors import ConfigError
 
     if getattr(args, "sim", False):
-        from hil_sim.server import spawn_sim
+        from piezod.simulator import spawn_sim
 
         effects = tuple(getattr(args, "effect", None) or ())
         with spawn_sim(config_path, effects=effects) as sim:

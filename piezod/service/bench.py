@@ -42,7 +42,7 @@ def _fit_loop(stop: threading.Event, counter: list[int]) -> None:
 
 def run_api_load_bench(args: argparse.Namespace) -> dict[str, Any]:
     """Stream with the daemon while the API is polled (and a fit runs); see the module docstring."""
-    from hil_sim.server import spawn_sim
+    from piezod.simulator import spawn_sim
 
     axes, rate_hz, seconds = int(args.axes), float(args.rate_hz), float(args.seconds)
     clients = int(getattr(args, "api_clients", 2) or 2)
