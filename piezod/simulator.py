@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from piezod.errors import ConfigError
+from piezod.errors import ConfigError, LinkError, LinkTimeoutError
 
 if TYPE_CHECKING:
     from hil_sim.server import SimProcess
@@ -23,9 +23,15 @@ def spawn_sim(config: str | Path | None = None, **kwargs: Any) -> SimProcess:
 
     Its ``path`` is the pty (or ``link``) the host opens.
     """
+    from hil_sim.errors import SimError, SimLinkTimeoutError
     from hil_sim.server import spawn_sim as _spawn
 
-    return _spawn(config, **kwargs)
+    try:
+        return _spawn(config, **kwargs)
+    except SimLinkTimeoutError as exc:
+        raise LinkTimeoutError(str(exc)) from exc
+    except SimError as exc:
+        raise LinkError(str(exc)) from exc
 
 
 def usb_sim_backend(socket_path: str) -> Any:
