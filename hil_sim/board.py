@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 from numpy.typing import NDArray
 
 from firmware_proto import (
@@ -62,9 +63,8 @@ from firmware_proto import (
     Stop,
     max_samples_per_frame,
 )
-from hil_sim.stage import Stage, StageConfig
-from piezod.config import load_config
-from piezod.errors import ConfigError
+from hil_sim.errors import SimConfigError as ConfigError
+from hil_sim.stage import PRESET_DIR, Stage, StageConfig
 
 F64 = NDArray[np.float64]
 
@@ -380,17 +380,15 @@ class Board:
         ConfigError
             The file or an effect string is invalid (``FILE:LINE: field: reason``).
         """
-        from piezod.config import default_sim_config_path
-
-        p = default_sim_config_path() if path is None else Path(path)
-        scanner = load_config(p)
+        p = PRESET_DIR / "sim-stage.yaml" if path is None else Path(path)
         stage_cfg = StageConfig.from_file(p)
+        limits = _voltage_limits(p)
         if effects:
             stage_cfg = stage_cfg.with_effects(*effects)
         stage = Stage(stage_cfg, seed=seed)
         cfg = config if config is not None else BoardConfig()
         if cfg.amplifier_ranges_v is None:
-            ranges = tuple((scanner.axes[a].voltage_min_v, scanner.axes[a].voltage_max_v) for a in stage.axes)
+            ranges = tuple(limits[a] for a in stage.axes)
             cfg = dataclasses.replace(cfg, amplifier_ranges_v=ranges)
         cfg = dataclasses.replace(cfg, seed=seed)
         return cls(stage, cfg, now=now)
@@ -1015,6 +1013,33 @@ class Board:
             self._t0 = now + 1.0 / self._conf.sample_rate_hz
             self._set_state(BoardState.RUNNING)
             log.info("clock running from index %d", self._start_index)
+
+
+def _voltage_limits(path: Path) -> dict[str, tuple[float, float]]:
+    """``axes.<a>.voltage_min_v / voltage_max_v`` of a scanner YAML (the amplifier ranges).
+
+    Raises
+    ------
+    SimConfigError
+        ``FILE: axes.<a>: ...`` when the limits are missing or not numbers.
+    """
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read the scanner YAML: {exc}") from exc
+    axes = data.get("axes") if isinstance(data, dict) else None
+    if not isinstance(axes, dict):
+        raise ConfigError(f"{path}: axes: missing or not a mapping")
+    out: dict[str, tuple[float, float]] = {}
+    for name, ax in axes.items():
+        try:
+            lo, hi = float(ax["voltage_min_v"]), float(ax["voltage_max_v"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(
+                f"{path}: axes.{name}: voltage_min_v / voltage_max_v missing or not numbers"
+            ) from exc
+        out[str(name)] = (lo, hi)
+    return out
 
 
 __all__ = ["Board", "BoardConfig", "BoardCounters", "slew_limit"]

@@ -30,7 +30,7 @@ from piezod.progress import progress
 
 FloatArray = NDArray[np.float64]
 
-#: DESIGN section 6 targets.
+#: The targets of docs/formats.md, section 5.
 TARGET_NS_PER_SAMPLE = 50.0
 TARGET_RATIO = 0.3
 TARGET_ROUNDTRIP_REL = 1e-9
