@@ -16,6 +16,10 @@ uint16_t fw_max_rows(unsigned c) {
 }
 
 __attribute__((format(printf, 2, 3))) static void logf_(fw_board *b, const char *fmt, ...) {
+#ifdef FW_NO_LOG /* microcontroller builds: no printf in the firmware */
+    (void)b, (void)fmt;
+    return;
+#else
     if (!b->hal.log) return;
     char line[120];
     va_list ap;
@@ -23,6 +27,7 @@ __attribute__((format(printf, 2, 3))) static void logf_(fw_board *b, const char 
     vsnprintf(line, sizeof line, fmt, ap);
     va_end(ap);
     b->hal.log(b->hal.ctx, line);
+#endif
 }
 
 /* -- sending ----------------------------------------------------------------------------- */
@@ -609,6 +614,7 @@ void fw_poll(fw_board *b, uint64_t now_us) {
 void fw_init(fw_board *b, const fw_caps *caps, const fw_hal *hal, uint64_t now_us) {
     memset(b, 0, sizeof *b);
     b->caps = *caps;
+    if (b->caps.n_channels < 1 || b->caps.n_channels > FW_BOARD_CHANNELS) b->caps.n_channels = 1;
     b->hal = *hal;
     b->state = FW_UNCONFIGURED;
     b->last_played = FW_NO_INDEX;

@@ -20,6 +20,9 @@
 #define FW_CRITICAL_BEGIN() ((void)0)
 #define FW_CRITICAL_END() ((void)0)
 #endif
+#ifndef FW_BOARD_CHANNELS
+#define FW_BOARD_CHANNELS FW_MAX_CHANNELS /* channels this build supports (sizes the buffers) */
+#endif
 #define FW_REPLY_CACHE 16u
 
 /* What the board is: reported in CAPABILITIES. */
@@ -88,7 +91,7 @@ typedef struct fw_board {
     uint32_t tx_seq;
 
     /* FIFO of [play_index, write_index), C codes per row; clamped when stored */
-    int16_t fifo[FW_FIFO_DEPTH][FW_MAX_CHANNELS];
+    int16_t fifo[FW_FIFO_DEPTH][FW_BOARD_CHANNELS];
     uint64_t write_index, play_index, last_played, start_index, stop_after;
     uint32_t prefill;
 
@@ -98,7 +101,7 @@ typedef struct fw_board {
     uint64_t ramp_last_us;
 
     /* sensor rows converted by the tick, sent by the main loop */
-    int16_t sens[FW_SENSOR_RING][FW_MAX_CHANNELS];
+    int16_t sens[FW_SENSOR_RING][FW_BOARD_CHANNELS];
     uint64_t sens_index[FW_SENSOR_RING];
     volatile uint32_t sens_head, sens_tail; /* head: written by tick, tail: main loop */
     uint64_t sens_flush_us;
@@ -122,7 +125,8 @@ typedef struct fw_board {
     unsigned reply_next, reply_count;
 } fw_board;
 
-/* Power-up: state UNCONFIGURED, outputs at code 0 (written once through the HAL). */
+/* Power-up: state UNCONFIGURED, outputs at code 0 (written once through the HAL).
+ * caps->n_channels must lie in [1, FW_BOARD_CHANNELS]. */
 void fw_init(fw_board *b, const fw_caps *caps, const fw_hal *hal, uint64_t now_us);
 /* The host's bytes (main loop). */
 void fw_rx(fw_board *b, const uint8_t *data, size_t n, uint64_t now_us);
