@@ -10,6 +10,10 @@
 
 #include "fw_codec.h"
 
+#ifdef FW_PORT_HEADER /* a port's FW_CRITICAL_* and sizes, e.g. -DFW_PORT_HEADER='"stm32f4/port.h"' */
+#include FW_PORT_HEADER
+#endif
+
 #ifndef FW_FIFO_DEPTH
 #define FW_FIFO_DEPTH 16384u
 #endif
