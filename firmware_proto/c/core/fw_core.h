@@ -27,6 +27,9 @@
 #ifndef FW_BOARD_CHANNELS
 #define FW_BOARD_CHANNELS FW_MAX_CHANNELS /* channels this build supports (sizes the buffers) */
 #endif
+#ifndef FW_SYNC_QUEUE
+#define FW_SYNC_QUEUE 1024u /* sync events queued ahead (power of two, >= 1024 per PROTOCOL.md 4.14) */
+#endif
 #define FW_REPLY_CACHE 16u
 
 /* What the board is: reported in CAPABILITIES. */
@@ -34,6 +37,7 @@ typedef struct fw_caps {
     uint8_t fw_major, fw_minor;
     uint16_t fw_patch;
     uint8_t n_channels, dac_bits, adc_bits;
+    uint8_t sync_outputs; /* digital sync outputs driven from SYNC frames (0: none) */
     uint16_t max_samples_per_frame;
     uint32_t sample_rate_min_hz, sample_rate_max_hz, sample_clock_hz;
     uint32_t board_serial;
@@ -110,6 +114,14 @@ typedef struct fw_board {
     volatile uint32_t sens_head, sens_tail; /* head: written by tick, tail: main loop */
     uint64_t sens_flush_us;
     uint16_t sens_countdown;
+
+    /* sync events: [sync_tail, sync_head) in index order; written by the main loop, read by the tick */
+    uint64_t sync_index[FW_SYNC_QUEUE];
+    uint8_t sync_lines[FW_SYNC_QUEUE], sync_mask[FW_SYNC_QUEUE];
+    volatile uint32_t sync_head, sync_tail;
+    uint64_t sync_last_queued;
+    bool sync_any_queued;
+    uint8_t sync_level;
 
     /* events raised in the tick for the main loop */
     volatile uint8_t ev_underrun, ev_stopped;

@@ -83,7 +83,7 @@ int main(void) {
     clock_last = TIMER0_VALUE;
     static const fw_caps caps = {
         .fw_major = 1, .fw_minor = 0, .fw_patch = 0, .n_channels = FW_BOARD_CHANNELS, .dac_bits = 16,
-        .adc_bits = 16, .max_samples_per_frame = 500, .sample_rate_min_hz = 100,
+        .adc_bits = 16, .sync_outputs = 3, .max_samples_per_frame = 500, .sample_rate_min_hz = 100,
         .sample_rate_max_hz = 100000, .sample_clock_hz = 1000000, .board_serial = 0x51A0E385u,
         .amp_v_min = {-230.0f, -230.0f, -230.0f}, .amp_v_max = {230.0f, 230.0f, 230.0f},
     };

@@ -247,7 +247,7 @@ int main(void) {
     SYST_RVR = SYSCLK_HZ / 1000u - 1u;
     SYST_CSR = 7u;
     static const fw_caps caps = {
-        .fw_major = 1, .fw_minor = 0, .fw_patch = 0, .n_channels = 3, .dac_bits = 16, .adc_bits = 16,
+        .fw_major = 1, .fw_minor = 0, .fw_patch = 0, .n_channels = 3, .dac_bits = 16, .adc_bits = 16, .sync_outputs = 3,
         .max_samples_per_frame = 500, .sample_rate_min_hz = 100, .sample_rate_max_hz = 100000,
         .sample_clock_hz = SYSCLK_HZ / 2u, .board_serial = 0x51A0F405u,
         .amp_v_min = {-150.0f, -150.0f, -10.0f}, .amp_v_max = {150.0f, 150.0f, 150.0f},
