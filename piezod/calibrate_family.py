@@ -205,14 +205,17 @@ class FamilyFit:
 class _Session:
     """Cached pieces of a session for repeated fits (features, deviations operator, centring)."""
 
-    def __init__(self, data: DynamicCalibrationData, taus: F64, train: NDArray[np.bool_]) -> None:
+    def __init__(
+        self, data: DynamicCalibrationData, taus: F64, train: NDArray[np.bool_], skip_s: float = 0.0
+    ) -> None:
         self.data = data
         self.taus = taus
         self.dev = _Deviations(data, taus)
         self.y = data.position_um
         exp_of_row = np.repeat(np.arange(data.n_experiments), data.counts)
-        self.train_rows = train[exp_of_row]
-        self.test_rows = ~self.train_rows
+        keep = settled_rows(data, skip_s)
+        self.train_rows = train[exp_of_row] & keep
+        self.test_rows = ~train[exp_of_row] & keep
         self.yc = _centre(data, self.y)
         # Tikhonov on the creep weights: second differences over log tau plus a small ridge
         m = taus.size
@@ -235,6 +238,18 @@ def _rate(data: DynamicCalibrationData, grid_values: F64) -> F64:
             out[start:stop] = np.gradient(grid_values[start:stop], dt_s)
     rate: F64 = out[data.compared]
     return rate
+
+
+def settled_rows(data: DynamicCalibrationData, skip_s: float) -> NDArray[np.bool_]:
+    """Compared samples at least ``skip_s`` after the start of their experiment (start-up transients out)."""
+    keep = np.ones(data.compared.size, dtype=bool)
+    if skip_s <= 0.0:
+        return keep
+    for e, start, count in zip(data.experiments, data.starts, data.counts, strict=True):
+        step = e.duration_s / max(1, int(count) - 1)
+        n_skip = min(int(count), math.ceil(skip_s / step)) if step > 0 else 0
+        keep[int(start) : int(start) + n_skip] = False
+    return keep
 
 
 def _alternate(
@@ -379,6 +394,7 @@ def fit_family(
     plays: int = 16,
     taus: F64 | None = None,
     regularisation: float = 1e-4,
+    skip_s: float = 0.0,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -398,6 +414,9 @@ def fit_family(
         Relaxation times (default :func:`default_taus`).
     regularisation
         Tikhonov weight of the creep spectrum (relative to the data scale).
+    skip_s
+        Leave the first ``skip_s`` seconds of every experiment out of the fit and the scores
+        (start-up transients the session reconstruction cannot know).
 
     Raises
     ------
@@ -410,7 +429,7 @@ def fit_family(
     mask = np.ones(data.n_experiments, dtype=bool) if train is None else np.asarray(train, dtype=bool)
     if not mask.any():
         raise CalibrationError("no experiment left to fit")
-    s = _Session(data, taus, mask)
+    s = _Session(data, taus, mask, skip_s)
     rest_v = data.rest_voltage_v
     try:
         if law == "prandtl-ishlinskii":
