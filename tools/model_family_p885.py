@@ -9,7 +9,8 @@ spectrum, stiffness, first-order drive lag) to ``piezod/data/real/pi-p885/identi
 and predicts ``validation.csv`` from rest with the fitted parameters (per experiment a position
 offset, and -- as the audit does -- one sensor gain for the validation session, are nuisance
 parameters; the first ``--skip-s`` seconds of each run, the start-up transient from an unknown
-state, are left out of fit and scores). Reports RMS and the ratio to the sensor noise floor (third differences of the
+state, are left out of fit and scores). Reports RMS and the ratio to the sensor noise floor (third
+differences of the
 measured positions, :func:`piezod.audit.residuals.noise_floor`).
 """
 
@@ -75,7 +76,8 @@ def main() -> int:
         )
     print(f"noise floor: identification {floor_id:.4f} um, validation {floor_va:.4f} um")
     print(
-        f"{'law':<20} {'ident RMS um':>13} {'valid RMS um':>13} {'valid/floor':>12} {'lag ms':>7} {'k %/um':>8}"
+        f"{'law':<20} {'ident RMS um':>13} {'valid RMS um':>13} {'valid/floor':>12}"
+        f" {'lag ms':>7} {'k %/um':>8}"
     )
     for r in rows:
         print(
