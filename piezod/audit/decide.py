@@ -46,6 +46,8 @@ from piezod.audit.baseline import (
 )
 from piezod.audit.bounds import implausible as physically_implausible
 from piezod.audit.candidates import EFFECTS, AuditModel, Candidate, Scales, make_candidate
+from piezod.audit.degenerate import Degeneracy
+from piezod.audit.degenerate import check as check_degeneracy
 from piezod.audit.evidence import Structure, evidence, structure
 from piezod.audit.fitting import (
     Fit,
@@ -57,6 +59,8 @@ from piezod.audit.fitting import (
     heldout_cv,
     heldout_validate,
 )
+from piezod.audit.outside import Outside
+from piezod.audit.outside import check as check_outside
 from piezod.audit.residuals import noise_floor_data
 from piezod.errors import CalibrationError, PiezodError
 from piezod.recording import Experiment, ScanInfo
@@ -158,10 +162,13 @@ class CandidateResult:
     evidence: str = ""
     gain_se: float = math.nan
     implausible: str = ""
+    gain_override: float = math.nan
 
     @property
     def gain(self) -> float:
         """Held-out RMS before / after."""
+        if math.isfinite(self.gain_override):
+            return self.gain_override
         if not (self.heldout_rms_after_um > 0):
             return math.nan
         return self.heldout_rms_before_um / self.heldout_rms_after_um
@@ -197,6 +204,10 @@ class AuditResult:
         Warnings and remarks.
     seconds
         Wall time.
+    outside
+        The model-free checks (switching, drift in voltage holds, lost sensitivity).
+    degeneracy
+        What the data cannot determine about the baseline.
     """
 
     cause: str
@@ -218,6 +229,8 @@ class AuditResult:
     final_structure: Structure
     notes: tuple[str, ...] = field(default=())
     seconds: float = 0.0
+    outside: Outside = field(default_factory=Outside)
+    degeneracy: Degeneracy | None = None
 
     @property
     def structure_ratio(self) -> float:
@@ -316,6 +329,7 @@ def run_audit(
         raise PiezodError(f"unknown effect(s) {', '.join(unknown)}; choose from {', '.join(EFFECTS)}")
     step = on_step or (lambda _s: None)
     notes: list[str] = []
+    outside = check_outside(experiments)
     scans = [e.scan() for e in experiments]
     val_scans = [e.scan() for e in validate]
     kind = _choose_base(scans, val_scans, opts.base)
@@ -329,7 +343,18 @@ def run_audit(
     def start_fit(which: str) -> tuple[Fit, Scales]:
         if which == ODE:
             base: ThesisBase | OdeBase
-            base, z0 = ode_start(data)
+            try:
+                base, z0 = ode_start(data)
+            except CalibrationError as exc:
+                span = float(np.ptp(data.voltage_v))
+                if not span > 0:
+                    raise
+                # No actuator loop to start from (a butterfly, a loop without opening): fit from
+                # a nearly linear one; the degeneracy check says what the data do not determine.
+                notes.append(f"baseline start: {exc}; fitted from a nearly linear start")
+                base = OdeBase(alpha_bounds=(1e-4 / span, 60.0 / span))
+                slope = abs(float(np.polyfit(data.voltage_v, data.position_um, 1)[0])) + 1e-9
+                z0 = np.array([math.log(1e-2 / span), slope, 1e-6 * slope / span])
         else:
             base, z0, warns = thesis_start(list(experiments))
             notes.extend(warns)
@@ -380,11 +405,44 @@ def run_audit(
 
     base_ho = heldout(base_fit)
     step("baseline held-out")
+    degeneracy = check_degeneracy(base_fit, geo, rows)
     current, current_ho = base_fit, base_ho
     rounds: list[tuple[CandidateResult, ...]] = []
     findings: list[CandidateResult] = []
+    pre: list[CandidateResult] = []
     remaining = [e for e in opts.effects]
-    for rnd in range(1, opts.max_findings + 1):
+    stop = ""
+    if outside.switching is not None:
+        stop = "switching"
+        notes.append(f"switching: {outside.switching.text}")
+    elif degeneracy.degenerate:
+        stop = "undetermined"
+        notes.append(degeneracy.text)
+    drift = outside.drift
+    if drift is not None:
+        bad = physically_implausible("drift", {"rate_nm_per_s": drift.rate_nm_per_s}, scales)
+        if drift.significant and not bad and "drift" in remaining:
+            pre.append(
+                CandidateResult(
+                    effect="drift",
+                    round=0,
+                    testable="",
+                    params={"rate_nm_per_s": drift.rate_nm_per_s, "rate_se_nm_per_s": drift.rate_se_nm_per_s},
+                    rms_um=math.nan,
+                    bic_delta=drift.bic_delta,
+                    heldout_rms_before_um=math.nan,
+                    heldout_rms_after_um=math.nan,
+                    eligible=True,
+                    evidence=drift.text,
+                    gain_se=drift.gain_se,
+                    implausible=bad,
+                    gain_override=drift.gain,
+                )
+            )
+            remaining.remove("drift")
+        else:
+            notes.append(f"voltage holds: {drift.text}" + (f"; {bad}" if bad else "; not significant"))
+    for rnd in range(1, 0 if stop else opts.max_findings + 1):
         results: list[CandidateResult] = []
         for effect in remaining:
             cand = make_candidate(effect, kind)
@@ -403,7 +461,7 @@ def run_audit(
         eligible = [r for r in results if r.eligible]
         if not eligible:
             break
-        best = max(eligible, key=lambda r: (r.gain, -r.bic_delta))
+        best = _best(eligible)
         findings.append(best)
         assert best.fit is not None and best.heldout is not None
         current, current_ho = best.fit, best.heldout
@@ -440,9 +498,47 @@ def run_audit(
         )
         explained.append(replace(f, evidence=text))
         before = struct(f.fit)
-    findings = explained
+    findings = pre + explained
+    loss = outside.loss
+    if loss is not None:
+        findings.append(
+            CandidateResult(
+                effect="sensitivity_loss",
+                round=0,
+                testable="",
+                params={"loss_pct": loss.loss_pct, "after_peak_v": loss.peak_v},
+                rms_um=math.nan,
+                bic_delta=math.nan,
+                heldout_rms_before_um=math.nan,
+                heldout_rms_after_um=math.nan,
+                eligible=True,
+                evidence=loss.text,
+            )
+        )
+    for path, g in base_ho.gains.items():
+        if abs(g - 1.0) > 0.1:
+            findings.append(
+                CandidateResult(
+                    effect="sensitivity_loss" if g < 1.0 else "sensitivity_gain",
+                    round=0,
+                    testable="",
+                    params={"change_pct": 100.0 * (g - 1.0)},
+                    rms_um=math.nan,
+                    bic_delta=math.nan,
+                    heldout_rms_before_um=math.nan,
+                    heldout_rms_after_um=math.nan,
+                    eligible=True,
+                    evidence=(
+                        f"the validation session {path} has {100.0 * (g - 1.0):+.3g} % of the training "
+                        "session's sensitivity (fitted as its sensor gain)"
+                    ),
+                )
+            )
     final_struct = before
-    if findings:
+    if stop:
+        cause = stop
+        findings = [f for f in findings if f.effect != "drift" or stop != "undetermined"]
+    elif findings:
         cause = findings[0].effect
         final_ratio = current.rms_um / floor if floor > 0 else math.inf
         if final_ratio > opts.structure_max:
@@ -474,7 +570,24 @@ def run_audit(
         final_structure=final_struct,
         notes=tuple(notes),
         seconds=time.perf_counter() - t_start,
+        outside=outside,
+        degeneracy=degeneracy,
     )
+
+
+def _best(eligible: Sequence[CandidateResult]) -> CandidateResult:
+    """The eligible candidate with the largest held-out gain; a lag before an indistinguishable resonance.
+
+    Far below its ``f0`` and without ringing in the data, a resonance acts as a lag: when a
+    ``delay`` is eligible with a gain within the resonance's standard error, the lag is named.
+    """
+    best = max(eligible, key=lambda r: (r.gain, -r.bic_delta))
+    if best.effect == "resonance":
+        lag = [r for r in eligible if r.effect == "delay"]
+        se = best.gain_se if math.isfinite(best.gain_se) else 0.0
+        if lag and best.gain - lag[0].gain <= se:
+            return lag[0]
+    return best
 
 
 def _try(
