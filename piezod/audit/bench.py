@@ -161,7 +161,7 @@ def run_corpus(
         return r.cause
 
     stand("PNZT hold, drift +0.63 nm/s", "drift", pnzt_hold_session(0.63))
-    act = actuator_5khz(seconds=4.0)
+    act = actuator_5khz(seconds=6.0)
     c5 = stand("actuator 5 kHz, lag 2 ms", "delay", [act])
     c2 = stand("same, decimated to 200 Hz", "delay", [decimate(act, 25)])
     if c5 != c2:
