@@ -63,7 +63,8 @@ from piezod.audit.outside import Outside
 from piezod.audit.outside import check as check_outside
 from piezod.audit.residuals import noise_floor_data
 from piezod.errors import CalibrationError, PiezodError
-from piezod.recording import Experiment, ScanInfo
+from piezod.recording import Experiment
+from piezod.scan_inference import ScanInfo
 
 F64 = NDArray[np.float64]
 
