@@ -331,6 +331,14 @@ def run_audit(
     step = on_step or (lambda _s: None)
     notes: list[str] = []
     outside = check_outside(experiments)
+    for e in experiments:
+        gap = e.metadata.get("gap_before_s")
+        if gap is not None:
+            where = f" ({e.path}:{e.first_line})" if e.path and e.first_line else ""
+            notes.append(
+                f"gap of {gap} s in t before {e.label}{where}: {e.metadata.get('split_from', '')} was split "
+                "there into separate experiments (nothing interpolated across the gap)"
+            )
     scans = [e.scan() for e in experiments]
     val_scans = [e.scan() for e in validate]
     kind = _choose_base(scans, val_scans, opts.base)
