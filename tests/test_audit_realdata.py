@@ -100,3 +100,18 @@ def test_p885_decimated_and_split_by_validation_file_keep_the_cause() -> None:
     for r in (by_file, blocked, halved):
         _all_plausible(r)
         assert r.degeneracy is not None and not r.degeneracy.degenerate
+
+
+def test_a_baseline_the_data_cannot_determine_names_no_cause() -> None:
+    # A stage without hysteresis (no loop opening): alpha collapses and b = u; a sensor ripple
+    # leaves structure above the noise. The audit states what is undetermined, names no cause.
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 20.0, 0.005)
+    v = 60.0 * np.sin(2 * np.pi * 0.5 * t) * (0.5 + 0.5 * t / 20.0)
+    x = 0.1 * v + 0.05 * np.sin(2 * np.pi * 0.1 * v) + rng.normal(0.0, 0.002, t.size)
+    result = run_audit([Experiment("linear", None, t, v, x)])
+    assert result.cause == "undetermined"
+    assert result.findings == ()
+    deg = result.degeneracy
+    assert deg is not None and deg.degenerate and "alpha_per_v" in deg.undetermined
+    assert "loops of several amplitudes" in deg.text

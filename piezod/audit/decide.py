@@ -424,9 +424,6 @@ def run_audit(
     if outside.switching is not None:
         stop = "switching"
         notes.append(f"switching: {outside.switching.text}")
-    elif degeneracy.degenerate:
-        stop = "undetermined"
-        notes.append(degeneracy.text)
     drift = outside.drift
     if drift is not None:
         bad = physically_implausible("drift", {"rate_nm_per_s": drift.rate_nm_per_s}, scales)
@@ -544,9 +541,28 @@ def run_audit(
                 )
             )
     final_struct = before
+    if not stop and degeneracy.degenerate and (findings or ratio > opts.structure_max):
+        # The baseline alone is undetermined; a model with findings may be determined (an
+        # effect the baseline tried to absorb). No cause is named on an undetermined model.
+        final_deg = check_degeneracy(current, geo, rows) if current is not base_fit else degeneracy
+        if final_deg.degenerate and (final_deg.blocks_a_cause or not findings):
+            stop = "undetermined"
+            degeneracy = final_deg
+            notes.append(final_deg.text)
+            if findings:
+                notes.append("not named on the undetermined model: " + ", ".join(f.effect for f in findings))
+            findings = []
+        else:
+            told = (final_deg if final_deg.degenerate else degeneracy).text.split(". No cause")[0]
+            notes.append(
+                f"{told}. The findings do not depend on it (their parameters correlate with the "
+                f"baseline's by at most {final_deg.extension_correlation:.3g})"
+            )
+            degeneracy = final_deg
+    elif not stop and degeneracy.degenerate:
+        notes.append(degeneracy.text.split(". No cause")[0] + ". Nothing above the noise needs a cause.")
     if stop:
         cause = stop
-        findings = [f for f in findings if f.effect != "drift" or stop != "undetermined"]
     elif findings:
         cause = findings[0].effect
         final_ratio = current.rms_um / floor if floor > 0 else math.inf
@@ -587,16 +603,20 @@ def run_audit(
 def _best(eligible: Sequence[CandidateResult]) -> CandidateResult:
     """The eligible candidate with the largest held-out gain; a lag before an indistinguishable resonance.
 
-    Far below its ``f0`` and without ringing in the data, a resonance acts as a lag: when a
-    ``delay`` is eligible with a gain within the resonance's standard error, the lag is named.
+    Far below its ``f0``, a resonance that hardly rings (``Q < 2``) acts as a lag: when a ``delay``
+    is eligible with a gain within the resonance's standard error, the lag is named.
     """
     best = max(eligible, key=lambda r: (r.gain, -r.bic_delta))
-    if best.effect == "resonance":
+    if best.effect == "resonance" and best.params.get("q", math.inf) < _RINGING_Q:
         lag = [r for r in eligible if r.effect == "delay"]
         se = best.gain_se if math.isfinite(best.gain_se) else 0.0
         if lag and best.gain - lag[0].gain <= se:
             return lag[0]
     return best
+
+
+#: Below this Q a resonance hardly rings (the first overshoot is < 20 %): a lag explains it as well.
+_RINGING_Q = 2.0
 
 
 def _try(

@@ -24,6 +24,10 @@ F64 = NDArray[np.float64]
 MAX_CONDITION = 1e7
 #: Largest |correlation| of two baseline parameters that is still determined.
 MAX_CORRELATION = 0.99999
+#: A condition number above this is a collapse (a direction the data do not see at all).
+COLLAPSED_CONDITION = 1e10
+#: Largest |correlation| of a candidate's parameter with a baseline parameter on an undetermined baseline.
+MAX_EXTENSION_CORRELATION = 0.99
 
 #: Which measurement determines each (public) baseline parameter.
 _MEASUREMENT = {
@@ -53,6 +57,13 @@ class Degeneracy:
         Parameters that sit on a bound.
     text
         The plain statement for the report (empty when determined).
+    collapsed
+        Parameters on bounds or a condition number above :data:`COLLAPSED_CONDITION` (not only
+        a strong correlation between two baseline parameters).
+    extension_correlation
+        Largest |correlation| of a candidate parameter with a baseline parameter (0 without
+        candidates): above :data:`MAX_EXTENSION_CORRELATION` the extension is entangled with
+        what the data do not determine.
     """
 
     undetermined: tuple[str, ...]
@@ -60,6 +71,13 @@ class Degeneracy:
     max_correlation: float
     on_bounds: tuple[str, ...]
     text: str
+    collapsed: bool = False
+    extension_correlation: float = 0.0
+
+    @property
+    def blocks_a_cause(self) -> bool:
+        """No cause may be named: collapsed, or the extension entangled with the undetermined part."""
+        return self.degenerate and (self.collapsed or self.extension_correlation > MAX_EXTENSION_CORRELATION)
 
     @property
     def degenerate(self) -> bool:
@@ -102,8 +120,11 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
         i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
         bad += [names[fidx[k]] for k in (int(i), int(j)) if fidx[k] < model.n_base]
     bad = list(dict.fromkeys(bad))
+    nb = sum(1 for k in fidx if k < model.n_base)
+    ext = float(corr[:nb, nb:].max()) if corr.shape[0] > nb and nb > 0 else 0.0
+    collapsed = bool(on) or cov.condition_number > COLLAPSED_CONDITION
     if not bad:
-        return Degeneracy((), cov.condition_number, max_corr, tuple(on), "")
+        return Degeneracy((), cov.condition_number, max_corr, tuple(on), "", collapsed, ext)
     public = model.base.public(p[: model.n_base])
     vals = ", ".join(f"{k} = {public[k]:.4g}" for k in bad if k in public)
     need = list(dict.fromkeys(_MEASUREMENT.get(k, "more varied scans") for k in bad))
@@ -113,4 +134,4 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
         + f"; condition number {cov.condition_number:.3g}, largest correlation {max_corr:.6f}. "
         f"What would determine it: {'; '.join(need)}. No cause is named on an undetermined baseline."
     )
-    return Degeneracy(tuple(bad), cov.condition_number, max_corr, tuple(on), text)
+    return Degeneracy(tuple(bad), cov.condition_number, max_corr, tuple(on), text, collapsed, ext)
