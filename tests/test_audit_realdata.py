@@ -115,3 +115,17 @@ def test_a_baseline_the_data_cannot_determine_names_no_cause() -> None:
     deg = result.degeneracy
     assert deg is not None and deg.degenerate and "alpha_per_v" in deg.undetermined
     assert "loops of several amplitudes" in deg.text
+
+
+def test_one_period_triangles_keep_their_turning_points_and_show_the_rate_dependence() -> None:
+    from piezod.audit.standins import one_period_triangles
+
+    exps = one_period_triangles((1.0, 0.1, 0.01))
+    for e in exps:
+        info = e.scan()
+        assert info.kind == "triangle" and info.turning_indices.size == 2, info.reason
+        assert info.frequency_hz == pytest.approx(float(e.label.split("_")[1][:-2]), rel=0.01)
+    result = run_audit(exps)
+    assert result.cause == "creep"
+    assert result.findings[0].params["creep_pct_per_decade"] == pytest.approx(3.0, rel=0.3)
+    _all_plausible(result)

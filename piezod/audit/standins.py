@@ -160,10 +160,10 @@ def one_period_triangles(
     out, t0 = [], 0.0
     for f in freqs_hz:
         n = samples_per_period
-        t = np.arange(n) / (n * f)
-        v = _triangle(t, f, -v_pp / 2, v_pp / 2)
+        t = np.arange(n + 1) / (n * f)
+        v = _triangle(t + 0.25 / f, f, -v_pp / 2, v_pp / 2)  # 0 -> +V -> 0 -> -V -> 0
         x, _ = hysteresis_step(p, v, relaxed_state(p, float(v[0])))
-        x = x + _log_creep(t, v, 3.0, p.b_um_per_v) + rng.normal(0.0, 1e-3, n)
+        x = x + _log_creep(t, v, 3.0, p.b_um_per_v) + rng.normal(0.0, 1e-3, n + 1)
         out.append(Experiment(f"triangle_{f:g}Hz", None, t + t0, v, x))
         t0 += float(t[-1]) + 1.0
     return out
