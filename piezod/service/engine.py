@@ -20,6 +20,7 @@ outputs to the safe values (the board also ramps by itself when the host's heart
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import queue
@@ -43,6 +44,7 @@ from piezod.errors import (
     LinkError,
     ModelError,
     PiezodError,
+    RecordingError,
     SafetyError,
 )
 from piezod.link.session import (
@@ -394,6 +396,7 @@ class _OpenRecording:
     axes: tuple[str, ...]
     targets: bool
     rows: int = 0
+    last_t: float = 0.0
     done: bool = False
 
 
@@ -415,7 +418,7 @@ class Recorder(threading.Thread):
         self.queue: queue.Queue[tuple[MatchedBlock | None, tuple[Any, ...]] | None] = queue.Queue()
         self.recordings: dict[int, _OpenRecording] = {}
         self.lock = threading.Lock()
-        self.error: BaseException | None = None
+        self.failed = 0
         self._acc = _LineAccumulator()
         self._pending_close: dict[int, int] = {}
 
@@ -428,10 +431,34 @@ class Recorder(threading.Thread):
         *,
         targets: bool = True,
     ) -> None:
+        """Create the recording ``path`` (exclusively: an existing file is never reused or truncated).
+
+        Raises
+        ------
+        RecordingError
+            If ``path`` exists or cannot be created (a full disk): nothing is left behind.
+        """
         columns = ("t", "voltage", "position", *(("target",) if targets else ()), "axis", "experiment")
-        writer = RecordingWriter(path, columns, metadata=metadata, append=False)
+        try:
+            writer = RecordingWriter(path, columns, metadata=metadata, exclusive=True)
+        except FileExistsError as exc:
+            raise RecordingError(
+                "exists; recordings are never overwritten or reused: choose another name",
+                str(path),
+            ) from exc
+        except OSError as exc:
+            raise RecordingError(f"cannot create the recording: {exc.strerror or exc}", str(path)) from exc
         with self.lock:
             self.recordings[ident] = _OpenRecording(ident, path, writer, axes, targets)
+
+    def discard(self, ident: int) -> None:
+        """Close and delete a recording that never started (its scan was refused)."""
+        with self.lock:
+            rec = self.recordings.pop(ident, None)
+        if rec is not None:
+            rec.writer.close()
+            with contextlib.suppress(OSError):
+                rec.path.unlink()
 
     def run(self) -> None:
         while True:
@@ -444,22 +471,46 @@ class Recorder(threading.Thread):
                 if block is None:
                     self._pending_close[int(meta[1])] = int(meta[2])
                 else:
-                    if self.error is None:
-                        self._write(block, meta)
+                    self._write(block, meta)
                     last = int(block.indices[-1]) if block.indices.size else -1
                     for ident, end in list(self._pending_close.items()):
                         if last >= end - 1:
                             del self._pending_close[ident]
                             self._close(ident)
             except (OSError, PiezodError, ValueError) as exc:
+                # not one recording's disk error (handled in _write): stop every open recording
                 log.exception("recorder failed")
-                self.error = exc
-                self.engine.fault("host", "RECORDING", f"recording failed, recording stopped: {exc}")
+                with self.lock:
+                    idents = list(self.recordings)
+                for ident in idents:
+                    self._fail(ident, exc)
             finally:
                 self.queue.task_done()
         with self.lock:
             for rec in self.recordings.values():
                 rec.writer.close()
+
+    def _fail(self, ident: int, exc: BaseException) -> None:
+        """A recording cannot be written: keep what it holds, close it, stop its scan, report it."""
+        with self.lock:
+            rec = self.recordings.pop(ident, None)
+        if rec is None:
+            return
+        rec.writer.close()
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        self.failed += 1
+        if rec.rows == 0:  # created by us, holding no data: leave no empty recording behind
+            with contextlib.suppress(OSError):
+                rec.path.unlink()
+            kept = "nothing was recorded (the empty file is removed)"
+        else:
+            kept = (
+                f"its {rec.rows} rows up to t = {rec.last_t:.3f} s are kept (the file ends with a "
+                "complete line)"
+            )
+        self.engine.recording_failed(
+            ident, f"recording {rec.path.name} stopped: {reason}; {kept}; the scan was stopped"
+        )
 
     def _close(self, ident: int) -> None:
         with self.lock:
@@ -482,18 +533,22 @@ class Recorder(threading.Thread):
                 continue
             sel = record & (rec_id == ident)
             names = self.engine.label_names(label[sel])
-            for i, axis in enumerate(block.axes):
-                if axis not in rec.axes:
-                    continue
-                rec.writer.write(
-                    t[sel],
-                    block.commanded_v[i, sel],
-                    block.position_um[i, sel],
-                    target_um=targets[i, sel] if rec.targets else None,
-                    axis=axis,
-                    experiment=names,
-                )
-                rec.rows += int(sel.sum())
+            try:
+                for i, axis in enumerate(block.axes):
+                    if axis not in rec.axes:
+                        continue
+                    rec.writer.write(
+                        t[sel],
+                        block.commanded_v[i, sel],
+                        block.position_um[i, sel],
+                        target_um=targets[i, sel] if rec.targets else None,
+                        axis=axis,
+                        experiment=names,
+                    )
+                    rec.rows += int(sel.sum())
+                    rec.last_t = float(t[sel][-1])
+            except OSError as exc:  # a full disk, an I/O error: this recording ends here
+                self._fail(int(ident), exc)
 
     def _line_stats(
         self,
@@ -917,9 +972,13 @@ class Engine:
         with self._lock:
             if self._state not in ("idle",):
                 raise EngineStateError(f"cannot start a scan while {self._state}")
-            job = ScanJob(self, request, params)
             if request.record:
                 self._begin_recording(request, params, path)
+            try:
+                job = ScanJob(self, request, params)
+            except BaseException:
+                self._discard_recording()
+                raise
             self._job = job
             self._state = "scanning"
         return self.status()
@@ -1011,7 +1070,7 @@ class Engine:
             self._next_recording += 1
             ident = self._next_recording
             meta = {"scanner": self.config.name, "sample_rate_hz": self.rate_hz, **metadata}
-            self._recorder.open(ident, path, meta, (axis,), targets=False)
+            self._recorder.open(ident, path, meta, (axis,), targets=False)  # exclusive
             self._recording_id = ident
             self._recording_name = path.name
             self._job = job
@@ -1073,9 +1132,6 @@ class Engine:
     # -- recordings ------------------------------------------------------------------------------
 
     def _begin_recording(self, request: ScanRequest, params: RasterParams, path: Path | None) -> None:
-        name = request.name or time.strftime("scan-%Y%m%d-%H%M%S")
-        if path is None:
-            path = self.recording_dir / (name if name.endswith(".csv") else name + ".csv")
         self._next_recording += 1
         ident = self._next_recording
         meta: dict[str, object] = {
@@ -1091,9 +1147,51 @@ class Engine:
             "sample_rate_hz": self.rate_hz,
         }
         axes = tuple(a for a, plan in self.plans_for(params).items() if plan is not None) or ("x",)
-        self._recorder.open(ident, path, meta, axes)
+        if path is not None or request.name:
+            if path is None:
+                name = request.name or ""
+                path = self.recording_dir / (name if name.endswith(".csv") else name + ".csv")
+            self._recorder.open(ident, path, meta, axes)
+        else:
+            # unnamed: scan-<time>, then -2, -3 ... for scans started within the same second
+            stem = time.strftime("scan-%Y%m%d-%H%M%S")
+            for n in range(1, 1000):
+                path = self.recording_dir / (f"{stem}.csv" if n == 1 else f"{stem}-{n}.csv")
+                try:
+                    self._recorder.open(ident, path, meta, axes)
+                    break
+                except RecordingError as exc:
+                    if not isinstance(exc.__cause__, FileExistsError):
+                        raise
+            else:
+                raise RecordingError(f"no free recording name {stem}-N.csv", str(self.recording_dir))
+        assert path is not None
         self._recording_id = ident
         self._recording_name = path.name
+
+    def _discard_recording(self) -> None:
+        if self._recording_id >= 0:
+            self._recorder.discard(self._recording_id)
+            self._recording_id = -1
+            self._recording_name = None
+
+    def recording_failed(self, ident: int, message: str) -> None:
+        """The recorder lost recording ``ident`` (a full disk): stop its scan and hold; a fault.
+
+        The stage holds where it is (no jump, no ramp that might move a probe near a surface);
+        the fault stays until ``stop()``. The next scan opens a new recording, so recording
+        resumes by itself once space returns (or is refused with the reason if it has not).
+        """
+        with self._lock:
+            if ident == self._recording_id:
+                self._recording_id = -1
+                self._recording_name = None
+                if isinstance(self._job, ScanJob | ProgramJob):
+                    self._queue.clear()
+                    self._job = HoldJob("fault")
+                    self._state = "fault"
+                    self._fault_latched = True
+        self.fault("host", "RECORDING", message)
 
     def _end_recording(self, end_index: int | None = None) -> None:
         """Close the recording once the readback up to ``end_index`` (default: all computed) is in."""
