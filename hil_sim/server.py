@@ -35,6 +35,8 @@ from pathlib import Path
 from types import FrameType, TracebackType
 
 from hil_sim.board import Board, BoardConfig
+from hil_sim.errors import SimError
+from hil_sim.stage import resolve_stage
 from hil_sim.usb_bridge import UsbSocketServer
 from piezod.errors import LinkError, LinkTimeoutError, PiezodError
 
@@ -330,7 +332,10 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
         "--config",
         dest="config",
         metavar="F",
-        help="scanner YAML with a simulation: section (default: configs/sim-stage.yaml)",
+        help=(
+            "scanner YAML with a simulation: section, or a preset name NAME for configs/sim-NAME.yaml"
+            " (stage, pi-stage, ...; default: configs/sim-stage.yaml)"
+        ),
     )
     parser.add_argument(
         "--effect",
@@ -406,7 +411,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         drop_rate=args.drop_rate,
     )
     board = Board.from_scanner_file(
-        args.config, effects=tuple(args.effect), seed=args.seed, config=config, now=clock()
+        resolve_stage(args.config), effects=tuple(args.effect), seed=args.seed, config=config, now=clock()
     )
     server = SimServer(
         board,
@@ -445,7 +450,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return run_from_args(args)
-    except PiezodError as exc:
+    except (PiezodError, SimError) as exc:
         print(f"hil_sim: error: {exc}", file=sys.stderr)
         return 2
 

@@ -24,9 +24,11 @@ from typing import Any, Literal, get_args, get_origin
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from piezod.errors import ConfigError
+from piezod.errors import ConfigError, ModelError
 from piezod.model.dynamic import DynamicParams
-from piezod.model.params import ThesisParams
+from piezod.model.family import CreepSpectrum, FamilyParams
+from piezod.model.params import HysteresisParams, ThesisParams
+from piezod.model.play import PlayParams
 
 AxisName = Literal["x", "y", "z"]
 
@@ -88,6 +90,61 @@ class DynamicModelConfig(StrictModel):
         return DynamicParams(**self.model_dump())
 
 
+class FamilyModelConfig(StrictModel):
+    """Parameters of the model family (``model: family``), see :mod:`piezod.model.family`.
+
+    ``law: coleman-hodgdon`` needs ``alpha_per_v`` and ``u_um_per_v``; ``law: prandtl-ishlinskii``
+    needs ``pi_rho0``, ``pi_thresholds_v`` and ``pi_weights``. The creep spectrum is a list of
+    non-negative weights on relaxation times. ``piezod calibrate`` writes this section.
+    """
+
+    law: Literal["coleman-hodgdon", "prandtl-ishlinskii"] = Field(description="hysteresis law")
+    b_um_per_v: float = Field(gt=0, lt=100.0, description="sensitivity b of the hysteresis law (um/V)")
+    alpha_per_v: float | None = Field(default=None, gt=0, lt=1.0, description="coleman-hodgdon: alpha (1/V)")
+    u_um_per_v: float | None = Field(default=None, gt=0, lt=100.0, description="coleman-hodgdon: u (um/V)")
+    pi_rho0: float | None = Field(default=None, gt=0, le=2.0, description="prandtl-ishlinskii: slope / b")
+    pi_thresholds_v: list[float] = Field(default=[], description="prandtl-ishlinskii: play half-widths (V)")
+    pi_weights: list[float] = Field(
+        default=[], description="prandtl-ishlinskii: play weights (fractions of b)"
+    )
+    creep_taus_s: list[float] = Field(description="creep relaxation times (s), ascending")
+    creep_weights: list[float] = Field(description="creep weights (fractions of the hysteretic motion)")
+    lag_time_constant_s: float = Field(default=0.0, ge=0, le=1.0, description="drive pole (s)")
+    stiffness_pct_per_um: float = Field(
+        default=0.0, ge=-5, le=5, description="static map x + k x^2/200 (%/um)"
+    )
+
+    @model_validator(mode="after")
+    def _check_model(self) -> FamilyModelConfig:
+        if self.law == "coleman-hodgdon" and (self.alpha_per_v is None or self.u_um_per_v is None):
+            raise ValueError("law coleman-hodgdon needs alpha_per_v and u_um_per_v")
+        if self.law == "prandtl-ishlinskii" and self.pi_rho0 is None:
+            raise ValueError("law prandtl-ishlinskii needs pi_rho0, pi_thresholds_v and pi_weights")
+        try:
+            self.params()
+        except ModelError as exc:
+            raise ValueError(str(exc)) from exc
+        return self
+
+    def params(self) -> FamilyParams:
+        """The frozen model parameter object."""
+        hyst: HysteresisParams | PlayParams
+        if self.law == "coleman-hodgdon":
+            assert self.alpha_per_v is not None and self.u_um_per_v is not None
+            hyst = HysteresisParams(self.alpha_per_v, self.b_um_per_v, self.u_um_per_v)
+        else:
+            assert self.pi_rho0 is not None
+            hyst = PlayParams(
+                self.b_um_per_v, self.pi_rho0, tuple(self.pi_thresholds_v), tuple(self.pi_weights)
+            )
+        return FamilyParams(
+            hyst,
+            CreepSpectrum(tuple(self.creep_taus_s), tuple(self.creep_weights)),
+            self.lag_time_constant_s,
+            self.stiffness_pct_per_um,
+        )
+
+
 class AxisConfig(StrictModel):
     """One scanner axis: its voltage limits, safety settings and model."""
 
@@ -97,10 +154,13 @@ class AxisConfig(StrictModel):
     slew_rate_v_per_s: float = Field(
         default=2000.0, gt=0, description="largest |dV/dt| the host commands (V/s)"
     )
-    model: Literal["thesis", "dynamic"] = "thesis"
+    model: Literal["thesis", "dynamic", "family"] = "thesis"
     thesis: ThesisModelConfig
     dynamic: DynamicModelConfig | None = Field(
         default=None, description="time-domain model parameters (required by model: dynamic)"
+    )
+    family: FamilyModelConfig | None = Field(
+        default=None, description="model-family parameters (required by model: family)"
     )
 
     @model_validator(mode="after")
@@ -116,6 +176,8 @@ class AxisConfig(StrictModel):
             )
         if self.model == "dynamic" and self.dynamic is None:
             raise ValueError("model: dynamic needs a dynamic: section (piezod calibrate writes it)")
+        if self.model == "family" and self.family is None:
+            raise ValueError("model: family needs a family: section (piezod calibrate writes it)")
         return self
 
 

@@ -42,6 +42,13 @@ def register(sub: Any) -> None:
     )
     stream.add_argument("--seconds", type=positive_float, default=60.0, metavar="S", help="duration (s)")
     stream.add_argument(
+        "--port",
+        default=None,
+        metavar="URL",
+        help="stream to this board (a pty, serial port or pyserial URL, e.g. the C firmware's host "
+        "build) instead of a fresh hil_sim",
+    )
+    stream.add_argument(
         "--api-load", action="store_true", help="stream with the daemon while its API is polled"
     )
     stream.add_argument(
