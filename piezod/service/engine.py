@@ -60,7 +60,7 @@ from piezod.link.session import (
 )
 from piezod.link.streamer import MatchedBlock, Streamer
 from piezod.recording import RecordingWriter
-from piezod.scan import RasterGenerator, RasterParams, move_profile
+from piezod.scan import RasterGenerator, RasterParams
 from piezod.service.axes import AxisDriver, PeriodicPlan
 from piezod.service.schemas import (
     EngineState,
@@ -87,6 +87,8 @@ FAULT_REPEAT_S = 1.0
 SETTLE_LINES = 2
 #: Speed of the moves to the start of a scan, as a multiple of the scan's own speed (at most).
 MOVE_SPEED_FACTOR = 1.0
+#: Longest move a request may ask for (s): a slower one is refused with the speed it needs.
+MAX_MOVE_S = 600.0
 
 
 @dataclass(slots=True)
@@ -164,22 +166,40 @@ class RampJob(Job):
 
 
 class MoveJob(Job):
-    """A slew-limited move in position (through the inverse model), then done."""
+    """A slew-limited move in position (through the inverse model), then done.
+
+    The raised-cosine profile is computed block by block from where the axes are when the move
+    begins, so a long move costs no memory and no time up front (and none under the engine lock).
+    """
 
     state: EngineState = "moving"
 
     def __init__(self, engine: Engine, goal_um: dict[str, float], speed_um_per_s: float) -> None:
-        start = np.array([d.position_um for d in engine.drivers.values()])
-        end = np.array([goal_um.get(name, start[i]) for i, name in enumerate(engine.drivers)])
-        self._path = move_profile(start, end, speed_um_per_s, engine.rate_hz)
-        self._moving = np.abs(end - start) > 0
+        self._goal = dict(goal_um)
+        self._speed = float(speed_um_per_s)
+        self._a: FloatArray | None = None
+        self._b = np.empty(0)
+        self._n = 0
         self._pos = 0
+        self._moving = np.zeros(0, dtype=bool)
+
+    def _begin(self, engine: Engine) -> None:
+        a = np.array([d.position_um for d in engine.drivers.values()])
+        b = np.array([self._goal.get(name, a[i]) for i, name in enumerate(engine.drivers)])
+        self._a, self._b = a, b
+        self._n = move_samples(float(np.max(np.abs(b - a))), self._speed, engine.rate_hz)
+        self._moving = np.abs(b - a) > 0
 
     def render(self, engine: Engine, n: int) -> Chunk:
-        take = min(n, self._path.shape[1] - self._pos)
-        targets = self._path[:, self._pos : self._pos + take]
+        if self._a is None:
+            self._begin(engine)
+        assert self._a is not None
+        take = min(n, self._n - self._pos)
+        u = np.arange(self._pos + 1, self._pos + take + 1) / self._n
+        w = 0.5 - 0.5 * np.cos(np.pi * u)
+        targets = self._a[:, None] + (self._b - self._a)[:, None] * w[None, :]
         self._pos += take
-        self.done = self._pos >= self._path.shape[1]
+        self.done = self._pos >= self._n
         volts = np.empty_like(targets)
         for i, d in enumerate(engine.drivers.values()):
             if self._moving[i]:
@@ -189,19 +209,31 @@ class MoveJob(Job):
         return engine.chunk(volts, targets)
 
 
+def move_samples(distance_um: float, speed_um_per_s: float, rate_hz: float) -> int:
+    """Samples of a raised-cosine move of ``distance_um`` with peak speed ``speed_um_per_s`` (>= 1)."""
+    duration = 0.5 * math.pi * abs(distance_um) / speed_um_per_s
+    return max(1, math.ceil(duration * rate_hz))
+
+
 class ScanJob(Job):
     """A raster scan: move to the start, settle, scan (recorded), then hold at the end."""
 
     state: EngineState = "scanning"
 
-    def __init__(self, engine: Engine, request: ScanRequest, params: RasterParams) -> None:
+    def __init__(
+        self,
+        engine: Engine,
+        request: ScanRequest,
+        params: RasterParams,
+        plans: dict[str, PeriodicPlan | None] | None = None,
+    ) -> None:
         self.request = request
         # Settling: SETTLE_LINES lines on the first row before the frame (not recorded).
         settle = replace(params, lines=1, frames=SETTLE_LINES, bidirectional_slow=False)
         self._settle: RasterGenerator | None = RasterGenerator(settle, engine.rate_hz)
         self._gen = RasterGenerator(params, engine.rate_hz)
         self.label = engine.label_id(request.name or "scan")
-        self._plans = engine.plans_for(params)
+        self._plans = plans if plans is not None else engine.plans_for(params)
         self._plan_key: RasterParams | None = params
         for name, plan in self._plans.items():
             engine.drivers[name].use_plan(plan)
@@ -214,10 +246,8 @@ class ScanJob(Job):
         return {"x": float(probe.x_um[0]), "y": float(probe.y_um[0])}
 
     def change(self, engine: Engine, change: ScanChange) -> RasterParams:
-        updates = change.model_dump(exclude_none=True)
-        new = self._gen.change(**updates)
-        engine.plans_for(new)  # refuse before it takes effect
-        return new
+        """Apply a change at the next line; the caller checked ``engine.plans_for`` of it."""
+        return self._gen.change(**change.model_dump(exclude_none=True))
 
     def render(self, engine: Engine, n: int) -> Chunk:
         if self._move is not None:
@@ -811,6 +841,9 @@ class Engine:
                     chunk = job.render(self, n - filled)
                 except (ModelError, SafetyError) as exc:
                     self.fault("host", "MODEL", f"{type(job).__name__}: {exc}")
+                    if isinstance(job, ScanJob | ProgramJob):
+                        self._end_recording(self._index + filled)  # closed, not leaked
+                    self._queue.clear()
                     self._job = RampJob(self, None, self.config.service.ramp_rate_v_per_s, "fault")
                     self._fault_latched = True
                     continue
@@ -925,12 +958,20 @@ class Engine:
     # -- EngineControl ---------------------------------------------------------------------------
 
     def status(self) -> Status:
-        """A snapshot (cheap, thread-safe)."""
+        """A snapshot (cheap, thread-safe).
+
+        While the board is disconnected no position or voltage is reported: what the board applies
+        then is not known to the host (it ramps to its safe values when the heartbeat stops).
+        """
         with self._lock:
-            job = self._job
-            state = self._state
-            scan = job.request if isinstance(job, ScanJob) else None
-            line = job.line if isinstance(job, ScanJob) else None
+            return self._status_locked()
+
+    def _status_locked(self) -> Status:
+        job = self._job
+        state = self._state
+        scan = job.request if isinstance(job, ScanJob) else None
+        line = job.line if isinstance(job, ScanJob) else None
+        known = state not in ("disconnected", "starting")
         session = self._session
         fifo_ms = 0.0
         underruns = crc = dropped = 0
@@ -955,8 +996,8 @@ class Engine:
             frames_dropped=dropped,
             faults=list(self._faults)[-20:],
             last_line=self._last_line,
-            position_um={n: d.position_um for n, d in self.drivers.items()},
-            voltage_v={n: d.voltage_v for n, d in self.drivers.items()},
+            position_um={n: d.position_um for n, d in self.drivers.items()} if known else {},
+            voltage_v={n: d.voltage_v for n, d in self.drivers.items()} if known else {},
             recording=self._recording_name,
             sensitivity_scale={a: t.scale for a, t in self._trackers.items()},
         )
@@ -968,14 +1009,14 @@ class Engine:
     def start_scan(self, request: ScanRequest, *, path: Path | None = None) -> Status:
         """Start a scan; recorded to ``path`` or to the recording directory."""
         params = self.raster_params(request)
-        self.plans_for(params)
+        plans = self.plans_for(params)  # the heavy part, outside the lock
         with self._lock:
             if self._state not in ("idle",):
                 raise EngineStateError(f"cannot start a scan while {self._state}")
             if request.record:
-                self._begin_recording(request, params, path)
+                self._begin_recording(request, params, path, plans)
             try:
-                job = ScanJob(self, request, params)
+                job = ScanJob(self, request, params, plans)
             except BaseException:
                 self._discard_recording()
                 raise
@@ -989,6 +1030,13 @@ class Engine:
             job = self._job
             if not isinstance(job, ScanJob):
                 raise EngineStateError(f"no scan is running (state {self._state})")
+            base = job.params
+        # checked completely before anything is queued: a refused change has no effect at all
+        new = replace(base, **change.model_dump(exclude_none=True))
+        self.plans_for(new)
+        with self._lock:
+            if self._job is not job or job.params is not base:
+                raise EngineStateError("the scan changed or ended meanwhile; send the change again")
             job.change(self, change)
         return self.status()
 
@@ -996,9 +1044,14 @@ class Engine:
         """Stop scanning / moving and hold; clears a latched fault."""
         with self._lock:
             self._queue.clear()
-            if isinstance(self._job, ScanJob):
+            if isinstance(self._job, ScanJob | ProgramJob):
                 self._end_recording()
             self._fault_latched = False
+            if self._state in ("disconnected", "starting"):
+                # nothing to stop here: the board ramps to its safe values by itself when the host's
+                # heartbeat stops, and is reconfigured (outputs at the safe values) when it is back
+                self._job = HoldJob(self._state)
+                return self._status_locked()
             self._job = HoldJob("idle")
             self._state = "idle"
         return self.status()
@@ -1022,6 +1075,7 @@ class Engine:
     def move(self, request: MoveRequest) -> Status:
         """Move to a position (slew-limited), then hold."""
         self.check_move(request)
+        self._check_move_duration(request)
         goal = {
             k: v for k, v in (("x", request.x_um), ("y", request.y_um), ("z", request.z_um)) if v is not None
         }
@@ -1031,6 +1085,20 @@ class Engine:
             self._job = MoveJob(self, goal, request.speed_um_per_s)
             self._state = "moving"
         return self.status()
+
+    def _check_move_duration(self, request: MoveRequest) -> None:
+        """Refuse a move that would take longer than :data:`MAX_MOVE_S` (with the speed it needs)."""
+        with self._lock:
+            here = {n: d.position_um for n, d in self.drivers.items()}
+        goal = {"x": request.x_um, "y": request.y_um, "z": request.z_um}
+        dist = max((abs(v - here[k]) for k, v in goal.items() if v is not None and k in here), default=0.0)
+        duration = 0.5 * math.pi * dist / request.speed_um_per_s
+        if duration > MAX_MOVE_S:
+            need = 0.5 * math.pi * dist / MAX_MOVE_S
+            raise SafetyError(
+                f"a move of {dist:.4g} um at {request.speed_um_per_s:g} um/s takes {duration:.4g} s, longer "
+                f"than the {MAX_MOVE_S:g} s a move may take; use at least {need:.3g} um/s"
+            )
 
     def recordings(self) -> list[RecordingInfo]:
         """The recordings in the recording directory."""
@@ -1131,7 +1199,13 @@ class Engine:
 
     # -- recordings ------------------------------------------------------------------------------
 
-    def _begin_recording(self, request: ScanRequest, params: RasterParams, path: Path | None) -> None:
+    def _begin_recording(
+        self,
+        request: ScanRequest,
+        params: RasterParams,
+        path: Path | None,
+        plans: dict[str, PeriodicPlan | None],
+    ) -> None:
         self._next_recording += 1
         ident = self._next_recording
         meta: dict[str, object] = {
@@ -1146,7 +1220,7 @@ class Engine:
             "correction": "thesis" if request.correction else "none",
             "sample_rate_hz": self.rate_hz,
         }
-        axes = tuple(a for a, plan in self.plans_for(params).items() if plan is not None) or ("x",)
+        axes = tuple(a for a, plan in plans.items() if plan is not None) or ("x",)
         if path is not None or request.name:
             if path is None:
                 name = request.name or ""
