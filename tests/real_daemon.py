@@ -14,7 +14,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
 
@@ -71,6 +71,8 @@ class RealDaemon:
         Recording directory (default ``tmp/rec``).
     api, token
         ``--api`` (default ``unix:tmp/api.sock``) and the bearer token the client sends.
+    port_via
+        Given the simulator's path, the path the daemon connects to instead (a proxy between them).
     """
 
     def __init__(
@@ -83,6 +85,7 @@ class RealDaemon:
         recordings: Path | None = None,
         api: str | None = None,
         token: str | None = None,
+        port_via: Callable[[str], str] | None = None,
     ) -> None:
         self.tmp = tmp
         self.config = config or default_sim_config_path()
@@ -92,6 +95,7 @@ class RealDaemon:
         self.socket = tmp / "api.sock"
         self.api = api or f"unix:{self.socket}"
         self.token = token
+        self.port_via = port_via
         self.recordings = recordings or tmp / "rec"
         self.log_path = tmp / "daemon.log"
         self.sim: SimProcess | None = None
@@ -103,7 +107,8 @@ class RealDaemon:
         return self.sim
 
     def __enter__(self) -> RealDaemon:
-        self.start_sim()
+        sim = self.start_sim()
+        port = self.port_via(sim.path) if self.port_via is not None else str(self.link)
         env = dict(os.environ, NOTIFY_SOCKET=str(self.notify.path), WATCHDOG_USEC="5000000")
         cmd = [
             sys.executable,
@@ -113,7 +118,7 @@ class RealDaemon:
             "--config",
             str(self.config),
             "--port",
-            str(self.link),
+            port,
             "--api",
             self.api,
             "--recordings",
