@@ -145,3 +145,17 @@ def test_power_cycled_board_is_reconfigured_and_status_is_honest(tmp_path: Path)
         refused = d.log_text().count("BAD_STATE")
         assert refused <= 2, refused
     assert read_recording(tmp_path / "rec" / "cycled.csv").t_s.size > 0
+
+
+def test_a_scan_that_would_clamp_while_settling_is_refused(daemon: RealDaemon) -> None:
+    with daemon.client() as c:
+        c.stop()
+        before = c.status()
+        # the steady loop of this scan fits inside the limits; its start (creep settling) does not
+        with pytest.raises(ApiError) as err:
+            c.scan(range_um=10.0, line_rate_hz=4.0, lines=8, offset_x_um=14.0, name="edge")
+        assert err.value.status_code == 422 and "beyond the voltage limits" in str(err.value)
+        st = c.status()
+        assert st.state == "idle" and st.voltage_v == before.voltage_v
+        assert not [f for f in st.faults if f.code == "LIMIT"]
+    assert not (daemon.recordings / "edge.csv").exists()

@@ -21,6 +21,7 @@ outputs to the safe values (the board also ramps by itself when the host's heart
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import math
 import queue
@@ -32,7 +33,7 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -635,6 +636,46 @@ class Recorder(threading.Thread):
         )
 
 
+#: Most samples :meth:`Engine.check_scan` renders to check the start of a scan.
+MAX_CHECK_SAMPLES = 200_000
+
+
+class _ShadowEngine:
+    """What a job needs of the engine, on copies of its axis drivers: to try a job without effect."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.rate_hz = engine.rate_hz
+        self._engine = engine
+        with engine._lock:
+            self.drivers = {name: copy.deepcopy(d) for name, d in engine.drivers.items()}
+        self.clamped = dict.fromkeys(self.drivers, 0)
+
+    def label_id(self, name: str) -> int:
+        return -1
+
+    def plans_for(self, params: RasterParams) -> dict[str, PeriodicPlan | None]:
+        return self._engine.plans_for(params)
+
+    def tracked_scale(self, axis: str) -> float:
+        return self._engine.tracked_scale(axis)
+
+    def drive(self, driver: AxisDriver, out: Any) -> FloatArray:
+        if out.clamped:
+            self.clamped[driver.name] += int(out.clamped)
+        volts: FloatArray = out.voltage_v
+        return volts
+
+    def chunk(self, volts: FloatArray, targets: FloatArray | None) -> Chunk:
+        n = volts.shape[1]
+        return Chunk(
+            volts,
+            np.full(volts.shape, np.nan) if targets is None else targets,
+            np.full(n, -1, dtype=np.int64),
+            np.zeros(n, dtype=np.int8),
+            np.zeros(n, dtype=bool),
+        )
+
+
 def capped_lead_s(lead_s: float, session: BoardSession, rate_hz: float) -> float:
     """The lead, capped at 60 % of the board FIFO (at high sample rates a long lead does not fit)."""
     caps = session.capabilities
@@ -1003,13 +1044,51 @@ class Engine:
         )
 
     def check_scan(self, request: ScanRequest) -> None:
-        """Refuse a scan the stage cannot do (with the reason)."""
-        self.plans_for(self.raster_params(request))
+        """Refuse a scan the stage cannot do (with the reason).
+
+        Besides the steady loop (:meth:`plans_for`), the start of the scan (the move to its first
+        point, the settling lines and the first lines of the frame) is rendered on copies of the
+        axis drivers, outside the engine lock: a scan that would clamp any sample to the voltage
+        limits there (an offset that drives an axis into its limits while the creep settles) is
+        refused with the numbers instead of being clamped while it runs.
+        """
+        params = self.raster_params(request)
+        plans = self.plans_for(params)
+        self._check_scan_start(request, params, plans)
+
+    def _check_scan_start(
+        self, request: ScanRequest, params: RasterParams, plans: dict[str, PeriodicPlan | None]
+    ) -> None:
+        shadow = _ShadowEngine(self)
+        job = ScanJob(cast(Engine, shadow), request, params, plans)
+        budget = int(self.rate_hz * (SETTLE_LINES + 2 + 1) / params.line_rate_hz) + 1
+        block = max(1, round(self.rate_hz * self.config.service.block_ms / 1000.0))
+        moved = 0
+        rendered = 0
+        while not job.done and (job._move is not None or rendered < budget) and moved < MAX_CHECK_SAMPLES:
+            in_move = job._move is not None
+            chunk = job.render(cast(Engine, shadow), block)
+            moved += chunk.volts.shape[1]
+            if not in_move:
+                rendered += chunk.volts.shape[1]
+            if chunk.volts.shape[1] == 0 and not job.done:
+                break
+        bad = {axis: n for axis, n in shadow.clamped.items() if n}
+        if bad:
+            axis, n = next(iter(bad.items()))
+            d = self.drivers[axis]
+            lo, hi = d.limits
+            raise SafetyError(
+                f"axis {axis}: the start of this scan (range {request.range_um:g} um, offset "
+                f"({request.offset_x_um:g}, {request.offset_y_um:g}) um) would drive {n} samples beyond the "
+                f"voltage limits [{lo:g}, {hi:g}] V while the stage settles; reduce the offset or the range"
+            )
 
     def start_scan(self, request: ScanRequest, *, path: Path | None = None) -> Status:
         """Start a scan; recorded to ``path`` or to the recording directory."""
         params = self.raster_params(request)
-        plans = self.plans_for(params)  # the heavy part, outside the lock
+        plans = self.plans_for(params)  # the heavy parts, outside the lock
+        self._check_scan_start(request, params, plans)
         with self._lock:
             if self._state not in ("idle",):
                 raise EngineStateError(f"cannot start a scan while {self._state}")
