@@ -34,6 +34,9 @@ def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RealDaemon]:
 
 
 def test_a_refused_change_has_no_effect(daemon: RealDaemon) -> None:
+    """Tried: PATCH /v1/scan range 500 um (unreachable), 5 times while scanning. Held: 422 with the reason;
+    2 s later the scan runs unchanged, no MODEL or LIMIT fault.
+    """
     with daemon.client() as c:
         c.scan(range_um=10.0, line_rate_hz=4.0, lines=64, frames=0, name="patched")
         daemon.wait_state({"scanning"}, 10.0)
@@ -53,6 +56,9 @@ def test_a_refused_change_has_no_effect(daemon: RealDaemon) -> None:
 
 
 def test_refusals_leak_no_descriptors(daemon: RealDaemon) -> None:
+    """Tried: 60 refused scans, 8 started-and-stopped scans. Held: no file descriptor leaked, no file left
+    by a refused scan, the next scan starts.
+    """
     with daemon.client() as c:
         c.stop()
         fds0 = _fds(daemon)
@@ -73,6 +79,9 @@ def test_refusals_leak_no_descriptors(daemon: RealDaemon) -> None:
 
 
 def test_slow_moves_are_bounded_and_built_outside_the_lock(daemon: RealDaemon) -> None:
+    """Tried: a 10 um move at 1e-4 um/s; a 2 um move at 0.01 um/s (314 s). Held: the first refused at once
+    with the speed it needs; the second starts at once, streamed block by block, no underrun.
+    """
     with daemon.client() as c:
         c.stop()
         u0 = c.status().underruns
@@ -99,6 +108,9 @@ def _log_time(line: str) -> float:
 
 
 def test_sigkill_mid_scan_board_ramps_and_recording_parses(tmp_path: Path) -> None:
+    """Tried: SIGKILL of piezod serve mid-scan. Held: the board's watchdog trips within the heartbeat
+    timeout and ramps to safe (IDLE, WATCHDOG latched); the recording parses strictly to its last line.
+    """
     d = RealDaemon(tmp_path)
     with d:
         with d.client() as c:
@@ -125,6 +137,10 @@ def test_sigkill_mid_scan_board_ramps_and_recording_parses(tmp_path: Path) -> No
 
 
 def test_power_cycled_board_is_reconfigured_and_status_is_honest(tmp_path: Path) -> None:
+    """Tried: the simulator killed mid-scan and started again on the same link (an UNCONFIGURED board).
+    Held: no voltages/positions reported while it is gone, stop answers 'disconnected'; the board is
+    reconfigured at once (outputs at the safe values) and the next scan runs.
+    """
     with RealDaemon(tmp_path) as d:
         with d.client() as c:
             c.scan(range_um=10.0, line_rate_hz=4.0, lines=64, frames=0, name="cycled")
@@ -148,6 +164,9 @@ def test_power_cycled_board_is_reconfigured_and_status_is_honest(tmp_path: Path)
 
 
 def test_a_scan_that_would_clamp_while_settling_is_refused(daemon: RealDaemon) -> None:
+    """Tried: a scan whose steady loop fits but whose offset drives x into its limits while the creep
+    settles. Held: 422 with the count of samples it would clamp; nothing moved, no recording.
+    """
     with daemon.client() as c:
         c.stop()
         before = c.status()

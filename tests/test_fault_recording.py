@@ -36,6 +36,9 @@ def _names(d: RealDaemon) -> set[str]:
 
 
 def test_an_existing_recording_is_never_overwritten(daemon: RealDaemon) -> None:
+    """Tried: POST /v1/scan named like an existing recording. Held: 422; the file byte for byte unchanged;
+    idle.
+    """
     keep = daemon.recordings / "keep.csv"
     keep.write_bytes(b"# precious\nt,voltage,position\n0.0,0.0,0.0\n" * 1000)
     before = keep.read_bytes()
@@ -49,6 +52,9 @@ def test_an_existing_recording_is_never_overwritten(daemon: RealDaemon) -> None:
 
 
 def test_unnamed_scans_in_the_same_second_get_their_own_files(daemon: RealDaemon) -> None:
+    """Tried: three unnamed scans while the next seconds' names are taken by other files. Held: each gets
+    its own -N file, the others untouched, all parse.
+    """
     # the names the next seconds would get already exist (someone else's files)
     now = time.time()
     taken = {
@@ -117,6 +123,10 @@ def _fill(directory: Path, leave_bytes: int) -> Path:
 
 
 def test_full_disk_stops_the_scan_keeps_the_data_and_recovers(tmp_path: Path) -> None:
+    """Tried: a 2 MB tmpfs as recording directory filled while scanning; a scan while still full; space
+    freed. Held: RECORDING fault, the scan stopped holding inside the limits, the recording parses to a
+    complete last line; no empty file; after freeing space the next scan records, no restart.
+    """
     with small_tmpfs(tmp_path / "rec", "2m") as rec, RealDaemon(tmp_path, recordings=rec) as d:
         filler = _fill(rec, 256 * 1024)
         with d.client() as c:
@@ -162,6 +172,9 @@ def test_full_disk_stops_the_scan_keeps_the_data_and_recovers(tmp_path: Path) ->
 
 
 def test_config_written_in_place_on_a_full_disk_keeps_the_original(tmp_path: Path) -> None:
+    """Tried: a scanner YAML rewritten in place on a full tmpfs (calibrate --out F). Held: one-line error;
+    the original byte for byte intact; no temporary file left.
+    """
     cfg = load_config(config_dir() / "medium-tube.yaml")
     with small_tmpfs(tmp_path / "fs", "256k") as fs:
         target = fs / "scanner.yaml"
@@ -176,6 +189,7 @@ def test_config_written_in_place_on_a_full_disk_keeps_the_original(tmp_path: Pat
 
 
 def test_the_recordings_endpoint_serves_complete_lines(daemon: RealDaemon) -> None:
+    """Tried: downloading a recording. Held: served up to its last complete line."""
     with httpx.Client(transport=httpx.HTTPTransport(uds=str(daemon.socket)), base_url="http://piezod") as c:
         r = c.get("/v1/recordings/keep.csv")
         assert r.status_code == 200 and r.content.endswith(b"\n")

@@ -311,10 +311,10 @@ MAX_BODY_BYTES = 16 * 1024
 MAX_JSON_MEMBERS = 64
 MAX_JSON_DEPTH = 4
 #: Requests per second the API serves (a burst of as many is allowed); beyond, 429 after a delay.
-MAX_REQUESTS_PER_S = 200.0
+MAX_REQUESTS_PER_S = 50.0
 THROTTLE_DELAY_S = 0.1
 #: Open event streams at most (503 beyond).
-MAX_EVENT_STREAMS = 16
+MAX_EVENT_STREAMS = 8
 #: Threads running engine calls at most (the stream's threads share the interpreter with them).
 API_THREADS = 4
 #: Host names every listener answers to (the client's ``http://piezod`` over the Unix socket, loopback).
