@@ -11,8 +11,6 @@ Hello(protocol_version=1, session_id=1)
 
 from __future__ import annotations
 
-from piezod.errors import ProtocolError, VersionMismatchError
-
 from .codec import (
     DELIMITER,
     MAX_WIRE_SIZE,
@@ -38,6 +36,7 @@ from .endpoint import (
     TimedOut,
     check_capabilities,
 )
+from .errors import ProtocolError, VersionMismatchError, WireError
 from .messages import (
     CONTROL_TYPES,
     CRC_SIZE,
@@ -46,6 +45,8 @@ from .messages import (
     HEARTBEAT_TIMEOUT_MS_RANGE,
     MAX_CHANNELS,
     MAX_FRAME_SIZE,
+    MAX_SYNC_EVENTS,
+    MAX_SYNC_OUTPUTS,
     MESSAGE_CLASSES,
     NO_CHANNEL,
     NO_INDEX,
@@ -73,6 +74,7 @@ from .messages import (
     Start,
     Status,
     Stop,
+    Sync,
     max_samples_per_frame,
 )
 
@@ -87,6 +89,8 @@ __all__ = [
     "HEARTBEAT_TIMEOUT_MS_RANGE",
     "MAX_CHANNELS",
     "MAX_FRAME_SIZE",
+    "MAX_SYNC_EVENTS",
+    "MAX_SYNC_OUTPUTS",
     "MAX_WIRE_SIZE",
     "MESSAGE_CLASSES",
     "NO_CHANNEL",
@@ -127,8 +131,10 @@ __all__ = [
     "Start",
     "Status",
     "Stop",
+    "Sync",
     "TimedOut",
     "VersionMismatchError",
+    "WireError",
     "check_capabilities",
     "crc32_iso_hdlc",
     "decode_frame",

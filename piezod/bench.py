@@ -32,7 +32,7 @@ FloatArray = NDArray[np.float64]
 
 #: Per-sample inverse of the richest runtime model (issue 9), ns per sample and axis.
 TARGET_MODEL_NS_PER_SAMPLE = 150.0
-#: DESIGN section 6 targets.
+#: The targets of docs/formats.md, section 5.
 TARGET_NS_PER_SAMPLE = 50.0
 TARGET_RATIO = 0.3
 TARGET_ROUNDTRIP_REL = 1e-9

@@ -542,6 +542,16 @@ def plot_verification(rows: Sequence[dict[str, Any]], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    fig = verification_figure(rows)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def verification_figure(rows: Sequence[dict[str, Any]]) -> Any:
+    """The figure of :func:`plot_verification` (a matplotlib ``Figure``)."""
+    import matplotlib.pyplot as plt
+
     models = sorted({r["model"] for r in rows})
     pts = [r for r in rows if r["model"] == models[0]]
     labels = [f"{r['range_um']:g} um\n{r['frequency_hz']:g} Hz\n{r['offset_um']:+g} um" for r in pts]
@@ -554,30 +564,42 @@ def plot_verification(rows: Sequence[dict[str, Any]], path: Path) -> Path:
         le = [math.nan if r.get("length_error_pct") is None else r["length_error_pct"] for r in sel]
         axes[0].bar(x + k * width, nl, width, label=model)
         axes[1].bar(x + k * width, le, width, label=model)
-    for i, r in enumerate(pts):
-        if not r["inside_frame"]:
-            for a in axes:
-                a.axvspan(i - 0.45, i + 0.45 + width * (len(models) - 1), color="0.9", zorder=0)
-    axes[0].set_ylabel("nonlinearity %")
-    axes[0].axhline(0.2, color="k", ls=":", lw=0.8, label="one pixel (0.2 %)")
+    outside = [i for i, r in enumerate(pts) if not r["inside_frame"]]
+    for i in outside:
+        for a in axes:
+            a.axvspan(i - 0.45, i + 0.45 + width * (len(models) - 1), color="0.9", zorder=0)
+    # Axis limits follow the data; a reference line is drawn only where it lies inside them.
+    nl_all = [r["nonlinearity_pct"] for r in rows if r.get("nonlinearity_pct") is not None]
+    le_all = [abs(r["length_error_pct"]) for r in rows if r.get("length_error_pct") is not None]
+    nl_top = 1.25 * max([*nl_all, 0.05])
+    le_lim = 1.25 * max([*le_all, 0.05])
+    axes[0].set_ylabel("nonlinearity (% of range)")
+    axes[0].set_ylim(0.0, nl_top)
+    if nl_top > 0.2:
+        axes[0].axhline(0.2, color="k", ls=":", lw=0.8, label="one pixel of 512 (0.2 %)")
     axes[0].axhline(0.05, color="g", ls="--", lw=0.8, label="target in frame (0.05 %)")
-    axes[1].set_ylabel("length error %")
+    axes[1].set_ylabel("length error (% of range)")
+    axes[1].set_ylim(-le_lim, le_lim)
     axes[1].axhline(0.0, color="k", lw=0.8)
-    for y in (-1.0, 1.0):
-        axes[1].axhline(y, color="r", ls=":", lw=0.8)
+    if le_lim > 1.0:
+        for y in (-1.0, 1.0):
+            axes[1].axhline(y, color="r", ls=":", lw=0.8, label="+-1 %" if y > 0 else None)
     axes[1].set_xticks(x + width * (len(models) - 1) / 2, labels, fontsize=7)
+    axes[1].set_xlabel("verification scan: range, line rate, offset")
     axes[0].legend()
-    axes[0].set_title("Online correction on the stage (grey: outside the frame)", fontsize=10)
+    title = "Online correction on the stage: linearity of verification scans per model"
+    if outside:
+        title += "\n(grey: outside the calibration frame)"
+    axes[0].set_title(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return fig
 
 
 def frame_summary(frame: Frame) -> str:
     """One line describing the frame."""
     (r0, r1), (f0, f1), (o0, o1) = frame.ranges_v, frame.frequencies_hz, frame.offsets_v
+    offsets = f"offset {o0:+g} V" if o0 == o1 else f"offsets {o0:+g}..{o1:+g} V"
     return (
         f"{len(frame.scans)} scans on {frame.axis}: {r0:g}-{r1:g} V p-p, {f0:g}-{f1:g} Hz, "
-        f"offsets {o0:+g}..{o1:+g} V, ~{frame.duration_s:.0f} s"
+        f"{offsets}, ~{frame.duration_s:.0f} s"
     )

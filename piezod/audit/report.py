@@ -1,4 +1,4 @@
-"""The audit report: a text summary for the scientist and the JSON document of DESIGN section 4."""
+"""The audit report: a text summary for the scientist and the JSON document (keys: docs/formats.md)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from piezod.audit.decide import AuditResult, CandidateResult
+from piezod.audit.decide import AuditOptions, AuditResult, CandidateResult
 from piezod.audit.evidence import Structure
 
 _MEANING = {
@@ -22,6 +22,10 @@ _MEANING = {
     "delay": "sensor or amplifier lag: the loop opens with speed",
     "saturation": "response compresses at large excursions",
     "creep": "creep law wrong: frequency dependence not as modelled",
+    "switching": "polarization switching: the actuator model does not apply (butterfly response, even in V)",
+    "sensitivity_loss": "sensitivity lost after a large excursion (depoling)",
+    "sensitivity_gain": "the validation session is more sensitive than the training session",
+    "undetermined": "the data do not determine the baseline model; no cause can be named",
 }
 
 
@@ -37,11 +41,14 @@ def _candidate_json(c: CandidateResult) -> dict[str, Any]:
         "note": c.testable,
         "params": {k: _num(v) for k, v in c.params.items()},
         "gain": _num(c.gain),
+        "gain_se": _num(c.gain_se),
         "heldout_rms_before_um": _num(c.heldout_rms_before_um),
         "heldout_rms_after_um": _num(c.heldout_rms_after_um),
         "rms_um": _num(c.rms_um),
         "bic_delta": _num(c.bic_delta),
         "eligible": c.eligible,
+        "plausible": not c.implausible,
+        "implausible": c.implausible,
     }
 
 
@@ -61,7 +68,7 @@ def _structure_json(s: Structure) -> dict[str, Any]:
 def result_json(
     result: AuditResult, *, inputs: Sequence[str] = (), validate: Sequence[str] = ()
 ) -> dict[str, Any]:
-    """The JSON document of ``piezod audit --json`` (DESIGN section 4, more keys welcome).
+    """The JSON document of ``piezod audit --json`` (keys: docs/formats.md, more keys welcome).
 
     Keys the checks read: ``cause``, ``findings[]`` (``effect, evidence, gain,
     heldout_rms_before_um, heldout_rms_after_um``) and ``baseline`` (``rms_um, heldout_rms_um``).
@@ -77,6 +84,7 @@ def result_json(
                 "effect": f.effect,
                 "evidence": f.evidence,
                 "gain": _num(f.gain),
+                "gain_se": _num(f.gain_se),
                 "heldout_rms_before_um": _num(f.heldout_rms_before_um),
                 "heldout_rms_after_um": _num(f.heldout_rms_after_um),
                 "params": {k: _num(v) for k, v in f.params.items()},
@@ -121,10 +129,21 @@ def result_json(
             "bic_min": opts.bic_min,
             "gain_min": opts.gain_min,
             "structure_max": opts.structure_max,
-            "rule": "greedy forward selection: a candidate is eligible when the BIC falls by more than "
-            "bic_min and the held-out RMS by the factor gain_min; the eligible one with the largest "
-            "held-out gain joins the model; cause = the first finding, else none (residual at the "
-            "noise floor) or unexplained",
+            "explain_min": opts.explain_min,
+            "gain_sigmas": opts.gain_sigmas,
+            "heldout_refit": opts.refit_cv,
+            "rule": legend(opts),
+        },
+        "outside_model": _outside_json(result),
+        "degeneracy": None
+        if result.degeneracy is None
+        else {
+            "degenerate": result.degeneracy.degenerate,
+            "undetermined": list(result.degeneracy.undetermined),
+            "on_bounds": list(result.degeneracy.on_bounds),
+            "condition_number": _num(result.degeneracy.condition_number),
+            "max_correlation": _num(result.degeneracy.max_correlation),
+            "text": result.degeneracy.text,
         },
         "n_experiments": result.data.n_experiments,
         "n_samples": result.data.n,
@@ -133,6 +152,52 @@ def result_json(
         "inputs": list(inputs),
         "validate": list(validate),
     }
+
+
+def _outside_json(result: AuditResult) -> dict[str, Any]:
+    o = result.outside
+    return {
+        "switching": None
+        if o.switching is None
+        else {
+            "onset_v": o.switching.onset_v,
+            "turn_fraction": o.switching.turn_fraction,
+            "experiments": list(o.switching.experiments),
+            "text": o.switching.text,
+        },
+        "hold_drift": None
+        if o.drift is None
+        else {
+            "rate_nm_per_s": o.drift.rate_nm_per_s,
+            "rate_se_nm_per_s": o.drift.rate_se_nm_per_s,
+            "gain": _num(o.drift.gain),
+            "gain_se": _num(o.drift.gain_se),
+            "bic_delta": o.drift.bic_delta,
+            "n_holds": o.drift.n_holds,
+            "seconds": o.drift.seconds,
+            "significant": o.drift.significant,
+            "text": o.drift.text,
+        },
+        "sensitivity_loss": None
+        if o.loss is None
+        else {
+            "loss_pct": o.loss.loss_pct,
+            "after": o.loss.after,
+            "peak_v": o.loss.peak_v,
+            "text": o.loss.text,
+        },
+        "holds": [{"experiment": lab, "first_sample": a, "stop_sample": b} for lab, a, b in o.holds],
+    }
+
+
+def legend(opts: AuditOptions) -> str:
+    """The eligibility rule as the code applies it (:func:`piezod.audit.decide._try`)."""
+    return (
+        f"(* eligible: BIC falls by more than {opts.bic_min:g}, held-out gain >= {opts.gain_min:g} and "
+        f"more than {opts.gain_sigmas:g} standard errors above 1, explains >= {100 * opts.explain_min:g} % "
+        "of the held-out variance above the noise, parameters physically plausible; > the eligible "
+        "candidate with the largest gain: finding 1, the cause)"
+    )
 
 
 def print_summary(result: AuditResult, out: IO[str]) -> None:
@@ -154,21 +219,21 @@ def print_summary(result: AuditResult, out: IO[str]) -> None:
     )
     _print_structure(result.base_structure, out)
     pr("", file=out)
-    pr(f"{'candidate':<11} {'gain':>7} {'held-out um':>12} {'BIC delta':>11}  parameters", file=out)
-    for c in result.candidates:
-        if c.fit is None:
-            pr(f"{c.effect:<11} {'-':>7} {'-':>12} {'-':>11}  not tested: {c.testable}", file=out)
-            continue
-        ptxt = ", ".join(f"{k} {v:.4g}" for k, v in c.params.items())
-        mark = " *" if c.eligible else "  "
-        note = f" [{c.testable}]" if c.testable else ""
-        nums = f"{c.gain:7.3f} {c.heldout_rms_after_um:12.4g} {c.bic_delta:11.4g}"
-        pr(f"{c.effect:<11} {nums}{mark}{ptxt}{note}", file=out)
     pr(
-        "(* eligible: BIC falls by more than "
-        f"{result.options.bic_min:g} and held-out gain >= {result.options.gain_min:g})",
+        f"{'candidate':<11} {'gain':>7} {'+-':>6} {'held-out um':>12} {'BIC delta':>11}  parameters",
         file=out,
     )
+    first = result.findings[0].effect if result.findings else None
+    for c in result.candidates:
+        if c.fit is None:
+            pr(f"{c.effect:<11} {'-':>7} {'':>6} {'-':>12} {'-':>11}  not tested: {c.testable}", file=out)
+            continue
+        ptxt = ", ".join(f"{k} {v:.4g}" for k, v in c.params.items())
+        mark = " >" if c.effect == first and c.eligible else (" *" if c.eligible else "  ")
+        note = f" [{c.testable}]" if c.testable else ""
+        nums = f"{c.gain:7.3f} {c.gain_se:6.3f} {c.heldout_rms_after_um:12.4g} {c.bic_delta:11.4g}"
+        pr(f"{c.effect:<11} {nums}{mark}{ptxt}{note}", file=out)
+    pr(legend(result.options), file=out)
     pr("", file=out)
     for k, f in enumerate(result.findings, start=1):
         pr(f"finding {k}: {f.effect} ({_MEANING.get(f.effect, '')})", file=out)

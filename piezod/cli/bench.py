@@ -6,7 +6,7 @@ import argparse
 import importlib
 from typing import Any
 
-from piezod.cli._common import add_json_option, human_stream, write_json
+from piezod.cli._common import add_json_option, human_stream, positive_float, positive_int, write_json
 from piezod.errors import PiezodError
 
 #: Module providing ``run_stream_bench(args) -> dict`` (the link's streaming benchmark).
@@ -22,26 +22,46 @@ def register(sub: Any) -> None:
             "inverse: time the full Lambert-W inverse on blocks of a triangular scan against the same "
             "inverse built on scipy.special.lambertw, in the same run, and report the worst round-trip "
             "error relative to the range. stream: stream samples to the simulated board and count "
-            "underruns and CRC errors."
+            "underruns and CRC errors. audit: run the audit over a corpus generated in process "
+            "(hidden-effect sessions, decimated and re-split variants, stand-ins for real data, the "
+            "P-885 recordings) and print the confusion matrix, false-alarm rate, invariance failures, "
+            "findings outside physical bounds and the time per audit."
         ),
     )
-    p.add_argument("which", choices=("inverse", "stream"), help="what to benchmark")
+    p.add_argument("which", choices=("inverse", "stream", "audit"), help="what to benchmark")
     add_json_option(p)
     inv = p.add_argument_group("inverse")
-    inv.add_argument("--block-samples", type=int, default=4096, metavar="N", help="samples per block")
-    inv.add_argument("--blocks", type=int, default=128, metavar="N", help="blocks per repeat")
-    inv.add_argument("--repeats", type=int, default=7, metavar="N", help="interleaved repeats (best counts)")
+    inv.add_argument(
+        "--block-samples", type=positive_int, default=4096, metavar="N", help="samples per block"
+    )
+    inv.add_argument("--blocks", type=positive_int, default=128, metavar="N", help="blocks per repeat")
+    inv.add_argument(
+        "--repeats", type=positive_int, default=7, metavar="N", help="interleaved repeats (best counts)"
+    )
     stream = p.add_argument_group("stream")
-    stream.add_argument("--axes", type=int, default=3, metavar="N", help="number of axes streamed")
-    stream.add_argument("--rate-hz", type=float, default=100_000.0, metavar="R", help="samples/s per axis")
-    stream.add_argument("--seconds", type=float, default=60.0, metavar="S", help="duration (s)")
+    stream.add_argument("--axes", type=positive_int, default=3, metavar="N", help="number of axes streamed")
+    stream.add_argument(
+        "--rate-hz", type=positive_float, default=100_000.0, metavar="R", help="samples/s per axis"
+    )
+    stream.add_argument("--seconds", type=positive_float, default=60.0, metavar="S", help="duration (s)")
+    stream.add_argument(
+        "--port",
+        default=None,
+        metavar="URL",
+        help="stream to this board (a pty, serial port or pyserial URL, e.g. the C firmware's host "
+        "build) instead of a fresh hil_sim",
+    )
     stream.add_argument(
         "--api-load", action="store_true", help="stream with the daemon while its API is polled"
     )
     stream.add_argument(
-        "--api-clients", type=int, default=2, metavar="N", help="polling clients (--api-load)"
+        "--api-clients", type=positive_int, default=2, metavar="N", help="polling clients (--api-load)"
     )
     stream.add_argument("--with-fit", action="store_true", help="also run calibration fits (--api-load)")
+    aud = p.add_argument_group("audit")
+    aud.add_argument(
+        "--sessions", type=int, default=2, metavar="N", help="hidden-effect sessions per effect (audit)"
+    )
     p.set_defaults(func=run)
 
 
@@ -111,8 +131,25 @@ def _run_link_stream(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def _run_audit(args: argparse.Namespace) -> dict[str, Any]:
+    from piezod.audit.bench import format_report, run_corpus
+    from piezod.progress import progress_bar
+
+    if args.sessions < 1:
+        raise PiezodError("--sessions must be >= 1")
+    with progress_bar(desc="audits", total=None, unit="audit") as bar:
+
+        def tick(_name: str) -> None:
+            bar.update(1)
+
+        result = run_corpus(args.sessions, on_audit=tick)
+    print(format_report(result), file=human_stream(args))
+    return result
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``piezod bench``."""
-    result = _run_inverse(args) if args.which == "inverse" else _run_stream(args)
+    runners = {"inverse": _run_inverse, "stream": _run_stream, "audit": _run_audit}
+    result = runners[args.which](args)
     write_json(args.json, result)
     return 0

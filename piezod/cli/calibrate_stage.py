@@ -33,7 +33,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
         raise CalibrationError("--out F.yaml is required: where the calibrated scanner config goes")
     if args.recordings:
         raise CalibrationError("give recordings (offline fit) or --sim/--port (on the stage), not both")
-    config_path = scanner_config_path(args)
+    config_path = scanner_config_path(args, first_guess=True)
     base = load_config(config_path)
     axis: AxisName = args.axis or "x"
     reduced = args.frame == "reduced"
