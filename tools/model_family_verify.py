@@ -102,7 +102,10 @@ def main() -> int:
         cfg = calibrated.axes[axis].model_copy(update={"model": kind, "slew_rate_v_per_s": 1e6})
         driver = AxisDriver(axis, cfg, rate)
         driver.reset(bench.v)
-        for pt in points:
+        # as piezod calibrate's verification: one unrecorded warm-up scan at the first point
+        # after a model is switched in (its creep memory starts from rest, the stage's does not)
+        for k, pt in enumerate([points[0], *points]):
+            warm_up = k == 0
             plan = driver.plan(pt.range_um, pt.frequency_hz, pt.offset_um)
             driver.use_plan(plan)
             lo = pt.offset_um - 0.5 * pt.range_um
@@ -122,6 +125,8 @@ def main() -> int:
                 volts.append(out.voltage_v)
             v = np.concatenate(volts)
             t, x = bench.play(v)
+            if warm_up:
+                continue
             k0 = n_move + per
             exp = Experiment("verify", axis, t[k0:], v[k0:], x[k0:], target_um=target[k0:])
             lin = experiment_linearity(exp)
