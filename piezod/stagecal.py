@@ -195,6 +195,7 @@ def verification_points(
         return round(float(scan_range_um(p, f, 0.5 * range_v)), 1)
 
     f_mid = float(np.sqrt(f_lo * f_hi))
+    b = p.b_um_per_v
     pts = [
         VerifyPoint(um(r_lo * 1.1, f_mid), round(f_mid, 2), 0.0, True, "inside: small range"),
         VerifyPoint(um(0.5 * (r_lo + r_hi), f_mid), round(f_mid, 2), 0.0, True, "inside: mid range"),
@@ -210,22 +211,16 @@ def verification_points(
     f_fast = 10.0 * f_hi
     r_fast = min(0.5 * (r_lo + r_hi), 0.8 * ax.slew_rate_v_per_s / (2.0 * f_fast) / 2.0)
     pts.append(VerifyPoint(um(r_fast, f_fast), f_fast, 0.0, False, "10x faster"))
-    # Offsets beyond the frame's: half-range scans pushed out to 1.8x the largest offset; the
-    # offset in um is where the axis's own model rests at that voltage (any model, any law).
+    # Offsets beyond the frame's: half-range scans pushed out to 1.8x the largest offset.
     off_v = 1.8 * max(abs(o_hi - centre), abs(o_lo - centre), 0.1 * (ax.voltage_max_v - ax.voltage_min_v))
     r_off = min(r_lo, 2.0 * (0.5 * (ax.voltage_max_v - ax.voltage_min_v) - off_v) * 0.9)
     if r_off > 0:
-        from piezod.service.axes import axis_model
-
-        model = axis_model(ax)
         for sign in (-1.0, 1.0):
-            v_off = centre + sign * off_v
-            at = model.position(model.rest(v_off)) - model.position(model.rest(centre))
             pts.append(
                 VerifyPoint(
                     um(r_off, 1.0),
                     1.0,
-                    round(at, 2),
+                    round(sign * off_v * b, 2),
                     False,
                     f"offset {sign * off_v:+.0f} V beyond frame",
                 )
