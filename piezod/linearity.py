@@ -344,7 +344,7 @@ class LinearityReport:
         return max(abs(e.length_error_pct) for e in self.experiments)
 
     def to_json(self) -> dict[str, Any]:
-        """The document of ``piezod linearity --json`` (DESIGN section 4)."""
+        """The document of ``piezod linearity --json`` (keys: docs/formats.md)."""
         return {
             "experiments": [e.to_json() for e in self.experiments],
             "max_nonlinearity_pct": self.max_nonlinearity_pct,

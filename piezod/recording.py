@@ -1,4 +1,4 @@
-"""The recording format (DESIGN section 3): reader, streaming writer, experiments, scan inference.
+"""The recording format (docs/formats.md): reader, streaming writer, experiments.
 
 Format
 ------
@@ -649,6 +649,12 @@ class RecordingWriter:
         self._flush()
         self.rows_written += n
         return n
+
+    def comment(self, text: str) -> None:
+        """Append a comment line ``# text`` (e.g. a scan change between experiments) and flush."""
+        _meta_value(text)
+        self._fh.write(f"# {text}\n")
+        self._flush()
 
     def write_recording(self, rec: Recording) -> int:
         """Write all rows of ``rec`` (its columns must match the writer's)."""

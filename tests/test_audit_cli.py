@@ -1,4 +1,4 @@
-"""``piezod audit`` on the command line: report, JSON keys of DESIGN section 4, plots, errors."""
+"""``piezod audit`` on the command line: report, JSON keys of docs/formats.md, plots, errors."""
 
 from __future__ import annotations
 

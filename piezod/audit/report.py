@@ -1,4 +1,4 @@
-"""The audit report: a text summary for the scientist and the JSON document of DESIGN section 4."""
+"""The audit report: a text summary for the scientist and the JSON document (keys: docs/formats.md)."""
 
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def _structure_json(s: Structure) -> dict[str, Any]:
 def result_json(
     result: AuditResult, *, inputs: Sequence[str] = (), validate: Sequence[str] = ()
 ) -> dict[str, Any]:
-    """The JSON document of ``piezod audit --json`` (DESIGN section 4, more keys welcome).
+    """The JSON document of ``piezod audit --json`` (keys: docs/formats.md, more keys welcome).
 
     Keys the checks read: ``cause``, ``findings[]`` (``effect, evidence, gain,
     heldout_rms_before_um, heldout_rms_after_um``) and ``baseline`` (``rms_um, heldout_rms_um``).

@@ -30,7 +30,7 @@ def register(sub: Any) -> None:
         nargs="+",
         type=input_file,
         metavar="REC.csv",
-        help="recordings to fit (DESIGN section 3)",
+        help="recordings to fit (docs/formats.md)",
     )
     p.add_argument(
         "--validate", nargs="+", default=[], metavar="REC.csv", help="held-out recordings (not fitted)"

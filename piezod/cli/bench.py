@@ -83,6 +83,13 @@ def _run_inverse(args: argparse.Namespace) -> dict[str, Any]:
         f"round trip {result['ode_max_roundtrip_error_rel']:.2e}",
         file=out,
     )
+    for name, m in result["models"].items():
+        print(
+            f"axis model {name:<26} {m['ns_per_sample']:7.1f} ns/sample/axis "
+            f"(x{m['ns_per_sample'] / result['scipy_ns_per_sample']:.2f} of the scipy-based inverse), "
+            f"round trip {m['max_roundtrip_error_rel']:.1e} of range",
+            file=out,
+        )
     print(
         f"{result['samples']} samples in blocks of {result['block_samples']}, best of {result['repeats']}; "
         f"targets {'met' if result['meets_targets'] else 'NOT met'}",

@@ -35,7 +35,7 @@ def register(sub: Any) -> None:
         ),
     )
     p.add_argument(
-        "recordings", nargs="*", type=input_file, metavar="REC.csv", help="recording files (DESIGN section 3)"
+        "recordings", nargs="*", type=input_file, metavar="REC.csv", help="recording files (docs/formats.md)"
     )
     p.add_argument(
         "--config",
