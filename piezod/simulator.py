@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from hil_sim.server import SimProcess
 
 
-def spawn_sim(config: str | Path | None = None, **kwargs: Any) -> SimProcess:
+def spawn_sim(config_path: str | Path | None = None, **kwargs: Any) -> SimProcess:
     """Start the simulated board on a pty (:func:`hil_sim.server.spawn_sim`); a context manager.
 
     Its ``path`` is the pty (or ``link``) the host opens.
@@ -27,7 +27,7 @@ def spawn_sim(config: str | Path | None = None, **kwargs: Any) -> SimProcess:
     from hil_sim.server import spawn_sim as _spawn
 
     try:
-        return _spawn(config, **kwargs)
+        return _spawn(config_path, **kwargs)
     except SimLinkTimeoutError as exc:
         raise LinkTimeoutError(str(exc)) from exc
     except SimError as exc:
