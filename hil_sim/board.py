@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,6 +66,7 @@ from firmware_proto import (
     Start,
     Status,
     Stop,
+    Sync,
     max_samples_per_frame,
 )
 from hil_sim.errors import SimConfigError as ConfigError
@@ -97,8 +99,11 @@ _HOST_TYPES = frozenset(
         MessageType.RAMP_TO_SAFE,
         MessageType.HEARTBEAT,
         MessageType.SAMPLES,
+        MessageType.SYNC,
     }
 )
+SYNC_QUEUE_EVENTS = 1024
+"""Capacity of the sync event queue (PROTOCOL.md 4.14: at least 1024)."""
 
 
 def _f32_outward(value: float, up: bool) -> float:
@@ -148,6 +153,8 @@ class BoardConfig:
         Probability per outgoing frame of being dropped entirely.
     seed
         Seed of the fault-injection generator.
+    sync_outputs
+        Digital sync outputs driven from SYNC frames (0..8; CAPABILITIES ``sync_outputs``).
     """
 
     amplifier_ranges_v: tuple[tuple[float, float], ...] | None = None
@@ -167,6 +174,7 @@ class BoardConfig:
     corrupt_in_rate: float = 0.0
     drop_rate: float = 0.0
     seed: int = 0
+    sync_outputs: int = 3
 
     def __post_init__(self) -> None:
         for name in ("corrupt_rate", "corrupt_in_rate", "drop_rate"):
@@ -286,6 +294,7 @@ class Board:
             fifo_depth_samples=self._cfg.fifo_depth_samples,
             board_serial=self._cfg.board_serial,
             amplifier_ranges_v=ranges,
+            sync_outputs=self._cfg.sync_outputs,
         )
         self._ep = Endpoint()
         self._fx_rng = np.random.default_rng(self._cfg.seed)
@@ -343,6 +352,12 @@ class Board:
         self._ramp_v0 = np.zeros(C)
         self._ramp_target = np.zeros(C)
         self._ramp_rate = np.ones(C)
+
+        # sync outputs: queued events (index, lines, mask), the present levels, their changes
+        self._sync_queue: deque[tuple[int, int, int]] = deque()
+        self._sync_level = 0
+        self._sync_last_queued = -1
+        self._sync_log: deque[tuple[int, int]] = deque(maxlen=1 << 16)
 
         # stage: simulated up to _stage_t; played ticks waiting for the stage
         self._stage_t = float(now)
@@ -440,6 +455,15 @@ class Board:
         if self._state is BoardState.RUNNING:
             return self._v_dac.copy()
         return self._trajectory(np.array([self._t]))[:, 0]
+
+    @property
+    def sync_transitions(self) -> list[tuple[int, int]]:
+        """``(sample index, levels)`` of the latest sync-output changes (bit 0 pixel, 1 line, 2 frame).
+
+        The board's record of what it drove, for tests and inspection (the last 65536 changes;
+        a clock stop that lowers the outputs is recorded at ``last_played_index + 1``).
+        """
+        return list(self._sync_log)
 
     @property
     def counters(self) -> BoardCounters:
@@ -724,9 +748,31 @@ class Board:
         self._pending_n += n
         self._v_dac = self._dac_offset + self._dac_scale * c64[-1]
         self._v_amp = volts[:, -1].copy()
+        self._apply_sync(self._play_index + n)
         self._play_index += n
         self._last_played = self._play_index - 1
         self._samples_played += n
+
+    def _apply_sync(self, end: int) -> None:
+        """Apply the queued sync events of the ticks before index ``end`` (being played now)."""
+        q = self._sync_queue
+        enabled = (1 << self._cfg.sync_outputs) - 1
+        while q and q[0][0] < end:
+            index, lines, mask = q.popleft()
+            if index < self._play_index:
+                continue
+            mask &= enabled
+            level = (self._sync_level & ~mask) | (lines & mask)
+            if level != self._sync_level:
+                self._sync_level = level
+                self._sync_log.append((index, level))
+
+    def _clear_sync(self) -> None:
+        self._sync_queue.clear()
+        self._sync_last_queued = -1
+        if self._sync_level:
+            self._sync_level = 0
+            self._sync_log.append((self._last_played + 1 if self._last_played != NO_INDEX else 0, 0))
 
     def _flush_stage(self) -> None:
         """Run the stage over the played ticks and send their SENSOR rows."""
@@ -765,6 +811,7 @@ class Board:
         self._sync_idle(t)
         self._play_index = self._write_index
         self._stop_after = None
+        self._clear_sync()
 
     # -- outside RUNNING: hold and ramps -----------------------------------------------------
 
@@ -838,6 +885,9 @@ class Board:
             return
         if isinstance(msg, Samples):
             self._on_samples(msg, now)
+            return
+        if isinstance(msg, Sync):
+            self._on_sync(msg, now)
             return
         if isinstance(msg, Heartbeat):
             return
@@ -943,6 +993,7 @@ class Board:
         self._stop_after = None
         self._flags = FaultFlags.NONE
         self._fault_last_sent.clear()
+        self._clear_sync()
         log.info("START at index %d, prefill %d", msg.start_index, self._prefill)
         self._set_state(BoardState.ARMED)
 
@@ -970,6 +1021,22 @@ class Board:
         if self._state in (BoardState.RUNNING, BoardState.ARMED):
             self._stop_clock(now)
         self._begin_ramp(now)
+
+    def _on_sync(self, msg: Sync, now: float) -> None:
+        if self._state not in (BoardState.ARMED, BoardState.RUNNING) or not self._cfg.sync_outputs:
+            self._frames_dropped += 1
+            return
+        floor = max(self._sync_last_queued + 1, self._play_index)
+        new = [(msg.first_index + off, lines, mask) for off, lines, mask in msg.events]
+        new = [ev for ev in new if ev[0] >= floor]
+        if len(self._sync_queue) + len(new) > SYNC_QUEUE_EVENTS:
+            self._frames_dropped += 1
+            self._overflows += 1
+            self._fault(FaultCode.OVERFLOW, now, index=msg.first_index)
+            return
+        self._sync_queue.extend(new)
+        if new:
+            self._sync_last_queued = new[-1][0]
 
     def _on_samples(self, msg: Samples, now: float) -> None:
         if self._state not in (BoardState.ARMED, BoardState.RUNNING) or msg.n_channels != self._C:

@@ -367,6 +367,51 @@ def _fit_dynamic_here(
     return ThesisFit(cd.result_json(result, inputs=[str(frame_path)]), config, float(result.fit_error_pct))
 
 
+def _choose_here(
+    frame_path: Path, axis: AxisName, base: ScannerConfig, ramp_v_per_s: float, rest_voltage_v: float
+) -> ThesisFit:
+    """Fit the family's laws, score them and the dynamic model of ``base`` on held-out experiments."""
+    from piezod import calibrate_dynamic as cd
+    from piezod import calibrate_family as cf
+    from piezod.model.family import CreepSpectrum, FamilyParams
+
+    data = cd.prepare_dynamic(
+        read_experiments([frame_path], axis=axis),
+        max_samples_per_loop=256,
+        slew_rate_v_per_s=ramp_v_per_s,
+        rest_voltage_v=rest_voltage_v,
+    )
+    ax = base.axes[axis]
+    others: dict[str, FamilyParams] = {}
+    alpha = None
+    if ax.dynamic is not None:
+        dyn = ax.dynamic.params()
+        alpha = dyn.alpha_per_v
+        spectrum = CreepSpectrum(tuple(map(float, dyn.taus_s)), tuple(map(float, dyn.weights)))
+        others["dynamic"] = FamilyParams(dyn.hysteresis, spectrum)
+    choice = cf.choose_model(data, others=others, alpha_per_v=alpha)
+    report: dict[str, Any] = {
+        "chosen": choice.chosen,
+        "held_out_experiments": list(choice.holdout),
+        "heldout_rms_um": choice.heldout_rms_um,
+        "train_rms_um": choice.train_rms_um,
+        "table": choice.table(),
+    }
+    config = base
+    if choice.fit is not None:
+        section = cf.family_model_config(choice.fit.params)
+        axes = dict(base.axes)
+        axes[axis] = ax.model_copy(update={"model": "family", "family": section})
+        config = base.model_copy(update={"axes": axes})
+        report["family"] = section.model_dump()
+        report["family_rms_um"] = choice.fit.rms_um
+    elif ax.dynamic is not None:
+        axes = dict(base.axes)
+        axes[axis] = ax.model_copy(update={"model": "dynamic"})
+        config = base.model_copy(update={"axes": axes})
+    return ThesisFit(report, config, float(choice.heldout_rms_um[choice.chosen]))
+
+
 def _linearity_here(path: Path, axis: AxisName) -> tuple[float, float]:
     e = linearity(read_experiments([path], axis=axis)).experiments[0]
     return float(e.nonlinearity_pct), float(e.length_error_pct)
@@ -415,6 +460,22 @@ class AnalysisWorker:
         return self._pool.submit(
             _fit_dynamic_here, frame_path, axis, base, ramp_v_per_s, rest_voltage_v
         ).result()
+
+    def choose_model(
+        self,
+        frame_path: Path,
+        base: ScannerConfig,
+        axis: AxisName,
+        *,
+        ramp_v_per_s: float,
+        rest_voltage_v: float,
+    ) -> ThesisFit:
+        """Fit the model family and choose the model (family laws, ``base``'s dynamic model) that
+        predicts held-out experiments of the frame best; the returned config uses it.
+
+        ``fit_error_pct`` of the result holds the chosen model's held-out RMS in um.
+        """
+        return self._pool.submit(_choose_here, frame_path, axis, base, ramp_v_per_s, rest_voltage_v).result()
 
     def linearity(self, path: Path, axis: AxisName = "x") -> tuple[float, float]:
         """(nonlinearity %, length error %) of the first experiment of ``axis`` in ``path``."""

@@ -39,6 +39,11 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--axis", choices=AXES, help="only this axis")
     p.add_argument(
+        "--encoding",
+        metavar="NAME",
+        help="text encoding of the recordings (default: detected; UTF-8, else Windows-1252/Latin-1)",
+    )
+    p.add_argument(
         "--allow-truncated-tail",
         action="store_true",
         help="drop an unterminated last line (crash while writing)",
@@ -48,7 +53,12 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``piezod linearity``."""
-    exps = read_experiments(args.recordings, axis=args.axis, allow_truncated_tail=args.allow_truncated_tail)
+    exps = read_experiments(
+        args.recordings,
+        axis=args.axis,
+        allow_truncated_tail=args.allow_truncated_tail,
+        encoding=args.encoding,
+    )
     several_axes = len({e.axis for e in exps}) > 1
     report = linearity(
         exps,
