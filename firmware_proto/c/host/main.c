@@ -235,7 +235,7 @@ static void run_stage_block(host *h) {
 }
 
 static void idle_stage(host *h, uint64_t t) {
-    if (t - h->stage_us < 5000u) return;
+    if (t - h->stage_us < 50000u) return; /* between runs the stage evolves (creep) in 50 ms blocks */
     unsigned n = (unsigned)((t - h->stage_us + 999u) / 1000u);
     if (n > MAX_BLOCK) n = MAX_BLOCK;
     double dt = (double)(t - h->stage_us) * 1e-6 / n;
