@@ -75,9 +75,14 @@ class Board(ABC):
         """Stream ``source``'s blocks from sample ``start_index``, each through :meth:`limit`."""
         board = self
 
+        sync = getattr(source, "sync_events", None)
+
         class _Limited:
             def next_block(self, n: int) -> FloatArray:
                 return board.limit(source.next_block(n), board.next_index)
+
+            def sync_events(self, first_index: int, n: int) -> list[tuple[int, int, int]]:
+                return sync(first_index, n) if callable(sync) else []
 
         self._do_start(_Limited(), start_index, lead_s=lead_s, block_samples=block_samples, on_block=on_block)
 

@@ -31,7 +31,7 @@ from typing import Literal, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from firmware_proto import NO_INDEX, BoardState, FaultCode, FaultFlags, Status
+from firmware_proto import MAX_SYNC_EVENTS, NO_INDEX, BoardState, FaultCode, FaultFlags, Status
 from firmware_proto import ProtocolError as WireProtocolError
 from piezod.errors import BoardFaultError, ConfigError, LinkError, ProtocolError
 from piezod.link.session import (
@@ -57,6 +57,22 @@ class BlockSource(Protocol):
 
     def next_block(self, n: int) -> FloatArray:
         """The next ``n`` samples: volts, shape ``(axes, n)`` in the session's axis order."""
+        ...
+
+
+#: Sync outputs a source needs on the board to get :meth:`SyncSource.sync_events` sent (pixel, line, frame).
+SYNC_OUTPUTS_USED = 3
+
+
+class SyncSource(Protocol):
+    """A block source that also drives the board's sync outputs (PROTOCOL.md 4.14)."""
+
+    def sync_events(self, first_index: int, n: int) -> list[tuple[int, int, int]]:
+        """``(offset from first_index, lines, mask)`` of the sync events at indices ``[first, first + n)``.
+
+        Called after the samples of these indices were produced (:meth:`BlockSource.next_block`),
+        in index order, and again for the same indices after a go-back-N rewind.
+        """
         ...
 
 
@@ -198,6 +214,8 @@ class StreamStats:
     runs: list[RunRecord] = field(default_factory=list)
     matched_rows: int = 0
     unmatched_rows: int = 0
+    sync_frames_sent: int = 0
+    sync_events_sent: int = 0
 
     @property
     def samples_sent(self) -> int:
@@ -297,6 +315,11 @@ class Streamer:
             else max(self.frame_samples, round(self.rate_hz * 0.02))
         )
         self.status_period_s = plan.configure.status_period_ms / 1000.0
+        sync = getattr(source, "sync_events", None)
+        #: Where the sync events come from: the source's, when the board has the outputs it drives.
+        self.sync: Callable[[int, int], list[tuple[int, int, int]]] | None = (
+            sync if callable(sync) and caps.sync_outputs >= SYNC_OUTPUTS_USED else None
+        )
         self.stats = StreamStats()
         cap = max(lead_samples_for(self.rate_hz, history_s), 4 * fifo)
         self._hist = np.zeros((cap, self.converter.n_channels), dtype=np.int16)
@@ -733,6 +756,8 @@ class Streamer:
             rows = self._take(want)
             first = self._next_index
             self.session.send_samples(first, rows)
+            if self.sync is not None:
+                self._send_sync(first, want)
             self._inflight.append((first, rows))
             self._next_index = first + want
             self._last_send = time.monotonic()
@@ -746,6 +771,16 @@ class Streamer:
                 if self._run is not None:
                     end = self._sent_hw if self._end_index is None else min(self._sent_hw, self._end_index)
                     self._run.end_index = end
+
+    def _send_sync(self, first: int, n: int) -> None:
+        assert self.sync is not None
+        events = self.sync(first, n)
+        for k in range(0, len(events), MAX_SYNC_EVENTS):
+            part = events[k : k + MAX_SYNC_EVENTS]
+            base = part[0][0]
+            self.session.send_sync(first + base, tuple((o - base, lines, mask) for o, lines, mask in part))
+            self.stats.sync_frames_sent += 1
+            self.stats.sync_events_sent += len(part)
 
     def _take(self, n: int) -> npt.NDArray[np.int16]:
         parts: list[npt.NDArray[np.int16]] = []
