@@ -55,7 +55,7 @@ def sim_board() -> Iterator[tuple[Board, str]]:
 
 
 def expected_events(line_starts: list[int], samples_per_line: int) -> list[tuple[int, int, int]]:
-    """(index, lines, mask) of the clocks of the raster as PROTOCOL.md 4.14 / piezod.service.sync define them."""
+    """(index, lines, mask) of the raster's clocks as PROTOCOL.md 4.14 / piezod.service.sync define them."""
     half = samples_per_line // 2
     per_pixel = half / PIXELS
     fall = math.floor(0.5 * per_pixel + 0.5)
@@ -76,7 +76,7 @@ def expected_events(line_starts: list[int], samples_per_line: int) -> list[tuple
 
 
 def levels_of(events: list[tuple[int, int, int]]) -> list[tuple[int, int]]:
-    """The output changes ``(index, levels)`` the events make (one merged event per index, in the order given)."""
+    """The output changes ``(index, levels)`` the events make (merged per index, in the order given)."""
     merged: dict[int, tuple[int, int]] = {}
     for i, lines, mask in events:
         ol, om = merged.get(i, (0, 0))
@@ -137,6 +137,7 @@ def test_engine_drives_pixel_line_and_frame_clocks_on_the_board(
     got = [(i, lv) for i, lv in board.sync_transitions if starts[0] - per_line <= i]
     assert got == want
     # 2 * PIXELS pixel pulses, one line pulse per line, one frame pulse; everything low at the end
-    rises = [i for (i, lv), (_, prev) in zip(got, [(0, 0), *got], strict=False) if lv & PIXEL and not prev & PIXEL]
+    prev = [0] + [lv for _, lv in got[:-1]]
+    rises = [i for (i, lv), before in zip(got, prev, strict=True) if lv & PIXEL and not before & PIXEL]
     assert len(rises) == 2 * PIXELS * LINES
-    assert got[-1][1] == 0
+    assert got[-1][1] == 0 and board.counters.overflows == 0

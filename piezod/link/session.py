@@ -65,11 +65,11 @@ from firmware_proto import (
     NakReason,
     RampToSafe,
     Samples,
-    Sync,
     Sensor,
     Start,
     Status,
     Stop,
+    Sync,
     TimedOut,
     check_capabilities,
 )

@@ -62,6 +62,9 @@ class BlockSource(Protocol):
 
 #: Sync outputs a source needs on the board to get :meth:`SyncSource.sync_events` sent (pixel, line, frame).
 SYNC_OUTPUTS_USED = 3
+#: Sync events the host keeps queued on the board at most: PROTOCOL.md 4.14 guarantees 1024, a
+#: margin covers the host's estimate of what was played (a SYNC that does not fit is dropped whole).
+SYNC_QUEUE_EVENTS = 768
 
 
 class SyncSource(Protocol):
@@ -216,6 +219,7 @@ class StreamStats:
     unmatched_rows: int = 0
     sync_frames_sent: int = 0
     sync_events_sent: int = 0
+    sync_events_late: int = 0
 
     @property
     def samples_sent(self) -> int:
@@ -355,6 +359,9 @@ class Streamer:
         self._quit = threading.Event()
         self._wake = threading.Event()
         self._done = threading.Event()
+        self._sync_pending: deque[tuple[int, int, int]] = deque()
+        self._sync_queued: deque[int] = deque()
+        self._sync_hw = 0
         self._unsubscribe = session.subscribe(self._on_event)
 
     # -- public -------------------------------------------------------------------------------
@@ -501,6 +508,9 @@ class Streamer:
         self._credit = start_index + caps.fifo_depth_samples
         self._next_index = start_index
         self._sent_hw = start_index
+        self._sync_hw = start_index
+        self._sync_pending.clear()
+        self._sync_queued.clear()  # START empties the board's queue
         self._inflight.clear()
         self._raw_gaps = None
         self._raw_underruns = None
@@ -552,8 +562,9 @@ class Streamer:
                 played = st.last_played_index if running else self._run_start() - 1
                 elapsed = max(0.0, now - st_time) if running else 0.0
                 est_played = played + int(elapsed * self.rate_hz)
+                acked_played = played
             else:
-                est_played = self._run_start() - 1
+                est_played = acked_played = self._run_start() - 1
             target = est_played + 1 + self.fill_samples
             limit = min(self._credit, target)
             if self._finishing:
@@ -562,6 +573,8 @@ class Streamer:
                     self._pad_short_run()
                 limit = min(self._credit, self._data_end())
             self._send_until(limit, urgent=self._next_index - est_played - 1 < self.lead_samples, now=now)
+            if self._sync_pending:
+                self._send_sync(acked_played)
             if (
                 self._finishing
                 and not self._stop_sent
@@ -702,6 +715,11 @@ class Streamer:
         self._inflight.clear()
         log.info("go-back-N (%s): resending from index %d (was at %d)", why, write_index, self._next_index)
         self._next_index = write_index
+        if self._sync_hw > write_index:
+            # the events are fetched again with their samples; the board skips those it queued
+            self._sync_hw = write_index
+            while self._sync_pending and self._sync_pending[-1][0] >= write_index:
+                self._sync_pending.pop()
         self._last_rewind = now
         self.stats.rewinds += 1
 
@@ -756,8 +774,11 @@ class Streamer:
             rows = self._take(want)
             first = self._next_index
             self.session.send_samples(first, rows)
-            if self.sync is not None:
-                self._send_sync(first, want)
+            if self.sync is not None and first + want > self._sync_hw:
+                lo = max(first, self._sync_hw)
+                events = self.sync(lo, first + want - lo)
+                self._sync_pending.extend((lo + o, lines, mask) for o, lines, mask in events)
+                self._sync_hw = first + want
             self._inflight.append((first, rows))
             self._next_index = first + want
             self._last_send = time.monotonic()
@@ -772,15 +793,25 @@ class Streamer:
                     end = self._sent_hw if self._end_index is None else min(self._sent_hw, self._end_index)
                     self._run.end_index = end
 
-    def _send_sync(self, first: int, n: int) -> None:
-        assert self.sync is not None
-        events = self.sync(first, n)
-        for k in range(0, len(events), MAX_SYNC_EVENTS):
-            part = events[k : k + MAX_SYNC_EVENTS]
+    def _send_sync(self, played: int) -> None:
+        """Send the pending sync events that fit the board's queue (events up to ``played`` are gone).
+
+        Events of samples already played are dropped here (counted in ``sync_events_late``).
+        """
+        queued, pending = self._sync_queued, self._sync_pending
+        while queued and queued[0] <= played:
+            queued.popleft()
+        while pending and pending[0][0] <= played:
+            pending.popleft()
+            self.stats.sync_events_late += 1
+        while pending and len(queued) < SYNC_QUEUE_EVENTS:
+            n = min(len(pending), SYNC_QUEUE_EVENTS - len(queued), MAX_SYNC_EVENTS)
+            part = [pending.popleft() for _ in range(n)]
             base = part[0][0]
-            self.session.send_sync(first + base, tuple((o - base, lines, mask) for o, lines, mask in part))
+            self.session.send_sync(base, tuple((i - base, lines, mask) for i, lines, mask in part))
+            queued.extend(i for i, _, _ in part)
             self.stats.sync_frames_sent += 1
-            self.stats.sync_events_sent += len(part)
+            self.stats.sync_events_sent += n
 
     def _take(self, n: int) -> npt.NDArray[np.int16]:
         parts: list[npt.NDArray[np.int16]] = []

@@ -73,7 +73,6 @@ from piezod.service.jobs import (
     Segment,
 )
 from piezod.service.recorder import Recorder, TargetRing
-from piezod.service.sync import SyncSchedule
 from piezod.service.schemas import (
     EngineState,
     FaultInfo,
@@ -84,6 +83,7 @@ from piezod.service.schemas import (
     ScanRequest,
     Status,
 )
+from piezod.service.sync import SyncSchedule
 from piezod.service.tracking import SensitivityTracker
 from piezod.trajectory import SETTLE_LINES, RasterTrajectory, Trajectory
 
@@ -354,7 +354,7 @@ class Engine:
         return out
 
     def sync_events(self, first_index: int, n: int) -> list[tuple[int, int, int]]:
-        """The scans' sync events at indices ``[first, first + n)`` (:class:`~piezod.link.streamer.SyncSource`)."""
+        """The scans' sync events at ``[first, first + n)`` (:class:`~piezod.link.streamer.SyncSource`)."""
         with self._lock:
             return self.sync_schedule.between(first_index, n)
 
