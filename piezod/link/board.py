@@ -11,6 +11,7 @@ clamps it to the axes' voltage limits and slew rates and reports what it had to 
 
 from __future__ import annotations
 
+import logging
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -25,6 +26,9 @@ from piezod.link.session import BoardSession, HostLimitFault, LinkEvent, LinkSet
 from piezod.link.streamer import BlockSource, MatchedBlock, Streamer
 
 FloatArray = NDArray[np.float64]
+
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -192,6 +196,8 @@ class SerialBoard(Board):
             self.url, config=self.config, settings=self.settings, on_event=self.on_event, timeout_s=timeout_s
         )
         assert self.session.plan is not None
+        if self.settings.budget is not None:
+            log.info("%s", self.settings.budget.describe())
         return tuple(self.session.plan.axes)
 
     def capped_lead_s(self, lead_s: float) -> float:
@@ -212,7 +218,12 @@ class SerialBoard(Board):
     ) -> None:
         assert self.session is not None
         self.streamer = Streamer(
-            self.session, source, lead_s=lead_s, block_samples=block_samples, on_block=on_block
+            self.session,
+            source,
+            lead_s=lead_s,
+            block_samples=block_samples,
+            on_block=on_block,
+            frame_samples=self.session.settings.frame_samples,
         )
         self.streamer.start(start_index)
 
