@@ -65,6 +65,8 @@ SYNC_OUTPUTS_USED = 3
 #: Sync events the host keeps queued on the board at most: PROTOCOL.md 4.14 guarantees 1024, a
 #: margin covers the host's estimate of what was played (a SYNC that does not fit is dropped whole).
 SYNC_QUEUE_EVENTS = 768
+#: Pending sync events sent at once even before they are due (within the lead).
+SYNC_BATCH_EVENTS = 256
 
 
 class SyncSource(Protocol):
@@ -323,6 +325,14 @@ class Streamer:
         #: Where the sync events come from: the source's, when the board has the outputs it drives.
         self.sync: Callable[[int, int], list[tuple[int, int, int]]] | None = (
             sync if callable(sync) and caps.sync_outputs >= SYNC_OUTPUTS_USED else None
+        )
+        budget = session.settings.budget
+        usable = budget.usable_bytes_per_s if budget is not None else None
+        #: Seconds the link needs per row sent (a slow link: frames on the way are not lost frames).
+        self._link_s_per_row = (
+            budget.host_to_board_bytes_per_s / self.rate_hz / usable
+            if budget is not None and usable is not None
+            else 0.0
         )
         self.stats = StreamStats()
         cap = max(lead_samples_for(self.rate_hz, history_s), 4 * fifo)
@@ -652,7 +662,8 @@ class Streamer:
         # a STATUS generated this long after our last frame must show it (else it was lost), unless
         # the board is still taking in what is on the way (write_index moving): a busy board is not
         # a lost frame; the floor covers a board (or simulator) busy for a few status periods
-        settle = max(2 * self.status_period_s, STALL_FLOOR_S)
+        drain = 2 * (self._next_index - w) * self._link_s_per_row
+        settle = max(2 * self.status_period_s, STALL_FLOOR_S, drain)
         if self._gap_pending and now - self._last_rewind > rtt:
             self._gap_pending = False
             self._rewind(w, now, "index gap / overflow reported")
@@ -804,6 +815,8 @@ class Streamer:
         while pending and pending[0][0] <= played:
             pending.popleft()
             self.stats.sync_events_late += 1
+        if not pending or (pending[0][0] - played > self.lead_samples and len(pending) < SYNC_BATCH_EVENTS):
+            return  # not due yet: gather more events per frame (a slow link pays ~34 bytes per frame)
         while pending and len(queued) < SYNC_QUEUE_EVENTS:
             n = min(len(pending), SYNC_QUEUE_EVENTS - len(queued), MAX_SYNC_EVENTS)
             part = [pending.popleft() for _ in range(n)]
