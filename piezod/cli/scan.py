@@ -20,7 +20,7 @@ from piezod.cli._common import (
     scanner_config_path,
 )
 from piezod.config import load_config, uncalibrated_warning
-from piezod.errors import BoardFaultError, ConfigError
+from piezod.errors import BoardFaultError, ConfigError, RecordingError
 from piezod.progress import progress_bar
 from piezod.service.engine import Engine
 from piezod.service.schemas import ScanRequest
@@ -79,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
         }
         config = config.model_copy(update={"axes": axes})
     out = Path(args.out)
+    if out.exists() or out.is_symlink():
+        raise RecordingError("exists; recordings are never overwritten: choose another --out", str(out))
     request = ScanRequest(
         range_um=args.range_um,
         line_rate_hz=args.line_rate_hz,

@@ -20,6 +20,8 @@ outputs to the safe values (the board also ramps by itself when the host's heart
 
 from __future__ import annotations
 
+import contextlib
+import copy
 import logging
 import math
 import queue
@@ -31,7 +33,7 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +45,7 @@ from piezod.errors import (
     LinkError,
     ModelError,
     PiezodError,
+    RecordingError,
     SafetyError,
 )
 from piezod.link.session import (
@@ -58,7 +61,6 @@ from piezod.link.session import (
 )
 from piezod.link.streamer import MatchedBlock, Streamer
 from piezod.recording import RecordingWriter
-from piezod.scan import move_profile
 from piezod.service.axes import AxisDriver, PeriodicPlan
 from piezod.service.schemas import (
     EngineState,
@@ -71,7 +73,7 @@ from piezod.service.schemas import (
     Status,
 )
 from piezod.service.tracking import SensitivityTracker
-from piezod.trajectory import RasterTrajectory, Trajectory
+from piezod.trajectory import SETTLE_LINES, RasterTrajectory, Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +86,10 @@ SLOW_BLOCK_S = 0.05
 FAULT_REPEAT_S = 1.0
 #: Speed of the moves to the start of a scan, as a multiple of the scan's own speed (at most).
 MOVE_SPEED_FACTOR = 1.0
+#: Longest move a request may ask for (s): a slower one is refused with the speed it needs.
+MAX_MOVE_S = 600.0
+#: Most samples :meth:`Engine.check_scan` renders to check the start of a scan.
+MAX_CHECK_SAMPLES = 200_000
 
 
 @dataclass(slots=True)
@@ -161,22 +167,40 @@ class RampJob(Job):
 
 
 class MoveJob(Job):
-    """A slew-limited move in position (through the inverse model), then done."""
+    """A slew-limited move in position (through the inverse model), then done.
+
+    The raised-cosine profile is computed block by block from where the axes are when the move
+    begins, so a long move costs no memory and no time up front (and none under the engine lock).
+    """
 
     state: EngineState = "moving"
 
     def __init__(self, engine: Engine, goal_um: dict[str, float], speed_um_per_s: float) -> None:
-        start = np.array([d.position_um for d in engine.drivers.values()])
-        end = np.array([goal_um.get(name, start[i]) for i, name in enumerate(engine.drivers)])
-        self._path = move_profile(start, end, speed_um_per_s, engine.rate_hz)
-        self._moving = np.abs(end - start) > 0
+        self._goal = dict(goal_um)
+        self._speed = float(speed_um_per_s)
+        self._a: FloatArray | None = None
+        self._b = np.empty(0)
+        self._n = 0
         self._pos = 0
+        self._moving = np.zeros(0, dtype=bool)
+
+    def _begin(self, engine: Engine) -> None:
+        a = np.array([d.position_um for d in engine.drivers.values()])
+        b = np.array([self._goal.get(name, a[i]) for i, name in enumerate(engine.drivers)])
+        self._a, self._b = a, b
+        self._n = move_samples(float(np.max(np.abs(b - a))), self._speed, engine.rate_hz)
+        self._moving = np.abs(b - a) > 0
 
     def render(self, engine: Engine, n: int) -> Chunk:
-        take = min(n, self._path.shape[1] - self._pos)
-        targets = self._path[:, self._pos : self._pos + take]
+        if self._a is None:
+            self._begin(engine)
+        assert self._a is not None
+        take = min(n, self._n - self._pos)
+        u = np.arange(self._pos + 1, self._pos + take + 1) / self._n
+        w = 0.5 - 0.5 * np.cos(np.pi * u)
+        targets = self._a[:, None] + (self._b - self._a)[:, None] * w[None, :]
         self._pos += take
-        self.done = self._pos >= self._path.shape[1]
+        self.done = self._pos >= self._n
         volts = np.empty_like(targets)
         for i, d in enumerate(engine.drivers.values()):
             if self._moving[i]:
@@ -186,13 +210,25 @@ class MoveJob(Job):
         return engine.chunk(volts, targets)
 
 
+def move_samples(distance_um: float, speed_um_per_s: float, rate_hz: float) -> int:
+    """Samples of a raised-cosine move of ``distance_um`` with peak speed ``speed_um_per_s`` (>= 1)."""
+    duration = 0.5 * math.pi * abs(distance_um) / speed_um_per_s
+    return max(1, math.ceil(duration * rate_hz))
+
+
 class ScanJob(Job):
     """A scan along a :class:`~piezod.trajectory.Trajectory`: move to its start, settle, scan
     (recorded), then hold at the end."""
 
     state: EngineState = "scanning"
 
-    def __init__(self, engine: Engine, request: ScanRequest, trajectory: Trajectory) -> None:
+    def __init__(
+        self,
+        engine: Engine,
+        request: ScanRequest,
+        trajectory: Trajectory,
+        plans: dict[str, PeriodicPlan | None] | None = None,
+    ) -> None:
         self.request = request
         self._traj = trajectory
         # Settling: the trajectory's unrecorded lead-in (a raster: SETTLE_LINES on the first row).
@@ -204,7 +240,7 @@ class ScanJob(Job):
         self._part = 1
         self._scanned = False
         self._change_text: list[str] = []
-        self._plans = engine.plans_for(trajectory)
+        self._plans = plans if plans is not None else engine.plans_for(trajectory)
         self._plan_key: object = trajectory.key
         for name, plan in self._plans.items():
             engine.drivers[name].use_plan(plan)
@@ -413,6 +449,7 @@ class _OpenRecording:
     axes: tuple[str, ...]
     targets: bool
     rows: int = 0
+    last_t: float = 0.0
     done: bool = False
     labels_seen: set[int] = field(default_factory=set)
 
@@ -435,7 +472,7 @@ class Recorder(threading.Thread):
         self.queue: queue.Queue[tuple[MatchedBlock | None, tuple[Any, ...]] | None] = queue.Queue()
         self.recordings: dict[int, _OpenRecording] = {}
         self.lock = threading.Lock()
-        self.error: BaseException | None = None
+        self.failed = 0
         self._acc = _LineAccumulator()
         self._pending_close: dict[int, int] = {}
 
@@ -448,10 +485,33 @@ class Recorder(threading.Thread):
         *,
         targets: bool = True,
     ) -> None:
+        """Create the recording ``path`` (exclusively: an existing file is never reused or truncated).
+
+        Raises
+        ------
+        RecordingError
+            If ``path`` exists or cannot be created (a full disk): nothing is left behind.
+        """
         columns = ("t", "voltage", "position", *(("target",) if targets else ()), "axis", "experiment")
-        writer = RecordingWriter(path, columns, metadata=metadata, append=False)
+        try:
+            writer = RecordingWriter(path, columns, metadata=metadata, exclusive=True)
+        except FileExistsError as exc:
+            raise RecordingError(
+                "exists; recordings are never overwritten or reused: choose another name", str(path)
+            ) from exc
+        except OSError as exc:
+            raise RecordingError(f"cannot create the recording: {exc.strerror or exc}", str(path)) from exc
         with self.lock:
             self.recordings[ident] = _OpenRecording(ident, path, writer, axes, targets)
+
+    def discard(self, ident: int) -> None:
+        """Close and delete a recording that never started (its scan was refused)."""
+        with self.lock:
+            rec = self.recordings.pop(ident, None)
+        if rec is not None:
+            rec.writer.close()
+            with contextlib.suppress(OSError):
+                rec.path.unlink()
 
     def run(self) -> None:
         while True:
@@ -464,22 +524,46 @@ class Recorder(threading.Thread):
                 if block is None:
                     self._pending_close[int(meta[1])] = int(meta[2])
                 else:
-                    if self.error is None:
-                        self._write(block, meta)
+                    self._write(block, meta)
                     last = int(block.indices[-1]) if block.indices.size else -1
                     for ident, end in list(self._pending_close.items()):
                         if last >= end - 1:
                             del self._pending_close[ident]
                             self._close(ident)
             except (OSError, PiezodError, ValueError) as exc:
+                # not one recording's disk error (handled in _write): stop every open recording
                 log.exception("recorder failed")
-                self.error = exc
-                self.engine.fault("host", "RECORDING", f"recording failed, recording stopped: {exc}")
+                with self.lock:
+                    idents = list(self.recordings)
+                for ident in idents:
+                    self._fail(ident, exc)
             finally:
                 self.queue.task_done()
         with self.lock:
             for rec in self.recordings.values():
                 rec.writer.close()
+
+    def _fail(self, ident: int, exc: BaseException) -> None:
+        """A recording cannot be written: keep what it holds, close it, stop its scan, report it."""
+        with self.lock:
+            rec = self.recordings.pop(ident, None)
+        if rec is None:
+            return
+        rec.writer.close()
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        self.failed += 1
+        if rec.rows == 0:  # created by us, holding no data: leave no empty recording behind
+            with contextlib.suppress(OSError):
+                rec.path.unlink()
+            kept = "nothing was recorded (the empty file is removed)"
+        else:
+            kept = (
+                f"its {rec.rows} rows up to t = {rec.last_t:.3f} s are kept (the file ends with a "
+                "complete line)"
+            )
+        self.engine.recording_failed(
+            ident, f"recording {rec.path.name} stopped: {reason}; {kept}; the scan was stopped"
+        )
 
     def _close(self, ident: int) -> None:
         with self.lock:
@@ -501,27 +585,42 @@ class Recorder(threading.Thread):
             if rec is None:
                 continue
             rows = np.flatnonzero(record & (rec_id == ident))
-            # one run per experiment, so that a change's note precedes its experiment's rows
-            for run in np.split(rows, np.flatnonzero(np.diff(label[rows])) + 1):
-                lab = int(label[run[0]])
-                if lab not in rec.labels_seen:
-                    rec.labels_seen.add(lab)
-                    note = self.engine.label_note(lab)
-                    if note is not None:
-                        rec.writer.comment(note)
-                names = self.engine.label_names(label[run])
-                for i, axis in enumerate(block.axes):
-                    if axis not in rec.axes:
-                        continue
-                    rec.writer.write(
-                        t[run],
-                        block.commanded_v[i, run],
-                        block.position_um[i, run],
-                        target_um=targets[i, run] if rec.targets else None,
-                        axis=axis,
-                        experiment=names,
-                    )
-                    rec.rows += int(run.size)
+            try:
+                self._write_rows(rec, block, rows, t, targets, label)
+            except OSError as exc:  # a full disk, an I/O error: this recording ends here
+                self._fail(int(ident), exc)
+
+    def _write_rows(
+        self,
+        rec: _OpenRecording,
+        block: MatchedBlock,
+        rows: NDArray[np.intp],
+        t: FloatArray,
+        targets: FloatArray,
+        label: NDArray[np.int64],
+    ) -> None:
+        # one run per experiment, so that a change's note precedes its experiment's rows
+        for run in np.split(rows, np.flatnonzero(np.diff(label[rows])) + 1):
+            lab = int(label[run[0]])
+            if lab not in rec.labels_seen:
+                rec.labels_seen.add(lab)
+                note = self.engine.label_note(lab)
+                if note is not None:
+                    rec.writer.comment(note)
+            names = self.engine.label_names(label[run])
+            for i, axis in enumerate(block.axes):
+                if axis not in rec.axes:
+                    continue
+                rec.writer.write(
+                    t[run],
+                    block.commanded_v[i, run],
+                    block.position_um[i, run],
+                    target_um=targets[i, run] if rec.targets else None,
+                    axis=axis,
+                    experiment=names,
+                )
+                rec.rows += int(run.size)
+                rec.last_t = float(t[run][-1])
 
     def _line_stats(
         self,
@@ -575,6 +674,49 @@ class Recorder(threading.Thread):
                 length_error_pct=float(100.0 * (measured - nominal) / nominal),
             ),
             acc.corrected,
+        )
+
+
+class _ShadowEngine:
+    """What a job needs of the engine, on copies of its axis drivers: to try a job without effect."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.rate_hz = engine.rate_hz
+        self.render_index = 0
+        self._engine = engine
+        with engine._lock:
+            self.drivers = {name: copy.deepcopy(d) for name, d in engine.drivers.items()}
+        self.clamped = dict.fromkeys(self.drivers, 0)
+
+    def label_id(self, name: str) -> int:
+        return -1
+
+    def set_label_note(self, ident: int, note: str | None) -> None:
+        pass
+
+    def label_names(self, ids: NDArray[np.int64]) -> NDArray[np.str_]:
+        return np.full(ids.shape, "", dtype=str)
+
+    def plans_for(self, trajectory: Trajectory) -> dict[str, PeriodicPlan | None]:
+        return self._engine.plans_for(trajectory)
+
+    def tracked_scale(self, axis: str) -> float:
+        return self._engine.tracked_scale(axis)
+
+    def drive(self, driver: AxisDriver, out: Any) -> FloatArray:
+        if out.clamped:
+            self.clamped[driver.name] += int(out.clamped)
+        volts: FloatArray = out.voltage_v
+        return volts
+
+    def chunk(self, volts: FloatArray, targets: FloatArray | None) -> Chunk:
+        n = volts.shape[1]
+        return Chunk(
+            volts,
+            np.full(volts.shape, np.nan) if targets is None else targets,
+            np.full(n, -1, dtype=np.int64),
+            np.zeros(n, dtype=np.int8),
+            np.zeros(n, dtype=bool),
         )
 
 
@@ -788,6 +930,9 @@ class Engine:
                     chunk = job.render(self, n - filled)
                 except (ModelError, SafetyError) as exc:
                     self.fault("host", "MODEL", f"{type(job).__name__}: {exc}")
+                    if isinstance(job, ScanJob | ProgramJob):
+                        self._end_recording(self._index + filled)  # closed, not leaked
+                    self._queue.clear()
                     self._job = RampJob(self, None, self.config.service.ramp_rate_v_per_s, "fault")
                     self._fault_latched = True
                     continue
@@ -879,12 +1024,20 @@ class Engine:
     # -- EngineControl ---------------------------------------------------------------------------
 
     def status(self) -> Status:
-        """A snapshot (cheap, thread-safe)."""
+        """A snapshot (cheap, thread-safe).
+
+        While the board is disconnected no position or voltage is reported: what the board applies
+        then is not known to the host (it ramps to its safe values when the heartbeat stops).
+        """
         with self._lock:
-            job = self._job
-            state = self._state
-            scan = job.request if isinstance(job, ScanJob) else None
-            line = job.line if isinstance(job, ScanJob) else None
+            return self._status_locked()
+
+    def _status_locked(self) -> Status:
+        job = self._job
+        state = self._state
+        scan = job.request if isinstance(job, ScanJob) else None
+        line = job.line if isinstance(job, ScanJob) else None
+        known = state not in ("disconnected", "starting")
         session = self._session
         fifo_ms = 0.0
         underruns = crc = dropped = 0
@@ -909,46 +1062,100 @@ class Engine:
             frames_dropped=dropped,
             faults=list(self._faults)[-20:],
             last_line=self._last_line,
-            position_um={n: d.position_um for n, d in self.drivers.items()},
-            voltage_v={n: d.voltage_v for n, d in self.drivers.items()},
+            position_um={n: d.position_um for n, d in self.drivers.items()} if known else {},
+            voltage_v={n: d.voltage_v for n, d in self.drivers.items()} if known else {},
             recording=self._recording_name,
             sensitivity_scale={a: t.scale for a, t in self._trackers.items()},
         )
 
     def check_scan(self, request: ScanRequest) -> None:
-        """Refuse a scan the stage cannot do (with the reason)."""
-        self.plans_for(RasterTrajectory.from_request(request, self.rate_hz))
+        """Refuse a scan the stage cannot do (with the reason).
+
+        Besides the steady loop (:meth:`plans_for`), the start of the scan (the move to its first
+        point, the settling lines and the first lines of the frame) is rendered on copies of the
+        axis drivers, outside the engine lock: a scan that would clamp any sample to the voltage
+        limits there (an offset that drives an axis into its limits while the creep settles) is
+        refused with the numbers instead of being clamped while it runs.
+        """
+        trajectory = RasterTrajectory.from_request(request, self.rate_hz)
+        self._check_scan_start(request, trajectory, self.plans_for(trajectory))
+
+    def _check_scan_start(
+        self, request: ScanRequest, trajectory: Trajectory, plans: dict[str, PeriodicPlan | None]
+    ) -> None:
+        shadow = _ShadowEngine(self)
+        job = ScanJob(cast(Engine, shadow), request, trajectory.restarted(), plans)
+        lines_s = (SETTLE_LINES + 2 + 1) / max(request.line_rate_hz, 1e-9)
+        budget = min(int(self.rate_hz * lines_s) + 1, MAX_CHECK_SAMPLES)
+        block = max(1, round(self.rate_hz * self.config.service.block_ms / 1000.0))
+        total = rendered = 0
+        while not job.done and (job._move is not None or rendered < budget) and total < MAX_CHECK_SAMPLES:
+            in_move = job._move is not None
+            m = job.render(cast(Engine, shadow), block).volts.shape[1]
+            total += m
+            if not in_move:
+                rendered += m
+            if m == 0 and not job.done:
+                break
+        bad = {axis: n for axis, n in shadow.clamped.items() if n}
+        if bad:
+            axis, n = next(iter(bad.items()))
+            lo, hi = self.drivers[axis].limits
+            raise SafetyError(
+                f"axis {axis}: the start of this scan (range {request.range_um:g} um, offset "
+                f"({request.offset_x_um:g}, {request.offset_y_um:g}) um) would drive {n} samples beyond the "
+                f"voltage limits [{lo:g}, {hi:g}] V while the stage settles; reduce the offset or the range"
+            )
 
     def start_scan(self, request: ScanRequest, *, path: Path | None = None) -> Status:
         """Start a scan; recorded to ``path`` or to the recording directory."""
         trajectory = RasterTrajectory.from_request(request, self.rate_hz)
-        self.plans_for(trajectory)
+        plans = self.plans_for(trajectory)  # the heavy parts, outside the lock
+        self._check_scan_start(request, trajectory, plans)
         with self._lock:
             if self._state not in ("idle",):
                 raise EngineStateError(f"cannot start a scan while {self._state}")
-            job = ScanJob(self, request, trajectory)
             if request.record:
-                self._begin_recording(request, trajectory, path)
+                self._begin_recording(request, trajectory, path, plans)
+            try:
+                job = ScanJob(self, request, trajectory, plans)
+            except BaseException:
+                self._discard_recording()
+                raise
             self._job = job
             self._state = "scanning"
         return self.status()
 
     def change_scan(self, change: ScanChange) -> Status:
-        """Change the running scan at the next line."""
+        """Change the running scan at the next line; a refused change has no effect at all."""
+        updates = change.model_dump(exclude_none=True)
         with self._lock:
             job = self._job
             if not isinstance(job, ScanJob):
                 raise EngineStateError(f"no scan is running (state {self._state})")
+            candidate = job.trajectory.changed(**updates)
+        self.plans_for(candidate)  # the heavy check, outside the lock (its plans are cached)
+        with self._lock:
+            if self._job is not job:
+                raise EngineStateError("the scan ended meanwhile; nothing was changed")
             job.change(self, change)
         return self.status()
 
     def stop(self) -> Status:
-        """Stop scanning / moving and hold; clears a latched fault."""
+        """Stop scanning / moving and hold; clears a latched fault.
+
+        While the board is disconnected there is nothing to stop here (the board ramps to its safe
+        values by itself when the heartbeat stops, and is reconfigured when it is back): the answer
+        says ``disconnected``.
+        """
         with self._lock:
             self._queue.clear()
-            if isinstance(self._job, ScanJob):
+            if isinstance(self._job, ScanJob | ProgramJob):
                 self._end_recording()
             self._fault_latched = False
+            if self._state in ("disconnected", "starting"):
+                self._job = HoldJob(self._state)
+                return self._status_locked()
             self._job = HoldJob("idle")
             self._state = "idle"
         return self.status()
@@ -972,6 +1179,7 @@ class Engine:
     def move(self, request: MoveRequest) -> Status:
         """Move to a position (slew-limited), then hold."""
         self.check_move(request)
+        self._check_move_duration(request)
         goal = {
             k: v for k, v in (("x", request.x_um), ("y", request.y_um), ("z", request.z_um)) if v is not None
         }
@@ -981,6 +1189,20 @@ class Engine:
             self._job = MoveJob(self, goal, request.speed_um_per_s)
             self._state = "moving"
         return self.status()
+
+    def _check_move_duration(self, request: MoveRequest) -> None:
+        """Refuse a move that would take longer than :data:`MAX_MOVE_S` (with the speed it needs)."""
+        with self._lock:
+            here = {n: d.position_um for n, d in self.drivers.items()}
+        goal = {"x": request.x_um, "y": request.y_um, "z": request.z_um}
+        dist = max((abs(v - here[k]) for k, v in goal.items() if v is not None and k in here), default=0.0)
+        duration = 0.5 * math.pi * dist / request.speed_um_per_s
+        if duration > MAX_MOVE_S:
+            need = 0.5 * math.pi * dist / MAX_MOVE_S
+            raise SafetyError(
+                f"a move of {dist:.4g} um at {request.speed_um_per_s:g} um/s takes {duration:.4g} s, longer "
+                f"than the {MAX_MOVE_S:g} s a move may take; use at least {need:.3g} um/s"
+            )
 
     def recordings(self) -> list[RecordingInfo]:
         """The recordings in the recording directory."""
@@ -1020,7 +1242,7 @@ class Engine:
             self._next_recording += 1
             ident = self._next_recording
             meta = {"scanner": self.config.name, "sample_rate_hz": self.rate_hz, **metadata}
-            self._recorder.open(ident, path, meta, (axis,), targets=False)
+            self._recorder.open(ident, path, meta, (axis,), targets=False)  # exclusive
             self._recording_id = ident
             self._recording_name = path.name
             self._job = job
@@ -1081,10 +1303,13 @@ class Engine:
 
     # -- recordings ------------------------------------------------------------------------------
 
-    def _begin_recording(self, request: ScanRequest, trajectory: Trajectory, path: Path | None) -> None:
-        name = request.name or time.strftime("scan-%Y%m%d-%H%M%S")
-        if path is None:
-            path = self.recording_dir / (name if name.endswith(".csv") else name + ".csv")
+    def _begin_recording(
+        self,
+        request: ScanRequest,
+        trajectory: Trajectory,
+        path: Path | None,
+        plans: dict[str, PeriodicPlan | None],
+    ) -> None:
         self._next_recording += 1
         ident = self._next_recording
         meta: dict[str, object] = {
@@ -1098,13 +1323,55 @@ class Engine:
             "overscan": request.overscan,
             "sample_rate_hz": self.rate_hz,
         }
-        axes = tuple(a for a, plan in self.plans_for(trajectory).items() if plan is not None) or ("x",)
+        axes = tuple(a for a, plan in plans.items() if plan is not None) or ("x",)
         meta["correction"] = self.correction_label(axes) if request.correction else "none"
         uncal = [a for a in axes if a not in calibrated_axes(self.config)]
         meta["calibrated"] = "no (axes " + ", ".join(uncal) + ")" if uncal else "yes"
-        self._recorder.open(ident, path, meta, axes)
+        if path is not None or request.name:
+            if path is None:
+                name = request.name or ""
+                path = self.recording_dir / (name if name.endswith(".csv") else name + ".csv")
+            self._recorder.open(ident, path, meta, axes)
+        else:
+            # unnamed: scan-<time>, then -2, -3 ... for scans started within the same second
+            stem = time.strftime("scan-%Y%m%d-%H%M%S")
+            for n in range(1, 1000):
+                path = self.recording_dir / (f"{stem}.csv" if n == 1 else f"{stem}-{n}.csv")
+                try:
+                    self._recorder.open(ident, path, meta, axes)
+                    break
+                except RecordingError as exc:
+                    if not isinstance(exc.__cause__, FileExistsError):
+                        raise
+            else:
+                raise RecordingError(f"no free recording name {stem}-N.csv", str(self.recording_dir))
+        assert path is not None
         self._recording_id = ident
         self._recording_name = path.name
+
+    def _discard_recording(self) -> None:
+        if self._recording_id >= 0:
+            self._recorder.discard(self._recording_id)
+            self._recording_id = -1
+            self._recording_name = None
+
+    def recording_failed(self, ident: int, message: str) -> None:
+        """The recorder lost recording ``ident`` (a full disk): stop its scan and hold; a fault.
+
+        The stage holds where it is (no jump, no ramp that might move a probe near a surface);
+        the fault stays until ``stop()``. The next scan opens a new recording, so recording
+        resumes by itself once space returns (or is refused with the reason if it has not).
+        """
+        with self._lock:
+            if ident == self._recording_id:
+                self._recording_id = -1
+                self._recording_name = None
+                if isinstance(self._job, ScanJob | ProgramJob):
+                    self._queue.clear()
+                    self._job = HoldJob("fault")
+                    self._state = "fault"
+                    self._fault_latched = True
+        self.fault("host", "RECORDING", message)
 
     def correction_label(self, axes: tuple[str, ...]) -> str:
         """The model correcting ``axes`` now: ``dynamic``, ``thesis``, or per axis ``x=dynamic y=thesis``."""
