@@ -62,6 +62,7 @@ from firmware_proto import (
     Stop,
     max_samples_per_frame,
 )
+from hil_sim.microscope import Microscope, MicroscopeConfig
 from hil_sim.stage import Stage, StageConfig
 from piezod.config import load_config
 from piezod.errors import ConfigError
@@ -144,6 +145,11 @@ class BoardConfig:
         Probability per outgoing frame of being dropped entirely.
     seed
         Seed of the fault-injection generator.
+    microscope
+        The simulated microscope (:mod:`hil_sim.microscope`), or None (a bare stage). With it the
+        z channel's ADC reads the z-piezo voltage through the amplifier's monitor
+        (``V_z / monitor_ratio``) while the z feedback drives the z piezo, and without its
+        position sensor the x / y ADC channels read 0.
     """
 
     amplifier_ranges_v: tuple[tuple[float, float], ...] | None = None
@@ -163,6 +169,7 @@ class BoardConfig:
     corrupt_in_rate: float = 0.0
     drop_rate: float = 0.0
     seed: int = 0
+    microscope: MicroscopeConfig | None = None
 
     def __post_init__(self) -> None:
         for name in ("corrupt_rate", "corrupt_in_rate", "drop_rate"):
@@ -340,6 +347,14 @@ class Board:
         self._ramp_target = np.zeros(C)
         self._ramp_rate = np.ones(C)
 
+        self._microscope: Microscope | None = None
+        if self._cfg.microscope is not None:
+            if "z" not in stage.axes:
+                raise ConfigError("board: the simulated microscope needs a stage with a z axis")
+            self._microscope = Microscope(self._cfg.microscope, stage.config)
+        self._truth: list[F64] = []
+        self._truth_first = 0
+
         # stage: simulated up to _stage_t; played ticks waiting for the stage
         self._stage_t = float(now)
         self._pending: list[F64] = []
@@ -393,6 +408,14 @@ class Board:
             ranges = tuple((scanner.axes[a].voltage_min_v, scanner.axes[a].voltage_max_v) for a in stage.axes)
             cfg = dataclasses.replace(cfg, amplifier_ranges_v=ranges)
         cfg = dataclasses.replace(cfg, seed=seed)
+        section = (scanner.simulation or {}).get("microscope")
+        if cfg.microscope is None and section is not None:
+            if not isinstance(section, dict):
+                raise ConfigError(f"{p}: simulation.microscope: must be a mapping")
+            try:
+                cfg = dataclasses.replace(cfg, microscope=MicroscopeConfig(**section))
+            except (TypeError, ValueError) as exc:
+                raise ConfigError(f"{p}: simulation.microscope: {exc}") from exc
         return cls(stage, cfg, now=now)
 
     # -- public state ----------------------------------------------------------------------
@@ -738,12 +761,28 @@ class Board:
         dt = 1.0 / self._conf.sample_rate_hz
         x = self._stage.step(v, dt)
         self._stage_t = self._tick_time(first + v.shape[1] - 1)
+        z_monitor: F64 | None = None
+        mic = self._microscope
+        if mic is not None:
+            axes = self._stage.axes
+            xt = x[axes.index("x")] if "x" in axes else np.zeros(x.shape[1])
+            yt = x[axes.index("y")] if "y" in axes else np.zeros(x.shape[1])
+            vz, ez = mic.step(xt, yt, dt)
+            z_monitor = vz / mic.config.monitor_ratio
+            self._record_truth(first, np.stack((xt, yt, vz, ez)))
         dec = self._conf.sensor_decimation
         offset = (self._start_index - first) % dec
         rows = x[:, offset::dec]
         if rows.shape[1] == 0:
             return
         sensed = self._stage.sense(rows)
+        if mic is not None and z_monitor is not None:
+            axes = self._stage.axes
+            sensed[axes.index("z")] = z_monitor[offset::dec]
+            if not mic.config.position_sensor:
+                for a in ("x", "y"):
+                    if a in axes:
+                        sensed[axes.index(a)] = 0.0
         step = float(1 << (16 - self._cfg.adc_bits))
         codes = np.rint((sensed - self._adc_offset[:, None]) / (self._adc_scale[:, None] * step)) * step
         codes = np.clip(codes, -32768.0, 32768.0 - step)
@@ -754,6 +793,32 @@ class Board:
         for lo in range(0, table.shape[0], mspf):
             self._ep.send(Sensor(first_row + lo * dec, dec, table[lo : lo + mspf]), now)
         self._sensor_rows_sent += table.shape[0]
+
+    def _record_truth(self, first: int, rows: F64) -> None:
+        if not self._truth or self._truth_first + sum(r.shape[1] for r in self._truth) != first:
+            self._truth = []
+            self._truth_first = first
+        self._truth.append(rows)
+        total = sum(r.shape[1] for r in self._truth)
+        keep = 1 << 20
+        while total - self._truth[0].shape[1] >= keep:
+            total -= self._truth[0].shape[1]
+            self._truth_first += self._truth[0].shape[1]
+            self._truth.pop(0)
+
+    def microscope_truth(self) -> tuple[int, F64]:
+        """The hidden truth of the simulated microscope over the latest played samples.
+
+        Returns
+        -------
+        first_index, rows
+            Sample index of the first column and rows ``(x_um, y_um, z_voltage_v, z_um)``: the true
+            tip position, the z-piezo voltage and the true z extension (at most 1 Mi samples; empty
+            without a microscope).
+        """
+        if not self._truth:
+            return self._truth_first, np.zeros((4, 0))
+        return self._truth_first, np.concatenate(self._truth, axis=1)
 
     def _stop_clock(self, t: float) -> None:
         """Leave RUNNING / ARMED at ``t``: run the stage over what was played, empty the FIFO, hold."""

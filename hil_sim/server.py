@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import errno
 import logging
 import os
@@ -35,8 +36,9 @@ from pathlib import Path
 from types import FrameType, TracebackType
 
 from hil_sim.board import Board, BoardConfig
+from hil_sim.microscope import MicroscopeConfig
 from hil_sim.usb_bridge import UsbSocketServer
-from piezod.errors import LinkError, LinkTimeoutError, PiezodError
+from piezod.errors import ConfigError, LinkError, LinkTimeoutError, PiezodError
 
 log = logging.getLogger("hil_sim.server")
 
@@ -377,7 +379,40 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="MS",
         help=f"longest wait of the serving loop (default {DEFAULT_TICK_S * 1e3:g} ms)",
     )
+    parser.add_argument(
+        "--sample",
+        metavar="NAME",
+        help="simulate a microscope imaging this sample (line-3um, grating-200nm, grating-10um, "
+        "steps-100nm, flat): the z channel's ADC then reads the z-piezo voltage / 100; "
+        "default: the scanner YAML's simulation.microscope section, else none",
+    )
+    parser.add_argument(
+        "--no-position-sensor",
+        action="store_true",
+        help="with a microscope: the board has no x / y position sensor (those ADC channels read 0)",
+    )
+    parser.add_argument(
+        "--feedback-bandwidth-hz", type=float, metavar="F", help="with a microscope: z loop bandwidth (Hz)"
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log every dropped frame")
+
+
+def _microscope_from_args(args: argparse.Namespace) -> MicroscopeConfig:
+    """The microscope of ``--sample`` / ``--no-position-sensor`` / ``--feedback-bandwidth-hz``."""
+    base = MicroscopeConfig()
+    try:
+        return MicroscopeConfig(
+            sample=args.sample if args.sample is not None else base.sample,
+            position_sensor=not args.no_position_sensor,
+            feedback_bandwidth_hz=(
+                args.feedback_bandwidth_hz
+                if args.feedback_bandwidth_hz is not None
+                else base.feedback_bandwidth_hz
+            ),
+            seed=args.seed,
+        )
+    except ValueError as exc:
+        raise ConfigError(f"--sample: {exc}") from exc
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -405,6 +440,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         corrupt_in_rate=args.corrupt_in_rate,
         drop_rate=args.drop_rate,
     )
+    if args.sample is not None or args.no_position_sensor or args.feedback_bandwidth_hz is not None:
+        config = dataclasses.replace(config, microscope=_microscope_from_args(args))
     board = Board.from_scanner_file(
         args.config, effects=tuple(args.effect), seed=args.seed, config=config, now=clock()
     )

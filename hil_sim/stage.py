@@ -258,7 +258,8 @@ def _validate_simulation(cfg: ScannerConfig) -> StageConfig:
             f"scanner {cfg.name!r}: simulation: missing (the simulated stage needs the true physics)", ()
         )
     try:
-        stage = StageConfig.model_validate(cfg.simulation)
+        # simulation.microscope is the simulated microscope's (hil_sim.microscope), not the stage's
+        stage = StageConfig.model_validate({k: v for k, v in cfg.simulation.items() if k != "microscope"})
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ("simulation", *err["loc"])

@@ -7,7 +7,14 @@ import logging
 import time
 from pathlib import Path
 
-from piezod.cli._common import add_port_options, board_url, human_stream, scanner_config_path
+from piezod.cli._common import (
+    add_microscope_options,
+    add_port_options,
+    board_url,
+    human_stream,
+    scanner_config_path,
+    with_microscope,
+)
 from piezod.config import load_config
 from piezod.errors import BoardFaultError, ConfigError
 from piezod.progress import progress_bar
@@ -24,12 +31,14 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--range-um", type=float, required=True, help="fast-axis scan range (um)")
     p.add_argument("--line-rate-hz", type=float, required=True, help="lines per second (trace + retrace)")
     p.add_argument("--lines", type=int, default=8, help="lines per frame (default 8)")
+    p.add_argument("--pixels", type=int, default=None, help="pixels per image line (default 256)")
     p.add_argument("--offset-um", type=float, default=0.0, help="fast-axis offset of the image centre (um)")
     p.add_argument("--slow-range-um", type=float, default=None, help="slow-axis range (default: range)")
     p.add_argument("--no-correction", action="store_true", help="drive the plain triangle (no model)")
     p.add_argument(
         "--model", choices=("thesis", "dynamic"), help="override the scanner config's model on every axis"
     )
+    add_microscope_options(p)
     p.add_argument("--out", required=True, metavar="REC.csv", help="the recording to write")
     p.set_defaults(func=run)
 
@@ -38,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the scan."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     config_path = scanner_config_path(args)
-    config = load_config(config_path)
+    config = with_microscope(args, load_config(config_path))
     if args.model:
         if args.model == "dynamic" and config.axes["x"].dynamic is None:
             raise ConfigError(
@@ -57,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
         range_um=args.range_um,
         line_rate_hz=args.line_rate_hz,
         lines=args.lines,
+        pixels=args.pixels or (config.microscope.pixels if config.microscope is not None else 256),
         slow_range_um=args.slow_range_um,
         offset_x_um=args.offset_um,
         correction=not args.no_correction,

@@ -394,6 +394,7 @@ class _OpenRecording:
     targets: bool
     rows: int = 0
     done: bool = False
+    z_monitor_ratio: float | None = None
 
 
 @dataclass
@@ -426,11 +427,16 @@ class Recorder(threading.Thread):
         axes: tuple[str, ...],
         *,
         targets: bool = True,
+        z_monitor_ratio: float | None = None,
     ) -> None:
-        columns = ("t", "voltage", "position", *(("target",) if targets else ()), "axis", "experiment")
+        height = ("z_voltage",) if z_monitor_ratio is not None else ()
+        target = ("target",) if targets else ()
+        columns = ("t", "voltage", "position", *target, *height, "axis", "experiment")
         writer = RecordingWriter(path, columns, metadata=metadata, append=False)
         with self.lock:
-            self.recordings[ident] = _OpenRecording(ident, path, writer, axes, targets)
+            self.recordings[ident] = _OpenRecording(
+                ident, path, writer, axes, targets, z_monitor_ratio=z_monitor_ratio
+            )
 
     def run(self) -> None:
         while True:
@@ -481,6 +487,12 @@ class Recorder(threading.Thread):
                 continue
             sel = record & (rec_id == ident)
             names = self.engine.label_names(label[sel])
+            z_voltage = None
+            if rec.z_monitor_ratio is not None:
+                if "z" in block.axes:
+                    z_voltage = block.position_um[block.axes.index("z"), sel] * rec.z_monitor_ratio
+                else:
+                    z_voltage = np.full(int(sel.sum()), np.nan)
             for i, axis in enumerate(block.axes):
                 if axis not in rec.axes:
                     continue
@@ -491,6 +503,7 @@ class Recorder(threading.Thread):
                     target_um=targets[i, sel] if rec.targets else None,
                     axis=axis,
                     experiment=names,
+                    z_voltage_v=z_voltage,
                 )
                 rec.rows += int(sel.sum())
 
@@ -1083,9 +1096,17 @@ class Engine:
             "overscan": request.overscan,
             "correction": "thesis" if request.correction else "none",
             "sample_rate_hz": self.rate_hz,
+            "pixels": request.pixels,
         }
+        mic = self.config.microscope
+        if mic is not None:
+            meta["position_sensor"] = "yes" if mic.position_sensor else "no"
+            meta["z_monitor_ratio"] = mic.z_monitor_ratio
         axes = tuple(a for a, plan in self.plans_for(params).items() if plan is not None) or ("x",)
-        self._recorder.open(ident, path, meta, axes)
+        axes = tuple(a for a in axes if mic is None or a != "z")
+        self._recorder.open(
+            ident, path, meta, axes, z_monitor_ratio=None if mic is None else mic.z_monitor_ratio
+        )
         self._recording_id = ident
         self._recording_name = path.name
 
