@@ -175,7 +175,7 @@ SAMPLES: dict[str, Sample] = {
         height_um=0.1,
         edge_width_nm=15.0,
         roughness_nm_rms=3.0,
-        missing=(4,),
+        missing=(2,),
         tilt_x=2e-3,
         tilt_y=-1e-3,
         defects=(Defect(x_um=-7.3, y_um=4.1, radius_um=0.4, height_um=0.15),),

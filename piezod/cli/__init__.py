@@ -28,6 +28,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "scan",
     "calibrate",
     "linearity",
+    "image",
     "audit",
     "bench",
     "sim",

@@ -20,6 +20,8 @@ outputs to the safe values (the board also ramps by itself when the host's heart
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import math
 import queue
@@ -1097,7 +1099,16 @@ class Engine:
             "correction": "thesis" if request.correction else "none",
             "sample_rate_hz": self.rate_hz,
             "pixels": request.pixels,
+            "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "config_sha256": hashlib.sha256(self.config.model_dump_json().encode()).hexdigest(),
         }
+        fast = self.config.axes["x"]
+        if request.correction:
+            section = fast.dynamic if fast.model == "dynamic" and fast.dynamic is not None else fast.thesis
+            meta["model"] = fast.model
+            meta["model_params"] = json.dumps(section.model_dump(mode="json"), sort_keys=True)
+        else:
+            meta["model"] = "none"
         mic = self.config.microscope
         if mic is not None:
             meta["position_sensor"] = "yes" if mic.position_sensor else "no"
