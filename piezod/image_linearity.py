@@ -125,11 +125,23 @@ def _crossings(profile: F64, xs: F64) -> tuple[F64, F64]:
         return np.zeros(0), np.zeros(0)
     p = profile.copy()
     coef = np.polyfit(xs[ok], p[ok], 1)
-    p = p - np.polyval(coef, xs)
-    lo, hi = np.nanpercentile(p, [10, 90])
+    d = p - np.polyval(coef, xs)
+    lo, hi = np.nanpercentile(d, [10, 90])
     if not hi - lo > 0:
         return np.zeros(0), np.zeros(0)
-    s = p - 0.5 * (lo + hi)
+    s = d - 0.5 * (lo + hi)
+    # Two plateaus on one tilted line: p = a + b x + c [upper]; the mid level a + b x + c / 2 does
+    # not lean with the pattern's asymmetry (a missing line) as a plain line fit does.
+    for _ in range(2):
+        upper = (s > 0).astype(np.float64)
+        far = ok & (np.abs(s) > 0.25 * (hi - lo))
+        if far.sum() < 4 or upper[far].min() == upper[far].max():
+            break
+        a = np.column_stack((np.ones(int(far.sum())), xs[far], upper[far]))
+        c0, c1, c2 = np.linalg.lstsq(a, p[far], rcond=None)[0]
+        s = p - (c0 + c1 * xs + 0.5 * c2)
+        if c2 < 0:
+            s = -s
     a, b = s[:-1], s[1:]
     valid = np.isfinite(a) & np.isfinite(b)
     up = np.flatnonzero(valid & (a < 0) & (b >= 0))
