@@ -78,6 +78,7 @@ _IDLE_MIN_SPAN_S = 1e-9
 _DEFAULT_STATUS_PERIOD_S = 0.01
 """FAULT rate limit before the first CONFIGURE (no ``status_period_ms`` yet)."""
 _MAX_PENDING_TICKS = 1 << 16
+_TRUTH_EVERY = 10
 
 _NAK_FOR_DECODE_ERROR = {
     ErrorKind.UNKNOWN_TYPE: NakReason.UNKNOWN_TYPE,
@@ -150,6 +151,11 @@ class BoardConfig:
         z channel's ADC reads the z-piezo voltage through the amplifier's monitor
         (``V_z / monitor_ratio``) while the z feedback drives the z piezo, and without its
         position sensor the x / y ADC channels read 0.
+    truth_log
+        With a microscope: append the hidden truth to this file, every 10th played sample, as
+        float64 rows ``(sample_index, x_um, y_um, z_voltage_v, z_um)`` (raw, native byte order):
+        the true tip position an external interferometer would measure, for checking sensorless
+        calibrations (``piezod.imagecal.read_truth_log``).
     """
 
     amplifier_ranges_v: tuple[tuple[float, float], ...] | None = None
@@ -170,6 +176,7 @@ class BoardConfig:
     drop_rate: float = 0.0
     seed: int = 0
     microscope: MicroscopeConfig | None = None
+    truth_log: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("corrupt_rate", "corrupt_in_rate", "drop_rate"):
@@ -354,6 +361,7 @@ class Board:
             self._microscope = Microscope(self._cfg.microscope, stage.config)
         self._truth: list[F64] = []
         self._truth_first = 0
+        self._truth_fh = open(self._cfg.truth_log, "ab") if self._cfg.truth_log else None  # noqa: SIM115
 
         # stage: simulated up to _stage_t; played ticks waiting for the stage
         self._stage_t = float(now)
@@ -795,6 +803,12 @@ class Board:
         self._sensor_rows_sent += table.shape[0]
 
     def _record_truth(self, first: int, rows: F64) -> None:
+        if self._truth_fh is not None:
+            j = np.arange(rows.shape[1])
+            sel = (first + j) % _TRUTH_EVERY == 0
+            block = np.vstack(((first + j[sel]).astype(np.float64), rows[:, sel]))
+            self._truth_fh.write(np.ascontiguousarray(block.T, dtype=np.float64).tobytes())
+            self._truth_fh.flush()
         if not self._truth or self._truth_first + sum(r.shape[1] for r in self._truth) != first:
             self._truth = []
             self._truth_first = first

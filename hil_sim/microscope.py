@@ -62,7 +62,7 @@ class MicroscopeConfig:
     position_sensor: bool = True
     feedback_bandwidth_hz: float = 2000.0
     height_noise_nm_rms: float = 0.2
-    feedback_passes: int = 3
+    feedback_passes: int = 2
     monitor_ratio: float = MONITOR_RATIO
     seed: int = 0
 
@@ -102,6 +102,7 @@ class Microscope:
         self._lp_init = False
         self._v_last = 0.0
         self._e_last = 0.0
+        self._slope = 0.5 * (self._b + self._u)
         self._err_rms_nm = 0.0
 
     @property
@@ -147,7 +148,8 @@ class Microscope:
         if self._cfg.height_noise_nm_rms > 0:
             target = target + self._rng.normal(0.0, self._cfg.height_noise_nm_rms * 1e-3, n)
         snap = self._z.snapshot()
-        v = self._v_last + (target - self._e_last) / self._b
+        # first guess from the slope dz/dV seen in the previous block; later passes: per-sample secants
+        v = self._v_last + (target - self._e_last) / self._slope
         v_prev: F64 | None = None
         e_prev: F64 | None = None
         e = np.zeros(n)
@@ -157,13 +159,18 @@ class Microscope:
             e = self._z.step(v, dt_s)
             if k == self._cfg.feedback_passes - 1:
                 break
-            slope = np.full(n, 0.5 * (self._b + self._u))
+            slope = np.full(n, self._slope)
             if v_prev is not None and e_prev is not None:
                 dv = v - v_prev
                 ok = np.abs(dv) > 1e-9
                 slope[ok] = np.clip((e - e_prev)[ok] / dv[ok], 0.2 * self._b, 1.5 * self._b)
             v_prev, e_prev = v, e
             v = v + (target - e) / slope
+        if v_prev is not None and e_prev is not None:
+            dv = v - v_prev
+            dd = float(dv @ dv)
+            if dd > 1e-12:
+                self._slope = float(np.clip(float(dv @ (e - e_prev)) / dd, 0.2 * self._b, 1.5 * self._b))
         self._v_last = float(v[-1])
         self._e_last = float(e[-1])
         self._err_rms_nm = float(np.sqrt(np.mean((target - e) ** 2)) * 1e3)

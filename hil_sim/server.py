@@ -394,6 +394,11 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--feedback-bandwidth-hz", type=float, metavar="F", help="with a microscope: z loop bandwidth (Hz)"
     )
+    parser.add_argument(
+        "--truth-log",
+        metavar="PATH",
+        help="with a microscope: append the true tip position to PATH (hidden truth for checks)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log every dropped frame")
 
 
@@ -442,6 +447,8 @@ def run_from_args(args: argparse.Namespace) -> int:
     )
     if args.sample is not None or args.no_position_sensor or args.feedback_bandwidth_hz is not None:
         config = dataclasses.replace(config, microscope=_microscope_from_args(args))
+    if args.truth_log:
+        config = dataclasses.replace(config, truth_log=str(args.truth_log))
     board = Board.from_scanner_file(
         args.config, effects=tuple(args.effect), seed=args.seed, config=config, now=clock()
     )

@@ -50,8 +50,8 @@ class RasterSamples:
 
     Attributes
     ----------
-    t_s, target_um, position_um
-        Time, commanded and sensed fast-axis position of every sample.
+    t_s, target_um, position_um, voltage_v
+        Time, commanded and sensed fast-axis position, and voltage of every sample.
     z_voltage_v
         The height channel (V) or None.
     line
@@ -65,6 +65,7 @@ class RasterSamples:
     t_s: F64
     target_um: F64
     position_um: F64
+    voltage_v: F64
     z_voltage_v: F64 | None
     line: NDArray[np.int64]
     direction: NDArray[np.int8]
@@ -218,6 +219,7 @@ def raster_samples(rec: Recording) -> RasterSamples:
         t_s=t,
         target_um=target,
         position_um=rec.position_um[sel],
+        voltage_v=rec.voltage_v[sel],
         z_voltage_v=z,
         line=line,
         direction=direction,

@@ -96,6 +96,8 @@ def sim_microscope_args(args: argparse.Namespace) -> tuple[str, ...]:
         out += ("--sample", str(args.sample))
     if getattr(args, "no_position_sensor", False):
         out += ("--no-position-sensor",)
+    if getattr(args, "truth_log", None):
+        out += ("--truth-log", str(args.truth_log))
     return out
 
 

@@ -1,0 +1,197 @@
+"""``piezod calibrate (--sim | --port URL) --from-images --pitch-um P``: calibration without a sensor.
+
+Records a frame of uncorrected trace / retrace images of a line pattern of pitch ``P`` (several
+ranges, line rates, offsets), fits the thesis model (3.8) and the dynamic model to the flanks
+(:mod:`piezod.imagecal`), writes the YAML, and verifies corrected images inside and outside the
+frame by the image metrics - on the simulator also by the hidden truth (the board's truth log),
+side by side.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from piezod.calibrate import calibrated_config as thesis_config
+from piezod.calibrate_dynamic import calibrated_config as dynamic_config
+from piezod.cli._common import board_url, human_stream, scanner_config_path, with_microscope, write_json
+from piezod.config import MicroscopeSection, dump_config, load_config
+from piezod.errors import CalibrationError, PiezodError
+from piezod.image import images
+from piezod.image_linearity import image_linearity
+from piezod.imagecal import (
+    default_image_frame,
+    fit_dynamic_from_flanks,
+    fit_thesis_from_flanks,
+    flank_events,
+    read_truth_log,
+    run_image_scans,
+    verification_scans,
+    with_truth,
+)
+from piezod.linearity import experiment_linearity
+from piezod.recording import read_recording, split_experiments
+
+
+def _image_metrics(path: Path, pitch_um: float) -> dict[str, float]:
+    rec = read_recording(path)
+    pair = next(p for p in images(rec) if p.grid == "commanded" and p.channel == "z_voltage")
+    tr = image_linearity(pair.trace, pair.geometry, pitch_um, 1)
+    rt = image_linearity(pair.retrace, pair.geometry, pitch_um, -1)
+    worse_nl = max(tr.nonlinearity_pct, rt.nonlinearity_pct)
+    worse_le = max((tr.length_error_pct, rt.length_error_pct), key=abs)
+    return {"nonlinearity_pct": worse_nl, "length_error_pct": worse_le}
+
+
+def _truth_metrics(path: Path, truth_log: Path, rate_hz: float) -> dict[str, float]:
+    rec = with_truth(read_recording(path), read_truth_log(truth_log), rate_hz)
+    exp = next(e for e in split_experiments(rec) if e.axis in (None, "x"))
+    lin = experiment_linearity(exp)
+    return {"nonlinearity_pct": lin.nonlinearity_pct, "length_error_pct": lin.length_error_pct}
+
+
+def run_from_images(args: argparse.Namespace) -> int:
+    """Run the sensorless calibration on the stage."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if not args.out:
+        raise CalibrationError("--out F.yaml is required: where the calibrated scanner config goes")
+    if args.pitch_um is None or not args.pitch_um > 0:
+        raise CalibrationError("--from-images needs --pitch-um P > 0 (the reference's certified pitch)")
+    if args.recordings:
+        raise CalibrationError("--from-images records its own frame: give no recordings")
+    config_path = scanner_config_path(args)
+    out = Path(args.out)
+    recdir = Path(args.recordings_dir) if args.recordings_dir else out.parent / f"{out.stem}-recordings"
+    recdir.mkdir(parents=True, exist_ok=True)
+    truth: Path | None = None
+    if args.sim:
+        args.sample = args.sample or "line-3um"
+        args.no_position_sensor = True
+        truth = recdir / "truth.f64"
+        truth.unlink(missing_ok=True)
+        args.truth_log = str(truth)
+    base = with_microscope(args, load_config(config_path))
+    if base.microscope is None:
+        base = base.model_copy(update={"microscope": MicroscopeSection(position_sensor=False)})
+    reduced = args.frame == "reduced"
+    frame = default_image_frame(reduced=reduced)
+    say = human_stream(args)
+    print(
+        f"image calibration frame: {len(frame)} uncorrected scans of the {args.pitch_um:g} um reference, "
+        f"ranges {sorted({s.range_um for s in frame})} um, "
+        f"rates {sorted({s.line_rate_hz for s in frame})} Hz, "
+        f"offsets {sorted({s.offset_um for s in frame})} um",
+        file=say,
+    )
+    t0 = time.monotonic()
+    report: dict[str, Any] = {"pitch_um": args.pitch_um}
+    with board_url(args, config_path) as url:
+        from piezod.service.engine import Engine
+
+        engine = Engine(base, url, recording_dir=recdir)
+        engine.open()
+        try:
+            paths = run_image_scans(
+                engine, frame, recdir / "frame", progress=lambda n: print(f"  scan {n}", file=say)
+            )
+            recs = [read_recording(p) for p in paths]
+            events = [flank_events(r, args.pitch_um, label=p.stem) for r, p in zip(recs, paths, strict=True)]
+            n_flanks = sum(len(e) for e in events)
+            print(f"flanks: {n_flanks} in {len(events)} scans", file=say)
+            ax = base.axes["x"]
+            th = fit_thesis_from_flanks(recs, events, start=ax.thesis.params())
+            print(
+                f"thesis model (3.8) from images: worst fit error {th.result.fit_error_pct:.3f} %", file=say
+            )
+            thesis_cfg = thesis_config(th.result, axis="x", base=base, inputs=[str(p) for p in paths])
+            dyn = fit_dynamic_from_flanks(
+                recs,
+                events,
+                th.line_width_um,
+                slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
+                rest_voltage_v=ax.safe_voltage_v,
+            )
+            print(f"dynamic model from images: worst fit error {dyn.fit_error_pct:.3f} %", file=say)
+            calibrated = dynamic_config(dyn, axis="x", base=thesis_cfg, inputs=[str(p) for p in paths])
+            calibrated = calibrated.model_copy(update={"microscope": base.microscope})
+            dump_config(
+                calibrated,
+                out,
+                header=(
+                    f"calibrated without a position sensor by piezod calibrate --from-images "
+                    f"(pitch {args.pitch_um:g} um, {len(frame)} image pairs, {n_flanks} flanks)"
+                ),
+            )
+            print(f"-> {out}", file=say)
+            report["thesis"] = {
+                "params": dataclasses.asdict(th.result.params),
+                "fit_error_pct": th.result.fit_error_pct,
+            }
+            report["dynamic_fit_error_pct"] = dyn.fit_error_pct
+            report["flanks"] = n_flanks
+            report["line_width_um"] = th.line_width_um
+            rows: list[dict[str, Any]] = []
+            if not args.no_verify:
+                scans = verification_scans()
+                for model in ("thesis", "dynamic"):
+                    engine.set_axis_model("x", calibrated.axes["x"].model_copy(update={"model": model}))
+                    run_image_scans(engine, scans[:1], recdir / f"warmup-{model}", correction=True)
+                    vpaths = run_image_scans(engine, scans, recdir / f"verify-{model}", correction=True)
+                    for sc, vp in zip(scans, vpaths, strict=True):
+                        row: dict[str, Any] = {
+                            "model": model,
+                            "range_um": sc.range_um,
+                            "line_rate_hz": sc.line_rate_hz,
+                            "offset_um": sc.offset_um,
+                            "frame": "inside" if sc.where == "inside" else "outside",
+                            "what": sc.where,
+                            "recording": str(vp),
+                        }
+                        try:
+                            row["image"] = _image_metrics(vp, args.pitch_um)
+                        except PiezodError as exc:
+                            row["image_error"] = str(exc)
+                        if truth is not None:
+                            engine.wait_recorded()
+                            row["truth"] = _truth_metrics(vp, truth, base.sample_rate_hz)
+                        rows.append(row)
+                print(format_rows(rows), file=say)
+                report["verification"] = rows
+        finally:
+            engine.close()
+    report["seconds"] = time.monotonic() - t0
+    write_json(args.json, report)
+    return 0
+
+
+def format_rows(rows: list[dict[str, Any]]) -> str:
+    """The verification table: image metrics beside the hidden truth."""
+    head = (
+        f"{'model':<8} {'range um':>8} {'f Hz':>6} {'off um':>6} {'frame':>7}  "
+        f"{'image nonlin %':>14} {'image len %':>11}  {'truth nonlin %':>14} {'truth len %':>11}  what"
+    )
+    lines = [head]
+    for r in rows:
+        im = r.get("image", {})
+        tr = r.get("truth", {})
+
+        def f(d: dict[str, float], k: str, fmt: str) -> str:
+            v = d.get(k)
+            return format(v, fmt) if v is not None and np.isfinite(v) else "-"
+
+        lines.append(
+            f"{r['model']:<8} {r['range_um']:8.4g} {r['line_rate_hz']:6.3g} {r['offset_um']:6.3g} "
+            f"{r['frame']:>7}  "
+            f"{f(im, 'nonlinearity_pct', '14.3f')} {f(im, 'length_error_pct', '+11.3f')}  "
+            f"{f(tr, 'nonlinearity_pct', '14.3f')} {f(tr, 'length_error_pct', '+11.3f')}  {r['what']}"
+        )
+    return "\n".join(lines)
+
+
+__all__ = ["format_rows", "run_from_images"]
