@@ -120,4 +120,50 @@ def model_metadata(model: str, params: Mapping[str, float]) -> dict[str, str]:
     return {"model": model, "model_params": json.dumps(dict(params), sort_keys=True)}
 
 
-__all__ = ["image_metadata", "model_metadata", "write_gwy", "write_png"]
+def write_pair_png(
+    left: ImagePair,
+    right: ImagePair,
+    path: Path,
+    *,
+    titles: tuple[str, str] = ("uncorrected", "corrected"),
+    pitch_um: float | None = None,
+    suptitle: str = "",
+) -> Path:
+    """Two trace images side by side (e.g. uncorrected vs corrected), with the reference's pitch grid.
+
+    With ``pitch_um`` dotted lines mark where features of that pitch lie on a linear scan, anchored
+    at the image centre: a linear image keeps its features on them.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9.0, 4.4), constrained_layout=True)
+    for ax, pair, title in zip(axes, (left, right), titles, strict=True):
+        g = pair.geometry
+        img = level(pair.trace)
+        if pair.unit == "m":
+            img = img * 1e3
+        lo, hi = np.nanpercentile(img, [1, 99])
+        x0, x1 = g.x0_um, g.x0_um + g.range_um
+        y0, y1 = g.offset_slow_um - 0.5 * g.slow_range_um, g.offset_slow_um + 0.5 * g.slow_range_um
+        ax.imshow(
+            img, origin="lower", extent=(x0, x1, y0, y1), aspect="equal", cmap="afmhot", vmin=lo, vmax=hi
+        )
+        if pitch_um:
+            for k in np.arange(
+                np.ceil((x0 - g.offset_um) / pitch_um), np.floor((x1 - g.offset_um) / pitch_um) + 1
+            ):
+                ax.axvline(g.offset_um + k * pitch_um, color="c", lw=0.7, ls=":")
+        ax.set_xlabel("x, fast axis (um)")
+        ax.set_ylabel("y, slow axis (um)")
+        ax.set_title(title, fontsize=10)
+    fig.suptitle(suptitle)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
+
+
+__all__ = ["image_metadata", "model_metadata", "write_gwy", "write_pair_png", "write_png"]

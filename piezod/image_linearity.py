@@ -9,9 +9,10 @@ their known positions ``k P`` on the sample, and regressed on their pixel positi
    and 90th percentiles; the flanks are the threshold crossings, interpolated linearly between
    pixel centres (sub-pixel). Rising and falling flanks are two families.
 2. Flank pairs (a rising flank and the next falling one) whose width differs from the median width
-   by more than 35 % are dropped: particles and defects make narrow bumps, not lines.
-3. Within a line and family, successive flanks are numbered by their spacing in units of the median
-   spacing (a missing line is a gap of two).
+   of their neighbours (two pairs either side) by more than 35 % are dropped: particles and defects
+   make narrow bumps, not lines.
+3. Within a line and family, successive flanks are numbered by their spacing in units of the
+   shorter neighbouring spacing (a missing line is a gap of two).
 4. The true position ``k P`` is regressed on the commanded position ``xi`` of the flank with one
    intercept per (line, family) - the unknown position of the sample - and one common slope ``g``
    (as :mod:`piezod.linearity` regresses the sensor position on the target). One pass drops flanks
@@ -156,9 +157,23 @@ def _crossings(profile: F64, xs: F64) -> tuple[F64, F64]:
 
 
 def _number(x: F64, spacing: float) -> NDArray[np.int64]:
+    """Period numbers of successive flanks: each gap in units of its shorter neighbouring gap.
+
+    Against the neighbours rather than the median spacing: an uncorrected scan stretches the
+    periods near its turning points by up to ~2x, as much as a missing line does; neighbouring
+    gaps stretch alike, a missing line doubles one gap.
+    """
     if x.size == 0:
         return np.zeros(0, dtype=np.int64)
-    steps = np.rint(np.diff(x) / spacing).astype(np.int64)
+    g = np.abs(np.diff(x))
+    if g.size == 0:
+        return np.zeros(1, dtype=np.int64)
+    left = np.concatenate(([np.inf], g[:-1]))
+    right = np.concatenate((g[1:], [np.inf]))
+    ref = np.minimum(left, right)
+    ref = np.where(np.isfinite(ref), ref, spacing)
+    ref = np.clip(ref, 0.4 * spacing, 2.5 * spacing)
+    steps = np.maximum(np.rint(g / ref), 1).astype(np.int64)
     return np.concatenate(([0], np.cumsum(steps))).astype(np.int64)
 
 
@@ -194,7 +209,17 @@ def find_flanks(image: F64, geo: Geometry) -> Flanks:
         ok = j < dn.size
         width = np.full(up.size, np.nan)
         width[ok] = dn[j[ok]] - up[ok]
-        good = np.abs(width - w_med) <= _WIDTH_TOLERANCE * w_med
+        # against the neighbours' widths: an uncorrected scan stretches lines near the turning points
+        local = np.array(
+            [
+                np.nanmedian(width[max(0, i - 2) : i + 3])
+                if np.isfinite(width[max(0, i - 2) : i + 3]).any()
+                else w_med
+                for i in range(width.size)
+            ]
+        )
+        ref = np.where(np.abs(local - w_med) <= 0.6 * w_med, local, w_med)
+        good = np.abs(width - ref) <= _WIDTH_TOLERANCE * ref
         up_k = up[good]
         dn_k = dn[j[good]]
         kept.append((r, up_k, dn_k))

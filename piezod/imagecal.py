@@ -50,7 +50,7 @@ from piezod.image_linearity import find_flanks
 from piezod.model.params import ThesisParams
 from piezod.recording import Experiment, Recording, infer_scan
 
-_CONTINUITY_FLANKS = 3
+_CONTINUITY_FLANKS = 4
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,11 +102,13 @@ class FlankEvents:
         )
 
 
-def _fit_line_at(t: F64, x: F64, t0: float) -> float:
+def _extrapolate(t: F64, x: F64, t0: float) -> float:
+    """Position at ``t0`` from the flanks nearest to it: a parabola in time (a line for fewer)."""
     if t.size == 1:
         return float(x[0])
-    c = np.polyfit(t - t0, x, 1)
-    return float(c[1])
+    deg = 2 if t.size >= 4 else 1
+    c = np.polyfit(t - t0, x, deg)
+    return float(c[-1])
 
 
 def flank_events(
@@ -161,8 +163,8 @@ def flank_events(
             )
             if prev is not None and expected_next == (ln, d):
                 tp, xp, t_turn = prev
-                x_end = _fit_line_at(tp[-_CONTINUITY_FLANKS:], xp[-_CONTINUITY_FLANKS:], t_turn)
-                x_start = _fit_line_at(ts[:_CONTINUITY_FLANKS], x[:_CONTINUITY_FLANKS], t_turn)
+                x_end = _extrapolate(tp[-_CONTINUITY_FLANKS:], xp[-_CONTINUITY_FLANKS:], t_turn)
+                x_start = _extrapolate(ts[:_CONTINUITY_FLANKS], x[:_CONTINUITY_FLANKS], t_turn)
                 shift = round((x_end - x_start) / pitch_um)
             elif prev is not None:
                 shift = round((float(np.mean(prev[1])) - float(np.mean(x))) / pitch_um)
@@ -329,15 +331,24 @@ def fit_dynamic_from_flanks(
 # ------------------------------------------------------------------------------------ hidden truth
 
 
-def read_truth_log(path: str | Path) -> tuple[NDArray[np.int64], F64]:
-    """The simulator's truth log: sample indices and true x positions (um)."""
+TRUTH_COLUMNS = ("index", "x_um", "y_um", "z_voltage_v", "z_um")
+"""Columns of the simulator's truth log (``hil_sim.board.BoardConfig.truth_log``)."""
+
+
+def read_truth_rows(path: str | Path) -> F64:
+    """All rows of the simulator's truth log, ``(n, 5)`` in :data:`TRUTH_COLUMNS` order, by index."""
     raw = np.fromfile(str(path), dtype=np.float64)
     if raw.size % 5:
         raw = raw[: raw.size - raw.size % 5]
     rows = raw.reshape(-1, 5)
-    idx = rows[:, 0].astype(np.int64)
-    order = np.argsort(idx, kind="stable")
-    return idx[order], rows[order, 1]
+    out: F64 = rows[np.argsort(rows[:, 0], kind="stable")]
+    return out
+
+
+def read_truth_log(path: str | Path, column: str = "x_um") -> tuple[NDArray[np.int64], F64]:
+    """The simulator's truth log: sample indices and one column (default the true x position, um)."""
+    rows = read_truth_rows(path)
+    return rows[:, 0].astype(np.int64), rows[:, TRUTH_COLUMNS.index(column)]
 
 
 def with_truth(rec: Recording, truth: tuple[NDArray[np.int64], F64], sample_rate_hz: float) -> Recording:
@@ -383,8 +394,17 @@ def default_image_frame(*, reduced: bool = False) -> list[ImageScan]:
     return scans
 
 
-def verification_scans() -> list[ImageScan]:
-    """Corrected scans inside and outside the frame (10x slower / faster, offset beyond it)."""
+def verification_scans(*, reduced: bool = False) -> list[ImageScan]:
+    """Corrected scans inside and outside the frame (10x slower / faster, offset beyond it).
+
+    ``reduced``: one scan inside, the offset beyond the frame and 5x faster (no slow scan).
+    """
+    if reduced:
+        return [
+            ImageScan(20.0, 1.0, 0.0, 5, "in-20um-1Hz", "inside"),
+            ImageScan(20.0, 10.0, 0.0, 20, "out-20um-10Hz", "outside: 5x faster"),
+            ImageScan(12.0, 1.0, 12.0, 5, "out-12um-off12", "outside: offset beyond the frame"),
+        ]
     return [
         ImageScan(20.0, 1.0, 0.0, 6, "in-20um-1Hz", "inside"),
         ImageScan(30.0, 2.0, 0.0, 6, "in-30um-2Hz", "inside"),

@@ -12,7 +12,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import multiprocessing
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +58,48 @@ def _truth_metrics(path: Path, truth_log: Path, rate_hz: float) -> dict[str, flo
     return {"nonlinearity_pct": lin.nonlinearity_pct, "length_error_pct": lin.length_error_pct}
 
 
+@dataclasses.dataclass(frozen=True)
+class _Fits:
+    thesis: Any
+    line_width_um: dict[str, float]
+    dynamic: Any
+    flanks: int
+
+
+def _fit_here(paths: list[Path], pitch_um: float, start: Any, slew: float, rest_v: float) -> _Fits:
+    recs = [read_recording(p) for p in paths]
+    events = [flank_events(r, pitch_um, label=p.stem) for r, p in zip(recs, paths, strict=True)]
+    th = fit_thesis_from_flanks(recs, events, start=start)
+    dyn = fit_dynamic_from_flanks(
+        recs, events, th.line_width_um, slew_rate_v_per_s=slew, rest_voltage_v=rest_v
+    )
+    return _Fits(th.result, th.line_width_um, dyn, sum(len(e) for e in events))
+
+
+def _verify_here(path: Path, pitch_um: float, truth: Path | None, rate_hz: float) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    try:
+        out["image"] = _image_metrics(path, pitch_um)
+    except PiezodError as exc:
+        out["image_error"] = str(exc)
+    if truth is not None:
+        out["truth"] = _truth_metrics(path, truth, rate_hz)
+    return out
+
+
+def _scan_with_retry(engine: Any, scans: list[Any], out_dir: Path, say: Any, **kw: Any) -> list[Path]:
+    """Scan; a scan ended by a fault (e.g. an underrun on a loaded machine) is repeated once."""
+    paths = []
+    for sc in scans:
+        try:
+            paths += run_image_scans(engine, [sc], out_dir, **kw)
+        except CalibrationError as exc:
+            print(f"  {exc}; clearing the fault and repeating the scan", file=say)
+            engine.stop()
+            paths += run_image_scans(engine, [sc], out_dir, **kw)
+    return paths
+
+
 def run_from_images(args: argparse.Namespace) -> int:
     """Run the sensorless calibration on the stage."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -91,33 +135,30 @@ def run_from_images(args: argparse.Namespace) -> int:
     )
     t0 = time.monotonic()
     report: dict[str, Any] = {"pitch_um": args.pitch_um}
-    with board_url(args, config_path) as url:
+    ctx = multiprocessing.get_context("spawn")
+    with board_url(args, config_path) as url, ProcessPoolExecutor(max_workers=1, mp_context=ctx) as worker:
         from piezod.service.engine import Engine
 
         engine = Engine(base, url, recording_dir=recdir)
         engine.open()
         try:
-            paths = run_image_scans(
-                engine, frame, recdir / "frame", progress=lambda n: print(f"  scan {n}", file=say)
+            paths = _scan_with_retry(
+                engine, frame, recdir / "frame", say, progress=lambda n: print(f"  scan {n}", file=say)
             )
-            recs = [read_recording(p) for p in paths]
-            events = [flank_events(r, args.pitch_um, label=p.stem) for r, p in zip(recs, paths, strict=True)]
-            n_flanks = sum(len(e) for e in events)
-            print(f"flanks: {n_flanks} in {len(events)} scans", file=say)
             ax = base.axes["x"]
-            th = fit_thesis_from_flanks(recs, events, start=ax.thesis.params())
-            print(
-                f"thesis model (3.8) from images: worst fit error {th.result.fit_error_pct:.3f} %", file=say
-            )
-            thesis_cfg = thesis_config(th.result, axis="x", base=base, inputs=[str(p) for p in paths])
-            dyn = fit_dynamic_from_flanks(
-                recs,
-                events,
-                th.line_width_um,
-                slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
-                rest_voltage_v=ax.safe_voltage_v,
-            )
+            fits = worker.submit(
+                _fit_here,
+                paths,
+                args.pitch_um,
+                ax.thesis.params(),
+                base.service.ramp_rate_v_per_s,
+                ax.safe_voltage_v,
+            ).result()
+            th, dyn, n_flanks = fits.thesis, fits.dynamic, fits.flanks
+            print(f"flanks: {n_flanks} in {len(paths)} scans", file=say)
+            print(f"thesis model (3.8) from images: worst fit error {th.fit_error_pct:.3f} %", file=say)
             print(f"dynamic model from images: worst fit error {dyn.fit_error_pct:.3f} %", file=say)
+            thesis_cfg = thesis_config(th, axis="x", base=base, inputs=[str(p) for p in paths])
             calibrated = dynamic_config(dyn, axis="x", base=thesis_cfg, inputs=[str(p) for p in paths])
             calibrated = calibrated.model_copy(update={"microscope": base.microscope})
             dump_config(
@@ -129,20 +170,25 @@ def run_from_images(args: argparse.Namespace) -> int:
                 ),
             )
             print(f"-> {out}", file=say)
-            report["thesis"] = {
-                "params": dataclasses.asdict(th.result.params),
-                "fit_error_pct": th.result.fit_error_pct,
-            }
-            report["dynamic_fit_error_pct"] = dyn.fit_error_pct
+            report["thesis"] = {"params": dataclasses.asdict(th.params), "fit_error_pct": th.fit_error_pct}
+            report["dynamic"] = {"params": dataclasses.asdict(dyn.params), "fit_error_pct": dyn.fit_error_pct}
             report["flanks"] = n_flanks
-            report["line_width_um"] = th.line_width_um
+            report["line_width_um"] = fits.line_width_um
             rows: list[dict[str, Any]] = []
             if not args.no_verify:
-                scans = verification_scans()
+                scans = verification_scans(reduced=reduced)
                 for model in ("thesis", "dynamic"):
                     engine.set_axis_model("x", calibrated.axes["x"].model_copy(update={"model": model}))
-                    run_image_scans(engine, scans[:1], recdir / f"warmup-{model}", correction=True)
-                    vpaths = run_image_scans(engine, scans, recdir / f"verify-{model}", correction=True)
+                    _scan_with_retry(engine, scans[:1], recdir / f"warmup-{model}", say, correction=True)
+                    vpaths = _scan_with_retry(
+                        engine,
+                        scans,
+                        recdir / f"verify-{model}",
+                        say,
+                        correction=True,
+                        progress=lambda n, m=model: print(f"  verify {m}: {n}", file=say),
+                    )
+                    engine.wait_recorded()
                     for sc, vp in zip(scans, vpaths, strict=True):
                         row: dict[str, Any] = {
                             "model": model,
@@ -153,13 +199,11 @@ def run_from_images(args: argparse.Namespace) -> int:
                             "what": sc.where,
                             "recording": str(vp),
                         }
-                        try:
-                            row["image"] = _image_metrics(vp, args.pitch_um)
-                        except PiezodError as exc:
-                            row["image_error"] = str(exc)
-                        if truth is not None:
-                            engine.wait_recorded()
-                            row["truth"] = _truth_metrics(vp, truth, base.sample_rate_hz)
+                        row.update(
+                            worker.submit(
+                                _verify_here, vp, args.pitch_um, truth, base.sample_rate_hz
+                            ).result()
+                        )
                         rows.append(row)
                 print(format_rows(rows), file=say)
                 report["verification"] = rows

@@ -10,7 +10,7 @@ from piezod.cli._common import add_json_option, human_stream, write_json
 from piezod.config import load_config
 from piezod.errors import RecordingError
 from piezod.image import ImagePair, has_position_sensor, images
-from piezod.image_io import write_gwy, write_png
+from piezod.image_io import write_gwy, write_pair_png, write_png
 from piezod.image_linearity import image_linearity, pitch_error, plot_pitch_error
 from piezod.linearity import linearity
 from piezod.recording import read_experiments, read_recording
@@ -42,6 +42,12 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--pitch-um", type=float, metavar="P", help="pitch of the reference: image linearity")
     p.add_argument("--no-png", action="store_true", help="write the .gwy files only")
+    p.add_argument(
+        "--pair",
+        metavar="F.png",
+        help="also one picture of the first two recordings' trace images side by side "
+        "(uncorrected, corrected), with the --pitch-um grid",
+    )
     add_json_option(p)
     p.set_defaults(func=run)
 
@@ -63,12 +69,14 @@ def run(args: argparse.Namespace) -> int:
             raise RecordingError(f"{args.config}: the scanner has no z axis (needed for heights)")
     say = human_stream(args)
     results: list[dict[str, Any]] = []
+    headlines: list[ImagePair] = []
     for path in args.recordings:
         rec = read_recording(path)
         pairs = images(
             rec, z_axis=z_axis, pixels=args.pixels, sensitivity_um_per_v=args.z_sensitivity_um_per_v
         )
         stem = Path(path).stem
+        headlines.append(_headline(pairs))
         files = [str(write_gwy(out_dir / f"{stem}.gwy", pairs, rec.metadata, str(path)))]
         if not args.no_png:
             for q in pairs:
@@ -122,5 +130,26 @@ def run(args: argparse.Namespace) -> int:
                 )
                 files.append(str(png))
         results.append(entry)
+    if args.pair:
+        if len(headlines) < 2:
+            raise RecordingError("--pair needs two recordings (uncorrected, corrected)")
+        left, right = headlines[0], headlines[1]
+        write_pair_png(
+            left,
+            right,
+            Path(args.pair),
+            titles=(
+                f"uncorrected: {Path(args.recordings[0]).stem}",
+                f"corrected: {Path(args.recordings[1]).stem}",
+            ),
+            pitch_um=args.pitch_um,
+            suptitle=f"trace images, {left.channel}"
+            + (
+                f"; dotted: the reference's {args.pitch_um:g} um pitch on a linear scan"
+                if args.pitch_um
+                else ""
+            ),
+        )
+        print(f"pair: {args.pair}", file=say)
     write_json(args.json, {"recordings": results})
     return 0
