@@ -23,7 +23,7 @@ import numpy as np
 from piezod.calibrate import calibrated_config as thesis_config
 from piezod.calibrate_dynamic import calibrated_config as dynamic_config
 from piezod.cli._common import board_url, human_stream, scanner_config_path, with_microscope, write_json
-from piezod.config import MicroscopeSection, dump_config, load_config
+from piezod.config import MicroscopeSection, ScannerConfig, dump_config, load_config
 from piezod.errors import CalibrationError, PiezodError
 from piezod.image import images
 from piezod.image_linearity import image_linearity
@@ -58,22 +58,32 @@ def _truth_metrics(path: Path, truth_log: Path, rate_hz: float) -> dict[str, flo
     return {"nonlinearity_pct": lin.nonlinearity_pct, "length_error_pct": lin.length_error_pct}
 
 
-@dataclasses.dataclass(frozen=True)
-class _Fits:
-    thesis: Any
-    line_width_um: dict[str, float]
-    dynamic: Any
-    flanks: int
-
-
-def _fit_here(paths: list[Path], pitch_um: float, start: Any, slew: float, rest_v: float) -> _Fits:
+def _fit_here(
+    paths: list[Path], pitch_um: float, base: ScannerConfig
+) -> tuple[ScannerConfig, dict[str, Any]]:
+    """Flanks, both fits and the calibrated config (in the worker process: results are plain data)."""
     recs = [read_recording(p) for p in paths]
     events = [flank_events(r, pitch_um, label=p.stem) for r, p in zip(recs, paths, strict=True)]
-    th = fit_thesis_from_flanks(recs, events, start=start)
+    ax = base.axes["x"]
+    th = fit_thesis_from_flanks(recs, events, start=ax.thesis.params())
     dyn = fit_dynamic_from_flanks(
-        recs, events, th.line_width_um, slew_rate_v_per_s=slew, rest_voltage_v=rest_v
+        recs,
+        events,
+        th.line_width_um,
+        slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
+        rest_voltage_v=ax.safe_voltage_v,
     )
-    return _Fits(th.result, th.line_width_um, dyn, sum(len(e) for e in events))
+    inputs = [str(p) for p in paths]
+    thesis_cfg = thesis_config(th.result, axis="x", base=base, inputs=inputs)
+    calibrated = dynamic_config(dyn, axis="x", base=thesis_cfg, inputs=inputs)
+    calibrated = calibrated.model_copy(update={"microscope": base.microscope})
+    summary = {
+        "flanks": sum(len(e) for e in events),
+        "line_width_um": th.line_width_um,
+        "thesis": {"params": dataclasses.asdict(th.result.params), "fit_error_pct": th.result.fit_error_pct},
+        "dynamic": {"params": dataclasses.asdict(dyn.params), "fit_error_pct": dyn.fit_error_pct},
+    }
+    return calibrated, summary
 
 
 def _verify_here(path: Path, pitch_um: float, truth: Path | None, rate_hz: float) -> dict[str, Any]:
@@ -91,6 +101,9 @@ def _scan_with_retry(engine: Any, scans: list[Any], out_dir: Path, say: Any, **k
     """Scan; a scan ended by a fault (e.g. an underrun on a loaded machine) is repeated once."""
     paths = []
     for sc in scans:
+        if engine.status().state == "fault":
+            print("  clearing a latched fault (an underrun while idle on a loaded machine)", file=say)
+            engine.stop()
         try:
             paths += run_image_scans(engine, [sc], out_dir, **kw)
         except CalibrationError as exc:
@@ -139,28 +152,27 @@ def run_from_images(args: argparse.Namespace) -> int:
     with board_url(args, config_path) as url, ProcessPoolExecutor(max_workers=1, mp_context=ctx) as worker:
         from piezod.service.engine import Engine
 
-        engine = Engine(base, url, recording_dir=recdir)
+        from piezod.link.session import LinkSettings
+
+        # the simulator is a Python process on a possibly busy machine: allow it longer silences
+        settings = LinkSettings.from_config(base, silence_timeout_s=5.0) if args.sim else None
+        engine = Engine(base, url, recording_dir=recdir, settings=settings)
         engine.open()
         try:
             paths = _scan_with_retry(
                 engine, frame, recdir / "frame", say, progress=lambda n: print(f"  scan {n}", file=say)
             )
-            ax = base.axes["x"]
-            fits = worker.submit(
-                _fit_here,
-                paths,
-                args.pitch_um,
-                ax.thesis.params(),
-                base.service.ramp_rate_v_per_s,
-                ax.safe_voltage_v,
-            ).result()
-            th, dyn, n_flanks = fits.thesis, fits.dynamic, fits.flanks
+            calibrated, summary = worker.submit(_fit_here, paths, args.pitch_um, base).result()
+            n_flanks = int(summary["flanks"])
             print(f"flanks: {n_flanks} in {len(paths)} scans", file=say)
-            print(f"thesis model (3.8) from images: worst fit error {th.fit_error_pct:.3f} %", file=say)
-            print(f"dynamic model from images: worst fit error {dyn.fit_error_pct:.3f} %", file=say)
-            thesis_cfg = thesis_config(th, axis="x", base=base, inputs=[str(p) for p in paths])
-            calibrated = dynamic_config(dyn, axis="x", base=thesis_cfg, inputs=[str(p) for p in paths])
-            calibrated = calibrated.model_copy(update={"microscope": base.microscope})
+            print(
+                f"thesis model (3.8) from images: worst fit error {summary['thesis']['fit_error_pct']:.3f} %",
+                file=say,
+            )
+            print(
+                f"dynamic model from images: worst fit error {summary['dynamic']['fit_error_pct']:.3f} %",
+                file=say,
+            )
             dump_config(
                 calibrated,
                 out,
@@ -170,10 +182,7 @@ def run_from_images(args: argparse.Namespace) -> int:
                 ),
             )
             print(f"-> {out}", file=say)
-            report["thesis"] = {"params": dataclasses.asdict(th.params), "fit_error_pct": th.fit_error_pct}
-            report["dynamic"] = {"params": dataclasses.asdict(dyn.params), "fit_error_pct": dyn.fit_error_pct}
-            report["flanks"] = n_flanks
-            report["line_width_um"] = fits.line_width_um
+            report.update(summary)
             rows: list[dict[str, Any]] = []
             if not args.no_verify:
                 scans = verification_scans(reduced=reduced)
