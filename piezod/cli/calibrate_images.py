@@ -150,9 +150,8 @@ def run_from_images(args: argparse.Namespace) -> int:
     report: dict[str, Any] = {"pitch_um": args.pitch_um}
     ctx = multiprocessing.get_context("spawn")
     with board_url(args, config_path) as url, ProcessPoolExecutor(max_workers=1, mp_context=ctx) as worker:
-        from piezod.service.engine import Engine
-
         from piezod.link.session import LinkSettings
+        from piezod.service.engine import Engine
 
         # the simulator is a Python process on a possibly busy machine: allow it longer silences
         settings = LinkSettings.from_config(base, silence_timeout_s=5.0) if args.sim else None
