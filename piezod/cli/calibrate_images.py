@@ -98,18 +98,23 @@ def _verify_here(path: Path, pitch_um: float, truth: Path | None, rate_hz: float
 
 
 def _scan_with_retry(engine: Any, scans: list[Any], out_dir: Path, say: Any, **kw: Any) -> list[Path]:
-    """Scan; a scan ended by a fault (e.g. an underrun on a loaded machine) is repeated once."""
+    """Scan each image; one ended by a fault (an underrun or a lost link on a loaded machine: the
+    board ramped to safe) is repeated, at most twice, after clearing the fault. The repeat is a new
+    measurement; the faulted recording is replaced."""
     paths = []
     for sc in scans:
-        if engine.status().state == "fault":
-            print("  clearing a latched fault (an underrun while idle on a loaded machine)", file=say)
-            engine.stop()
-        try:
-            paths += run_image_scans(engine, [sc], out_dir, **kw)
-        except CalibrationError as exc:
-            print(f"  {exc}; clearing the fault and repeating the scan", file=say)
-            engine.stop()
-            paths += run_image_scans(engine, [sc], out_dir, **kw)
+        for attempt in range(3):
+            if engine.status().state in ("fault", "disconnected"):
+                print("  clearing a latched fault", file=say)
+                engine.wait_healthy(timeout_s=15.0)
+                engine.stop()
+            try:
+                paths += run_image_scans(engine, [sc], out_dir, **kw)
+                break
+            except PiezodError as exc:
+                if attempt == 2:
+                    raise
+                print(f"  {exc}; repeating the scan", file=say)
     return paths
 
 
@@ -188,14 +193,20 @@ def run_from_images(args: argparse.Namespace) -> int:
                 for model in ("thesis", "dynamic"):
                     engine.set_axis_model("x", calibrated.axes["x"].model_copy(update={"model": model}))
                     _scan_with_retry(engine, scans[:1], recdir / f"warmup-{model}", say, correction=True)
-                    vpaths = _scan_with_retry(
-                        engine,
-                        scans,
-                        recdir / f"verify-{model}",
-                        say,
-                        correction=True,
-                        progress=lambda n, m=model: print(f"  verify {m}: {n}", file=say),
-                    )
+                    vpaths: list[Path | None] = []
+                    for sc in scans:
+                        try:
+                            vpaths += _scan_with_retry(
+                                engine,
+                                [sc],
+                                recdir / f"verify-{model}",
+                                say,
+                                correction=True,
+                                progress=lambda n, m=model: print(f"  verify {m}: {n}", file=say),
+                            )
+                        except PiezodError as exc:
+                            print(f"  verification scan {sc.name()} failed: {exc}", file=say)
+                            vpaths.append(None)
                     engine.wait_recorded()
                     for sc, vp in zip(scans, vpaths, strict=True):
                         row: dict[str, Any] = {
@@ -205,13 +216,16 @@ def run_from_images(args: argparse.Namespace) -> int:
                             "offset_um": sc.offset_um,
                             "frame": "inside" if sc.where == "inside" else "outside",
                             "what": sc.where,
-                            "recording": str(vp),
+                            "recording": str(vp) if vp is not None else None,
                         }
-                        row.update(
-                            worker.submit(
-                                _verify_here, vp, args.pitch_um, truth, base.sample_rate_hz
-                            ).result()
-                        )
+                        if vp is None:
+                            row["error"] = "the scan failed"
+                        else:
+                            row.update(
+                                worker.submit(
+                                    _verify_here, vp, args.pitch_um, truth, base.sample_rate_hz
+                                ).result()
+                            )
                         rows.append(row)
                 print(format_rows(rows), file=say)
                 report["verification"] = rows
