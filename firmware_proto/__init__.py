@@ -11,8 +11,6 @@ Hello(protocol_version=1, session_id=1)
 
 from __future__ import annotations
 
-from piezod.errors import ProtocolError, VersionMismatchError
-
 from .codec import (
     DELIMITER,
     MAX_WIRE_SIZE,
@@ -38,6 +36,7 @@ from .endpoint import (
     TimedOut,
     check_capabilities,
 )
+from .errors import ProtocolError, VersionMismatchError, WireError
 from .messages import (
     CONTROL_TYPES,
     CRC_SIZE,
@@ -129,6 +128,7 @@ __all__ = [
     "Stop",
     "TimedOut",
     "VersionMismatchError",
+    "WireError",
     "check_capabilities",
     "crc32_iso_hdlc",
     "decode_frame",

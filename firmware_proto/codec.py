@@ -14,8 +14,7 @@ from enum import Enum
 
 from cobs import cobs
 
-from piezod.errors import ProtocolError
-
+from .errors import ProtocolError
 from .messages import (
     CONTROL_TYPES,
     CRC_SIZE,

@@ -13,9 +13,8 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass
 
-from piezod.errors import ProtocolError, VersionMismatchError
-
 from .codec import DecodeError, DecoderStats, Frame, FrameDecoder, encode
+from .errors import ProtocolError, VersionMismatchError
 from .messages import (
     CONTROL_TYPES,
     PROTOCOL_VERSION,

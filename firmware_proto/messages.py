@@ -4,7 +4,7 @@ Every message knows how to pack its payload (the bytes after the 8-byte header) 
 unpack it again. Framing (header, CRC, COBS) lives in :mod:`firmware_proto.codec`. The byte
 layouts are specified in ``PROTOCOL.md``; the ``struct`` formats below are that table.
 
-Construction validates ranges and raises :class:`~piezod.errors.ProtocolError` (a
+Construction validates ranges and raises :class:`~firmware_proto.errors.ProtocolError` (a
 ``ValueError``) naming the field at fault. Float fields travel as IEEE-754 float32; the
 constructors round them to the nearest float32 so that an object equals what the peer decodes.
 Semantic checks that depend on the board (limits inside the amplifier range, rate supported...)
@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from piezod.errors import ProtocolError, VersionMismatchError
+from .errors import ProtocolError, VersionMismatchError
 
 PROTOCOL_VERSION = 1
 """The protocol version this codec speaks (header byte 0, HELLO and CAPABILITIES payloads)."""

@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.signal import lfilter
 
-from piezod.errors import ModelError
+from hil_sim.errors import SimModelError as ModelError
 
 #: Below this ``h = dt / tau`` the FOH coefficient ``b0`` is summed as a series (no cancellation).
 _SERIES_H = 1e-2
@@ -153,22 +153,33 @@ class CreepBank:
 
     @classmethod
     def from_law(
-        cls, pct_per_decade: ArrayLike, tau_min_s: float, tau_max_s: float, per_decade: int
+        cls,
+        pct_per_decade: ArrayLike,
+        tau_min_s: float,
+        tau_max_s: float,
+        per_decade: int,
+        spectrum_exponent: float = 0.0,
     ) -> CreepBank:
         """A bank creeping ``pct_per_decade`` percent of the drive per decade of time, per channel.
 
         Parameters
         ----------
         pct_per_decade
-            Creep per decade of time (% of the drive step), one value per channel.
+            Creep per decade of time (% of the drive step) at ``t = 1 s``, one value per channel.
         tau_min_s, tau_max_s, per_decade
             Span and density of the relaxation times, see :func:`log_spaced_taus`.
+        spectrum_exponent
+            ``beta`` of a power-law relaxation spectrum: weights ``proportional to tau^beta``, so
+            the step response grows like ``t^beta`` (a power law, Findley / Jung-Gweon) instead
+            of ``log t``; the creep per decade is ``pct_per_decade (t / 1 s)^beta``. 0 gives
+            the logarithmic law (equal weights).
         """
         taus = log_spaced_taus(tau_min_s, tau_max_s, per_decade)
         gamma = np.atleast_1d(np.asarray(pct_per_decade, dtype=np.float64)) / 100.0
         # Equal weights per element: with log-spaced taus the density is exactly per_decade per decade.
         step = np.log10(taus[1] / taus[0])
-        weights = np.repeat((gamma * step)[:, None], taus.size, axis=1)
+        shape = taus**spectrum_exponent
+        weights = (gamma * step)[:, None] * shape[None, :]
         return cls(taus, weights)
 
     @property

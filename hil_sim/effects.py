@@ -35,18 +35,18 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from scipy.linalg import expm
 from scipy.signal import lfilter
 
-from piezod.config import StrictModel
-from piezod.errors import ConfigError, ModelError
+from hil_sim.errors import SimConfigError as ConfigError
+from hil_sim.errors import SimModelError as ModelError
 
 # ---------------------------------------------------------------------------------------------
 # Configuration
 
 
-class EffectConfig(StrictModel):
+class EffectConfig(BaseModel):
     """Base of the effect models: frozen, unknown keys rejected, no inf/nan."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)

@@ -96,7 +96,7 @@ class Microscope:
         self._z = Stage(stage_config, axes=("z",))
         ax = stage_config.axes["z"]
         self._b = float(ax.b_um_per_v)
-        self._u = float(ax.u_um_per_v)
+        self._u = float(ax.u_um_per_v) if ax.u_um_per_v is not None else 0.6 * self._b
         self._rng = np.random.default_rng(config.seed)
         self._lp_state = 0.0
         self._lp_init = False

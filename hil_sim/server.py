@@ -36,9 +36,11 @@ from pathlib import Path
 from types import FrameType, TracebackType
 
 from hil_sim.board import Board, BoardConfig
+from hil_sim.errors import SimConfigError, SimError
 from hil_sim.microscope import MicroscopeConfig
+from hil_sim.stage import resolve_stage
 from hil_sim.usb_bridge import UsbSocketServer
-from piezod.errors import ConfigError, LinkError, LinkTimeoutError, PiezodError
+from piezod.errors import LinkError, LinkTimeoutError, PiezodError
 
 log = logging.getLogger("hil_sim.server")
 
@@ -332,7 +334,10 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
         "--config",
         dest="config",
         metavar="F",
-        help="scanner YAML with a simulation: section (default: configs/sim-stage.yaml)",
+        help=(
+            "scanner YAML with a simulation: section, or a preset name NAME for configs/sim-NAME.yaml"
+            " (stage, pi-stage, ...; default: configs/sim-stage.yaml)"
+        ),
     )
     parser.add_argument(
         "--effect",
@@ -417,7 +422,7 @@ def _microscope_from_args(args: argparse.Namespace) -> MicroscopeConfig:
             seed=args.seed,
         )
     except ValueError as exc:
-        raise ConfigError(f"--sample: {exc}") from exc
+        raise SimConfigError(f"--sample: {exc}") from exc
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -450,7 +455,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     if args.truth_log:
         config = dataclasses.replace(config, truth_log=str(args.truth_log))
     board = Board.from_scanner_file(
-        args.config, effects=tuple(args.effect), seed=args.seed, config=config, now=clock()
+        resolve_stage(args.config), effects=tuple(args.effect), seed=args.seed, config=config, now=clock()
     )
     server = SimServer(
         board,
@@ -489,7 +494,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return run_from_args(args)
-    except PiezodError as exc:
+    except (PiezodError, SimError) as exc:
         print(f"hil_sim: error: {exc}", file=sys.stderr)
         return 2
 

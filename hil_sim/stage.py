@@ -4,11 +4,16 @@ Per channel (axis) and block, in this order:
 
 1. ``delay`` at the drive (if configured so): first-order lag and pure delay of the voltage.
 2. ``polarity``: the ceramic sees ``V (1 + p / 100)`` for ``V < 0``.
-3. Hysteresis: the exact step of the ODE (2.21), :func:`piezod.model.ode.hysteresis_step`.
+3. ``asymmetry_pct``: static curvature, the ceramic sees ``V + c V^2``.
+   Hysteresis: the axis's law (:mod:`hil_sim.hysteresis`): the exact step of the
+   Coleman-Hodgdon ODE (2.21) (the controller's default law: self-consistency) or a
+   Prandtl-Ishlinskii sum of play operators whose minor loops close (other physics).
 4. Creep: ``x = x_h + sum_i w_i z_i``, a bank of first-order relaxations with log-spaced time
    constants (:mod:`hil_sim.creep`) driven by the hysteretic position ``x_h`` (default) or by
-   ``b V``. The hysteresis ODE is the fast response (faster than ``tau_min``); the creep adds
-   ``gamma`` of it per decade of time on top, as thesis chapter 3 superimposes creep on (2.24).
+   ``b V``, with equal weights (log creep) or weights ``~ tau^beta`` (power-law creep,
+   ``creep.spectrum_exponent``). The hysteresis is the fast response (faster than
+   ``tau_min``); the creep adds ``gamma`` of it per decade of time on top, as thesis chapter 3
+   superimposes creep on (2.24).
    Driving by the position follows the cascade "hysteresis, then linear viscoelastic creep" of
    Croft, Shed and Devasia (2001): the slow domain relaxation follows the strain set by the
    (hysteretic) polarisation, so creep is a fraction of the *motion*, as the empirical log law
@@ -37,12 +42,12 @@ import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
-from pydantic import ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from hil_sim.creep import CreepBank, CreepState, creep_rest_state, creep_step, lowpass_block
 from hil_sim.effects import (
@@ -64,44 +69,133 @@ from hil_sim.effects import (
     resonance_rest_state,
     resonance_step,
 )
-from piezod.config import AxisName, ScannerConfig, StrictModel, _yaml_line, load_config
-from piezod.errors import ConfigError, ModelError
-from piezod.model.ode import HysteresisState, hysteresis_step, relaxed_state
-from piezod.model.params import HysteresisParams
+from hil_sim.errors import SimConfigError as ConfigError
+from hil_sim.errors import SimModelError as ModelError
+from hil_sim.hysteresis import (
+    CHParams,
+    CHState,
+    PIParams,
+    PIState,
+    ch_rest_state,
+    ch_step,
+    pi_rest_state,
+    pi_step,
+)
+
+#: Axis names of a scanner.
+AxisName = Literal["x", "y", "z"]
+#: Hysteresis laws of an axis.
+HysteresisLaw = Literal["coleman-hodgdon", "prandtl-ishlinskii"]
+HysteresisParams = CHParams | PIParams
+HysteresisState = CHState | PIState
+
+
+class ScannerLike(Protocol):
+    """What :meth:`StageConfig.from_scanner` reads of a scanner configuration object."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def axes(self) -> Mapping[Any, Any]: ...
+
+    @property
+    def simulation(self) -> Mapping[str, Any] | None: ...
+
+
+def _yaml_line(root: yaml.Node | None, loc: Sequence[int | str]) -> int | None:
+    """1-based line of the YAML node at the pydantic location ``loc`` (deepest found)."""
+    node = root
+    line = node.start_mark.line + 1 if node is not None else None
+    for key in loc:
+        if isinstance(node, yaml.MappingNode):
+            for k_node, v_node in node.value:
+                if k_node.value == str(key):
+                    node = v_node
+                    line = k_node.start_mark.line + 1
+                    break
+            else:
+                return line
+        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
+            node = node.value[key]
+            line = node.start_mark.line + 1
+        else:
+            return line
+    return line
+
 
 # ---------------------------------------------------------------------------------------------
 # Configuration (the ``simulation:`` section of a scanner YAML)
 
 
-class _SimModel(StrictModel):
+class _SimModel(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class StageAxisConfig(_SimModel):
-    """True physics of one axis of the simulated stage."""
+    """True physics of one axis of the simulated stage.
 
-    alpha_per_v: float = Field(gt=0, lt=1.0, description="hysteresis transition rate alpha (1/V)")
-    b_um_per_v: float = Field(gt=0, lt=100.0, description="sensitivity b of the ODE (2.21) (um/V)")
-    u_um_per_v: float = Field(gt=0, lt=100.0, description="slope after a reversal u (um/V)")
+    ``law: coleman-hodgdon`` (default) needs ``alpha_per_v`` and ``u_um_per_v``;
+    ``law: prandtl-ishlinskii`` needs ``pi_rho0`` and ``pi_span_v`` (see
+    :meth:`hil_sim.hysteresis.PIParams.from_shape`). ``asymmetry_pct`` bends the static curve
+    asymmetrically: the ceramic sees ``V + (a / 100) V^2 / (2 V_r)``, so the local sensitivity is
+    ``1 + a / 100`` times nominal at ``+V_r`` and ``1 - a / 100`` at ``-V_r``.
+    """
+
+    law: HysteresisLaw = Field(default="coleman-hodgdon", description="hysteresis law")
+    b_um_per_v: float = Field(gt=0, lt=100.0, description="sensitivity b (um/V)")
+    alpha_per_v: float | None = Field(
+        default=None, gt=0, lt=1.0, description="coleman-hodgdon: transition rate alpha (1/V)"
+    )
+    u_um_per_v: float | None = Field(
+        default=None, gt=0, lt=100.0, description="coleman-hodgdon: slope after a reversal u (um/V)"
+    )
+    pi_rho0: float | None = Field(
+        default=None, gt=0, le=1.0, description="prandtl-ishlinskii: slope after a reversal / b"
+    )
+    pi_span_v: float | None = Field(
+        default=None, gt=0, le=1e4, description="prandtl-ishlinskii: voltage change engaging every play (V)"
+    )
+    pi_operators: int = Field(default=16, ge=1, le=256, description="prandtl-ishlinskii: play operators")
+    pi_decay_v: float | None = Field(
+        default=None, gt=0, le=1e5, description="prandtl-ishlinskii: decay of the weights (V); none = uniform"
+    )
     creep_pct_per_decade: float = Field(
         default=1.5, ge=0, le=20, description="creep per decade of time (% of the motion)"
     )
+    asymmetry_pct: float = Field(
+        default=0.0, ge=-20, le=20, description="static curvature: sensitivity change at +V_r (%)"
+    )
+    asymmetry_range_v: float = Field(default=230.0, gt=0, le=1e4, description="V_r of asymmetry_pct (V)")
 
     @model_validator(mode="after")
-    def _monotone(self) -> StageAxisConfig:
-        if not self.u_um_per_v < self.b_um_per_v:
-            raise ValueError(f"u_um_per_v ({self.u_um_per_v}) must be below b_um_per_v ({self.b_um_per_v})")
-        if not self.u_um_per_v > 0.5 * self.b_um_per_v:
-            raise ValueError(
-                f"u_um_per_v ({self.u_um_per_v}) must exceed b_um_per_v / 2 ({0.5 * self.b_um_per_v:g}):"
-                " otherwise branches run backwards after a reversal (dx/dV = 2u - b < 0)"
-            )
+    def _law_fields(self) -> StageAxisConfig:
+        if self.law == "coleman-hodgdon":
+            if self.alpha_per_v is None or self.u_um_per_v is None:
+                raise ValueError("law coleman-hodgdon needs alpha_per_v and u_um_per_v")
+            if not self.u_um_per_v < self.b_um_per_v:
+                raise ValueError(
+                    f"u_um_per_v ({self.u_um_per_v}) must be below b_um_per_v ({self.b_um_per_v})"
+                )
+            if not self.u_um_per_v > 0.5 * self.b_um_per_v:
+                raise ValueError(
+                    f"u_um_per_v ({self.u_um_per_v}) must exceed b_um_per_v / 2 ({0.5 * self.b_um_per_v:g}):"
+                    " otherwise branches run backwards after a reversal (dx/dV = 2u - b < 0)"
+                )
+        elif self.pi_rho0 is None or self.pi_span_v is None:
+            raise ValueError("law prandtl-ishlinskii needs pi_rho0 and pi_span_v")
         return self
 
     @property
     def hysteresis(self) -> HysteresisParams:
-        """The ODE (2.21) parameters."""
-        return HysteresisParams(self.alpha_per_v, self.b_um_per_v, self.u_um_per_v)
+        """The hysteresis law's frozen parameters."""
+        if self.law == "coleman-hodgdon":
+            assert self.alpha_per_v is not None and self.u_um_per_v is not None
+            return CHParams(self.alpha_per_v, self.b_um_per_v, self.u_um_per_v)
+        assert self.pi_rho0 is not None and self.pi_span_v is not None
+        return PIParams.from_shape(
+            self.b_um_per_v, self.pi_rho0, self.pi_span_v, self.pi_operators, self.pi_decay_v
+        )
 
 
 class CreepConfig(_SimModel):
@@ -112,6 +206,12 @@ class CreepConfig(_SimModel):
     per_decade: int = Field(default=3, ge=1, le=20, description="relaxation times per decade")
     drive: Literal["position", "voltage"] = Field(
         default="position", description="what creeps: the hysteretic position or b V"
+    )
+    spectrum_exponent: float = Field(
+        default=0.0,
+        ge=-0.5,
+        le=0.5,
+        description="weights proportional to tau^beta (power-law creep); 0 = logarithmic creep",
     )
 
     @model_validator(mode="after")
@@ -142,8 +242,7 @@ class StageConfig(_SimModel):
 
     Examples
     --------
-    >>> from piezod.config import load_config, default_sim_config_path
-    >>> stage_cfg = StageConfig.from_scanner(load_config(default_sim_config_path()))
+    >>> stage_cfg = StageConfig.from_file("configs/sim-stage.yaml")
     >>> stage_cfg = stage_cfg.with_effects("drift=0.4", "resonance=800", "resonance.q=20")
     """
 
@@ -154,36 +253,47 @@ class StageConfig(_SimModel):
     seed: int = Field(default=0, ge=0, description="seed of the sensor noise")
 
     @classmethod
-    def from_scanner(cls, cfg: ScannerConfig) -> StageConfig:
-        """Validate ``cfg.simulation``.
+    def from_scanner(cls, cfg: ScannerLike) -> StageConfig:
+        """Validate ``cfg.simulation`` against the scanner's axes.
 
         Raises
         ------
-        ConfigError
+        SimConfigError
             ``simulation.<field.path>: <reason>`` for the first problem, also when the section
             is missing or lacks an axis the scanner has.
         """
-        return _validate_simulation(cfg)
+        return _validate_simulation(cfg.name, list(cfg.axes), cfg.simulation)
 
     @classmethod
     def from_file(cls, path: str | Path) -> StageConfig:
-        """Load a scanner YAML and validate its ``simulation:`` section.
+        """Load a scanner YAML and validate its ``simulation:`` section (nothing else of it).
 
         Raises
         ------
-        ConfigError
-            ``FILE:LINE: simulation.<field.path>: <reason>``.
+        SimConfigError
+            ``FILE:LINE: simulation.<field.path>: <reason>``, or ``FILE: <reason>`` when the
+            file cannot be read or is no YAML mapping.
         """
         path = Path(path)
-        cfg = load_config(path)
         try:
-            return cls.from_scanner(cfg)
-        except ConfigError as exc:
-            loc = getattr(exc, "loc", None)
-            if loc is None:
-                raise
-            root = yaml.compose(path.read_text(encoding="utf-8"), Loader=yaml.SafeLoader)
-            line = _yaml_line(root, loc)
+            text = path.read_text(encoding="utf-8")
+            data = yaml.safe_load(text)
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+            raise ConfigError(f"{where}: invalid YAML: {getattr(exc, 'problem', None) or exc}") from exc
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a mapping at the top level")
+        axes = data.get("axes")
+        if not isinstance(axes, dict) or not axes:
+            raise ConfigError(f"{path}: axes: missing or not a mapping")
+        try:
+            return _validate_simulation(str(data.get("name", path.stem)), list(axes), data.get("simulation"))
+        except _LocatedConfigError as exc:
+            root = yaml.compose(text, Loader=yaml.SafeLoader)
+            line = _yaml_line(root, exc.loc)
             raise ConfigError(f"{path}:{line}: {exc}") from exc
 
     def with_effects(self, *specs: str | EffectConfig) -> StageConfig:
@@ -252,33 +362,63 @@ class _LocatedConfigError(ConfigError):
         self.loc = loc
 
 
-def _validate_simulation(cfg: ScannerConfig) -> StageConfig:
-    if cfg.simulation is None:
+def _validate_simulation(name: str, scanner_axes: Sequence[str], section: Any) -> StageConfig:
+    if section is None:
         raise _LocatedConfigError(
-            f"scanner {cfg.name!r}: simulation: missing (the simulated stage needs the true physics)", ()
+            f"scanner {name!r}: simulation: missing (the simulated stage needs the true physics)", ()
         )
     try:
         # simulation.microscope is the simulated microscope's (hil_sim.microscope), not the stage's
-        stage = StageConfig.model_validate({k: v for k, v in cfg.simulation.items() if k != "microscope"})
+        stage = StageConfig.model_validate(
+            {k: v for k, v in section.items() if k != "microscope"} if isinstance(section, dict) else section
+        )
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ("simulation", *err["loc"])
         msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
         raise _LocatedConfigError(f"{_loc_text(loc)}: {msg}{more}", loc) from exc
-    missing = [axis for axis in cfg.axes if axis not in stage.axes]
+    missing = [axis for axis in scanner_axes if axis not in stage.axes]
     if missing:
         raise _LocatedConfigError(
-            f"simulation.axes: missing axis {missing[0]!r} (the scanner has axes {', '.join(cfg.axes)})",
+            f"simulation.axes: missing axis {missing[0]!r} (the scanner has axes {', '.join(scanner_axes)})",
             ("simulation", "axes"),
         )
-    extra = [axis for axis in stage.axes if axis not in cfg.axes]
+    extra = [axis for axis in stage.axes if axis not in scanner_axes]
     if extra:
         raise _LocatedConfigError(
-            f"simulation.axes.{extra[0]}: axis not in the scanner's axes ({', '.join(cfg.axes)})",
+            f"simulation.axes.{extra[0]}: axis not in the scanner's axes ({', '.join(scanner_axes)})",
             ("simulation", "axes", extra[0]),
         )
     return stage
+
+
+#: Directory of the preset stages (``configs/sim-<name>.yaml``).
+PRESET_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+def preset_names() -> list[str]:
+    """Names of the preset stages: ``NAME`` of every ``configs/sim-NAME.yaml``."""
+    return sorted(p.stem.removeprefix("sim-") for p in PRESET_DIR.glob("sim-*.yaml"))
+
+
+def resolve_stage(spec: str | Path | None) -> Path | None:
+    """The scanner YAML of ``spec``: a preset name (``pi-stage``) or a path (returned as is).
+
+    Raises
+    ------
+    SimConfigError
+        ``spec`` looks like a name (no ``/``, no ``.yaml``) but no such preset exists.
+    """
+    if spec is None:
+        return None
+    text = str(spec)
+    if "/" in text or text.endswith((".yaml", ".yml")) or Path(text).exists():
+        return Path(text)
+    path = PRESET_DIR / f"sim-{text}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"--stage {text}: no such preset (one of {', '.join(preset_names())})")
+    return path
 
 
 # ---------------------------------------------------------------------------------------------
@@ -336,6 +476,8 @@ class StageModel:
         ``"position"`` or ``"voltage"``.
     effects
         The configured effects.
+    curvature_per_v
+        ``c`` per channel of the static curvature ``V + c V^2`` at the ceramic (1/V); empty = none.
     """
 
     axes: tuple[AxisName, ...]
@@ -343,6 +485,7 @@ class StageModel:
     creep: CreepBank
     creep_drive: Literal["position", "voltage"]
     effects: EffectsConfig
+    curvature_per_v: tuple[float, ...] = ()
 
     @classmethod
     def from_config(cls, config: StageConfig, axes: Sequence[AxisName] | None = None) -> StageModel:
@@ -359,13 +502,16 @@ class StageModel:
             config.creep.tau_min_s,
             config.creep.tau_max_s,
             config.creep.per_decade,
+            config.creep.spectrum_exponent,
         )
+        curvature = tuple(a.asymmetry_pct / 100.0 / (2.0 * a.asymmetry_range_v) for a in ax)
         return cls(
             axes=names,
             hysteresis=tuple(a.hysteresis for a in ax),
             creep=bank,
             creep_drive=config.creep.drive,
             effects=config.effects,
+            curvature_per_v=curvature if any(curvature) else (),
         )
 
     @property
@@ -426,11 +572,30 @@ def _static_chain(model: StageModel, x: NDArray[np.float64], t: NDArray[np.float
 
 
 def _polarity(model: StageModel, v: NDArray[np.float64]) -> NDArray[np.float64]:
-    if model.effects.polarity is None:
-        return v
-    factor = 1.0 + model.effects.polarity.negative_sensitivity_pct / 100.0
-    out: NDArray[np.float64] = np.where(v < 0.0, v * factor, v)
-    return out
+    """Polarity effect, then the axis's static curvature: the voltage the ceramic acts on."""
+    if model.effects.polarity is not None:
+        factor = 1.0 + model.effects.polarity.negative_sensitivity_pct / 100.0
+        v = np.where(v < 0.0, v * factor, v)
+    if model.curvature_per_v:
+        c = np.asarray(model.curvature_per_v)[:, None]
+        v = v + c * v * v
+    return v
+
+
+def _relaxed(params: HysteresisParams, voltage_v: float) -> HysteresisState:
+    if isinstance(params, CHParams):
+        return ch_rest_state(params, voltage_v)
+    return pi_rest_state(params, voltage_v)
+
+
+def _hysteresis_block(
+    params: HysteresisParams, v: NDArray[np.float64], state: HysteresisState
+) -> tuple[NDArray[np.float64], HysteresisState]:
+    if isinstance(params, CHParams):
+        assert isinstance(state, CHState)
+        return ch_step(params, v, state)
+    assert isinstance(state, PIState)
+    return pi_step(params, v, state)
 
 
 def rest_state(model: StageModel, voltage_v: ArrayLike = 0.0) -> StageState:
@@ -441,8 +606,8 @@ def rest_state(model: StageModel, voltage_v: ArrayLike = 0.0) -> StageState:
     v0 = np.broadcast_to(np.asarray(voltage_v, dtype=np.float64), (model.channels,)).astype(np.float64)
     fx = model.effects
     v_eff = _polarity(model, v0[:, None])[:, 0]
-    hyst = tuple(relaxed_state(p, float(v)) for p, v in zip(model.hysteresis, v_eff, strict=True))
-    x_h = np.array([h.position_um for h in hyst])
+    hyst = tuple(_relaxed(p, float(v)) for p, v in zip(model.hysteresis, v_eff, strict=True))
+    x_h = model.b_um_per_v * v_eff
     drive = x_h if model.creep_drive == "position" else model.b_um_per_v * v_eff
     creep = creep_rest_state(model.creep, drive)
     x = x_h + model.creep.total_weight * drive
@@ -525,7 +690,7 @@ def stage_step(
     x_h = np.empty_like(v)
     hyst = []
     for ch, params in enumerate(model.hysteresis):
-        x_h[ch], h_state = hysteresis_step(params, v[ch], state.hysteresis[ch])
+        x_h[ch], h_state = _hysteresis_block(params, v[ch], state.hysteresis[ch])
         hyst.append(h_state)
     drive = x_h if model.creep_drive == "position" else model.b_um_per_v[:, None] * v
     creep, creep_state = creep_step(model.creep, drive, dt_s, state.creep)
@@ -693,6 +858,8 @@ __all__ = [
     "StageModel",
     "StageSnapshot",
     "StageState",
+    "preset_names",
+    "resolve_stage",
     "rest_state",
     "sensor",
     "stage_step",

@@ -102,7 +102,7 @@ class ExperimentLayout:
     Attributes
     ----------
     label, axis, path, kind
-        Identification; ``kind`` from :func:`piezod.recording.infer_scan`.
+        Identification; ``kind`` from :func:`piezod.scan_inference.infer_scan`.
     t_start_s, duration_s
         Time of the first recorded sample and the recorded duration (s).
     frequency_hz, v_min, v_max

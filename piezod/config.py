@@ -8,16 +8,27 @@ finds them from a source checkout.
 
 from __future__ import annotations
 
+import contextlib
+import difflib
 import json
+import math
+import os
+import re
+import stat
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from piezod.errors import ConfigError
+from piezod.errors import ConfigError, ModelError
 from piezod.model.dynamic import DynamicParams
-from piezod.model.params import ThesisParams
+from piezod.model.family import CreepSpectrum, FamilyParams
+from piezod.model.params import HysteresisParams, ThesisParams
+from piezod.model.play import PlayParams
 
 AxisName = Literal["x", "y", "z"]
 
@@ -79,6 +90,61 @@ class DynamicModelConfig(StrictModel):
         return DynamicParams(**self.model_dump())
 
 
+class FamilyModelConfig(StrictModel):
+    """Parameters of the model family (``model: family``), see :mod:`piezod.model.family`.
+
+    ``law: coleman-hodgdon`` needs ``alpha_per_v`` and ``u_um_per_v``; ``law: prandtl-ishlinskii``
+    needs ``pi_rho0``, ``pi_thresholds_v`` and ``pi_weights``. The creep spectrum is a list of
+    non-negative weights on relaxation times. ``piezod calibrate`` writes this section.
+    """
+
+    law: Literal["coleman-hodgdon", "prandtl-ishlinskii"] = Field(description="hysteresis law")
+    b_um_per_v: float = Field(gt=0, lt=100.0, description="sensitivity b of the hysteresis law (um/V)")
+    alpha_per_v: float | None = Field(default=None, gt=0, lt=1.0, description="coleman-hodgdon: alpha (1/V)")
+    u_um_per_v: float | None = Field(default=None, gt=0, lt=100.0, description="coleman-hodgdon: u (um/V)")
+    pi_rho0: float | None = Field(default=None, gt=0, le=2.0, description="prandtl-ishlinskii: slope / b")
+    pi_thresholds_v: list[float] = Field(default=[], description="prandtl-ishlinskii: play half-widths (V)")
+    pi_weights: list[float] = Field(
+        default=[], description="prandtl-ishlinskii: play weights (fractions of b)"
+    )
+    creep_taus_s: list[float] = Field(description="creep relaxation times (s), ascending")
+    creep_weights: list[float] = Field(description="creep weights (fractions of the hysteretic motion)")
+    lag_time_constant_s: float = Field(default=0.0, ge=0, le=1.0, description="drive pole (s)")
+    stiffness_pct_per_um: float = Field(
+        default=0.0, ge=-5, le=5, description="static map x + k x^2/200 (%/um)"
+    )
+
+    @model_validator(mode="after")
+    def _check_model(self) -> FamilyModelConfig:
+        if self.law == "coleman-hodgdon" and (self.alpha_per_v is None or self.u_um_per_v is None):
+            raise ValueError("law coleman-hodgdon needs alpha_per_v and u_um_per_v")
+        if self.law == "prandtl-ishlinskii" and self.pi_rho0 is None:
+            raise ValueError("law prandtl-ishlinskii needs pi_rho0, pi_thresholds_v and pi_weights")
+        try:
+            self.params()
+        except ModelError as exc:
+            raise ValueError(str(exc)) from exc
+        return self
+
+    def params(self) -> FamilyParams:
+        """The frozen model parameter object."""
+        hyst: HysteresisParams | PlayParams
+        if self.law == "coleman-hodgdon":
+            assert self.alpha_per_v is not None and self.u_um_per_v is not None
+            hyst = HysteresisParams(self.alpha_per_v, self.b_um_per_v, self.u_um_per_v)
+        else:
+            assert self.pi_rho0 is not None
+            hyst = PlayParams(
+                self.b_um_per_v, self.pi_rho0, tuple(self.pi_thresholds_v), tuple(self.pi_weights)
+            )
+        return FamilyParams(
+            hyst,
+            CreepSpectrum(tuple(self.creep_taus_s), tuple(self.creep_weights)),
+            self.lag_time_constant_s,
+            self.stiffness_pct_per_um,
+        )
+
+
 class AxisConfig(StrictModel):
     """One scanner axis: its voltage limits, safety settings and model."""
 
@@ -88,10 +154,13 @@ class AxisConfig(StrictModel):
     slew_rate_v_per_s: float = Field(
         default=2000.0, gt=0, description="largest |dV/dt| the host commands (V/s)"
     )
-    model: Literal["thesis", "dynamic"] = "thesis"
+    model: Literal["thesis", "dynamic", "family"] = "thesis"
     thesis: ThesisModelConfig
     dynamic: DynamicModelConfig | None = Field(
         default=None, description="time-domain model parameters (required by model: dynamic)"
+    )
+    family: FamilyModelConfig | None = Field(
+        default=None, description="model-family parameters (required by model: family)"
     )
 
     @model_validator(mode="after")
@@ -107,6 +176,8 @@ class AxisConfig(StrictModel):
             )
         if self.model == "dynamic" and self.dynamic is None:
             raise ValueError("model: dynamic needs a dynamic: section (piezod calibrate writes it)")
+        if self.model == "family" and self.family is None:
+            raise ValueError("model: family needs a family: section (piezod calibrate writes it)")
         return self
 
 
@@ -196,6 +267,98 @@ class ScannerConfig(StrictModel):
         return self
 
 
+#: Largest scanner YAML read (bytes); real configs are a few kB.
+MAX_CONFIG_BYTES = 1 << 20
+#: Deepest nesting of mappings / sequences in a config.
+MAX_CONFIG_DEPTH = 32
+#: Most YAML nodes after expanding aliases (a billion-laughs file is refused long before memory fills).
+MAX_CONFIG_NODES = 100_000
+
+_SCI_FLOAT = re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """SafeLoader refusing duplicate keys, deep nesting and alias expansion beyond the limits.
+
+    ``1e-3`` (no dot) is a float, as in YAML 1.2.
+    """
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0
+        self._nodes = 0
+        self._sizes: dict[int, int] = {}
+
+    def _count(self, n: int, mark: yaml.Mark | None) -> None:
+        self._nodes += n
+        if self._nodes > MAX_CONFIG_NODES:
+            raise yaml.YAMLError(_Problem(f"more than {MAX_CONFIG_NODES} values (alias expansion?)", mark))
+
+    def _size(self, node: yaml.Node) -> int:
+        known = self._sizes.get(id(node))
+        if known is not None:
+            return known
+        if isinstance(node, yaml.MappingNode):
+            size = 1 + sum(self._size(k) + self._size(v) for k, v in node.value)
+        elif isinstance(node, yaml.SequenceNode):
+            size = 1 + sum(self._size(v) for v in node.value)
+        else:
+            size = 1
+        self._sizes[id(node)] = size
+        return size
+
+    def compose_node(self, parent: yaml.Node | None, index: int) -> yaml.Node | None:
+        if self.check_event(yaml.AliasEvent):
+            mark = self.peek_event().start_mark  # type: ignore[no-untyped-call]
+            node = super().compose_node(parent, index)
+            if node is not None:
+                self._count(self._size(node), mark)
+            return node
+        mark = self.peek_event().start_mark  # type: ignore[no-untyped-call]
+        self._depth += 1
+        try:
+            if self._depth > MAX_CONFIG_DEPTH:
+                raise yaml.YAMLError(_Problem(f"nested deeper than {MAX_CONFIG_DEPTH} levels", mark))
+            self._count(1, mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                first = seen.get(key)
+            except TypeError:
+                continue  # unhashable key: the base class reports it
+            if first is not None:
+                raise yaml.constructor.ConstructorError(
+                    None,
+                    None,
+                    f"duplicate key {key!r} (first on line {first})",
+                    key_node.start_mark,
+                )
+            seen[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", _SCI_FLOAT, list("-+0123456789")
+)
+
+
+@dataclass
+class _Problem:
+    """A YAMLError payload with a mark (like PyYAML's MarkedYAMLError)."""
+
+    problem: str
+    problem_mark: yaml.Mark | None
+
+    def __str__(self) -> str:
+        return self.problem
+
+
 def _yaml_line(root: yaml.Node | None, loc: tuple[int | str, ...]) -> int | None:
     """1-based line of the YAML node at the pydantic location ``loc`` (deepest found)."""
     node = root
@@ -217,41 +380,167 @@ def _yaml_line(root: yaml.Node | None, loc: tuple[int | str, ...]) -> int | None
     return line
 
 
-def parse_yaml_model(path: Path, model: type[StrictModel]) -> Any:
-    """Load YAML at ``path`` and validate it with ``model``.
+def read_config_text(path: Path, what: str = "config") -> str:
+    """The text of a small config file: a regular file, at most :data:`MAX_CONFIG_BYTES`, UTF-8.
 
     Raises
     ------
     ConfigError
-        With ``path:line: field.path: reason`` for the first problem found.
+        ``path: reason`` (``path:line: ...`` for a byte that is not UTF-8).
     """
     try:
-        text = path.read_text(encoding="utf-8")
+        with open(path, "rb") as fh:
+            st = os.fstat(fh.fileno())
+            if not stat.S_ISREG(st.st_mode):
+                raise ConfigError(f"{path}: not a regular file; a {what} must be a file")
+            raw = fh.read(MAX_CONFIG_BYTES + 1)
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{path}: larger than {MAX_CONFIG_BYTES // 1024} KiB; not a {what}")
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise ConfigError(
+            f"{path}:{line}: byte 0x{raw[exc.start]:02x} is not UTF-8 (save the file as UTF-8)"
+        ) from exc
+
+
+def _load_yaml(path: Path, text: str) -> tuple[yaml.Node | None, Any]:
+    """Compose and construct ``text`` with the strict loader."""
+    loader = _StrictLoader(text)
+    try:
+        root = loader.get_single_node()
+        data = loader.construct_document(root) if root is not None else None
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
+        payload = exc.args[0] if exc.args and isinstance(exc.args[0], _Problem) else exc
+        mark = getattr(payload, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError(f"{where}: invalid YAML: {problem}") from exc
+        problem = getattr(payload, "problem", None) or str(payload)
+        raise ConfigError(f"{where}: invalid YAML: {_one_line(problem)}") from exc
+    except RecursionError as exc:  # deeper than the interpreter allows, before our limit
+        raise ConfigError(f"{path}: invalid YAML: nested too deeply") from exc
+    finally:
+        loader.dispose()
+    return root, data
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _non_finite(data: Any, loc: tuple[int | str, ...] = ()) -> Iterator[tuple[int | str, ...]]:
+    """Locations of NaN / infinite numbers in loaded YAML."""
+    if isinstance(data, float) and not math.isfinite(data):
+        yield loc
+    elif isinstance(data, dict):
+        for k, v in data.items():
+            yield from _non_finite(v, (*loc, k))
+    elif isinstance(data, list):
+        for i, v in enumerate(data):
+            yield from _non_finite(v, (*loc, i))
+
+
+def _model_at(model: type[BaseModel], loc: tuple[int | str, ...]) -> type[BaseModel] | None:
+    """The model class reached by following ``loc`` from ``model`` (dict values, optionals)."""
+    current: Any = model
+    keys = list(loc)
+    while keys:
+        if isinstance(current, type) and issubclass(current, BaseModel):
+            info = current.model_fields.get(str(keys.pop(0)))
+            if info is None:
+                return None
+            current = info.annotation
+            continue
+        origin = get_origin(current)
+        args = get_args(current)
+        if origin is dict and len(args) == 2:
+            keys.pop(0)
+            current = args[1]
+        elif args:
+            models = [a for a in args if isinstance(a, type) and issubclass(a, BaseModel)]
+            if not models:
+                return None
+            current = models[0]
+        else:
+            return None
+    while not (isinstance(current, type) and issubclass(current, BaseModel)):
+        models = [a for a in get_args(current) if isinstance(a, type) and issubclass(a, BaseModel)]
+        if not models:
+            return None
+        current = models[0]
+    return current
+
+
+def _problems(exc: ValidationError, model: type[BaseModel]) -> list[tuple[tuple[int | str, ...], str]]:
+    """(location, reason) of every error; a typo is one "unknown key (did you mean ...)" error.
+
+    A misspelt required key shows up twice in pydantic (the unknown key, the missing field): the
+    missing field it most likely meant is dropped from the list.
+    """
+    errs = []
+    for err in exc.errors():
+        loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and p.startswith("function-")))
+        errs.append((loc, err["type"], err["msg"]))
+    missing = {loc for loc, kind, _ in errs if kind == "missing"}
+    dropped: set[tuple[int | str, ...]] = set()
+    out: list[tuple[tuple[int | str, ...], str]] = []
+    for loc, kind, _msg in errs:
+        if kind != "extra_forbidden":
+            continue
+        parent, key = loc[:-1], str(loc[-1])
+        sib_missing = [str(m[-1]) for m in missing if m[:-1] == parent and m not in dropped]
+        guess = difflib.get_close_matches(key, sib_missing, n=1, cutoff=0.6)
+        if guess:
+            dropped.add((*parent, guess[0]))
+        else:
+            owner = _model_at(model, parent)
+            names = list(owner.model_fields) if owner is not None else []
+            guess = difflib.get_close_matches(key, names, n=1, cutoff=0.6)
+        hint = f" (did you mean {guess[0]}?)" if guess else ""
+        out.append((loc, f"unknown key{hint}"))
+    for loc, kind, msg in errs:
+        if kind == "extra_forbidden" or loc in dropped:
+            continue
+        out.append((loc, msg))
+    return out
+
+
+def parse_yaml_model(path: Path, model: type[StrictModel]) -> Any:
+    """Load YAML at ``path`` strictly and validate it with ``model``.
+
+    Strict means: a regular UTF-8 file of at most :data:`MAX_CONFIG_BYTES`; no duplicate keys;
+    nesting and alias expansion bounded; no NaN / infinity; no ``true`` where a number belongs
+    (pydantic strict mode); unknown keys refused with a did-you-mean.
+
+    Raises
+    ------
+    ConfigError
+        One line ``path:line: field.path: reason`` per problem found (all of them).
+    """
+    text = read_config_text(path)
+    root, data = _load_yaml(path, text)
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
+    problems: list[tuple[tuple[int | str, ...], str]] = [
+        (loc, "must be a finite number (no .inf / .nan)") for loc in _non_finite(data)
+    ]
+    result: Any = None
     try:
-        return model.model_validate(data)
+        result = model.model_validate(data, strict=True)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and p.startswith("function-")))
+        bad = {loc for loc, _ in problems}
+        problems += [(loc, msg) for loc, msg in _problems(exc, model) if loc not in bad]
+    if not problems:
+        return result
+    lines = []
+    for loc, msg in problems:
         field = ".".join(str(p) for p in loc) or "(top level)"
         line = _yaml_line(root, loc)
         where = f"{path}:{line}" if line is not None else str(path)
-        msg = err["msg"]
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-        raise ConfigError(f"{where}: {field}: {msg}{more}") from exc
+        lines.append(f"{where}: {field}: {_one_line(msg)}")
+    raise ConfigError("\n".join(lines))
 
 
 def load_config(path: str | Path) -> ScannerConfig:
@@ -272,12 +561,61 @@ def load_config(path: str | Path) -> ScannerConfig:
 
 
 def dump_config(cfg: ScannerConfig, path: str | Path, header: str | None = None) -> None:
-    """Write ``cfg`` as YAML (round-trips through :func:`load_config`)."""
+    """Write ``cfg`` as YAML (round-trips through :func:`load_config`), atomically.
+
+    The text goes to a temporary file beside ``path``, is fsynced and renamed over ``path``:
+    on any failure (a full disk) ``path`` keeps its previous content and the temporary file
+    is removed.
+
+    Raises
+    ------
+    ConfigError
+        ``path: cannot write: reason`` (the original untouched).
+    """
     data = cfg.model_dump(mode="json", exclude_none=True)
     text = yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
     if header:
         text = "".join(f"# {line}\n" for line in header.splitlines()) + text
-    Path(path).write_text(text, encoding="utf-8")
+    atomic_write_text(Path(path), text)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Replace ``path`` by ``text`` atomically (temp file + fsync + rename + directory fsync).
+
+    An existing file's permission bits are kept.
+
+    Raises
+    ------
+    ConfigError
+        ``path: cannot write: reason``; ``path`` is unchanged.
+    """
+    directory = path.parent if str(path.parent) else Path(".")
+    tmp: str | None = None
+    try:
+        try:
+            mode: int | None = stat.S_IMODE(os.stat(path).st_mode)
+        except FileNotFoundError:
+            mode = None
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(text.encode("utf-8"))
+            fh.flush()
+            os.fsync(fh.fileno())
+            if mode is not None:
+                os.fchmod(fh.fileno(), mode)
+        os.replace(tmp, path)
+        tmp = None
+        dfd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot write: {exc.strerror or exc} (the file is unchanged)") from exc
+    finally:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
 
 
 def config_dir() -> Path:

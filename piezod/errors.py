@@ -27,6 +27,8 @@ exception that best describes it, so callers may catch either
 
 from __future__ import annotations
 
+import firmware_proto.errors as _wire
+
 
 class PiezodError(Exception):
     """Root of every exception raised by piezod."""
@@ -75,12 +77,39 @@ class CalibrationError(PiezodError, RuntimeError):
     """A calibration fit failed or the data cannot determine the parameters."""
 
 
-class ProtocolError(PiezodError, ValueError):
-    """A frame is malformed or unexpected."""
+class ProtocolError(PiezodError, _wire.ProtocolError):
+    """A frame is malformed or unexpected.
+
+    Also a :class:`firmware_proto.errors.ProtocolError` (the codec's own, host-free exception):
+    ``except firmware_proto.ProtocolError`` catches both, and :func:`from_wire` turns the codec's
+    into this one at the host's link boundary.
+    """
 
 
-class VersionMismatchError(ProtocolError):
+class VersionMismatchError(ProtocolError, _wire.VersionMismatchError):
     """The peer speaks a different protocol version."""
+
+
+def from_wire(exc: _wire.ProtocolError) -> ProtocolError:
+    """The host's exception for an exception raised by :mod:`firmware_proto`.
+
+    Parameters
+    ----------
+    exc
+        Raised (or returned, for a NAK) by the codec.
+
+    Returns
+    -------
+    ProtocolError
+        ``exc`` itself when it already is one of piezod's, else a :class:`ProtocolError` (or
+        :class:`VersionMismatchError`) with the same message whose ``__cause__`` is ``exc``.
+    """
+    if isinstance(exc, ProtocolError):
+        return exc
+    cls = VersionMismatchError if isinstance(exc, _wire.VersionMismatchError) else ProtocolError
+    new = cls(str(exc))
+    new.__cause__ = exc
+    return new
 
 
 class LinkError(PiezodError, OSError):

@@ -36,7 +36,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod.errors import RecordingError
-from piezod.recording import Experiment, ScanInfo, infer_scan
+from piezod.recording import Experiment
+from piezod.scan_inference import ScanInfo, infer_scan
 
 F64 = NDArray[np.float64]
 

@@ -136,14 +136,20 @@ def test_parse_api_spec_forms() -> None:
     assert not parse_api_spec("tcp:192.0.2.7:80").is_loopback
 
 
-def test_tcp_loopback_on_a_free_port_and_no_signal_handlers(tmp_path: Path) -> None:
+def test_tcp_loopback_needs_a_token_free_port_and_no_signal_handlers(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"a TCP listener needs api\.token_file"):
+        ApiServer(create_app(FakeEngine(tmp_path)), "tcp:127.0.0.1:0", ApiConfig())
+    token_file = tmp_path / "token"
+    token_file.write_text("loopback-token\n")
     before = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
-    with running_api(tmp_path, "tcp:127.0.0.1:0") as (_, server):
+    with running_api(tmp_path, "tcp:127.0.0.1:0", ApiConfig(token_file=str(token_file))) as (_, server):
         assert {sig: signal.getsignal(sig) for sig in before} == before  # the daemon owns them
         spec = parse_api_spec(server.address)
         assert spec.port > 0
-        assert not server.requires_token
+        assert server.requires_token
         with http(server) as c:
+            assert c.get("/v1/status").status_code == 401
+        with http(server, token="loopback-token") as c:
             assert c.get("/v1/status").json()["scanner"] == "fake-stage"
 
 

@@ -195,3 +195,32 @@ def test_simulated_stage_finds_the_hidden_effect() -> None:
         else:
             assert row["hidden"] in row["findings"], row
             assert set(row["findings"]) <= allowed | {row["hidden"]}, row
+
+
+def test_candidates_that_change_nothing_gain_one_within_their_error() -> None:
+    # Clean data: every candidate's best fit is (nearly) the baseline itself, so its honest
+    # held-out gain must be 1 within its standard error, and none may be eligible.
+    result = run_audit(small_session({}, 11))
+    assert result.options.refit_cv  # the honest estimate is the default
+    tested = [c for c in result.candidates if c.fit is not None]
+    assert len(tested) >= 6
+    for c in tested:
+        assert np.isfinite(c.gain_se) and c.gain_se >= 0.0, c.effect
+        assert abs(c.gain - 1.0) <= 3.0 * c.gain_se + 2e-3, (c.effect, c.gain, c.gain_se)
+        assert not c.eligible
+
+
+def test_gain_standard_error_is_a_block_jackknife() -> None:
+    from piezod.audit.fitting import HeldOut, gain_with_se
+
+    rng = np.random.default_rng(1)
+    before = rng.normal(0.0, 2.0, 5000)
+    rows = np.ones(5000, dtype=bool)
+    same = HeldOut(float(np.sqrt(np.mean(before**2))), before, rows)
+    g, se = gain_with_se(same, same)
+    assert g == pytest.approx(1.0) and se == pytest.approx(0.0, abs=1e-12)
+    after = before / 2.0 + rng.normal(0.0, 0.1, 5000)
+    half = HeldOut(float(np.sqrt(np.mean(after**2))), after, rows)
+    g, se = gain_with_se(same, half)
+    assert g == pytest.approx(2.0, rel=0.02)
+    assert 0.0 < se < 0.05

@@ -47,7 +47,6 @@ from firmware_proto import (
 from hil_sim.board import Board, BoardConfig, slew_limit
 from hil_sim.stage import Stage, StageConfig
 from piezod.config import default_sim_config_path, load_config
-from piezod.errors import ConfigError
 
 DAC_V_PER_CODE = 250.0 / 32768
 ADC_UM_PER_CODE = 1e-3
@@ -227,7 +226,7 @@ def test_from_scanner_file_uses_the_scanner_limits() -> None:
         (scanner.axes[a].voltage_min_v, scanner.axes[a].voltage_max_v) for a in ("x", "y", "z")
     )
     assert board.stage.config.effects.drift is not None
-    with pytest.raises(ConfigError, match="bogus"):
+    with pytest.raises(ValueError, match="bogus"):
         Board.from_scanner_file(None, effects=("bogus=1",))
 
 

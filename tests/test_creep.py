@@ -15,8 +15,8 @@ from hil_sim.creep import (
     foh_lowpass_coefficients,
     log_spaced_taus,
 )
+from hil_sim.errors import SimModelError as ModelError
 from hil_sim.stage import Stage, StageConfig
-from piezod.errors import ModelError
 
 X_AXIS = {"alpha_per_v": 3e-3, "b_um_per_v": 0.115, "u_um_per_v": 0.072}
 

@@ -9,12 +9,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from hil_sim.server import spawn_sim
 from piezod.client import PiezodClient
 from piezod.config import default_sim_config_path
 from piezod.errors import ApiError
@@ -74,10 +74,12 @@ def _start_daemon(tmp_path: Path, port: str, notify: Notify) -> subprocess.Popen
 
 
 @pytest.fixture
-def daemon(tmp_path: Path) -> Iterator[tuple[PiezodClient, subprocess.Popen[bytes], Notify, object]]:
+def daemon(
+    tmp_path: Path, spawn_board: Callable[..., Any]
+) -> Iterator[tuple[PiezodClient, subprocess.Popen[bytes], Notify, object]]:
     notify = Notify(tmp_path / "notify.sock")
     link = tmp_path / "board"
-    with spawn_sim(default_sim_config_path(), link=str(link), extra_args=("--unplug-s", "2")) as sim:
+    with spawn_board(default_sim_config_path(), link=str(link), extra_args=("--unplug-s", "2")) as sim:
         proc = _start_daemon(tmp_path, str(link), notify)
         try:
             notify.wait_for("READY=1", 30.0)

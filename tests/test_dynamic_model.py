@@ -21,6 +21,7 @@ from piezod.config import (
     load_config,
 )
 from piezod.errors import ConfigError, ModelError
+from piezod.model.axis_model import DynamicAxisModel
 from piezod.model.dynamic import (
     DynamicParams,
     DynamicState,
@@ -32,7 +33,7 @@ from piezod.model.dynamic import (
     dynamic_rest_state,
     foh_coefficients,
 )
-from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
+from piezod.model.ode import hysteresis_inverse_step, hysteresis_step, relaxed_state
 from piezod.service.axes import AxisDriver
 
 #: The simulated stage's x axis (configs/sim-stage.yaml) as a dynamic model.
@@ -354,9 +355,9 @@ def _driver(slew: float = 1e9, fs: float = 1000.0) -> AxisDriver:
 
 def test_axis_driver_uses_the_dynamic_inverse_with_carried_state() -> None:
     d = _driver()
-    assert d.dynamic == SIM_X and d.position_um == 0.0
+    assert d.model == DynamicAxisModel(SIM_X) and d.position_um == 0.0
     targets = _wave(3000, 1e-3)
-    assert isinstance(d.dynamic_state, DynamicState)
+    assert isinstance(d.state, DynamicState)
     v = np.concatenate([d.corrected(b).voltage_v for b in np.array_split(targets, 7)])
     x, _ = dynamic_forward(SIM_X, v, 1e-3, dynamic_rest_state(SIM_X))
     np.testing.assert_allclose(x, targets, atol=1e-9 * np.ptp(targets))
@@ -383,9 +384,10 @@ def test_axis_driver_limits_and_slew_follow_the_forward_model() -> None:
     assert d.voltage_v == 20.0 and d.position_um == pytest.approx(dynamic_rest_state(SIM_X, 20.0).position_um)
     ramp = d.ramp_to(0.0, 200.0, 1000.0)
     assert ramp[-1] == 0.0 and d.voltage_v == 0.0
-    # a replaced hysteresis state (e.g. adopted from another driver) restarts the creep at rest
-    d._state = HysteresisState(10.0, 1.2)
-    assert d.position_um == pytest.approx(1.2 * (1 + SIM_X.total_creep))
+    # an adopted state (another driver's voltage and position) restarts the creep at rest
+    adopted = d.model.adopt(10.0, 1.2)
+    assert adopted.position_um == 1.2 and not adopted.creep_um.any()
+    assert adopted.hysteretic_um == pytest.approx(1.2 / (1 + SIM_X.total_creep))
 
 
 # ---------------------------------------------------------------------------------------- benchmark
@@ -437,12 +439,13 @@ def test_a_dynamic_driver_adopts_the_state_of_the_one_it_replaces() -> None:
     new = _driver()
     new.adopt_state(old)
     assert new.voltage_v == old.voltage_v
-    assert new.position_um == pytest.approx(old.position_um, abs=1e-12)  # same parameters: same state
+    assert new.position_um == pytest.approx(old.position_um, abs=1e-12)  # the stage is where it was
     thesis = AxisDriver("x", AxisConfig(voltage_min_v=-230, voltage_max_v=230, thesis=THESIS), 1000.0)
     thesis.corrected(np.linspace(0.0, 5.0, 300))
     new.adopt_state(thesis)
     assert new.voltage_v == thesis.voltage_v
-    state = new.dynamic_state
-    assert state is not None and not state.creep_um.any()  # creep restarts relaxed
+    state = new.state
+    assert isinstance(state, DynamicState) and not state.creep_um.any()  # creep restarts relaxed
+    assert new.position_um == pytest.approx(thesis.position_um, abs=1e-12)
     v = new.corrected(np.full(5, new.position_um)).voltage_v
     np.testing.assert_allclose(v, thesis.voltage_v, atol=1e-9)  # nothing moves at the adopted point

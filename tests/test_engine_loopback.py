@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from hil_sim.server import spawn_sim
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
 from piezod.errors import EngineStateError, RangeUnreachableError, SafetyError
 from piezod.recording import read_recording
@@ -25,8 +25,8 @@ def sim_config() -> ScannerConfig:
 
 
 @pytest.fixture
-def engine(sim_config: ScannerConfig, tmp_path: Path) -> Iterator[Engine]:
-    with spawn_sim(default_sim_config_path()) as sim:
+def engine(sim_config: ScannerConfig, tmp_path: Path, spawn_board: Callable[..., Any]) -> Iterator[Engine]:
+    with spawn_board(default_sim_config_path()) as sim:
         eng = Engine(sim_config, sim.path, recording_dir=tmp_path)
         eng.open()
         try:

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import os
+import re
 import select
 import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import datetime
 from typing import Any
 
@@ -32,9 +33,9 @@ def config() -> ScannerConfig:
 
 
 @pytest.fixture(scope="module")
-def sim() -> Iterator[Any]:
-    """One simulator (default options) shared by the tests that do not inject faults."""
-    with spawn_sim(seed=0) as proc:
+def sim(spawn_board: Callable[..., Any]) -> Iterator[Any]:
+    """One board process (default options) shared by the tests that do not inject faults."""
+    with spawn_board(seed=0) as proc:
         yield proc
 
 
@@ -137,6 +138,7 @@ def _check_every_loss_reported(r: dict[str, Any], events: list[LinkEvent]) -> No
 
 
 def test_corrupted_link_every_loss_is_detected_and_reported(config: ScannerConfig) -> None:
+    # hil_sim only: the fault injection (bit flips, dropped frames) is the Python board's
     r, events = _corrupted_run(config, seconds=1.2, rate=10_000)
     _check_every_loss_reported(r, events)
 
@@ -147,13 +149,13 @@ def test_corrupted_link_soak_60s(config: ScannerConfig) -> None:
     _check_every_loss_reported(r, events)
 
 
-def test_unplug_link_closed_then_reconnect(config: ScannerConfig) -> None:
+def test_unplug_link_closed_then_reconnect(config: ScannerConfig, spawn_board: Callable[..., Any]) -> None:
     rate = 20_000
     cfg = bench_config(config, 3, rate)
     events, collect = _events()
     settings = LinkSettings(heartbeat_timeout_ms=150, reconnect_initial_s=0.05, reconnect_max_s=0.2)
     with (
-        spawn_sim(seed=0, extra_args=("--unplug-s", "0.6")) as sim,
+        spawn_board(seed=0, extra_args=("--unplug-s", "0.6")) as sim,
         BoardSession.open(
             sim.path, config=cfg, settings=settings, sample_rate_hz=rate, on_event=collect
         ) as s,
@@ -201,7 +203,7 @@ time.sleep(60)
 
 
 def _log_time(line: str) -> float:
-    stamp = line.split(" hil_sim[", 1)[0]
+    stamp = re.split(r" \w+\[\d+\] ", line, maxsplit=1)[0]
     return datetime.strptime(stamp, "%Y-%m-%d %H:%M:%S,%f").timestamp()
 
 

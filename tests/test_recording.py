@@ -15,13 +15,13 @@ from piezod.recording import (
     Experiment,
     Recording,
     RecordingWriter,
-    infer_scan,
     parse_recording,
     read_experiments,
     read_recording,
     split_experiments,
     write_recording,
 )
+from piezod.scan_inference import infer_scan
 
 HEADER = "t,voltage,position"
 

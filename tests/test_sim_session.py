@@ -127,7 +127,7 @@ def test_scanner_session_uses_the_scanner_limits_and_hidden_effects() -> None:
     assert ref3.t_s[0] > ref1.t_s[-1]
     with pytest.raises(SafetyError):
         run_scanner_session(scanner, [Triangle(470.0, 1.0)], sample_rate_hz=FS)
-    with pytest.raises(ConfigError, match="unknown effect"):
+    with pytest.raises(ValueError, match="unknown effect"):
         run_scanner_session(scanner, plan, sample_rate_hz=FS, effects=["wobble=1"])
 
 

@@ -20,10 +20,13 @@ from hil_sim.effects import (
     resonance_rest_state,
     resonance_step,
 )
+from hil_sim.errors import SimConfigError as ConfigError
+from hil_sim.errors import SimModelError as ModelError
+from hil_sim.hysteresis import CHParams, ch_rest_state, ch_step
 from hil_sim.stage import Stage, StageConfig, sensor
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
-from piezod.errors import ConfigError, ModelError
 from piezod.model.ode import hysteresis_step, relaxed_state
+from piezod.model.params import HysteresisParams
 
 SIM = default_sim_config_path()
 
@@ -445,10 +448,12 @@ def test_benchmark_stage_step(benchmark: Any, base: StageConfig) -> None:
     default = Stage(base)
     benchmark(default.step, v, 1 / fs)
     params = [default.model.hysteresis[i] for i in range(3)]
+    assert all(isinstance(p, CHParams) for p in params)
 
     def ode() -> None:
         for p, row in zip(params, v, strict=True):
-            hysteresis_step(p, row, relaxed_state(p))
+            assert isinstance(p, CHParams)
+            ch_step(p, row, ch_rest_state(p))
 
     t_ode = _best_of(ode)
     t_default = _best_of(lambda: default.step(v, 1 / fs))
@@ -461,3 +466,15 @@ def test_benchmark_stage_step(benchmark: Any, base: StageConfig) -> None:
         f"all effects {t_all * per:.1f} ns/sample/ch ({t_all / t_ode:.1f}x ODE); "
         f"real-time load at 3 x 100 kS/s: {t_default:.3f} / {t_all:.3f} core-seconds per second"
     )
+
+
+def test_sim_coleman_hodgdon_step_matches_the_hosts_ode() -> None:
+    """hil_sim carries its own copy of the ODE (it must not import piezod): both agree to rounding."""
+    rng = np.random.default_rng(5)
+    v = np.cumsum(rng.normal(0.0, 3.0, 4000))
+    sim = CHParams(3.0e-3, 0.115, 0.072)
+    host = HysteresisParams(3.0e-3, 0.115, 0.072)
+    x_sim, s_sim = ch_step(sim, v, ch_rest_state(sim, 1.0))
+    x_host, s_host = hysteresis_step(host, v, relaxed_state(host, 1.0))
+    np.testing.assert_allclose(x_sim, x_host, rtol=0, atol=1e-12)
+    assert s_sim.position_um == pytest.approx(s_host.position_um, abs=1e-12)

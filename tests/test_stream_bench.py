@@ -49,6 +49,19 @@ def test_bench_stream_cli_writes_the_contract_keys(tmp_path: Path) -> None:
     assert result["samples_frames_sent"] > 0 and result["host_cpu_pct"] > 0
 
 
+def test_bench_stream_against_the_c_firmware(tmp_path: Path, firmware_host_binary: Path) -> None:
+    from hil_sim.firmware import spawn_firmware
+
+    out = tmp_path / "bench.json"
+    with spawn_firmware(firmware_host_binary) as fw:
+        args = ["bench", "stream", "--port", fw.path, "--rate-hz", "50000", "--seconds", "0.8"]
+        assert main([*args, "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["simulator"] == f"the board at {fw.path}"
+    assert result["underruns"] == 0 and result["crc_errors"] == 0 and result["unexplained_loss"] == 0
+    assert result["samples_sent"] == result["samples_played"] == result["samples_read"] >= 0.6 * 50_000
+
+
 def test_bench_stream_rejects_bad_arguments() -> None:
     with pytest.raises(ConfigError, match="--axes"):
         run_stream_bench(argparse.Namespace(axes=5, rate_hz=1000.0, seconds=1.0))

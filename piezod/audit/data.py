@@ -16,7 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod.errors import RecordingError
-from piezod.recording import Experiment, ScanInfo
+from piezod.recording import Experiment
+from piezod.scan_inference import ScanInfo
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.intp]

@@ -44,12 +44,23 @@ from piezod.audit.baseline import (
     ode_start,
     thesis_start,
 )
+from piezod.audit.bounds import implausible as physically_implausible
 from piezod.audit.candidates import EFFECTS, AuditModel, Candidate, Scales, make_candidate
 from piezod.audit.evidence import Structure, evidence, structure
-from piezod.audit.fitting import Fit, HeldOut, Problem, fit_candidate, folds_of, heldout_cv, heldout_validate
+from piezod.audit.fitting import (
+    Fit,
+    HeldOut,
+    Problem,
+    fit_candidate,
+    folds_of,
+    gain_with_se,
+    heldout_cv,
+    heldout_validate,
+)
 from piezod.audit.residuals import noise_floor_data
 from piezod.errors import CalibrationError, PiezodError
-from piezod.recording import Experiment, ScanInfo
+from piezod.recording import Experiment
+from piezod.scan_inference import ScanInfo
 
 F64 = NDArray[np.float64]
 
@@ -78,9 +89,13 @@ class AuditOptions:
         Force the baseline (``thesis`` / ``ode``; default: thesis when every experiment is a
         triangular scan and the frame determines it).
     refit_cv
-        Refit every fold with the solver instead of one linearised Gauss-Newton step.
+        Refit every fold with the solver, warm-started at the full fit (the default: an honest
+        estimate); ``False`` takes a few damped Gauss-Newton steps from the full fit instead
+        (faster, biased toward the full fit).
     cv_nfev
         Evaluation budget of every cross-validation refit.
+    gain_sigmas
+        A candidate's held-out gain must exceed 1 by this many standard errors.
     """
 
     folds: int = 5
@@ -91,8 +106,9 @@ class AuditOptions:
     max_findings: int = 3
     effects: tuple[str, ...] = EFFECTS
     base: str | None = None
-    refit_cv: bool = False
+    refit_cv: bool = True
     cv_nfev: int = 60
+    gain_sigmas: float = 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,6 +131,10 @@ class CandidateResult:
         BIC change against the round's starting model (negative = better).
     heldout_rms_before_um, heldout_rms_after_um
         Held-out RMS without and with the candidate.
+    gain_se
+        Standard error of the held-out gain (block jackknife of the held-out data).
+    implausible
+        Empty, or why the fitted magnitude lies outside physical bounds (:mod:`piezod.audit.bounds`).
     eligible
         Passes both thresholds.
     fit
@@ -137,6 +157,8 @@ class CandidateResult:
     fit: Fit | None = None
     heldout: HeldOut | None = None
     evidence: str = ""
+    gain_se: float = math.nan
+    implausible: str = ""
 
     @property
     def gain(self) -> float:
@@ -472,12 +494,15 @@ def _try(
     bic_delta = fit.bic - current.bic
     ho = heldout(fit)
     _, params = model.public(fit.p)
-    gain = current_ho.rms_um / ho.rms_um if ho.rms_um > 0 else math.inf
-    why = cand.implausible(fit.p[model.slices()[cand.effect]], model.scales)
+    gain, se = gain_with_se(current_ho, ho)
+    bad = physically_implausible(cand.effect, params[cand.effect], model.scales)
+    why = bad or cand.implausible(fit.p[model.slices()[cand.effect]], model.scales)
     excess = current_ho.rms_um**2 - (floor**2 if math.isfinite(floor) else 0.0)
     explained = (current_ho.rms_um**2 - ho.rms_um**2) / excess if excess > 0 else math.inf
     if not why and explained < opts.explain_min:
         why = f"explains only {100.0 * explained:.2g} % of the held-out variance above the noise"
+    if not why and math.isfinite(se) and gain - 1.0 <= opts.gain_sigmas * se:
+        why = f"gain {gain:.4g} +- {se:.2g} not {opts.gain_sigmas:g} standard errors above 1"
     eligible = bic_delta < -opts.bic_min and gain >= opts.gain_min and not why
     return CandidateResult(
         effect=cand.effect,
@@ -491,4 +516,6 @@ def _try(
         eligible=eligible,
         fit=fit,
         heldout=ho,
+        gain_se=se,
+        implausible=bad,
     )

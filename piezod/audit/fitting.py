@@ -24,6 +24,9 @@ from piezod.errors import ModelError
 
 F64 = NDArray[np.float64]
 
+#: Contiguous blocks of the held-out data of the jackknife of a gain.
+JACKKNIFE_BLOCKS = 10
+
 
 @dataclass(frozen=True, eq=False)
 class Fit:
@@ -332,6 +335,41 @@ class HeldOut:
     residual: F64
     rows: NDArray[np.bool_]
     gains: dict[str, float] = field(default_factory=dict)
+
+    def block_ss(self, blocks: int = JACKKNIFE_BLOCKS) -> F64:
+        """Sum of squared held-out residuals in ``blocks`` contiguous blocks (sample order)."""
+        n = self.residual.size
+        k = max(1, min(blocks, n))
+        edges = (np.arange(k + 1) * n) // k
+        csum = np.concatenate(([0.0], np.cumsum(self.residual**2)))
+        out: F64 = csum[edges[1:]] - csum[edges[:-1]]
+        return out
+
+
+def gain_with_se(before: HeldOut, after: HeldOut, blocks: int = JACKKNIFE_BLOCKS) -> tuple[float, float]:
+    """Held-out gain ``RMS before / RMS after`` and its standard error.
+
+    The standard error is a delete-one block jackknife over ``blocks`` contiguous blocks of the
+    held-out samples (the same samples before and after, so the scatter of the data common to
+    both cancels; contiguous blocks keep the residuals' correlation in time inside a block).
+    """
+    if before.residual.size != after.residual.size or after.residual.size == 0:
+        return math.nan, math.nan
+    sb, sa = before.block_ss(blocks), after.block_ss(blocks)
+    tb, ta = float(sb.sum()), float(sa.sum())
+    if not ta > 0:
+        return math.inf, math.nan
+    gain = math.sqrt(tb / ta)
+    k = sb.size
+    if k < 2:
+        return gain, math.nan
+    with np.errstate(divide="ignore", invalid="ignore"):
+        loo = np.sqrt((tb - sb) / (ta - sa))
+    loo = loo[np.isfinite(loo)]
+    if loo.size < 2:
+        return gain, math.nan
+    se = math.sqrt((loo.size - 1) / loo.size * float(np.sum((loo - loo.mean()) ** 2)))
+    return gain, se
 
 
 def folds_of(n_segments: int, k: int) -> list[NDArray[np.bool_]]:

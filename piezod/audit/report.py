@@ -8,7 +8,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from piezod.audit.decide import AuditResult, CandidateResult
+from piezod.audit.decide import AuditOptions, AuditResult, CandidateResult
 from piezod.audit.evidence import Structure
 
 _MEANING = {
@@ -37,11 +37,14 @@ def _candidate_json(c: CandidateResult) -> dict[str, Any]:
         "note": c.testable,
         "params": {k: _num(v) for k, v in c.params.items()},
         "gain": _num(c.gain),
+        "gain_se": _num(c.gain_se),
         "heldout_rms_before_um": _num(c.heldout_rms_before_um),
         "heldout_rms_after_um": _num(c.heldout_rms_after_um),
         "rms_um": _num(c.rms_um),
         "bic_delta": _num(c.bic_delta),
         "eligible": c.eligible,
+        "plausible": not c.implausible,
+        "implausible": c.implausible,
     }
 
 
@@ -77,6 +80,7 @@ def result_json(
                 "effect": f.effect,
                 "evidence": f.evidence,
                 "gain": _num(f.gain),
+                "gain_se": _num(f.gain_se),
                 "heldout_rms_before_um": _num(f.heldout_rms_before_um),
                 "heldout_rms_after_um": _num(f.heldout_rms_after_um),
                 "params": {k: _num(v) for k, v in f.params.items()},
@@ -121,10 +125,10 @@ def result_json(
             "bic_min": opts.bic_min,
             "gain_min": opts.gain_min,
             "structure_max": opts.structure_max,
-            "rule": "greedy forward selection: a candidate is eligible when the BIC falls by more than "
-            "bic_min and the held-out RMS by the factor gain_min; the eligible one with the largest "
-            "held-out gain joins the model; cause = the first finding, else none (residual at the "
-            "noise floor) or unexplained",
+            "explain_min": opts.explain_min,
+            "gain_sigmas": opts.gain_sigmas,
+            "heldout_refit": opts.refit_cv,
+            "rule": legend(opts),
         },
         "n_experiments": result.data.n_experiments,
         "n_samples": result.data.n,
@@ -133,6 +137,16 @@ def result_json(
         "inputs": list(inputs),
         "validate": list(validate),
     }
+
+
+def legend(opts: AuditOptions) -> str:
+    """The eligibility rule as the code applies it (:func:`piezod.audit.decide._try`)."""
+    return (
+        f"(* eligible: BIC falls by more than {opts.bic_min:g}, held-out gain >= {opts.gain_min:g} and "
+        f"more than {opts.gain_sigmas:g} standard errors above 1, explains >= {100 * opts.explain_min:g} % "
+        "of the held-out variance above the noise, parameters physically plausible; > the eligible "
+        "candidate with the largest gain: finding 1, the cause)"
+    )
 
 
 def print_summary(result: AuditResult, out: IO[str]) -> None:
@@ -154,21 +168,21 @@ def print_summary(result: AuditResult, out: IO[str]) -> None:
     )
     _print_structure(result.base_structure, out)
     pr("", file=out)
-    pr(f"{'candidate':<11} {'gain':>7} {'held-out um':>12} {'BIC delta':>11}  parameters", file=out)
-    for c in result.candidates:
-        if c.fit is None:
-            pr(f"{c.effect:<11} {'-':>7} {'-':>12} {'-':>11}  not tested: {c.testable}", file=out)
-            continue
-        ptxt = ", ".join(f"{k} {v:.4g}" for k, v in c.params.items())
-        mark = " *" if c.eligible else "  "
-        note = f" [{c.testable}]" if c.testable else ""
-        nums = f"{c.gain:7.3f} {c.heldout_rms_after_um:12.4g} {c.bic_delta:11.4g}"
-        pr(f"{c.effect:<11} {nums}{mark}{ptxt}{note}", file=out)
     pr(
-        "(* eligible: BIC falls by more than "
-        f"{result.options.bic_min:g} and held-out gain >= {result.options.gain_min:g})",
+        f"{'candidate':<11} {'gain':>7} {'+-':>6} {'held-out um':>12} {'BIC delta':>11}  parameters",
         file=out,
     )
+    first = result.findings[0].effect if result.findings else None
+    for c in result.candidates:
+        if c.fit is None:
+            pr(f"{c.effect:<11} {'-':>7} {'':>6} {'-':>12} {'-':>11}  not tested: {c.testable}", file=out)
+            continue
+        ptxt = ", ".join(f"{k} {v:.4g}" for k, v in c.params.items())
+        mark = " >" if c.effect == first and c.eligible else (" *" if c.eligible else "  ")
+        note = f" [{c.testable}]" if c.testable else ""
+        nums = f"{c.gain:7.3f} {c.gain_se:6.3f} {c.heldout_rms_after_um:12.4g} {c.bic_delta:11.4g}"
+        pr(f"{c.effect:<11} {nums}{mark}{ptxt}{note}", file=out)
+    pr(legend(result.options), file=out)
     pr("", file=out)
     for k, f in enumerate(result.findings, start=1):
         pr(f"finding {k}: {f.effect} ({_MEANING.get(f.effect, '')})", file=out)

@@ -13,11 +13,14 @@ import importlib
 import os
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 # One BLAS thread: the fits are small, and on the controller PC the streaming thread needs the
 # other core; multithreaded BLAS was 2-5x slower on a loaded 2-core machine.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+
+from pydantic import ValidationError  # noqa: E402
 
 from piezod import __version__  # noqa: E402
 from piezod.errors import PiezodError  # noqa: E402
@@ -37,9 +40,24 @@ SUBCOMMANDS: tuple[str, ...] = (
 )
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``piezod scan: error: argument --lines: ...`` (exit 2)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
+def _one_line_validation(exc: ValidationError) -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or exc.title
+        parts.append(f"{loc}: {err['msg']}")
+    return "; ".join(parts)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Build the top-level parser with every available subcommand."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="piezod",
         description="Online hysteresis + creep linearisation for SPM piezo scanners.",
     )
@@ -64,6 +82,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         status: int = args.func(args)
     except PiezodError as exc:
         print(f"piezod {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except ValidationError as exc:
+        print(f"piezod {args.command}: error: {_one_line_validation(exc)}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        # a file the user named (--out, --json, -o, a token file) cannot be read or written
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"piezod {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"piezod {args.command}: interrupted", file=sys.stderr)

@@ -6,7 +6,7 @@ import argparse
 import importlib
 from typing import Any
 
-from piezod.cli._common import add_json_option, human_stream, write_json
+from piezod.cli._common import add_json_option, human_stream, positive_float, positive_int, write_json
 from piezod.errors import PiezodError
 
 #: Module providing ``run_stream_bench(args) -> dict`` (the link's streaming benchmark).
@@ -28,18 +28,31 @@ def register(sub: Any) -> None:
     p.add_argument("which", choices=("inverse", "stream"), help="what to benchmark")
     add_json_option(p)
     inv = p.add_argument_group("inverse")
-    inv.add_argument("--block-samples", type=int, default=4096, metavar="N", help="samples per block")
-    inv.add_argument("--blocks", type=int, default=128, metavar="N", help="blocks per repeat")
-    inv.add_argument("--repeats", type=int, default=7, metavar="N", help="interleaved repeats (best counts)")
+    inv.add_argument(
+        "--block-samples", type=positive_int, default=4096, metavar="N", help="samples per block"
+    )
+    inv.add_argument("--blocks", type=positive_int, default=128, metavar="N", help="blocks per repeat")
+    inv.add_argument(
+        "--repeats", type=positive_int, default=7, metavar="N", help="interleaved repeats (best counts)"
+    )
     stream = p.add_argument_group("stream")
-    stream.add_argument("--axes", type=int, default=3, metavar="N", help="number of axes streamed")
-    stream.add_argument("--rate-hz", type=float, default=100_000.0, metavar="R", help="samples/s per axis")
-    stream.add_argument("--seconds", type=float, default=60.0, metavar="S", help="duration (s)")
+    stream.add_argument("--axes", type=positive_int, default=3, metavar="N", help="number of axes streamed")
+    stream.add_argument(
+        "--rate-hz", type=positive_float, default=100_000.0, metavar="R", help="samples/s per axis"
+    )
+    stream.add_argument("--seconds", type=positive_float, default=60.0, metavar="S", help="duration (s)")
+    stream.add_argument(
+        "--port",
+        default=None,
+        metavar="URL",
+        help="stream to this board (a pty, serial port or pyserial URL, e.g. the C firmware's host "
+        "build) instead of a fresh hil_sim",
+    )
     stream.add_argument(
         "--api-load", action="store_true", help="stream with the daemon while its API is polled"
     )
     stream.add_argument(
-        "--api-clients", type=int, default=2, metavar="N", help="polling clients (--api-load)"
+        "--api-clients", type=positive_int, default=2, metavar="N", help="polling clients (--api-load)"
     )
     stream.add_argument("--with-fit", action="store_true", help="also run calibration fits (--api-load)")
     p.set_defaults(func=run)

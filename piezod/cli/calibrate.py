@@ -8,7 +8,15 @@ from typing import Any
 import numpy as np
 
 from piezod.calibrate import LOSSES, PARAM_NAMES, CalibrationResult, calibrate, calibrated_config, result_json
-from piezod.cli._common import add_json_option, add_port_options, human_stream, write_json
+from piezod.cli._common import (
+    add_json_option,
+    add_port_options,
+    human_stream,
+    input_file,
+    nonneg_int,
+    positive_float,
+    write_json,
+)
 from piezod.config import dump_config, load_config
 from piezod.errors import CalibrationError
 from piezod.progress import progress_bar
@@ -26,24 +34,33 @@ def register(sub: Any) -> None:
             "are inferred from the voltage. Writes the scanner YAML (--out) and a JSON report (--json)."
         ),
     )
-    p.add_argument("recordings", nargs="*", metavar="REC.csv", help="recording files (DESIGN section 3)")
-    p.add_argument("--config", metavar="F", help="base scanner YAML: limits kept, start parameters taken")
+    p.add_argument(
+        "recordings", nargs="*", type=input_file, metavar="REC.csv", help="recording files (DESIGN section 3)"
+    )
+    p.add_argument(
+        "--config",
+        type=input_file,
+        metavar="F",
+        help="base scanner YAML: limits kept, start parameters taken",
+    )
     p.add_argument("--out", metavar="F.yaml", help="write the calibrated scanner config here")
     add_json_option(p)
     p.add_argument(
         "--axis", choices=AXES, help="axis to calibrate (default: the recordings' only axis, else x)"
     )
     p.add_argument("--loss", choices=LOSSES, default="linear", help="loss function (default: linear)")
-    p.add_argument("--f-scale", type=float, metavar="UM", help="residual scale of a robust loss (um)")
+    p.add_argument(
+        "--f-scale", type=positive_float, metavar="UM", help="residual scale of a robust loss (um)"
+    )
     p.add_argument(
         "--fix", nargs="+", default=[], choices=PARAM_NAMES, metavar="NAME", help="hold parameters at start"
     )
     p.add_argument(
-        "--skip-loops", type=int, default=0, metavar="N", help="drop N settling loops per experiment"
+        "--skip-loops", type=nonneg_int, default=0, metavar="N", help="drop N settling loops per experiment"
     )
     p.add_argument(
         "--max-samples-per-loop",
-        type=int,
+        type=nonneg_int,
         default=2048,
         metavar="N",
         help="keep every k-th sample so that a loop has at most N (0 = all; default 2048)",

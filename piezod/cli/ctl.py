@@ -30,7 +30,7 @@ from typing import Any, TextIO
 
 from pydantic import BaseModel
 
-from piezod.cli._common import human_stream, write_json
+from piezod.cli._common import finite_float, human_stream, positive_float, positive_int, write_json
 from piezod.client import API_ENV, PiezodClient, default_api_spec
 from piezod.service.schemas import FaultInfo, MoveRequest, RecordingInfo, ScanChange, ScanRequest, Status
 from piezod.service.server import read_token
@@ -73,7 +73,7 @@ def _add_model_options(parser: argparse.ArgumentParser, model: type[BaseModel]) 
         parser.add_argument(
             flag,
             dest=name,
-            type=kind,
+            type=finite_float if kind is float else kind,
             choices=choices,
             metavar=metavar,
             required=info.is_required(),
@@ -93,7 +93,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--api", metavar="SPEC", help="unix:PATH or tcp:HOST:PORT of the daemon")
     parser.add_argument("--token-file", metavar="F", help="file holding the API bearer token (TCP)")
     parser.add_argument(
-        "--timeout", type=float, default=10.0, metavar="S", help="seconds to wait for answers"
+        "--timeout", type=positive_float, default=10.0, metavar="S", help="seconds to wait for answers"
     )
     json_help = "write the answer as JSON to F ('-' = stdout)"
     parser.add_argument("--json", metavar="F", help=json_help)
@@ -114,8 +114,10 @@ def register(subparsers: Any) -> None:
     fetch.add_argument("name", metavar="NAME", help="recording name, as listed by 'recordings'")
     fetch.add_argument("-o", "--output", metavar="F", help="file or directory to write ('-' = stdout)")
     watch = add("watch", "follow the daemon live, one line per update")
-    watch.add_argument("--rate-hz", type=float, metavar="HZ", help="updates per second (daemon default 5)")
-    watch.add_argument("--count", type=int, metavar="N", help="stop after N updates")
+    watch.add_argument(
+        "--rate-hz", type=positive_float, metavar="HZ", help="updates per second (daemon default 5)"
+    )
+    watch.add_argument("--count", type=positive_int, metavar="N", help="stop after N updates")
     parser.set_defaults(func=run)
 
 

@@ -5,7 +5,14 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from piezod.cli._common import add_json_option, human_stream, write_json
+from piezod.cli._common import (
+    add_json_option,
+    human_stream,
+    input_file,
+    nonneg_float,
+    positive_float,
+    write_json,
+)
 from piezod.linearity import LinearityReport, linearity
 from piezod.recording import AXES, read_experiments
 
@@ -21,10 +28,14 @@ def register(sub: Any) -> None:
             "residual non-linearity sigma / measured range and the length error, in %."
         ),
     )
-    p.add_argument("recordings", nargs="+", metavar="REC.csv", help="recording files (DESIGN section 3)")
+    p.add_argument(
+        "recordings", nargs="+", type=input_file, metavar="REC.csv", help="recording files (DESIGN section 3)"
+    )
     add_json_option(p)
-    p.add_argument("--range-um", type=float, metavar="R", help="nominal scan range (um)")
-    p.add_argument("--overscan", type=float, metavar="O", help="overscan fraction (default: from the file)")
+    p.add_argument("--range-um", type=positive_float, metavar="R", help="nominal scan range (um)")
+    p.add_argument(
+        "--overscan", type=nonneg_float, metavar="O", help="overscan fraction (default: from the file)"
+    )
     p.add_argument("--axis", choices=AXES, help="only this axis")
     p.add_argument(
         "--allow-truncated-tail",

@@ -7,7 +7,7 @@ import contextlib
 from typing import Any
 
 from firmware_proto import Capabilities
-from piezod.cli._common import add_json_option, human_stream, write_json
+from piezod.cli._common import add_json_option, human_stream, positive_float, write_json
 from piezod.errors import ConfigError
 from piezod.link.session import BoardSession, LinkSettings
 
@@ -25,7 +25,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("url", nargs="?", metavar="URL", help="the board's link URL")
     p.add_argument("--sim", action="store_true", help="probe a freshly started simulator instead of URL")
-    p.add_argument("--timeout", type=float, default=3.0, metavar="S", help="handshake timeout (s)")
+    p.add_argument("--timeout", type=positive_float, default=3.0, metavar="S", help="handshake timeout (s)")
     add_json_option(p)
     p.set_defaults(func=run)
 

@@ -11,7 +11,12 @@ from piezod.cli._common import (
     add_microscope_options,
     add_port_options,
     board_url,
+    finite_float,
     human_stream,
+    nonneg_float,
+    positive_float,
+    positive_int,
+    recording_label,
     scanner_config_path,
     with_microscope,
 )
@@ -28,12 +33,18 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--config", metavar="F", help="scanner YAML (default with --sim: configs/sim-stage.yaml)")
     add_port_options(p, required=True)
     p.add_argument("--effect", action="append", metavar="NAME=VALUE", help="simulator effect (with --sim)")
-    p.add_argument("--range-um", type=float, required=True, help="fast-axis scan range (um)")
-    p.add_argument("--line-rate-hz", type=float, required=True, help="lines per second (trace + retrace)")
-    p.add_argument("--lines", type=int, default=8, help="lines per frame (default 8)")
-    p.add_argument("--pixels", type=int, default=None, help="pixels per image line (default 256)")
-    p.add_argument("--offset-um", type=float, default=0.0, help="fast-axis offset of the image centre (um)")
-    p.add_argument("--slow-range-um", type=float, default=None, help="slow-axis range (default: range)")
+    p.add_argument("--range-um", type=positive_float, required=True, help="fast-axis scan range (um)")
+    p.add_argument(
+        "--line-rate-hz", type=positive_float, required=True, help="lines per second (trace + retrace)"
+    )
+    p.add_argument("--lines", type=positive_int, default=8, help="lines per frame (default 8)")
+    p.add_argument("--pixels", type=positive_int, default=None, help="pixels per image line (default 256)")
+    p.add_argument(
+        "--offset-um", type=finite_float, default=0.0, help="fast-axis offset of the image centre (um)"
+    )
+    p.add_argument(
+        "--slow-range-um", type=nonneg_float, default=None, help="slow-axis range (default: range)"
+    )
     p.add_argument("--no-correction", action="store_true", help="drive the plain triangle (no model)")
     p.add_argument(
         "--model", choices=("thesis", "dynamic"), help="override the scanner config's model on every axis"
@@ -70,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         slow_range_um=args.slow_range_um,
         offset_x_um=args.offset_um,
         correction=not args.no_correction,
-        name=out.stem,
+        name=recording_label(out),
     )
     say = human_stream(args)
     with board_url(args, config_path) as url:

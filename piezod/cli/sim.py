@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from hil_sim.errors import SimError
 from hil_sim.server import add_sim_arguments, run_from_args
+from piezod.errors import ConfigError
 
 
 def register(sub: Any) -> None:
@@ -24,5 +26,8 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``piezod sim``."""
-    return run_from_args(args)
+    """Run ``piezod sim`` (the simulator's own errors become a one-line ConfigError)."""
+    try:
+        return run_from_args(args)
+    except SimError as exc:
+        raise ConfigError(str(exc)) from exc

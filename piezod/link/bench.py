@@ -165,7 +165,8 @@ def run_stream_bench(args: argparse.Namespace) -> dict[str, Any]:
     ----------
     args
         ``axes``, ``rate_hz``, ``seconds``; optional ``config`` (scanner YAML with a simulation
-        section), ``seed``, ``lead_ms``, ``sim_args`` (extra simulator options).
+        section), ``seed``, ``lead_ms``, ``sim_args`` (extra simulator options), ``port`` (stream
+        to that board instead of spawning hil_sim).
 
     Returns
     -------
@@ -186,6 +187,12 @@ def run_stream_bench(args: argparse.Namespace) -> dict[str, Any]:
     config = bench_config(load_config(config_path), axes, rate_hz)
     lead_ms = getattr(args, "lead_ms", None)
     extra = tuple(getattr(args, "sim_args", None) or ())
+    port = getattr(args, "port", None)
+    if port:
+        lead_s = None if lead_ms is None else float(lead_ms) / 1000.0
+        result = stream_bench(str(port), config, rate_hz=rate_hz, seconds=seconds, lead_s=lead_s)
+        result["simulator"] = f"the board at {port}"
+        return result
     with spawn_sim(config_path=config_path, seed=int(getattr(args, "seed", 0) or 0), extra_args=extra) as sim:
         result = stream_bench(
             sim.path,

@@ -71,6 +71,7 @@ from firmware_proto import (
     TimedOut,
     check_capabilities,
 )
+from firmware_proto import ProtocolError as WireProtocolError
 from piezod.config import ScannerConfig
 from piezod.errors import (
     ConfigError,
@@ -79,6 +80,7 @@ from piezod.errors import (
     LinkTimeoutError,
     ProtocolError,
     SafetyError,
+    from_wire,
 )
 from piezod.link.transport import Transport, open_transport
 
@@ -266,7 +268,22 @@ def plan_channels(
         cannot produce it, or the FIFO cannot hold the rate's lead.
     SafetyError
         An axis's voltage limits leave the amplifier range of its channel.
+    ProtocolError
+        The codec refused a field (e.g. no DAC code inside an axis's limits).
     """
+    try:
+        return _plan_channels(config, caps, settings, sample_rate_hz=sample_rate_hz)
+    except WireProtocolError as exc:
+        raise from_wire(exc) from exc
+
+
+def _plan_channels(
+    config: ScannerConfig,
+    caps: Capabilities,
+    settings: LinkSettings,
+    *,
+    sample_rate_hz: float | None,
+) -> ChannelPlan:
     rate_f = float(sample_rate_hz if sample_rate_hz is not None else config.sample_rate_hz)
     if not rate_f.is_integer() or rate_f < 1:
         raise ConfigError(
@@ -1057,9 +1074,9 @@ class BoardSession:
             raise ProtocolError(f"{self.url}: HELLO answered by {type(reply).__name__}")
         try:
             check_capabilities(reply)
-        except ProtocolError:
+        except WireProtocolError as exc:
             self._shutdown_connection(conn)
-            raise
+            raise from_wire(exc) from exc
         with self._lock:
             self.capabilities = reply
             conn.hello_done = True
@@ -1157,8 +1174,8 @@ class BoardSession:
                 return
             try:
                 caps = self._connect(reconnect=True, timeout_s=max(1.0, self.settings.ack_timeout_s * 8))
-            except (LinkError, ProtocolError) as exc:
-                if isinstance(exc, ProtocolError) and not isinstance(exc, LinkError):
+            except (LinkError, WireProtocolError) as exc:
+                if isinstance(exc, WireProtocolError) and not isinstance(exc, LinkError):
                     self._give_up(LinkError(f"{self.url}: reconnection refused: {exc}"))
                     return
                 last_error = exc
@@ -1258,7 +1275,7 @@ class BoardSession:
         if ramp_to_safe and self.connected:
             try:
                 self.ramp_to_safe()
-            except (LinkError, ProtocolError) as exc:
+            except (LinkError, WireProtocolError) as exc:
                 log.warning("RAMP_TO_SAFE on close failed: %s", exc)
         with self._lock:
             conn = None if self._closing else self._conn
@@ -1393,7 +1410,7 @@ class BoardSession:
     def _refusal(self, ev: Nacked) -> ProtocolError:
         nak = ev.reply
         if nak.reason == NakReason.VERSION_MISMATCH:
-            return nak.to_error()
+            return from_wire(nak.to_error())
         what = ev.request.TYPE.name
         detail = ""
         if nak.reason in (NakReason.BAD_VALUE, NakReason.UNSUPPORTED):

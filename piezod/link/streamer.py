@@ -28,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from firmware_proto import NO_INDEX, BoardState, FaultCode, FaultFlags, Status
+from firmware_proto import ProtocolError as WireProtocolError
 from piezod.errors import BoardFaultError, ConfigError, LinkError, ProtocolError
 from piezod.link.session import (
     BoardFault,
@@ -395,7 +396,7 @@ class Streamer:
             st = self.session.status
             try:
                 self.session.stop()
-            except (LinkError, ProtocolError) as exc:
+            except (LinkError, WireProtocolError) as exc:
                 log.warning("STOP failed: %s", exc)
             self._end_run("stopped", st.last_played_index if st is not None else None)
         self._unsubscribe()
@@ -411,7 +412,7 @@ class Streamer:
             self._thread.join(timeout=5.0)
         try:
             self.session.stop()
-        except (LinkError, ProtocolError) as exc:
+        except (LinkError, WireProtocolError) as exc:
             log.warning("STOP after abort failed: %s", exc)
         self._unsubscribe()
 
@@ -494,7 +495,7 @@ class Streamer:
             if not isinstance(exc, LinkError):
                 try:
                     self.session.stop()
-                except (LinkError, ProtocolError) as stop_exc:
+                except (LinkError, WireProtocolError) as stop_exc:
                     log.warning("STOP after a streaming error failed: %s", stop_exc)
         finally:
             self._done.set()

@@ -18,22 +18,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from piezod.config import AxisConfig
 from piezod.errors import SafetyError
-from piezod.model.dynamic import (
-    DynamicParams,
-    DynamicState,
-    dynamic_forward,
-    dynamic_hold,
-    dynamic_inverse,
-    dynamic_rest_state,
-)
+from piezod.model.axis_model import AxisModel, DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
 from piezod.model.inverse import ThesisInverse
-from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
 from piezod.model.params import ThesisParams
 from piezod.model.thesis import effective_sensitivity
 from piezod.scan import slew_limit
@@ -88,20 +81,21 @@ def _plan(
     )
 
 
-def _adopted_dynamic_state(params: DynamicParams, other: AxisDriver) -> DynamicState:
-    """``model: dynamic`` taking over from ``other``: its voltage, its hysteretic distance from the
-    centre line rescaled to the new loop width, its creep deviations if it had the same elements."""
-    v = other.voltage_v
-    old = other.dynamic.hysteresis if other.dynamic is not None else other.params.hysteresis
-    eta = (other.state.position_um - old.b_um_per_v * v) * params.hysteresis.delta_um / old.delta_um
-    xh = params.b_um_per_v * v + eta
-    dyn = other.dynamic_state
-    e = np.zeros(params.taus_s.size)
-    if dyn is not None and other.dynamic is not None and np.array_equal(other.dynamic.taus_s, params.taus_s):
-        e = np.array(dyn.creep_um)
-    return DynamicState(
-        HysteresisState(v, xh), (1.0 + params.total_creep) * xh + float(params.weights @ e), e
-    )
+def axis_model(config: AxisConfig) -> AxisModel:
+    """The model an axis's configuration selects (``model: thesis | dynamic | family``).
+
+    The thesis model starts with the creep term of a slow scan over the whole voltage range (moves
+    and holds then use the stage's quasi-static sensitivity, not the bare ``b``) until a scan sets
+    its own (:meth:`AxisModel.with_plan`).
+    """
+    if config.model == "dynamic" and config.dynamic is not None:
+        return DynamicAxisModel(config.dynamic.params())
+    if config.model == "family" and config.family is not None:
+        return FamilyAxisModel(config.family.params())
+    params = config.thesis.params()
+    lo, hi = config.voltage_min_v, config.voltage_max_v
+    kappa = effective_sensitivity(params, QUASI_STATIC_HZ, lo, hi) - params.b_um_per_v
+    return ThesisAxisModel(params, kappa, 0.5 * (lo + hi))
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,6 +120,10 @@ class AxisOutput:
 class AxisDriver:
     """Turns target positions of one axis into voltages, keeping the model's state.
 
+    The model is any :class:`~piezod.model.axis_model.AxisModel` (chosen by the axis's
+    ``model:``); the driver adds the voltage limits, the slew limit and the bookkeeping, and never
+    asks which model it drives.
+
     Parameters
     ----------
     name
@@ -134,59 +132,42 @@ class AxisDriver:
         The axis's configuration (limits, slew rate, model parameters).
     sample_rate_hz
         The board's sample clock.
+    model
+        The model to drive (default: the one ``config`` selects, :func:`axis_model`).
     """
 
-    def __init__(self, name: str, config: AxisConfig, sample_rate_hz: float) -> None:
+    def __init__(
+        self, name: str, config: AxisConfig, sample_rate_hz: float, model: AxisModel | None = None
+    ) -> None:
         self.name = name
         self.config = config
+        #: The thesis parameters: the scan planner's model (turning voltages, reach, slew).
         self.params = config.thesis.params()
         self.limits = (config.voltage_min_v, config.voltage_max_v)
         self.max_step_v = config.slew_rate_v_per_s / sample_rate_hz
-        self._state = relaxed_state(self.params.hysteresis, config.safe_voltage_v)
-        # Until a scan sets its own, the creep term of a slow scan over the whole voltage range
-        # (moves and holds then use the stage's quasi-static sensitivity, not the bare b).
-        lo, hi = self.limits
-        self._kappa = effective_sensitivity(self.params, QUASI_STATIC_HZ, lo, hi) - self.params.b_um_per_v
-        self._v_center = 0.5 * (lo + hi)
-        # model: dynamic -- the time-domain model (piezod.model.dynamic) drives corrected(); its
-        # state is kept next to (and in step with) the hysteresis state.
         self._dt_s = 1.0 / sample_rate_hz
-        self.dynamic: DynamicParams | None = None
-        self._dyn: DynamicState | None = None
-        if config.model == "dynamic" and config.dynamic is not None:
-            self.dynamic = config.dynamic.params()
-            self._dyn = dynamic_rest_state(self.dynamic, config.safe_voltage_v)
-            self._state = self._dyn.hysteresis
+        self.model: AxisModel = axis_model(config) if model is None else model
+        self._state: Any = self.model.rest(config.safe_voltage_v)
 
     @property
-    def state(self) -> HysteresisState:
-        """The hysteresis ODE state after the last sample."""
+    def state(self) -> Any:
+        """The model's state after the last sample."""
         return self._state
-
-    @property
-    def dynamic_state(self) -> DynamicState | None:
-        """The dynamic model's state (``model: dynamic``), else None."""
-        return None if self.dynamic is None else self._dynamic_state()
 
     @property
     def voltage_v(self) -> float:
         """The last voltage."""
-        return self._state.voltage_v
+        return self.model.voltage(self._state)
 
     @property
     def position_um(self) -> float:
-        """The model's position after the last sample (hysteresis + current creep term)."""
-        if self.dynamic is not None:
-            return self._dynamic_state().position_um
-        return self._state.position_um + self._kappa * (self._state.voltage_v - self._v_center)
+        """The model's position after the last sample."""
+        return self.model.position(self._state)
 
     def reset(self, voltage_v: float | None = None) -> None:
         """Forget the history: the stage rests at ``voltage_v`` (default: the safe value)."""
         v = self.config.safe_voltage_v if voltage_v is None else voltage_v
-        self._state = relaxed_state(self.params.hysteresis, v)
-        if self.dynamic is not None:
-            self._dyn = dynamic_rest_state(self.dynamic, v)
-            self._state = self._dyn.hysteresis
+        self._state = self.model.rest(v)
 
     def plan(self, range_um: float, frequency_hz: float, center_um: float) -> PeriodicPlan:
         """The steady loop of a periodic scan (cached).
@@ -215,19 +196,13 @@ class AxisDriver:
         return 2.0 * plan.range_um * plan.frequency_hz / slope
 
     def use_plan(self, plan: PeriodicPlan | None) -> None:
-        """Switch the creep term to that of ``plan`` (None: keep the current one)."""
+        """Switch the model to ``plan``'s periodic scan (None: keep the current one)."""
         if plan is not None:
-            self._kappa, self._v_center = plan.kappa_um_per_v, plan.v_center
+            self.model = self.model.with_plan(plan.kappa_um_per_v, plan.v_center)
 
     def corrected(self, targets_um: NDArray[np.float64]) -> AxisOutput:
         """Voltages that bring the modelled stage to ``targets_um`` (um), sample by sample."""
-        if self.dynamic is not None:
-            volts, dyn = dynamic_inverse(self.dynamic, targets_um, self._dt_s, self._dynamic_state())
-            return self._finish(volts, dyn)
-        shifted = np.asarray(targets_um, dtype=np.float64) + self._kappa * self._v_center
-        volts, state = hysteresis_inverse_step(
-            self.params.hysteresis, shifted, self._state, kappa_um_per_v=self._kappa
-        )
+        volts, state = self.model.inverse(targets_um, self._dt_s, self._state)
         return self._finish(volts, state)
 
     def linear(self, targets_um: NDArray[np.float64], plan: PeriodicPlan) -> AxisOutput:
@@ -241,59 +216,30 @@ class AxisDriver:
         return self._finish(np.asarray(volts, dtype=np.float64))
 
     def adopt_state(self, other: AxisDriver) -> None:
-        """Continue from another driver's last voltage and position (new parameters, same stage)."""
-        if self.dynamic is not None:
-            self._dyn = _adopted_dynamic_state(self.dynamic, other)
-            self._state = self._dyn.hysteresis
-            return
-        v = other.voltage_v
-        eta = other.state.position_um - other.params.b_um_per_v * v
-        # keep the distance from the branch centre line b V, rescaled to the new loop width
-        scale = self.params.hysteresis.delta_um / other.params.hysteresis.delta_um
-        self._state = HysteresisState(v, self.params.b_um_per_v * v + eta * scale)
+        """Continue from another driver's last voltage and position (new model, same stage)."""
+        self._state = self.model.adopt(other.voltage_v, other.position_um)
 
     def hold(self, n: int) -> AxisOutput:
-        """Keep the last voltage for ``n`` samples."""
-        if self.dynamic is not None:
-            self._dyn = dynamic_hold(self.dynamic, n, self._dt_s, self._dynamic_state())
-            self._state = self._dyn.hysteresis
-        return AxisOutput(np.full(n, self._state.voltage_v), 0, 0)
+        """Keep the last voltage for ``n`` samples (the model's creep runs on)."""
+        self._state = self.model.hold(n, self._dt_s, self._state)
+        return AxisOutput(np.full(n, self.voltage_v), 0, 0)
 
     def ramp_to(self, voltage_v: float, rate_v_per_s: float, sample_rate_hz: float) -> NDArray[np.float64]:
         """A linear voltage ramp from the last voltage to ``voltage_v`` (model state advanced)."""
-        start = self._state.voltage_v
+        start = self.voltage_v
         n = max(1, math.ceil(abs(voltage_v - start) / rate_v_per_s * sample_rate_hz))
         volts = start + (voltage_v - start) * np.arange(1, n + 1) / n
         return self._finish(volts).voltage_v
 
-    def _dynamic_state(self) -> DynamicState:
-        """The dynamic model's state; rebuilt (creep relaxed) if the hysteresis state was replaced."""
-        assert self.dynamic is not None and self._dyn is not None
-        if self._dyn.hysteresis is not self._state:
-            self._dyn = DynamicState(
-                self._state,
-                (1.0 + self.dynamic.total_creep) * self._state.position_um,
-                np.zeros(self.dynamic.taus_s.size),
-            )
-        return self._dyn
-
-    def _finish(
-        self, volts: NDArray[np.float64], state_after: HysteresisState | DynamicState | None = None
-    ) -> AxisOutput:
+    def _finish(self, volts: NDArray[np.float64], state_after: Any = None) -> AxisOutput:
         lo, hi = self.limits
+        last = self.voltage_v
         bad = (volts < lo) | (volts > hi) | ~np.isfinite(volts)
         clamped = int(np.count_nonzero(bad))
         if clamped:
-            volts = np.clip(np.nan_to_num(volts, nan=self._state.voltage_v), lo, hi)
-        volts, slewed = slew_limit(volts, self._state.voltage_v, self.max_step_v)
-        if self.dynamic is not None:
-            dyn = state_after if isinstance(state_after, DynamicState) else None
-            if dyn is None or clamped or slewed:
-                _, dyn = dynamic_forward(self.dynamic, volts, self._dt_s, self._dynamic_state())
-            self._dyn = dyn
-            self._state = dyn.hysteresis
-            return AxisOutput(volts, clamped, slewed)
-        if not isinstance(state_after, HysteresisState) or clamped or slewed:
-            _, state_after = hysteresis_step(self.params.hysteresis, volts, self._state)
+            volts = np.clip(np.nan_to_num(volts, nan=last), lo, hi)
+        volts, slewed = slew_limit(volts, last, self.max_step_v)
+        if state_after is None or clamped or slewed:
+            _, state_after = self.model.forward(volts, self._dt_s, self._state)
         self._state = state_after
         return AxisOutput(volts, clamped, slewed)

@@ -25,21 +25,28 @@ from piezod.config import ScannerConfig
 from piezod.service.api import EventHub, create_app
 from piezod.service.engine import Engine
 from piezod.service.sdnotify import SystemdNotifier
-from piezod.service.server import ApiServer
+from piezod.service.server import ApiServer, private_dir
 
 log = logging.getLogger("piezod.daemon")
 
 
-def default_api_spec(scanner: str) -> str:
-    """``unix:/run/piezod/<scanner>.sock`` when that directory is writable, else a per-user socket."""
-    run = Path("/run/piezod")
-    if run.is_dir() and os.access(run, os.W_OK):
-        return f"unix:{run / (scanner + '.sock')}"
-    base = os.environ.get("XDG_RUNTIME_DIR")
-    if base and os.access(base, os.W_OK):
-        return f"unix:{Path(base) / f'piezod-{scanner}.sock'}"
-    d = Path(f"/tmp/piezod-{os.getuid()}")
-    d.mkdir(mode=0o700, exist_ok=True)
+def default_api_spec(
+    scanner: str,
+    *,
+    run_dir: Path = Path("/run/piezod"),
+    runtime_dir: str | None = os.environ.get("XDG_RUNTIME_DIR"),
+    tmp_root: Path = Path("/tmp"),
+) -> str:
+    """``unix:/run/piezod/<scanner>.sock`` when that directory is writable, else a per-user socket.
+
+    The per-user fallback ``/tmp/piezod-<uid>`` must be a directory this user owns with mode
+    0700 (see :func:`~piezod.service.server.private_dir`); one created by someone else is refused.
+    """
+    if run_dir.is_dir() and os.access(run_dir, os.W_OK):
+        return f"unix:{run_dir / (scanner + '.sock')}"
+    if runtime_dir and os.access(runtime_dir, os.W_OK):
+        return f"unix:{Path(runtime_dir) / f'piezod-{scanner}.sock'}"
+    d = private_dir(tmp_root / f"piezod-{os.geteuid()}")
     return f"unix:{d / (scanner + '.sock')}"
 
 
@@ -90,10 +97,11 @@ def running_daemon(
     notifier = notifier or SystemdNotifier.from_env()
     hub = EventHub()
     engine = Engine(config, url, recording_dir=recording_dir, on_fault=hub.publish_fault)
-    notifier.status(f"connecting to the board at {url}")
-    engine.open()
+    # the API settings are checked before the board is touched: a bad --api changes nothing
     spec = api_spec or default_api_spec(config.name)
     server = ApiServer(create_app(engine, events=hub), spec, config.api)
+    notifier.status(f"connecting to the board at {url}")
+    engine.open()
     try:
         server.start()
     except BaseException:

@@ -25,6 +25,7 @@ import json
 import logging
 import math
 import queue
+import stat
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -991,7 +992,12 @@ class Engine:
         """The recordings in the recording directory."""
         out = []
         for p in sorted(self.recording_dir.glob("*.csv")):
-            st = p.stat()
+            try:
+                st = p.lstat()
+            except FileNotFoundError:  # removed since the listing
+                continue
+            if not stat.S_ISREG(st.st_mode):  # symlinks (dangling or not), directories: not served
+                continue
             out.append(
                 RecordingInfo(
                     name=p.name,

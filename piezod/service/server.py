@@ -5,7 +5,10 @@ nobody can connect before the mode and group are set, because the socket only
 listens afterwards. A stale socket file (nobody listening) is removed, anything
 else at the path is left alone with an error. ``--api tcp:HOST:PORT`` binds
 loopback addresses only, unless ``api.allow_remote``; whenever ``api.token_file``
-is set, every TCP request needs ``Authorization: Bearer <token>``.
+is required on TCP (every local user can connect to a TCP port), and every TCP request needs
+``Authorization: Bearer <token>``. Every request passes
+:class:`~piezod.service.api.RequestGuardMiddleware` first (Host / Origin checks against DNS
+rebinding and cross-site posts, bounded strict-JSON bodies).
 
 uvicorn runs in a thread of its own and installs no signal handlers: the daemon
 owns SIGTERM and calls :meth:`ApiServer.stop`.
@@ -116,25 +119,60 @@ def parse_api_spec(spec: str) -> ApiSpec:
 
 
 def read_token(path: str | Path) -> str:
-    """The bearer token in ``path`` (surrounding whitespace stripped).
+    """The bearer token in ``path`` (surrounding whitespace stripped; the file at most 1 MiB).
 
     Raises
     ------
     ConfigError
         If the file cannot be read or holds no token.
     """
+    from piezod.config import read_config_text
+
     try:
         st = os.stat(path)
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-        raise ConfigError(f"{path}: cannot read the API token: {reason}") from exc
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the API token: {exc.strerror or exc}") from exc
+    text = read_config_text(Path(path), "token file")
     token = text.strip()
     if not token or any(c.isspace() for c in token):
         raise ConfigError(f"{path}: the API token must be one non-empty word")
     if st.st_mode & stat.S_IROTH:
         log.warning("%s: API token file is readable by everyone; chmod o-r it", path)
     return token
+
+
+def private_dir(path: Path) -> Path:
+    """Create ``path`` (mode 0700) or verify that it is a directory this user owns that nobody else can write.
+
+    A per-user socket directory under a shared ``/tmp`` can be created first by another user
+    (to replace the socket with an impostor's); it is then refused, not used.
+
+    Raises
+    ------
+    ConfigError
+        Naming the directory, its owner and mode, and what to do.
+    """
+    try:
+        path.mkdir(mode=0o700)
+    except FileExistsError:
+        pass
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot create the socket directory: {exc.strerror or exc}") from exc
+    st = os.lstat(path)
+    uid = os.geteuid()
+    if not stat.S_ISDIR(st.st_mode):
+        raise ConfigError(f"{path}: is not a directory (a symlink?); refusing to put the API socket there")
+    if st.st_uid != uid:
+        raise ConfigError(
+            f"{path}: owned by uid {st.st_uid}, not by this user (uid {uid}); refusing to put the API "
+            "socket there (someone else created it): remove it or use --api unix:PATH"
+        )
+    if stat.S_IMODE(st.st_mode) & 0o077:
+        raise ConfigError(
+            f"{path}: mode {stat.S_IMODE(st.st_mode):04o} lets other users in; refusing to put the API "
+            f"socket there (chmod 700 {path}, or use --api unix:PATH)"
+        )
+    return path
 
 
 def _group_id(group: str) -> int:
@@ -279,8 +317,12 @@ class ApiServer:
                     f"--api {self.spec}: {self.spec.host} is not a loopback address; "
                     "set api.allow_remote (with api.token_file) to serve it"
                 )
-            if self.api_config.token_file:
-                self._token = read_token(self.api_config.token_file)
+            if not self.api_config.token_file:
+                raise ConfigError(
+                    f"--api {self.spec}: a TCP listener needs api.token_file (every local user can "
+                    "connect to a TCP port); use the Unix socket for access by file permissions"
+                )
+            self._token = read_token(self.api_config.token_file)
         elif self.api_config.socket_group is not None:
             self._gid = _group_id(self.api_config.socket_group)
         self._sock: socket.socket | None = None
@@ -312,7 +354,7 @@ class ApiServer:
         """
         import uvicorn
 
-        from piezod.service.api import BearerTokenMiddleware
+        from piezod.service.api import LOOPBACK_HOSTS, BearerTokenMiddleware, RequestGuardMiddleware
 
         if self._thread is not None:
             raise RuntimeError("ApiServer already started")
@@ -325,6 +367,10 @@ class ApiServer:
         app: ASGIApp = self._app
         if self._token is not None:
             app = BearerTokenMiddleware(app, self._token)
+        hosts: frozenset[str] | None = LOOPBACK_HOSTS
+        if self.spec.kind == "tcp":
+            hosts = LOOPBACK_HOSTS | {self.spec.host.lower()} if self.spec.is_loopback else None
+        app = RequestGuardMiddleware(app, hosts)
         config = uvicorn.Config(
             app,
             log_config=None,

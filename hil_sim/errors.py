@@ -1,0 +1,29 @@
+"""The exception tree of hil_sim (the simulator does not import the host's :mod:`piezod`).
+
+Every error hil_sim raises derives from :class:`SimError` and from the builtin exception that
+best describes it, so callers may catch either (``except ValueError`` catches
+:class:`SimConfigError`).
+
+::
+
+    SimError
+    ├── SimConfigError(ValueError)   invalid ``simulation:`` section, preset or effect string
+    └── SimModelError(ValueError)    stage evaluation outside its domain (shapes, non-finite input)
+"""
+
+from __future__ import annotations
+
+
+class SimError(Exception):
+    """Root of every exception raised by the simulated stage."""
+
+
+class SimConfigError(SimError, ValueError):
+    """The ``simulation:`` section of a scanner YAML, a preset or an effect string is invalid."""
+
+
+class SimModelError(SimError, ValueError):
+    """The stage was asked to evaluate something outside its domain."""
+
+
+__all__ = ["SimConfigError", "SimError", "SimModelError"]

@@ -1,0 +1,280 @@
+"""Rate-independent hysteresis laws of the simulated stage (hil_sim's own implementations).
+
+Two laws, chosen per axis in the ``simulation:`` section:
+
+``coleman-hodgdon``
+    The ODE ``dx/dV = alpha sgn(dV) (b V - x) + u`` (thesis eq. 2.21), stepped exactly for a
+    voltage linear between samples. It is the law the controller's default model assumes, so a
+    stage built from it measures self-consistency. Its minor loops do not close: a repeated
+    small loop drifts towards the centre line.
+``prandtl-ishlinskii``
+    ``x = b (rho0 V + sum_i w_i P_{r_i}[V])``: a weighted sum of play (backlash) operators with
+    thresholds ``r_i`` (Prandtl-Ishlinskii). It is rate independent, has wiping-out memory and
+    its minor loops close after one period; the branch slope after a reversal rises from
+    ``b rho0`` to ``b`` in steps as the voltage change passes ``2 r_i``. It is not the
+    controller's default law: a stage built from it is *other physics*.
+
+Both are evaluated over whole blocks with state carried across blocks; a block split anywhere
+gives the same samples (the play operator is exact at the sample instants for a voltage that is
+monotone between samples). The Coleman-Hodgdon step is an independent copy of the closed form
+used by the host (``tests/test_stage.py`` checks that both agree).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from hil_sim.errors import SimModelError
+
+#: Largest scaled total variation inside one cumulative chunk; exp(400) is far from overflow.
+_CHUNK_SPAN = 400.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Coleman-Hodgdon ODE
+
+
+@dataclass(frozen=True, slots=True)
+class CHParams:
+    """Parameters of the Coleman-Hodgdon ODE ``dx/dV = alpha sgn(dV) (b V - x) + u``.
+
+    Attributes
+    ----------
+    alpha_per_v
+        Transition rate (1/V), > 0.
+    b_um_per_v
+        Sensitivity (slope of the asymptote) (um/V), > 0.
+    u_um_per_v
+        Slope right after a reversal from the asymptote (um/V), > 0.
+    """
+
+    alpha_per_v: float
+    b_um_per_v: float
+    u_um_per_v: float
+
+    def __post_init__(self) -> None:
+        for name in ("alpha_per_v", "b_um_per_v", "u_um_per_v"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise SimModelError(f"{name} must be finite and > 0, got {value!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class CHState:
+    """Voltage (V) and hysteretic position (um) of the last sample."""
+
+    voltage_v: float
+    position_um: float
+
+
+def ch_rest_state(params: CHParams, voltage_v: float = 0.0) -> CHState:
+    """At rest on the centre line ``x = b V``."""
+    return CHState(float(voltage_v), params.b_um_per_v * float(voltage_v))
+
+
+def ch_step(params: CHParams, voltage_v: ArrayLike, state: CHState) -> tuple[NDArray[np.float64], CHState]:
+    """Advance the ODE exactly through a block (closed form with chunked cumulative sums).
+
+    With ``y = x - b V``, ``delta = (b - u) / alpha`` and ``L`` the scaled total variation
+    ``alpha sum |dV|``: ``y_n = exp(-L_n) [y_0 + delta sum_k s_k (exp(L_k) - exp(L_{k+1}))]``.
+
+    Parameters
+    ----------
+    params
+        The law's parameters.
+    voltage_v
+        Voltages (V), shape ``(n,)``; the first step goes from ``state.voltage_v``.
+    state
+        State before the block.
+
+    Returns
+    -------
+    position_um : ndarray
+        Hysteretic position after each sample (um).
+    state : CHState
+        State after the block.
+    """
+    v = np.asarray(voltage_v, dtype=np.float64)
+    if v.ndim != 1:
+        raise SimModelError(f"voltage_v must be 1-D, got shape {v.shape}")
+    if v.size == 0:
+        return np.empty(0), state
+    b = params.b_um_per_v
+    delta = (params.b_um_per_v - params.u_um_per_v) / params.alpha_per_v
+    dv = np.diff(v, prepend=state.voltage_v)
+    s = np.sign(dv)
+    l_next = np.cumsum(params.alpha_per_v * np.abs(dv))
+    y_out = np.empty_like(v)
+    y0 = state.position_um - b * state.voltage_v
+    start, n = 0, v.size
+    while start < n:
+        base = l_next[start - 1] if start > 0 else 0.0
+        stop = max(int(np.searchsorted(l_next, base + _CHUNK_SPAN, side="right")), start + 1)
+        lk1 = l_next[start:stop] - base
+        lk = np.concatenate(([0.0], lk1[:-1]))
+        y_chunk = np.exp(-lk1) * (y0 + delta * np.cumsum(s[start:stop] * (np.exp(lk) - np.exp(lk1))))
+        y_out[start:stop] = y_chunk
+        y0 = float(y_chunk[-1])
+        start = stop
+    x = y_out + b * v
+    return x, CHState(float(v[-1]), float(x[-1]))
+
+
+# ---------------------------------------------------------------------------------------------
+# Prandtl-Ishlinskii (play operators)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PIParams:
+    """A Prandtl-Ishlinskii law ``x = b (rho0 V + sum_i w_i P_{r_i}[V])``.
+
+    Attributes
+    ----------
+    b_um_per_v
+        Slope once every play operator moves (um/V), > 0.
+    rho0
+        Fraction of ``b`` that follows the voltage without play (the slope right after a
+        reversal, as a fraction of ``b``), in (0, 1].
+    thresholds_v
+        Play half-widths ``r_i`` (V), shape ``(m,)``, > 0, ascending.
+    weights
+        Weights ``w_i``, shape ``(m,)``, >= 0, summing to ``1 - rho0``.
+    """
+
+    b_um_per_v: float
+    rho0: float
+    thresholds_v: NDArray[np.float64]
+    weights: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        r = np.array(self.thresholds_v, dtype=np.float64)
+        w = np.array(self.weights, dtype=np.float64)
+        if not (math.isfinite(self.b_um_per_v) and self.b_um_per_v > 0.0):
+            raise SimModelError(f"b_um_per_v must be finite and > 0, got {self.b_um_per_v!r}")
+        if not 0.0 < self.rho0 <= 1.0:
+            raise SimModelError(f"rho0 must lie in (0, 1], got {self.rho0!r}")
+        if r.ndim != 1 or r.shape != w.shape or not np.all(np.isfinite(r) & (r > 0)):
+            raise SimModelError("thresholds_v must be finite, > 0, one per weight")
+        if not np.all(np.isfinite(w) & (w >= 0)):
+            raise SimModelError("weights must be finite and >= 0")
+        r.setflags(write=False)
+        w.setflags(write=False)
+        object.__setattr__(self, "thresholds_v", r)
+        object.__setattr__(self, "weights", w)
+
+    @classmethod
+    def from_shape(
+        cls, b_um_per_v: float, rho0: float, span_v: float, operators: int, decay_v: float | None
+    ) -> PIParams:
+        """A law whose branch slope rises from ``b rho0`` to ``b`` over a voltage change ``span_v``.
+
+        Thresholds ``r_i = (i / m) span_v / 2`` for ``i = 1..m``; weights proportional to
+        ``exp(-2 r_i / decay_v)`` (uniform when ``decay_v`` is None), scaled to sum to ``1 - rho0``.
+        """
+        if operators < 1:
+            raise SimModelError(f"operators must be >= 1, got {operators}")
+        if not (math.isfinite(span_v) and span_v > 0.0):
+            raise SimModelError(f"span_v must be finite and > 0, got {span_v!r}")
+        r = 0.5 * span_v * np.arange(1, operators + 1) / operators
+        shape = np.ones(operators) if decay_v is None else np.exp(-2.0 * r / decay_v)
+        w = (1.0 - rho0) * shape / shape.sum()
+        return cls(float(b_um_per_v), float(rho0), r, w)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PIState:
+    """Voltage of the last sample (V) and the output of every play operator (V), shape ``(m,)``."""
+
+    voltage_v: float
+    plays_v: NDArray[np.float64]
+
+
+def pi_rest_state(params: PIParams, voltage_v: float = 0.0) -> PIState:
+    """At rest at ``voltage_v`` with every play centred on it (the demagnetised, relaxed state)."""
+    return PIState(float(voltage_v), np.full(params.thresholds_v.shape, float(voltage_v)))
+
+
+def _runs(v: NDArray[np.float64], v_last: float) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """First sample and direction (+1 / -1) of every monotone run of ``v`` (held samples join a run)."""
+    sign = np.sign(np.diff(v, prepend=v_last))
+    moving = np.flatnonzero(sign)
+    if moving.size == 0:
+        return np.zeros(1, dtype=np.intp), np.zeros(1)
+    sm = sign[moving]
+    change = np.concatenate(([0], np.flatnonzero(sm[1:] != sm[:-1]) + 1))
+    starts = moving[change]
+    starts[0] = 0
+    return starts, sm[change]
+
+
+def play_step(
+    thresholds_v: NDArray[np.float64], voltage_v: NDArray[np.float64], state: PIState
+) -> tuple[NDArray[np.float64], PIState]:
+    """Outputs of the play operators through a block, shape ``(m, n)``.
+
+    On a rising run ``p = max(p_start, V - r)``, on a falling one ``p = min(p_start, V + r)``:
+    one vectorised pass per monotone run (a scan line has two).
+    """
+    v = voltage_v
+    r = thresholds_v[:, None]
+    out = np.empty((thresholds_v.size, v.size))
+    p = state.plays_v.copy()
+    starts, dirs = _runs(v, state.voltage_v)
+    bounds = np.append(starts, v.size)
+    for k, direction in enumerate(dirs):
+        seg = v[bounds[k] : bounds[k + 1]][None, :]
+        if direction > 0:
+            block = np.maximum(p[:, None], seg - r)
+        elif direction < 0:
+            block = np.minimum(p[:, None], seg + r)
+        else:
+            block = np.repeat(p[:, None], seg.shape[1], axis=1)
+        out[:, bounds[k] : bounds[k + 1]] = block
+        p = block[:, -1].copy()
+    return out, PIState(float(v[-1]), p)
+
+
+def pi_step(params: PIParams, voltage_v: ArrayLike, state: PIState) -> tuple[NDArray[np.float64], PIState]:
+    """Advance the Prandtl-Ishlinskii law through a block.
+
+    Parameters
+    ----------
+    params
+        The law's parameters.
+    voltage_v
+        Voltages (V), shape ``(n,)``.
+    state
+        State before the block.
+
+    Returns
+    -------
+    position_um : ndarray
+        Hysteretic position after each sample (um).
+    state : PIState
+        State after the block.
+    """
+    v = np.asarray(voltage_v, dtype=np.float64)
+    if v.ndim != 1:
+        raise SimModelError(f"voltage_v must be 1-D, got shape {v.shape}")
+    if v.size == 0:
+        return np.empty(0), state
+    plays, new = play_step(params.thresholds_v, v, state)
+    x = params.b_um_per_v * (params.rho0 * v + params.weights @ plays)
+    return x, new
+
+
+__all__ = [
+    "CHParams",
+    "CHState",
+    "PIParams",
+    "PIState",
+    "ch_rest_state",
+    "ch_step",
+    "pi_rest_state",
+    "pi_step",
+    "play_step",
+]

@@ -1,0 +1,374 @@
+"""The model family: drive lag -> hysteresis law -> creep spectrum -> static map, each exactly invertible.
+
+Per sample ``n`` (interval ``dt``)::
+
+    V_c[n] = a V_c[n-1] + (1 - a) V[n],  a = exp(-dt / tau_lag)     amplifier pole (tau_lag = 0: none)
+    x_h    = H(V_c)                                               Coleman-Hodgdon ODE (2.21) or
+                                                                  Prandtl-Ishlinskii (piezod.model.play)
+    x_c    = (1 + W) x_h + sum_i w_i e_i                          creep spectrum: free non-negative
+                                                                  weights on log-spaced tau_i
+    x      = x_c + k x_c^2 / 200                                  static stiffness map (k in %/um)
+
+The inverse runs the chain backwards, each part exact per sample and vectorised over a block:
+the static map by the quadratic formula, the creep by the modal filters of
+:mod:`piezod.model.dynamic` (any non-negative weights), the hysteresis by the Lambert W step
+(:func:`piezod.model.ode.hysteresis_inverse_step`) or the play inverse
+(:func:`piezod.model.play.play_inverse`), the lag by its lead filter
+``V[n] = (V_c[n] - a V_c[n-1]) / (1 - a)`` (an FIR: stable for any ``tau_lag``).
+
+The creep is driven by the hysteretic position (the cascade "hysteresis, then linear
+viscoelastic creep"). The weights are data-driven (:mod:`piezod.calibrate_family` fits them by
+regularised non-negative least squares), so the spectrum is whatever the stage shows: a log
+law, a power law, or a few dominant times.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.signal import lfilter
+
+from piezod.errors import ModelError
+from piezod.model.dynamic import MAX_TOTAL_CREEP, _creep_forward, _creep_inverse, discretise
+from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
+from piezod.model.params import HysteresisParams
+from piezod.model.play import (
+    PlayParams,
+    PlayState,
+    play_forward,
+    play_inverse,
+    play_rest_state,
+    play_state_at,
+)
+
+F64 = NDArray[np.float64]
+HysteresisLaw = HysteresisParams | PlayParams
+LawState = HysteresisState | PlayState
+
+
+@dataclass(frozen=True)
+class CreepSpectrum:
+    """Non-negative weights ``w_i`` (fractions of the hysteretic motion) on relaxation times ``tau_i``.
+
+    Attributes
+    ----------
+    taus: tuple of float
+        Relaxation times (s), ascending, > 0.
+    w: tuple of float
+        Weights, >= 0, ``sum w < 0.9``.
+    """
+
+    taus: tuple[float, ...]
+    w: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        if len(self.taus) != len(self.w) or len(self.taus) < 2:
+            raise ModelError("a creep spectrum needs at least two relaxation times, one weight each")
+        if not all(math.isfinite(t) and t > 0 for t in self.taus) or list(self.taus) != sorted(self.taus):
+            raise ModelError("creep relaxation times must be finite, > 0 and ascending")
+        if not all(math.isfinite(x) and x >= 0 for x in self.w):
+            raise ModelError("creep weights must be finite and >= 0")
+        if sum(self.w) >= MAX_TOTAL_CREEP:
+            raise ModelError(f"total creep {sum(self.w):.4g} must stay below {MAX_TOTAL_CREEP}")
+
+    @classmethod
+    def log_spaced(
+        cls, tau_min_s: float, tau_max_s: float, per_decade: int, weights: ArrayLike
+    ) -> CreepSpectrum:
+        """Weights on ``per_decade`` log-spaced times per decade from ``tau_min_s`` to ``tau_max_s``."""
+        count = max(2, round(math.log10(tau_max_s / tau_min_s) * per_decade) + 1)
+        taus = np.logspace(math.log10(tau_min_s), math.log10(tau_max_s), count)
+        w = np.broadcast_to(np.asarray(weights, dtype=np.float64), taus.shape)
+        return cls(tuple(map(float, taus)), tuple(map(float, w)))
+
+    @cached_property
+    def taus_s(self) -> F64:
+        """Relaxation times (s)."""
+        a = np.array(self.taus)
+        a.setflags(write=False)
+        return a
+
+    @cached_property
+    def weights(self) -> F64:
+        """Weights."""
+        a = np.array(self.w)
+        a.setflags(write=False)
+        return a
+
+    @property
+    def total_creep(self) -> float:
+        """``W = sum w``."""
+        return float(sum(self.w))
+
+    def step_response(self, t_s: ArrayLike) -> F64:
+        """Creep after a unit step of the hysteretic position."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        out: F64 = self.weights @ -np.expm1(-t[None, :] / self.taus_s[:, None])
+        return out
+
+
+@dataclass(frozen=True)
+class FamilyParams:
+    """Frozen parameters of one axis's model of the family.
+
+    Attributes
+    ----------
+    hysteresis
+        The rate-independent law: Coleman-Hodgdon (:class:`HysteresisParams`) or
+        Prandtl-Ishlinskii (:class:`PlayParams`).
+    creep
+        The creep spectrum.
+    lag_time_constant_s
+        Drive pole (s), >= 0.
+    stiffness_pct_per_um
+        Static map ``x + k x^2 / 200`` (%/um).
+    """
+
+    hysteresis: HysteresisLaw
+    creep: CreepSpectrum
+    lag_time_constant_s: float = 0.0
+    stiffness_pct_per_um: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.lag_time_constant_s) and 0.0 <= self.lag_time_constant_s <= 1.0):
+            raise ModelError(f"lag_time_constant_s must lie in [0, 1] s, got {self.lag_time_constant_s!r}")
+        if not (math.isfinite(self.stiffness_pct_per_um) and abs(self.stiffness_pct_per_um) <= 5.0):
+            raise ModelError(f"stiffness_pct_per_um must lie in [-5, 5], got {self.stiffness_pct_per_um!r}")
+
+    @property
+    def law(self) -> str:
+        """``coleman-hodgdon`` or ``prandtl-ishlinskii``."""
+        return "prandtl-ishlinskii" if isinstance(self.hysteresis, PlayParams) else "coleman-hodgdon"
+
+    @property
+    def b_um_per_v(self) -> float:
+        """Sensitivity of the hysteresis law (um/V)."""
+        return self.hysteresis.b_um_per_v
+
+    @property
+    def static_sensitivity_um_per_v(self) -> float:
+        """Slope of the rest position over the voltage near 0 V (um/V)."""
+        h = self.hysteresis
+        total = h.total_weight if isinstance(h, PlayParams) else 1.0
+        return h.b_um_per_v * total * (1.0 + self.creep.total_creep)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FamilyState:
+    """State after a sample.
+
+    Attributes
+    ----------
+    voltage_v
+        Commanded voltage of the last sample (V).
+    drive_v
+        Voltage at the ceramic after the lag (V).
+    law
+        State of the hysteresis law (at ``drive_v``).
+    creep_um
+        Creep element deviations ``e_i`` (um).
+    creep_position_um
+        ``x_c``: position before the static map (um).
+    position_um
+        ``x``: the model's position (um).
+    """
+
+    voltage_v: float
+    drive_v: float
+    law: LawState
+    creep_um: F64
+    creep_position_um: float
+    position_um: float
+
+
+def _static(params: FamilyParams, xc: F64) -> F64:
+    kappa = params.stiffness_pct_per_um / 200.0
+    if kappa == 0.0:
+        return xc
+    out: F64 = xc + kappa * xc * xc
+    return out
+
+
+def _static_inverse(params: FamilyParams, x: F64) -> F64:
+    kappa = params.stiffness_pct_per_um / 200.0
+    if kappa == 0.0:
+        return x
+    disc = np.maximum(1.0 + 4.0 * kappa * x, 0.0)
+    out: F64 = 2.0 * x / (1.0 + np.sqrt(disc))
+    return out
+
+
+def _law_rest(h: HysteresisLaw, v: float) -> LawState:
+    return play_rest_state(h, v) if isinstance(h, PlayParams) else relaxed_state(h, v)
+
+
+def family_rest_state(params: FamilyParams, voltage_v: float = 0.0) -> FamilyState:
+    """Rested at ``voltage_v`` for ever: lag settled, hysteresis relaxed, creep relaxed."""
+    v = float(voltage_v)
+    if not math.isfinite(v):
+        raise ModelError(f"rest voltage must be finite, got {voltage_v!r}")
+    law = _law_rest(params.hysteresis, v)
+    xc = (1.0 + params.creep.total_creep) * law.position_um
+    x = float(_static(params, np.array([xc]))[0])
+    return FamilyState(v, v, law, np.zeros(len(params.creep.taus)), xc, x)
+
+
+def family_adopt_state(params: FamilyParams, voltage_v: float, position_um: float) -> FamilyState:
+    """A state at ``voltage_v`` (lag settled, creep relaxed) whose position is ``position_um`` if the
+    hysteresis can hold it there (else the nearest position the loop allows)."""
+    v = float(voltage_v)
+    xc = float(_static_inverse(params, np.array([float(position_um)]))[0])
+    xh = xc / (1.0 + params.creep.total_creep)
+    h = params.hysteresis
+    law: LawState
+    if isinstance(h, PlayParams):
+        spread = float(h.w @ h.r)
+        c = 0.0 if spread == 0.0 else (xh / h.b_um_per_v - h.total_weight * v) / spread
+        law = play_state_at(h, v, v + float(np.clip(c, -1.0, 1.0)) * h.r)
+    else:
+        law = HysteresisState(v, xh)
+    xc = (1.0 + params.creep.total_creep) * law.position_um
+    return FamilyState(
+        v, v, law, np.zeros(len(params.creep.taus)), xc, float(_static(params, np.array([xc]))[0])
+    )
+
+
+def _lag_coefficient(params: FamilyParams, dt_s: float) -> float:
+    if params.lag_time_constant_s == 0.0:
+        return 0.0
+    return math.exp(-dt_s / params.lag_time_constant_s)
+
+
+def _check(values: ArrayLike, name: str, dt_s: float) -> F64:
+    a = np.asarray(values, dtype=np.float64)
+    if a.ndim != 1:
+        raise ModelError(f"{name} must be 1-D, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ModelError(f"{name} contains non-finite samples")
+    if not (math.isfinite(dt_s) and dt_s > 0.0):
+        raise ModelError(f"dt_s must be finite and > 0, got {dt_s!r}")
+    return a
+
+
+def family_forward(
+    params: FamilyParams, voltage_v: ArrayLike, dt_s: float, state: FamilyState
+) -> tuple[F64, FamilyState]:
+    """Positions for a block of commanded voltages (exact per sample for the model's discretisation).
+
+    Parameters
+    ----------
+    params
+        The model.
+    voltage_v
+        Commanded voltages (V), shape ``(n,)``.
+    dt_s
+        Sample interval (s).
+    state
+        State before the block.
+    """
+    v = _check(voltage_v, "voltage_v", dt_s)
+    if v.size == 0:
+        return np.empty(0), state
+    a = _lag_coefficient(params, dt_s)
+    vc = v if a == 0.0 else lfilter([1.0 - a], [1.0, -a], v, zi=[a * state.drive_v])[0]
+    h = params.hysteresis
+    xh: F64
+    law: LawState
+    if isinstance(h, PlayParams):
+        assert isinstance(state.law, PlayState)
+        xh, law = play_forward(h, vc, state.law)
+    else:
+        assert isinstance(state.law, HysteresisState)
+        xh, law = hysteresis_step(h, vc, state.law)
+    disc = discretise(params.creep, dt_s)
+    creep, e_end = _creep_forward(params.creep, dt_s, disc, xh, state.law.position_um, state.creep_um)  # type: ignore[arg-type]
+    xc = (1.0 + disc.total) * xh + creep
+    x = _static(params, xc)
+    return x, FamilyState(float(v[-1]), float(vc[-1]), law, e_end, float(xc[-1]), float(x[-1]))
+
+
+def family_inverse(
+    params: FamilyParams, target_um: ArrayLike, dt_s: float, state: FamilyState
+) -> tuple[F64, FamilyState]:
+    """Commanded voltages whose forward model reaches the targets at every sample.
+
+    Parameters
+    ----------
+    params
+        The model.
+    target_um
+        Target positions (um), shape ``(n,)``.
+    dt_s
+        Sample interval (s).
+    state
+        State before the block.
+    """
+    x = _check(target_um, "target_um", dt_s)
+    if x.size == 0:
+        return np.empty(0), state
+    xc = _static_inverse(params, x)
+    disc = discretise(params.creep, dt_s)
+    xh, e_end = _creep_inverse(
+        params.creep,  # type: ignore[arg-type]
+        dt_s,
+        disc,
+        xc,
+        state.creep_position_um,
+        state.law.position_um,
+        state.creep_um,
+    )
+    h = params.hysteresis
+    vc: F64
+    law: LawState
+    if isinstance(h, PlayParams):
+        assert isinstance(state.law, PlayState)
+        vc, law = play_inverse(h, xh, state.law)
+    else:
+        assert isinstance(state.law, HysteresisState)
+        vc, law = hysteresis_inverse_step(h, xh, state.law)
+    a = _lag_coefficient(params, dt_s)
+    if a == 0.0:
+        v = vc
+    else:
+        prev = np.concatenate(([state.drive_v], vc[:-1]))
+        v = (vc - a * prev) / (1.0 - a)
+    return v, FamilyState(float(v[-1]), float(vc[-1]), law, e_end, float(xc[-1]), float(x[-1]))
+
+
+def family_hold(params: FamilyParams, samples: int, dt_s: float, state: FamilyState) -> FamilyState:
+    """The state after holding the last commanded voltage for ``samples`` samples.
+
+    The lag settles (simulated sample by sample for ``20 tau_lag``), then the creep elements
+    relax in closed form, ``e_i -> e_i exp(-T / tau_i)``.
+    """
+    if samples < 0:
+        raise ModelError(f"samples must be >= 0, got {samples}")
+    if samples == 0:
+        return state
+    settle = 0
+    if params.lag_time_constant_s > 0.0:
+        settle = min(samples, math.ceil(20.0 * params.lag_time_constant_s / dt_s) + 1)
+        _, state = family_forward(params, np.full(settle, state.voltage_v), dt_s, state)
+    rest = samples - settle
+    if rest == 0:
+        return state
+    e = state.creep_um * np.exp(-(rest * dt_s) / params.creep.taus_s)
+    xc = (1.0 + params.creep.total_creep) * state.law.position_um + float(params.creep.weights @ e)
+    x = float(_static(params, np.array([xc]))[0])
+    return FamilyState(state.voltage_v, state.drive_v, state.law, e, xc, x)
+
+
+__all__ = [
+    "CreepSpectrum",
+    "FamilyParams",
+    "FamilyState",
+    "family_adopt_state",
+    "family_forward",
+    "family_hold",
+    "family_inverse",
+    "family_rest_state",
+]

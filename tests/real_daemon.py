@@ -1,0 +1,178 @@
+"""The real daemon for fault tests: ``piezod serve`` as a subprocess on the real hil_sim over a pty.
+
+:class:`RealDaemon` starts the simulator (``python -m hil_sim`` with a stable ``--link`` path, so
+it can be killed and started again on "the same cable") and ``piezod serve`` on it, waits for
+``READY=1`` on a test ``NOTIFY_SOCKET``, and talks to the API over its Unix socket. Nothing is
+faked: these are the processes a user runs.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from types import TracebackType
+
+from hil_sim.server import SimProcess, spawn_sim
+from piezod.client import PiezodClient
+from piezod.config import default_sim_config_path
+from piezod.service.schemas import Status
+
+#: Slow machines (2 shared cores) get more time; tests wait on conditions, never on wall clock alone.
+SLOW = float(os.environ.get("PIEZOD_TEST_TIME_SCALE", "1"))
+
+
+class Notify:
+    """A ``NOTIFY_SOCKET`` collecting the daemon's sd_notify datagrams."""
+
+    def __init__(self, path: Path) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.settimeout(0.2)
+        self.path = path
+        self.messages: list[str] = []
+
+    def wait_for(self, key: str, timeout_s: float, proc: subprocess.Popen[bytes] | None = None) -> None:
+        deadline = time.monotonic() + timeout_s * SLOW
+        while time.monotonic() < deadline:
+            if any(key in m.split("\n") for m in self.messages):
+                return
+            if proc is not None and proc.poll() is not None:
+                raise AssertionError(f"the daemon exited with {proc.returncode} before {key}")
+            try:
+                self.messages.append(self.sock.recv(4096).decode())
+            except TimeoutError:
+                continue
+        raise AssertionError(f"no {key} within {timeout_s} s; got {self.messages}")
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class RealDaemon:
+    """``piezod serve`` on a running ``hil_sim``; a context manager.
+
+    Parameters
+    ----------
+    tmp
+        A directory for the link, socket, recordings and logs.
+    config
+        Scanner YAML (default: the simulated stage).
+    sim_args
+        Extra simulator options (fault injection: ``--corrupt-rate``, ``--drop-rate``...).
+    serve_args
+        Extra ``piezod serve`` options.
+    recordings
+        Recording directory (default ``tmp/rec``).
+    api, token
+        ``--api`` (default ``unix:tmp/api.sock``) and the bearer token the client sends.
+    """
+
+    def __init__(
+        self,
+        tmp: Path,
+        *,
+        config: Path | None = None,
+        sim_args: Sequence[str] = (),
+        serve_args: Sequence[str] = (),
+        recordings: Path | None = None,
+        api: str | None = None,
+        token: str | None = None,
+    ) -> None:
+        self.tmp = tmp
+        self.config = config or default_sim_config_path()
+        self.sim_args = tuple(sim_args)
+        self.serve_args = tuple(serve_args)
+        self.link = tmp / "board"
+        self.socket = tmp / "api.sock"
+        self.api = api or f"unix:{self.socket}"
+        self.token = token
+        self.recordings = recordings or tmp / "rec"
+        self.log_path = tmp / "daemon.log"
+        self.sim: SimProcess | None = None
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.notify = Notify(tmp / "notify.sock")
+
+    def start_sim(self) -> SimProcess:
+        self.sim = spawn_sim(self.config, link=str(self.link), extra_args=self.sim_args, timeout_s=60 * SLOW)
+        return self.sim
+
+    def __enter__(self) -> RealDaemon:
+        self.start_sim()
+        env = dict(os.environ, NOTIFY_SOCKET=str(self.notify.path), WATCHDOG_USEC="5000000")
+        cmd = [
+            sys.executable,
+            "-m",
+            "piezod",
+            "serve",
+            "--config",
+            str(self.config),
+            "--port",
+            str(self.link),
+            "--api",
+            self.api,
+            "--recordings",
+            str(self.recordings),
+            *self.serve_args,
+        ]
+        with open(self.log_path, "wb") as log:
+            self.proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=log)
+        try:
+            self.notify.wait_for("READY=1", 60.0, self.proc)
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def client(self, timeout: float = 30.0) -> PiezodClient:
+        return PiezodClient(self.api, token=self.token, timeout=timeout * SLOW)
+
+    def status(self) -> Status:
+        with self.client() as c:
+            return c.status()
+
+    def wait_state(self, states: set[str], timeout_s: float) -> Status:
+        deadline = time.monotonic() + timeout_s * SLOW
+        st = self.status()
+        while st.state not in states:
+            if time.monotonic() > deadline:
+                raise AssertionError(f"state {st.state}, not {states} within {timeout_s} s: {st.faults[-3:]}")
+            time.sleep(0.1)
+            st = self.status()
+        return st
+
+    def log_text(self) -> str:
+        return self.log_path.read_text(encoding="utf-8", errors="replace")
+
+    def kill_sim(self) -> None:
+        if self.sim is not None:
+            self.sim.process.kill()
+            self.sim.process.wait()
+            self.sim.close()
+            self.sim = None
+
+    def sigkill(self) -> None:
+        assert self.proc is not None
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait()
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        try:
+            if self.proc is not None and self.proc.poll() is None:
+                self.proc.send_signal(signal.SIGTERM)
+                try:
+                    self.proc.wait(30 * SLOW)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait()
+        finally:
+            if self.sim is not None:
+                self.sim.close()
+            self.notify.close()

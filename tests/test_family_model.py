@@ -1,0 +1,128 @@
+"""The model family: exact per-sample inverse of every part, state across blocks and holds, the driver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from piezod.config import AxisConfig, FamilyModelConfig, ThesisModelConfig
+from piezod.errors import ModelError
+from piezod.model.axis_model import FamilyAxisModel, ThesisAxisModel
+from piezod.model.family import (
+    CreepSpectrum,
+    FamilyParams,
+    family_forward,
+    family_hold,
+    family_inverse,
+    family_rest_state,
+)
+from piezod.model.params import HysteresisParams
+from piezod.model.play import PlayParams, play_forward, play_inverse, play_rest_state
+from piezod.service.axes import AxisDriver
+
+W = np.exp(-np.arange(16) / 6.0)
+PI = PlayParams.uniform(0.11, 0.45, 320.0, 16, 0.55 * W / W.sum())
+CH = HysteresisParams(3e-3, 0.115, 0.072)
+SPEC = CreepSpectrum.log_spaced(1e-4, 1e5, 3, 0.015 / 3)
+THESIS = ThesisModelConfig(
+    alpha_per_v=3e-3, b_um_per_v=0.09, u_um_per_v=0.05, tau_s=2.666, a1=0.081, a2_per_v=0.0, a3=0.6
+)
+
+
+def _smooth_targets(n: int, dt: float, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * dt
+    tri = 12.0 * np.abs((t * 7.0) % 1.0 - 0.5) * 2.0 - 4.0
+    ramp_in = np.minimum(1.0, t / 0.05)
+    return tri * ramp_in + 0.01 * np.cumsum(rng.normal(0, 0.02, n))
+
+
+@pytest.mark.parametrize("law", [PI, CH], ids=["prandtl-ishlinskii", "coleman-hodgdon"])
+@pytest.mark.parametrize("lag", [0.0, 2e-4])
+def test_inverse_is_exact_and_block_invariant(law: PlayParams | HysteresisParams, lag: float) -> None:
+    p = FamilyParams(law, SPEC, lag, 0.05)
+    dt = 5e-5
+    x = _smooth_targets(8000, dt, 1)
+    s0 = family_rest_state(p, 3.0)
+    x = x + s0.position_um
+    v, s1 = family_inverse(p, x, dt, s0)
+    xf, s2 = family_forward(p, v, dt, s0)
+    np.testing.assert_allclose(xf, x, atol=1e-9)
+    assert s1.position_um == pytest.approx(s2.position_um, abs=1e-9)
+    np.testing.assert_allclose(s1.creep_um, s2.creep_um, atol=1e-9)
+    parts, s = [], s0
+    for chunk in np.array_split(x, [1, 2, 333, 5000]):
+        vb, s = family_inverse(p, chunk, dt, s)
+        parts.append(vb)
+    np.testing.assert_allclose(np.concatenate(parts), v, atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), scale=st.floats(0.1, 60.0))
+def test_play_inverse_reaches_any_targets(seed: int, scale: float) -> None:
+    rng = np.random.default_rng(seed)
+    v = np.cumsum(rng.normal(0, scale, 300))
+    x, end = play_forward(PI, v, play_rest_state(PI))
+    vi, end_i = play_inverse(PI, x, play_rest_state(PI))
+    np.testing.assert_allclose(vi, v, atol=1e-8 * max(1.0, float(np.max(np.abs(v)))))
+    np.testing.assert_allclose(end_i.plays_v, end.plays_v, atol=1e-8 * max(1.0, float(np.max(np.abs(v)))))
+
+
+def test_hold_relaxes_creep_and_settles_the_lag() -> None:
+    p = FamilyParams(PI, SPEC, 1e-3, 0.0)
+    dt = 1e-4
+    s0 = family_rest_state(p)
+    _, s = family_forward(p, np.linspace(0, 100, 500), dt, s0)
+    held = family_hold(p, 200_000, dt, s)
+    _, step = family_forward(p, np.full(200_000, s.voltage_v), dt, s)
+    assert held.position_um == pytest.approx(step.position_um, abs=1e-6)
+    assert held.drive_v == pytest.approx(100.0, abs=1e-6)
+    assert held.position_um > s.position_um  # it crept on
+
+
+def test_driver_runs_a_family_axis_without_model_branches() -> None:
+    section = FamilyModelConfig(
+        law="prandtl-ishlinskii",
+        b_um_per_v=PI.b_um_per_v,
+        pi_rho0=PI.rho0,
+        pi_thresholds_v=list(PI.thresholds_v),
+        pi_weights=list(PI.weights),
+        creep_taus_s=list(SPEC.taus),
+        creep_weights=list(SPEC.w),
+        lag_time_constant_s=2e-4,
+    )
+    cfg = AxisConfig(
+        voltage_min_v=-230,
+        voltage_max_v=230,
+        slew_rate_v_per_s=1e6,
+        thesis=THESIS,
+        model="family",
+        family=section,
+    )
+    d = AxisDriver("x", cfg, 20_000.0)
+    assert isinstance(d.model, FamilyAxisModel)
+    targets = _smooth_targets(4000, 5e-5, 2)
+    out = np.concatenate([d.corrected(b).voltage_v for b in np.array_split(targets, 5)])
+    x, _ = family_forward(section.params(), out, 5e-5, family_rest_state(section.params()))
+    np.testing.assert_allclose(x, targets, atol=1e-9)
+    d.hold(1000)
+    thesis = AxisDriver("x", AxisConfig(voltage_min_v=-230, voltage_max_v=230, thesis=THESIS), 20_000.0)
+    assert isinstance(thesis.model, ThesisAxisModel)
+    thesis.adopt_state(d)
+    assert thesis.position_um == pytest.approx(d.position_um, abs=1e-12)
+    assert thesis.voltage_v == d.voltage_v
+
+
+def test_bad_parameters_are_refused() -> None:
+    with pytest.raises(ModelError):
+        CreepSpectrum((1.0, 0.5), (0.1, 0.1))
+    with pytest.raises(ModelError):
+        CreepSpectrum((1.0, 10.0), (0.5, 0.5))
+    with pytest.raises(ModelError):
+        PlayParams(0.1, 0.5, (2.0, 1.0), (0.1, 0.1))
+    with pytest.raises(ModelError):
+        FamilyParams(PI, SPEC, -1.0)
+    with pytest.raises(ValueError, match="pi_rho0"):
+        FamilyModelConfig(law="prandtl-ishlinskii", b_um_per_v=0.1, creep_taus_s=[1, 2], creep_weights=[0, 0])

@@ -1,0 +1,88 @@
+"""Bad command-line input: one line on stderr naming the argument, exit 2, never a traceback (#13 item 6).
+
+Every case runs the real ``piezod`` command in a subprocess.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from piezod.recording import read_recording
+
+
+def piezod(*args: str, timeout: float = 180.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "piezod", *args], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess[str], *needles: str) -> None:
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    assert "Traceback" not in proc.stderr
+    err = proc.stderr.strip()
+    assert err.count("\n") == 0, err
+    for needle in needles:
+        assert needle in err, err
+
+
+SCAN = ["scan", "--sim", "--out", "x.csv"]
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        ([*SCAN, "--range-um", "-5", "--line-rate-hz", "1"], "--range-um"),
+        ([*SCAN, "--range-um", "nan", "--line-rate-hz", "1"], "--range-um"),
+        ([*SCAN, "--range-um", "0", "--line-rate-hz", "1"], "--range-um"),
+        ([*SCAN, "--range-um", "inf", "--line-rate-hz", "1"], "--range-um"),
+        ([*SCAN, "--range-um", "5", "--line-rate-hz", "NaN"], "--line-rate-hz"),
+        ([*SCAN, "--range-um", "5", "--line-rate-hz", "-1"], "--line-rate-hz"),
+        ([*SCAN, "--range-um", "5", "--line-rate-hz", "1", "--lines", "0"], "--lines"),
+        ([*SCAN, "--range-um", "5", "--line-rate-hz", "1", "--lines", "2.5"], "--lines"),
+        ([*SCAN, "--range-um", "5", "--line-rate-hz", "1", "--offset-um", "inf"], "--offset-um"),
+        (["ctl", "--timeout", "nan", "status"], "--timeout"),
+        (["ctl", "--timeout", "-1", "status"], "--timeout"),
+        (
+            ["ctl", "--api", "unix:/nonexistent/x.sock", "scan", "--range-um", "nan", "--line-rate-hz", "1"],
+            "nan",
+        ),
+        (["linearity", "/dev/zero"], "not a regular file"),
+        (["linearity", "/nonexistent.csv"], "No such file"),
+        (["calibrate", "--config", "/dev/zero", "x.csv"], "not a regular file"),
+        (["audit", "/dev/zero"], "not a regular file"),
+    ],
+    ids=lambda v: " ".join(v) if isinstance(v, list) else v,
+)
+def test_bad_arguments_are_one_line_errors(tmp_path: Path, args: list[str], needle: str) -> None:
+    assert_one_line_error(piezod(*args), needle)
+
+
+def test_unwritable_output_is_a_one_line_error(tmp_path: Path) -> None:
+    (tmp_path / "a-file").write_text("not a directory")
+    proc = piezod(
+        "scan",
+        "--sim",
+        "--range-um",
+        "5",
+        "--line-rate-hz",
+        "4",
+        "--lines",
+        "1",
+        "--out",
+        str(tmp_path / "a-file" / "x.csv"),
+    )
+    assert_one_line_error(proc, "a-file")
+
+
+def test_an_output_path_with_spaces_simply_works(tmp_path: Path) -> None:
+    out = tmp_path / "my scan (1).csv"
+    proc = piezod(
+        "scan", "--sim", "--range-um", "5", "--line-rate-hz", "4", "--lines", "2", "--out", str(out)
+    )
+    assert proc.returncode == 0, proc.stderr
+    rec = read_recording(out)
+    assert rec.t_s.size > 100

@@ -1,0 +1,164 @@
+"""Simulated stages of other physics: Prandtl-Ishlinskii loops, power-law voltage creep, curvature, lag."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hil_sim.creep import CreepBank
+from hil_sim.errors import SimConfigError
+from hil_sim.hysteresis import CHParams, PIParams, ch_rest_state, ch_step, pi_rest_state, pi_step
+from hil_sim.stage import Stage, StageConfig, preset_names, resolve_stage
+
+
+def _stage(axis: dict[str, Any], creep: dict[str, Any] | None = None, **extra: Any) -> Stage:
+    data: dict[str, Any] = {"axes": {"x": axis}, "sensor_noise_nm_rms": 0.0, **extra}
+    if creep is not None:
+        data["creep"] = creep
+    return Stage(StageConfig.model_validate(data))
+
+
+PI_AXIS = {
+    "law": "prandtl-ishlinskii",
+    "b_um_per_v": 0.1,
+    "pi_rho0": 0.4,
+    "pi_span_v": 300.0,
+    "pi_decay_v": 150.0,
+    "creep_pct_per_decade": 0.0,
+}
+CH_AXIS = {"alpha_per_v": 3e-3, "b_um_per_v": 0.115, "u_um_per_v": 0.072, "creep_pct_per_decade": 0.0}
+
+
+def _minor_cycles(center: float, amp: float, cycles: int, n: int = 200) -> np.ndarray:
+    phase = np.linspace(0.0, 2.0 * np.pi * cycles, cycles * n + 1)[1:]
+    return center + amp * np.sin(phase)
+
+
+def test_pi_minor_loops_close_and_ch_loops_do_not() -> None:
+    """After a big excursion, a repeated minor loop returns to the same point every period (PI only)."""
+    lead = np.concatenate([np.linspace(0, 200, 400), np.linspace(200, 50, 300)])
+    loops = _minor_cycles(50.0, 30.0, 10)
+    v = np.concatenate([lead, loops])
+    pi = PIParams.from_shape(0.1, 0.4, 300.0, 16, 150.0)
+    x_pi, _ = pi_step(pi, v, pi_rest_state(pi))
+    ch = CHParams(3e-3, 0.115, 0.072)
+    x_ch, _ = ch_step(ch, v, ch_rest_state(ch))
+    ends = len(lead) + 200 * np.arange(1, 11) - 1
+    drift_pi = np.ptp(x_pi[ends[1:]])
+    drift_ch = np.ptp(x_ch[ends[1:]])
+    assert drift_pi < 1e-12
+    assert drift_ch > 1e-3, "the Coleman-Hodgdon minor loop drifts (it is the contrast, not a PI property)"
+    # the loop is a real loop: the two branches differ at the centre
+    period = x_pi[ends[-2] + 1 : ends[-1] + 1]
+    assert np.ptp(period) > 0.9 * 0.1 * 60.0 * 0.4
+
+
+def test_pi_is_exact_across_block_splits_and_wipes_out() -> None:
+    pi = PIParams.from_shape(0.1, 0.35, 250.0, 12, None)
+    rng = np.random.default_rng(1)
+    v = np.cumsum(rng.normal(0, 4, 3000))
+    whole, end = pi_step(pi, v, pi_rest_state(pi))
+    parts, state = [], pi_rest_state(pi)
+    for chunk in np.array_split(v, [1, 7, 700, 701, 2500]):
+        x, state = pi_step(pi, chunk, state)
+        parts.append(x)
+    np.testing.assert_array_equal(np.concatenate(parts), whole)
+    np.testing.assert_array_equal(state.plays_v, end.plays_v)
+    # wiping out: a large excursion erases the memory of everything smaller before it
+    a, _ = pi_step(pi, np.array([300.0, -300.0, 0.0]), pi_step(pi, v[:500], pi_rest_state(pi))[1])
+    b, _ = pi_step(pi, np.array([300.0, -300.0, 0.0]), pi_rest_state(pi))
+    np.testing.assert_allclose(a, b, atol=1e-12)
+
+
+def test_pi_branch_slope_rises_from_rho0_to_b() -> None:
+    pi = PIParams.from_shape(0.1, 0.4, 200.0, 20, None)
+    v = np.concatenate([np.linspace(0, 300, 3001), np.linspace(300, -300, 6001)[1:]])
+    x, _ = pi_step(pi, v, pi_rest_state(pi))
+    slope = np.diff(x) / np.diff(v)
+    after = slope[3000:3005]
+    assert after == pytest.approx(0.1 * 0.4, rel=1e-9)
+    assert slope[-5:] == pytest.approx(0.1, rel=1e-9)
+
+
+def test_voltage_driven_power_law_creep() -> None:
+    """Creep per decade ~ pct at 1 s and rising like t^beta; driven by b V, not by the hysteretic position."""
+    bank = CreepBank.from_law(1.5, 1e-5, 1e5, 4, spectrum_exponent=0.03)
+    t = np.array([0.1, 1.0, 10.0, 100.0, 1000.0])
+    r = bank.step_response(t)[0]
+    per_decade = np.diff(r) * 100
+    assert per_decade[1] == pytest.approx(1.5 * 10**0.015, rel=0.05)  # decade 1-10 s, centred at ~3 s
+    assert np.all(np.diff(per_decade) > 0), "power-law creep grows faster than log creep"
+    flat = CreepBank.from_law(1.5, 1e-5, 1e5, 4).step_response(t)[0]
+    assert np.diff(flat) * 100 == pytest.approx(1.5, rel=0.02)
+    # voltage drive: creep after a step is proportional to b dV for PI and CH alike
+    fs = 1000.0
+    v = np.concatenate([np.linspace(0, 100, 50), np.full(5000, 100.0)])
+    for axis in (PI_AXIS, CH_AXIS):
+        stage = _stage(
+            {**axis, "creep_pct_per_decade": 1.5},
+            {"tau_min_s": 1e-5, "tau_max_s": 1e5, "drive": "voltage", "spectrum_exponent": 0.0},
+        )
+        x = stage.step(v[None, :], 1 / fs)[0]
+        b = float(axis["b_um_per_v"])
+        i_05, i_5 = 50 + int(0.5 * fs), 50 + int(5 * fs) - 1
+        assert (x[i_5] - x[i_05]) / (b * 100.0) * 100 == pytest.approx(1.5, rel=0.05)
+
+
+def test_asymmetric_curvature_changes_the_local_sensitivity() -> None:
+    stage = _stage({**PI_AXIS, "pi_rho0": 1.0, "asymmetry_pct": 0.5, "asymmetry_range_v": 200.0})
+    v = np.array([[-201.0, -199.0, 199.0, 201.0]])
+    x = stage.step(v, 1e-3)[0]
+    low, high = (x[1] - x[0]) / 2.0 / 0.1, (x[3] - x[2]) / 2.0 / 0.1
+    assert low == pytest.approx(0.995, abs=1e-9)
+    assert high == pytest.approx(1.005, abs=1e-9)
+
+
+def test_amplifier_pole_lags_a_sine_by_atan() -> None:
+    tau, f, fs = 2e-4, 200.0, 50_000.0
+    stage = _stage(
+        {**PI_AXIS, "pi_rho0": 1.0}, effects={"delay": {"lag_time_constant_s": tau, "at": "drive"}}
+    )
+    t = np.arange(int(0.1 * fs)) / fs
+    v = 10.0 * np.sin(2 * np.pi * f * t)
+    x = stage.step(v[None, :], 1 / fs)[0]
+    tail = slice(len(t) // 2, None)
+    z = np.sum(x[tail] * np.exp(-2j * np.pi * f * t[tail])) / np.sum(
+        v[tail] * np.exp(-2j * np.pi * f * t[tail])
+    )
+    assert -np.angle(z) == pytest.approx(np.arctan(2 * np.pi * f * tau), rel=0.02)
+    assert abs(z) / 0.1 == pytest.approx(1 / np.hypot(1, 2 * np.pi * f * tau), rel=0.01)
+
+
+def test_presets_load_and_are_other_physics() -> None:
+    names = preset_names()
+    assert {"stage", "pi-stage", "p885-stage"} <= set(names)
+    for name in ("pi-stage", "p885-stage"):
+        path = resolve_stage(name)
+        assert path is not None
+        cfg = StageConfig.from_file(path)
+        assert all(a.law == "prandtl-ishlinskii" for a in cfg.axes.values())
+        assert cfg.creep.drive == "voltage"
+        Stage(cfg).step(np.zeros((3, 10)), 1e-4)
+    with pytest.raises(SimConfigError, match="no such preset"):
+        resolve_stage("no-such-stage")
+
+
+def test_law_fields_are_checked() -> None:
+    with pytest.raises(ValueError, match="pi_rho0 and pi_span_v"):
+        StageConfig.model_validate({"axes": {"x": {"law": "prandtl-ishlinskii", "b_um_per_v": 0.1}}})
+    with pytest.raises(ValueError, match="alpha_per_v and u_um_per_v"):
+        StageConfig.model_validate({"axes": {"x": {"b_um_per_v": 0.1}}})
+
+
+def test_hil_sim_stage_does_not_import_piezod() -> None:
+    code = (
+        "import sys; import hil_sim.stage, hil_sim.creep, hil_sim.effects, hil_sim.hysteresis;"
+        "bad = sorted(m for m in sys.modules if m == 'piezod' or m.startswith('piezod.'));"
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
