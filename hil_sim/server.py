@@ -35,6 +35,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType, TracebackType
 
+import yaml
+
 from hil_sim.board import Board, BoardConfig
 from hil_sim.errors import SimConfigError, SimError
 from hil_sim.microscope import MicroscopeConfig
@@ -407,22 +409,30 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true", help="log every dropped frame")
 
 
-def _microscope_from_args(args: argparse.Namespace) -> MicroscopeConfig:
-    """The microscope of ``--sample`` / ``--no-position-sensor`` / ``--feedback-bandwidth-hz``."""
-    base = MicroscopeConfig()
+def _microscope_from_args(args: argparse.Namespace, stage_path: Path | None) -> MicroscopeConfig:
+    """The scanner YAML's ``simulation.microscope`` section, overridden by ``--sample`` /
+    ``--no-position-sensor`` / ``--feedback-bandwidth-hz``."""
+    section: dict[str, object] = {}
+    if stage_path is not None:
+        try:
+            doc = yaml.safe_load(Path(stage_path).read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError):
+            doc = None  # Board.from_scanner_file reports the file's problem
+        sim = doc.get("simulation") if isinstance(doc, dict) else None
+        found = sim.get("microscope") if isinstance(sim, dict) else None
+        if isinstance(found, dict):
+            section = dict(found)
+    if args.sample is not None:
+        section["sample"] = args.sample
+    if args.no_position_sensor:
+        section["position_sensor"] = False
+    if args.feedback_bandwidth_hz is not None:
+        section["feedback_bandwidth_hz"] = args.feedback_bandwidth_hz
+    section.setdefault("seed", args.seed)
     try:
-        return MicroscopeConfig(
-            sample=args.sample if args.sample is not None else base.sample,
-            position_sensor=not args.no_position_sensor,
-            feedback_bandwidth_hz=(
-                args.feedback_bandwidth_hz
-                if args.feedback_bandwidth_hz is not None
-                else base.feedback_bandwidth_hz
-            ),
-            seed=args.seed,
-        )
-    except ValueError as exc:
-        raise SimConfigError(f"--sample: {exc}") from exc
+        return MicroscopeConfig(**section)  # type: ignore[arg-type]
+    except (TypeError, ValueError) as exc:
+        raise SimConfigError(f"--sample / simulation.microscope: {exc}") from exc
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -451,7 +461,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         drop_rate=args.drop_rate,
     )
     if args.sample is not None or args.no_position_sensor or args.feedback_bandwidth_hz is not None:
-        config = dataclasses.replace(config, microscope=_microscope_from_args(args))
+        config = dataclasses.replace(
+            config, microscope=_microscope_from_args(args, resolve_stage(args.config))
+        )
     if args.truth_log:
         config = dataclasses.replace(config, truth_log=str(args.truth_log))
     board = Board.from_scanner_file(

@@ -433,12 +433,14 @@ def run_image_scans(
     out_dir.mkdir(parents=True, exist_ok=True)
     for sc in scans:
         path = out_dir / f"{sc.name()}.csv"
+        # at least two samples per pixel (fast lines at a low sample rate get fewer pixels)
+        per_half_line = engine.rate_hz / (2.0 * sc.line_rate_hz)
         request = ScanRequest(
             range_um=sc.range_um,
             line_rate_hz=sc.line_rate_hz,
             lines=sc.lines,
             offset_x_um=sc.offset_um,
-            pixels=pixels,
+            pixels=max(64, min(pixels, int(per_half_line // 2))),
             correction=correction,
             name=path.stem,
         )
