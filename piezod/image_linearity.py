@@ -269,8 +269,14 @@ def image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) 
             f"{name} image: found {fl.xi_um.size} flanks of a line pattern; need a reference with at least "
             f"three periods per line (pitch {pitch_um:g} um, range {geo.range_um:g} um)"
         )
-    x = fl.k.astype(np.float64) * pitch_um
     group = fl.line * 2 + (fl.family > 0)
+    per_group = float(np.median(np.bincount(np.unique(group, return_inverse=True)[1])))
+    if per_group < 4:
+        raise RecordingError(
+            f"{name} image: {per_group:g} flanks per line and family; the linearity needs at least four "
+            f"(a range of several periods of the {pitch_um:g} um reference)"
+        )
+    x = fl.k.astype(np.float64) * pitch_um
     g, r, ng = _regress(x, fl.xi_um, group)
     keep = np.ones(x.size, dtype=bool)
     mad = float(np.median(np.abs(r - np.median(r)))) * 1.4826
@@ -284,6 +290,11 @@ def image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) 
         raise RecordingError(f"{name} image: too few flanks ({n}) for the linearity regression")
     sigma = math.sqrt(float(r @ r) / dof)
     measured = g * geo.range_um
+    if not 0.5 < g < 2.0:
+        raise RecordingError(
+            f"{name} image: the flanks do not follow a line pattern of pitch {pitch_um:g} um (slope {g:.3g}): "
+            "a wrong --pitch-um, or not a 1D line pattern across the fast axis"
+        )
     return ImageLinearity(
         direction=direction,
         pitch_um=pitch_um,

@@ -114,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
         file=say,
     )
     print(f"recording: {out}  (underruns {status.underruns}, faults {len(status.faults)})", file=say)
-    if status.last_line is not None:
+    sensorless = config.microscope is not None and not config.microscope.position_sensor
+    if status.last_line is not None and not sensorless:
         ll = status.last_line
         print(
             f"last line ({ll.direction}): nonlinearity {ll.nonlinearity_pct:.3f} %, "
