@@ -292,7 +292,8 @@ def image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) 
     measured = g * geo.range_um
     if not 0.5 < g < 2.0:
         raise RecordingError(
-            f"{name} image: the flanks do not follow a line pattern of pitch {pitch_um:g} um (slope {g:.3g}): "
+            f"{name} image: the flanks do not follow a line pattern of pitch {pitch_um:g} um "
+            f"(slope {g:.3g}): "
             "a wrong --pitch-um, or not a 1D line pattern across the fast axis"
         )
     return ImageLinearity(
