@@ -89,7 +89,9 @@ def register(sub: Any) -> None:
         action="store_true",
         help="calibrate from trace/retrace images of a line pattern of known pitch (no position sensor)",
     )
-    images.add_argument("--pitch-um", type=float, metavar="P", help="the reference's certified pitch (um)")
+    images.add_argument(
+        "--pitch-um", type=positive_float, metavar="P", help="the reference's certified pitch (um)"
+    )
     images.add_argument(
         "--sample", metavar="NAME", help="with --sim: the simulated reference (default line-3um)"
     )

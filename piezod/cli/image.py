@@ -6,7 +6,14 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from piezod.cli._common import add_json_option, human_stream, write_json
+from piezod.cli._common import (
+    add_json_option,
+    finite_float,
+    human_stream,
+    positive_float,
+    positive_int,
+    write_json,
+)
 from piezod.config import load_config
 from piezod.errors import RecordingError
 from piezod.image import ImagePair, has_position_sensor, images
@@ -33,14 +40,18 @@ def register(sub: Any) -> None:
     p.add_argument("recordings", nargs="+", metavar="REC.csv", help="raster recordings (piezod scan)")
     p.add_argument("--out", metavar="DIR", default=".", help="output directory (default: .)")
     p.add_argument("--config", metavar="F", help="scanner YAML whose z axis converts z voltage to height")
-    p.add_argument("--pixels", type=int, metavar="N", help="pixels per line (default: the recording's)")
+    p.add_argument(
+        "--pixels", type=positive_int, metavar="N", help="pixels per line (default: the recording's)"
+    )
     p.add_argument(
         "--z-sensitivity-um-per-v",
-        type=float,
+        type=finite_float,
         metavar="S",
         help="constant z sensitivity of height_linear (default: best fit to the model heights)",
     )
-    p.add_argument("--pitch-um", type=float, metavar="P", help="pitch of the reference: image linearity")
+    p.add_argument(
+        "--pitch-um", type=positive_float, metavar="P", help="pitch of the reference: image linearity"
+    )
     p.add_argument("--no-png", action="store_true", help="write the .gwy files only")
     p.add_argument(
         "--pair",
