@@ -45,6 +45,8 @@ from .messages import (
     HEARTBEAT_TIMEOUT_MS_RANGE,
     MAX_CHANNELS,
     MAX_FRAME_SIZE,
+    MAX_SYNC_EVENTS,
+    MAX_SYNC_OUTPUTS,
     MESSAGE_CLASSES,
     NO_CHANNEL,
     NO_INDEX,
@@ -72,6 +74,7 @@ from .messages import (
     Start,
     Status,
     Stop,
+    Sync,
     max_samples_per_frame,
 )
 
@@ -86,6 +89,8 @@ __all__ = [
     "HEARTBEAT_TIMEOUT_MS_RANGE",
     "MAX_CHANNELS",
     "MAX_FRAME_SIZE",
+    "MAX_SYNC_EVENTS",
+    "MAX_SYNC_OUTPUTS",
     "MAX_WIRE_SIZE",
     "MESSAGE_CLASSES",
     "NO_CHANNEL",
@@ -126,6 +131,7 @@ __all__ = [
     "Start",
     "Status",
     "Stop",
+    "Sync",
     "TimedOut",
     "VersionMismatchError",
     "WireError",

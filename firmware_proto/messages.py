@@ -66,6 +66,7 @@ class MessageType(IntEnum):
     STATUS = 0x11
     SENSOR = 0x12
     FAULT = 0x13
+    SYNC = 0x14
 
 
 CONTROL_TYPES = frozenset(
@@ -296,6 +297,9 @@ class Capabilities(Message):
     amplifier_ranges_v
         Per channel ``(v_min, v_max)``: the output range of the HV amplifier (V). Its length is the
         number of channels.
+    sync_outputs
+        Number of digital sync outputs the board drives from SYNC frames (0..8; revision 1 of the
+        protocol, PROTOCOL.md 4.14). 0: none (a revision-0 board sends 0 here, a reserved byte).
     """
 
     TYPE: ClassVar[MessageType] = MessageType.CAPABILITIES
@@ -314,10 +318,14 @@ class Capabilities(Message):
     fifo_depth_samples: int
     board_serial: int
     amplifier_ranges_v: tuple[tuple[float, float], ...]
+    sync_outputs: int = 0
 
     def __post_init__(self) -> None:
         o = "Capabilities"
         set_ = object.__setattr__
+        set_(self, "sync_outputs", _uint(o, "sync_outputs", self.sync_outputs, _U8))
+        if self.sync_outputs > MAX_SYNC_OUTPUTS:
+            raise ProtocolError(f"{o}.sync_outputs: {self.sync_outputs} outside [0, {MAX_SYNC_OUTPUTS}]")
         set_(self, "reply_to_seq", _uint(o, "reply_to_seq", self.reply_to_seq, _U32))
         set_(self, "protocol_version", _uint(o, "protocol_version", self.protocol_version, _U16))
         fw = tuple(self.firmware_version)
@@ -383,7 +391,7 @@ class Capabilities(Message):
             self.n_channels,
             self.dac_bits,
             self.adc_bits,
-            0,
+            self.sync_outputs,
             self.max_samples_per_frame,
             self.sample_rate_min_hz,
             self.sample_rate_max_hz,
@@ -406,7 +414,7 @@ class Capabilities(Message):
             n_ch,
             dac_bits,
             adc_bits,
-            _,
+            sync_outputs,
             mspf,
             rmin,
             rmax,
@@ -429,6 +437,7 @@ class Capabilities(Message):
             fifo,
             serial,
             ranges,
+            sync_outputs,
         )
 
 
@@ -1095,6 +1104,70 @@ class Status(Message):
         return cls(state, flags, wi, lp, free, crc, dropped, under, clamped, gaps, over)
 
 
+MAX_SYNC_OUTPUTS = 8
+"""Most digital sync outputs a board may advertise (one bit each in a SYNC event)."""
+SYNC_EVENT_SIZE = 8
+MAX_SYNC_EVENTS = (MAX_FRAME_SIZE - HEADER_SIZE - 12 - CRC_SIZE) // SYNC_EVENT_SIZE
+"""Most events in one SYNC frame (1021)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Sync(Message):
+    """SYNC (host -> board, data; protocol revision 1): levels of the digital sync outputs.
+
+    Each event sets the outputs selected by ``mask`` to the bits of ``lines`` at the tick that
+    plays sample ``first_index + offset`` (after that tick's DAC update); the other outputs keep
+    their level. Bit 0 is the pixel clock, bit 1 the line clock, bit 2 the frame clock.
+
+    Attributes
+    ----------
+    first_index
+        Sample index the event offsets count from.
+    events
+        ``(offset, lines, mask)`` per event, offsets non-decreasing (u32, u8, u8).
+    """
+
+    TYPE: ClassVar[MessageType] = MessageType.SYNC
+    _S: ClassVar[struct.Struct] = struct.Struct("<QHH")
+    _EV: ClassVar[struct.Struct] = struct.Struct("<IBBH")
+
+    first_index: int
+    events: tuple[tuple[int, int, int], ...]
+
+    def __post_init__(self) -> None:
+        o = "Sync"
+        object.__setattr__(self, "first_index", _uint(o, "first_index", self.first_index, _U64))
+        evs: list[tuple[int, int, int]] = []
+        for i, ev in enumerate(self.events):
+            try:
+                offset, lines, mask = ev
+            except (TypeError, ValueError):
+                raise ProtocolError(f"{o}.events[{i}]: expected (offset, lines, mask), got {ev!r}") from None
+            offset = _uint(o, f"events[{i}].offset", offset, _U32)
+            if evs and offset < evs[-1][0]:
+                raise ProtocolError(f"{o}.events[{i}].offset: {offset} below the previous event's")
+            lines = _uint(o, f"events[{i}].lines", lines, _U8)
+            evs.append((offset, lines, _uint(o, f"events[{i}].mask", mask, _U8)))
+        if not 1 <= len(evs) <= MAX_SYNC_EVENTS:
+            raise ProtocolError(f"{o}.events: {len(evs)} events outside [1, {MAX_SYNC_EVENTS}]")
+        if self.first_index + evs[-1][0] >= NO_INDEX:
+            raise ProtocolError(f"{o}.first_index: the events run past the last sample index")
+        object.__setattr__(self, "events", tuple(evs))
+
+    def pack_payload(self) -> bytes:
+        head = self._S.pack(self.first_index, len(self.events), 0)
+        return head + b"".join(self._EV.pack(off, lines, mask, 0) for off, lines, mask in self.events)
+
+    @classmethod
+    def unpack_payload(cls, payload: bytes) -> Sync:
+        if len(payload) < cls._S.size:
+            raise _LengthError(f"SYNC: payload is {len(payload)} bytes, expected >= {cls._S.size}")
+        first, n, _ = cls._S.unpack_from(payload)
+        cls._expect_len(payload, cls._S.size + cls._EV.size * n)
+        events = tuple(cls._EV.unpack_from(payload, cls._S.size + cls._EV.size * i)[:3] for i in range(n))
+        return cls(first, events)
+
+
 @dataclass(frozen=True, slots=True)
 class Fault(Message):
     """FAULT (board -> host, best effort): a fault happened; its flag is latched in STATUS.
@@ -1141,6 +1214,7 @@ class Fault(Message):
 MESSAGE_CLASSES: dict[MessageType, type[Message]] = {
     cls.TYPE: cls
     for cls in (
+        Sync,
         Hello,
         Capabilities,
         Configure,

@@ -33,6 +33,7 @@ from .messages import (
     Start,
     Status,
     Stop,
+    Sync,
     max_samples_per_frame,
 )
 
@@ -76,6 +77,7 @@ def capabilities(draw: st.DrawFn) -> Capabilities:
         fifo_depth_samples=draw(u32),
         board_serial=draw(u32),
         amplifier_ranges_v=tuple(ranges),
+        sync_outputs=draw(st.integers(0, 8)),
     )
 
 
@@ -121,6 +123,15 @@ faults = st.builds(
 )
 
 
+syncs = st.builds(
+    Sync,
+    st.integers(0, 2**48),
+    st.lists(st.tuples(st.integers(0, 10_000), u8, u8), min_size=1, max_size=32).map(
+        lambda evs: tuple(sorted(evs))
+    ),
+)
+
+
 def messages(max_samples: int = 64) -> st.SearchStrategy[Message]:
     """Any message type with arbitrary valid field values."""
     return st.one_of(
@@ -137,4 +148,5 @@ def messages(max_samples: int = 64) -> st.SearchStrategy[Message]:
         statuses,
         sensors(max_samples),
         faults,
+        syncs,
     )

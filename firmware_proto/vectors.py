@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from dataclasses import dataclass, fields
@@ -43,6 +44,7 @@ from .messages import (
     Start,
     Status,
     Stop,
+    Sync,
 )
 
 PROTOCOL_MD = Path(__file__).with_name("PROTOCOL.md")
@@ -215,6 +217,22 @@ def canonical_vectors() -> list[Vector]:
             Fault(FaultCode.WATCHDOG, NO_CHANNEL, index=NO_INDEX),
             8,
             "host silent: ramping to safe before any sample was played",
+        ),
+        Vector(
+            "CAPABILITIES_SYNC",
+            dataclasses.replace(caps, sync_outputs=3),
+            0,
+            "revision 1: the board of the CAPABILITIES vector with 3 sync outputs (pixel, line, frame)",
+        ),
+        Vector(
+            "SYNC",
+            Sync(
+                first_index=20_000,
+                events=((0, 0b111, 0b111), (5, 0b000, 0b111), (10, 0b001, 0b001), (15, 0b000, 0b001)),
+            ),
+            9,
+            "revision 1: frame, line and pixel clocks high at index 20000, all low at 20005, "
+            "the next pixel at 20010..20014",
         ),
     ]
 

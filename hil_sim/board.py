@@ -28,11 +28,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 from numpy.typing import NDArray
 
 from firmware_proto import (
@@ -60,12 +62,12 @@ from firmware_proto import (
     Start,
     Status,
     Stop,
+    Sync,
     max_samples_per_frame,
 )
+from hil_sim.errors import SimConfigError as ConfigError
 from hil_sim.microscope import Microscope, MicroscopeConfig
-from hil_sim.stage import Stage, StageConfig
-from piezod.config import load_config
-from piezod.errors import ConfigError
+from hil_sim.stage import PRESET_DIR, Stage, StageConfig
 
 F64 = NDArray[np.float64]
 
@@ -95,8 +97,11 @@ _HOST_TYPES = frozenset(
         MessageType.RAMP_TO_SAFE,
         MessageType.HEARTBEAT,
         MessageType.SAMPLES,
+        MessageType.SYNC,
     }
 )
+SYNC_QUEUE_EVENTS = 1024
+"""Capacity of the sync event queue (PROTOCOL.md 4.14: at least 1024)."""
 
 
 def _f32_outward(value: float, up: bool) -> float:
@@ -156,6 +161,8 @@ class BoardConfig:
         float64 rows ``(sample_index, x_um, y_um, z_voltage_v, z_um)`` (raw, native byte order):
         the true tip position an external interferometer would measure, for checking sensorless
         calibrations (``piezod.imagecal.read_truth_log``).
+    sync_outputs
+        Digital sync outputs driven from SYNC frames (0..8; CAPABILITIES ``sync_outputs``).
     """
 
     amplifier_ranges_v: tuple[tuple[float, float], ...] | None = None
@@ -177,6 +184,7 @@ class BoardConfig:
     seed: int = 0
     microscope: MicroscopeConfig | None = None
     truth_log: str | None = None
+    sync_outputs: int = 3
 
     def __post_init__(self) -> None:
         for name in ("corrupt_rate", "corrupt_in_rate", "drop_rate"):
@@ -296,6 +304,7 @@ class Board:
             fifo_depth_samples=self._cfg.fifo_depth_samples,
             board_serial=self._cfg.board_serial,
             amplifier_ranges_v=ranges,
+            sync_outputs=self._cfg.sync_outputs,
         )
         self._ep = Endpoint()
         self._fx_rng = np.random.default_rng(self._cfg.seed)
@@ -362,6 +371,11 @@ class Board:
         self._truth: list[F64] = []
         self._truth_first = 0
         self._truth_fh = open(self._cfg.truth_log, "ab") if self._cfg.truth_log else None  # noqa: SIM115
+        # sync outputs: queued events (index, lines, mask), the present levels, their changes
+        self._sync_queue: deque[tuple[int, int, int]] = deque()
+        self._sync_level = 0
+        self._sync_last_queued = -1
+        self._sync_log: deque[tuple[int, int]] = deque(maxlen=1 << 16)
 
         # stage: simulated up to _stage_t; played ticks waiting for the stage
         self._stage_t = float(now)
@@ -403,20 +417,18 @@ class Board:
         ConfigError
             The file or an effect string is invalid (``FILE:LINE: field: reason``).
         """
-        from piezod.config import default_sim_config_path
-
-        p = default_sim_config_path() if path is None else Path(path)
-        scanner = load_config(p)
+        p = PRESET_DIR / "sim-stage.yaml" if path is None else Path(path)
         stage_cfg = StageConfig.from_file(p)
+        limits = _voltage_limits(p)
         if effects:
             stage_cfg = stage_cfg.with_effects(*effects)
         stage = Stage(stage_cfg, seed=seed)
         cfg = config if config is not None else BoardConfig()
         if cfg.amplifier_ranges_v is None:
-            ranges = tuple((scanner.axes[a].voltage_min_v, scanner.axes[a].voltage_max_v) for a in stage.axes)
+            ranges = tuple(limits[a] for a in stage.axes)
             cfg = dataclasses.replace(cfg, amplifier_ranges_v=ranges)
         cfg = dataclasses.replace(cfg, seed=seed)
-        section = (scanner.simulation or {}).get("microscope")
+        section = _microscope_section(p)
         if cfg.microscope is None and section is not None:
             if not isinstance(section, dict):
                 raise ConfigError(f"{p}: simulation.microscope: must be a mapping")
@@ -469,6 +481,15 @@ class Board:
         if self._state is BoardState.RUNNING:
             return self._v_dac.copy()
         return self._trajectory(np.array([self._t]))[:, 0]
+
+    @property
+    def sync_transitions(self) -> list[tuple[int, int]]:
+        """``(sample index, levels)`` of the latest sync-output changes (bit 0 pixel, 1 line, 2 frame).
+
+        The board's record of what it drove, for tests and inspection (the last 65536 changes;
+        a clock stop that lowers the outputs is recorded at ``last_played_index + 1``).
+        """
+        return list(self._sync_log)
 
     @property
     def counters(self) -> BoardCounters:
@@ -753,9 +774,31 @@ class Board:
         self._pending_n += n
         self._v_dac = self._dac_offset + self._dac_scale * c64[-1]
         self._v_amp = volts[:, -1].copy()
+        self._apply_sync(self._play_index + n)
         self._play_index += n
         self._last_played = self._play_index - 1
         self._samples_played += n
+
+    def _apply_sync(self, end: int) -> None:
+        """Apply the queued sync events of the ticks before index ``end`` (being played now)."""
+        q = self._sync_queue
+        enabled = (1 << self._cfg.sync_outputs) - 1
+        while q and q[0][0] < end:
+            index, lines, mask = q.popleft()
+            if index < self._play_index:
+                continue
+            mask &= enabled
+            level = (self._sync_level & ~mask) | (lines & mask)
+            if level != self._sync_level:
+                self._sync_level = level
+                self._sync_log.append((index, level))
+
+    def _clear_sync(self) -> None:
+        self._sync_queue.clear()
+        self._sync_last_queued = -1
+        if self._sync_level:
+            self._sync_level = 0
+            self._sync_log.append((self._last_played + 1 if self._last_played != NO_INDEX else 0, 0))
 
     def _flush_stage(self) -> None:
         """Run the stage over the played ticks and send their SENSOR rows."""
@@ -842,6 +885,7 @@ class Board:
         self._sync_idle(t)
         self._play_index = self._write_index
         self._stop_after = None
+        self._clear_sync()
 
     # -- outside RUNNING: hold and ramps -----------------------------------------------------
 
@@ -915,6 +959,9 @@ class Board:
             return
         if isinstance(msg, Samples):
             self._on_samples(msg, now)
+            return
+        if isinstance(msg, Sync):
+            self._on_sync(msg, now)
             return
         if isinstance(msg, Heartbeat):
             return
@@ -1020,6 +1067,7 @@ class Board:
         self._stop_after = None
         self._flags = FaultFlags.NONE
         self._fault_last_sent.clear()
+        self._clear_sync()
         log.info("START at index %d, prefill %d", msg.start_index, self._prefill)
         self._set_state(BoardState.ARMED)
 
@@ -1047,6 +1095,22 @@ class Board:
         if self._state in (BoardState.RUNNING, BoardState.ARMED):
             self._stop_clock(now)
         self._begin_ramp(now)
+
+    def _on_sync(self, msg: Sync, now: float) -> None:
+        if self._state not in (BoardState.ARMED, BoardState.RUNNING) or not self._cfg.sync_outputs:
+            self._frames_dropped += 1
+            return
+        floor = max(self._sync_last_queued + 1, self._play_index)
+        new = [(msg.first_index + off, lines, mask) for off, lines, mask in msg.events]
+        new = [ev for ev in new if ev[0] >= floor]
+        if len(self._sync_queue) + len(new) > SYNC_QUEUE_EVENTS:
+            self._frames_dropped += 1
+            self._overflows += 1
+            self._fault(FaultCode.OVERFLOW, now, index=msg.first_index)
+            return
+        self._sync_queue.extend(new)
+        if new:
+            self._sync_last_queued = new[-1][0]
 
     def _on_samples(self, msg: Samples, now: float) -> None:
         if self._state not in (BoardState.ARMED, BoardState.RUNNING) or msg.n_channels != self._C:
@@ -1094,6 +1158,43 @@ class Board:
             self._t0 = now + 1.0 / self._conf.sample_rate_hz
             self._set_state(BoardState.RUNNING)
             log.info("clock running from index %d", self._start_index)
+
+
+def _microscope_section(path: Path) -> object:
+    """``simulation.microscope`` of a scanner YAML, or None (read problems are reported elsewhere)."""
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return None
+    sim = data.get("simulation") if isinstance(data, dict) else None
+    return sim.get("microscope") if isinstance(sim, dict) else None
+
+
+def _voltage_limits(path: Path) -> dict[str, tuple[float, float]]:
+    """``axes.<a>.voltage_min_v / voltage_max_v`` of a scanner YAML (the amplifier ranges).
+
+    Raises
+    ------
+    SimConfigError
+        ``FILE: axes.<a>: ...`` when the limits are missing or not numbers.
+    """
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read the scanner YAML: {exc}") from exc
+    axes = data.get("axes") if isinstance(data, dict) else None
+    if not isinstance(axes, dict):
+        raise ConfigError(f"{path}: axes: missing or not a mapping")
+    out: dict[str, tuple[float, float]] = {}
+    for name, ax in axes.items():
+        try:
+            lo, hi = float(ax["voltage_min_v"]), float(ax["voltage_max_v"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(
+                f"{path}: axes.{name}: voltage_min_v / voltage_max_v missing or not numbers"
+            ) from exc
+        out[str(name)] = (lo, hi)
+    return out
 
 
 __all__ = ["Board", "BoardConfig", "BoardCounters", "slew_limit"]

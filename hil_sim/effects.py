@@ -1,4 +1,4 @@
-"""Optional physical effects of the simulated stage (the audit ids of DESIGN section 4).
+"""Optional physical effects of the simulated stage (the audit effect ids of docs/formats.md).
 
 Every effect is off unless configured. Each one is a small frozen pydantic model with a
 physical parameter (unit in the name); the first listed field is its *primary* parameter,
@@ -172,7 +172,7 @@ EFFECTS: dict[str, type[EffectConfig]] = {
         SaturationEffect,
     )
 }
-#: Effect ids (the audit ids of DESIGN section 4 that are physical effects).
+#: Effect ids (the audit ids of docs/formats.md that are physical effects).
 EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
 #: Everything ``NAME=VALUE`` accepts.
 SPEC_MODELS: dict[str, type[EffectConfig]] = {**EFFECTS, CreepLawOverride.name: CreepLawOverride}

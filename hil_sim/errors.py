@@ -8,7 +8,12 @@ best describes it, so callers may catch either (``except ValueError`` catches
 
     SimError
     ├── SimConfigError(ValueError)   invalid ``simulation:`` section, preset or effect string
-    └── SimModelError(ValueError)    stage evaluation outside its domain (shapes, non-finite input)
+    ├── SimModelError(ValueError)    stage evaluation outside its domain (shapes, non-finite input)
+    └── SimLinkError(OSError)        the simulator's pty / socket / process cannot be served or reached
+        ├── SimLinkClosedError(ConnectionError)   the peer is gone (unplugged, refused)
+        └── SimLinkTimeoutError(TimeoutError)     nothing answered in time
+
+The host (:mod:`piezod.simulator`) turns these into its own link errors.
 """
 
 from __future__ import annotations
@@ -26,4 +31,23 @@ class SimModelError(SimError, ValueError):
     """The stage was asked to evaluate something outside its domain."""
 
 
-__all__ = ["SimConfigError", "SimError", "SimModelError"]
+class SimLinkError(SimError, OSError):
+    """The simulator's pty, USB socket or process cannot be served or reached."""
+
+
+class SimLinkClosedError(SimLinkError, ConnectionError):
+    """The other end is gone (an unplugged simulated device, a refused connection)."""
+
+
+class SimLinkTimeoutError(SimLinkError, TimeoutError):
+    """Nothing answered in time (no simulated device, no path printed)."""
+
+
+__all__ = [
+    "SimConfigError",
+    "SimError",
+    "SimLinkClosedError",
+    "SimLinkError",
+    "SimLinkTimeoutError",
+    "SimModelError",
+]

@@ -9,11 +9,14 @@ benchmarks drive the C firmware exactly as they drive the Python board.
 from __future__ import annotations
 
 import os
+import re
 import shlex
 import shutil
 import subprocess
 import sys
 import tempfile
+import time
+import tty
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -98,4 +101,56 @@ def spawn_firmware(
     return board
 
 
-__all__ = ["FIRMWARE_DIR", "build_firmware", "missing_tools", "spawn_firmware"]
+_QEMU_PTY = re.compile(r"char device redirected to (/dev/pts/\d+)")
+
+
+def spawn_qemu(elf: str | Path, machine: str = "mps2-an385", *, timeout_s: float = 30.0) -> SimProcess:
+    """Run the Cortex-M build under ``qemu-system-arm`` with its UART on a pty.
+
+    Parameters
+    ----------
+    elf
+        ``piezod-fw-mps2.elf`` from ``build_firmware(out, "mps2")``.
+    machine
+        The QEMU machine (the build's memory map and UART are mps2-an385's).
+    timeout_s
+        How long to wait for QEMU to name its pty (s).
+
+    Returns
+    -------
+    SimProcess
+        ``path`` is the pty of the emulated UART; QEMU's output goes to ``stderr_path``.
+
+    Raises
+    ------
+    LinkError
+        QEMU exited or named no pty in time.
+    """
+    fd, name = tempfile.mkstemp(prefix="fw_qemu-", suffix=".log")
+    log_path = Path(name)
+    cmd = ["qemu-system-arm", "-M", machine, "-display", "none", "-monitor", "none", "-serial", "pty"]
+    cmd += ["-kernel", str(elf)]
+    with os.fdopen(fd, "wb") as log:
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT)
+    board = SimProcess(proc, "", log_path)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        found = _QEMU_PTY.search(log_path.read_text(encoding="utf-8", errors="replace"))
+        if found:
+            board.path = found.group(1)
+            # QEMU's pty backend polls for a reader about once a second and discards the guest's
+            # output until it sees one: keep the slave open (never read) so the first reply counts
+            keep = os.open(board.path, os.O_RDWR | os.O_NOCTTY)
+            tty.setraw(keep)
+            board.keepalive_fd = keep  # type: ignore[attr-defined]
+            time.sleep(1.2)
+            return board
+        if proc.poll() is not None:
+            break
+        time.sleep(0.05)
+    text = log_path.read_text(encoding="utf-8", errors="replace").strip()
+    board.close()
+    raise LinkError(f"qemu-system-arm named no pty within {timeout_s} s: {text[-300:]}")
+
+
+__all__ = ["FIRMWARE_DIR", "build_firmware", "missing_tools", "spawn_firmware", "spawn_qemu"]

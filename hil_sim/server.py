@@ -38,11 +38,10 @@ from types import FrameType, TracebackType
 import yaml
 
 from hil_sim.board import Board, BoardConfig
-from hil_sim.errors import SimConfigError, SimError
+from hil_sim.errors import SimConfigError, SimError, SimLinkError, SimLinkTimeoutError
 from hil_sim.microscope import MicroscopeConfig
 from hil_sim.stage import resolve_stage
 from hil_sim.usb_bridge import UsbSocketServer
-from piezod.errors import LinkError, LinkTimeoutError, PiezodError
 
 log = logging.getLogger("hil_sim.server")
 
@@ -72,7 +71,7 @@ class PtyPort:
         self._backlog = bytearray()
         self._dropped_bytes = 0
         if self.link is not None and self.link.exists() and not self.link.is_symlink():
-            raise LinkError(f"--link {self.link}: exists and is not a symlink; refusing to replace it")
+            raise SimLinkError(f"--link {self.link}: exists and is not a symlink; refusing to replace it")
 
     @property
     def is_open(self) -> bool:
@@ -222,11 +221,11 @@ class SimServer:
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if not pty and usb_socket is None:
-            raise LinkError("nothing to serve: --no-pty needs --usb-socket")
+            raise SimLinkError("nothing to serve: --no-pty needs --usb-socket")
         if not unplug_s >= 0.0:
-            raise LinkError(f"--unplug-s must be >= 0, got {unplug_s!r}")
+            raise SimLinkError(f"--unplug-s must be >= 0, got {unplug_s!r}")
         if not 0.0 < tick_s <= 0.1:
-            raise LinkError(f"tick must lie in (0, 0.1] s, got {tick_s!r}")
+            raise SimLinkError(f"tick must lie in (0, 0.1] s, got {tick_s!r}")
         self.board = board
         self.pty = PtyPort(link) if pty else None
         self.usb = UsbSocketServer(usb_socket) if usb_socket is not None else None
@@ -449,7 +448,7 @@ def run_from_args(args: argparse.Namespace) -> int:
 
     Raises
     ------
-    PiezodError
+    SimError
         Invalid configuration or options (the caller prints one line and exits 2).
     """
     _setup_logging(args.verbose)
@@ -506,7 +505,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return run_from_args(args)
-    except (PiezodError, SimError) as exc:
+    except (SimError, ValueError, OSError) as exc:
         print(f"hil_sim: error: {exc}", file=sys.stderr)
         return 2
 
@@ -622,9 +621,9 @@ def spawn_sim(
 
     Raises
     ------
-    LinkError
+    SimLinkError
         The simulator exited before printing its path (the message carries its last log line).
-    LinkTimeoutError
+    SimLinkTimeoutError
         No path line within ``timeout_s``.
     """
     cmd = [sys.executable, "-m", "hil_sim", "--seed", str(seed)]
@@ -656,7 +655,7 @@ def _read_path_line(proc: subprocess.Popen[bytes], timeout_s: float, stderr_path
     while b"\n" not in buf:
         left = deadline - time.monotonic()
         if left <= 0:
-            raise LinkTimeoutError(f"hil_sim printed no path within {timeout_s} s (log: {stderr_path})")
+            raise SimLinkTimeoutError(f"hil_sim printed no path within {timeout_s} s (log: {stderr_path})")
         ready, _, _ = select.select([fd], [], [], left)
         if not ready:
             continue
@@ -665,7 +664,7 @@ def _read_path_line(proc: subprocess.Popen[bytes], timeout_s: float, stderr_path
             status = proc.wait()
             lines = stderr_path.read_text(encoding="utf-8", errors="replace").strip().splitlines()
             last = lines[-1] if lines else "(no log)"
-            raise LinkError(f"hil_sim exited with status {status} before printing its path: {last}")
+            raise SimLinkError(f"hil_sim exited with status {status} before printing its path: {last}")
         buf += chunk
     return buf.split(b"\n", 1)[0].decode()
 

@@ -29,7 +29,7 @@ import stat
 import time
 from pathlib import Path
 
-from piezod.errors import LinkClosedError, LinkError, LinkTimeoutError
+from hil_sim.errors import SimLinkClosedError, SimLinkError, SimLinkTimeoutError
 
 USB_VENDOR_ID = 0x1209
 """Vendor id of the simulated board (pid.codes, the open-source hardware VID)."""
@@ -85,7 +85,7 @@ class UsbSocketServer:
 
         Raises
         ------
-        LinkError
+        SimLinkError
             ``path`` exists and is not a socket, or the socket cannot be created.
         """
         if self._listener is not None:
@@ -96,7 +96,7 @@ class UsbSocketServer:
             pass
         else:
             if not stat.S_ISSOCK(mode):
-                raise LinkError(f"{self.path}: exists and is not a socket; refusing to replace it")
+                raise SimLinkError(f"{self.path}: exists and is not a socket; refusing to replace it")
             self.path.unlink()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
@@ -105,7 +105,7 @@ class UsbSocketServer:
             sock.setblocking(False)
         except OSError as exc:
             sock.close()
-            raise LinkError(f"{self.path}: cannot create the USB socket: {exc.strerror or exc}") from exc
+            raise SimLinkError(f"{self.path}: cannot create the USB socket: {exc.strerror or exc}") from exc
         self._listener = sock
         log.info("USB socket %s (device %04x:%04x)", self.path, USB_VENDOR_ID, USB_PRODUCT_ID)
 
@@ -211,7 +211,7 @@ def connect(path: str | Path, timeout_s: float = 5.0) -> socket.socket:
 
     Raises
     ------
-    LinkTimeoutError
+    SimLinkTimeoutError
         No socket accepted the connection in time.
     """
     deadline = time.monotonic() + timeout_s
@@ -223,9 +223,9 @@ def connect(path: str | Path, timeout_s: float = 5.0) -> socket.socket:
         except OSError as exc:
             sock.close()
             if exc.errno not in (errno.ENOENT, errno.ECONNREFUSED):
-                raise LinkClosedError(f"{path}: {exc.strerror or exc}") from exc
+                raise SimLinkClosedError(f"{path}: {exc.strerror or exc}") from exc
             if time.monotonic() >= deadline:
-                raise LinkTimeoutError(f"{path}: no simulated USB device within {timeout_s} s") from exc
+                raise SimLinkTimeoutError(f"{path}: no simulated USB device within {timeout_s} s") from exc
             time.sleep(0.02)
 
 

@@ -30,7 +30,9 @@ from piezod.progress import progress
 
 FloatArray = NDArray[np.float64]
 
-#: DESIGN section 6 targets.
+#: Per-sample inverse of the richest runtime model (issue 9), ns per sample and axis.
+TARGET_MODEL_NS_PER_SAMPLE = 150.0
+#: The targets of docs/formats.md, section 5.
 TARGET_NS_PER_SAMPLE = 50.0
 TARGET_RATIO = 0.3
 TARGET_ROUNDTRIP_REL = 1e-9
@@ -91,6 +93,64 @@ def _time_interleaved(
     return [float(t) for t in best.sum(axis=1)], outputs
 
 
+def bench_models() -> dict[str, Any]:
+    """The axis models timed by :func:`axis_model_costs` (the family members at realistic sizes).
+
+    ``family/prandtl-ishlinskii`` is the richest runtime model: drive lag, 16 play operators,
+    a creep spectrum of 19 relaxation times from 0.1 ms to 1e5 s, the stiffness map.
+    """
+    from piezod.model.axis_model import DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
+    from piezod.model.dynamic import DynamicParams
+    from piezod.model.family import CreepSpectrum, FamilyParams
+    from piezod.model.params import HysteresisParams
+    from piezod.model.play import PlayParams
+
+    creep = CreepSpectrum.log_spaced(1e-4, 1e5, 2, 0.015 / 2)
+    shape = np.exp(-np.arange(16) / 6.0)
+    pi = PlayParams.uniform(0.115, 0.45, 320.0, 16, 0.55 * shape / shape.sum())
+    ch = HysteresisParams(3e-3, 0.115, 0.072)
+    return {
+        "thesis": ThesisAxisModel(MEDIUM_TUBE_TABLE_3_3, 0.01, 0.0),
+        "dynamic": DynamicAxisModel(DynamicParams(3e-3, 0.115, 0.072, 1.5)),
+        "family/coleman-hodgdon": FamilyAxisModel(FamilyParams(ch, creep, 2e-4, 0.05)),
+        "family/prandtl-ishlinskii": FamilyAxisModel(FamilyParams(pi, creep, 2e-4, 0.05)),
+    }
+
+
+def axis_model_costs(
+    targets_um: FloatArray, block_samples: int, repeats: int, range_um: float, dt_s: float
+) -> dict[str, dict[str, float]]:
+    """ns per sample of every :func:`bench_models` inverse through the axis-model interface.
+
+    The targets are streamed block by block with the state carried (as the engine does); every
+    block counts with its best time over the repeats; the round trip runs the forward model
+    over the voltages and compares with the targets (relative to the scan range).
+    """
+    out: dict[str, dict[str, float]] = {}
+    n = targets_um.size
+    for name, model in bench_models().items():
+        state0 = model.rest(0.0)
+        x = targets_um - float(targets_um[0]) + model.position(state0)
+        states, volts, st = [], [], state0
+        for i in range(0, n, block_samples):
+            states.append(st)
+            vb, st = model.inverse(x[i : i + block_samples], dt_s, st)
+            volts.append(vb)
+        best = np.full(len(states), math.inf)
+        for _ in range(max(1, repeats // 2)):
+            for j, st in enumerate(states):
+                i = j * block_samples
+                t0 = time.perf_counter()
+                model.inverse(x[i : i + block_samples], dt_s, st)
+                best[j] = min(best[j], time.perf_counter() - t0)
+        x_back, _ = model.forward(np.concatenate(volts), dt_s, state0)
+        out[name] = {
+            "ns_per_sample": float(best.sum()) / n * 1e9,
+            "max_roundtrip_error_rel": float(np.max(np.abs(x_back - x)) / range_um),
+        }
+    return out
+
+
 def run_inverse_bench(
     *,
     block_samples: int = 4096,
@@ -123,6 +183,7 @@ def run_inverse_bench(
         ``ns_per_sample``, ``scipy_ns_per_sample``, ``ratio``, ``max_roundtrip_error_rel``,
         ``max_voltage_difference_v`` (vs scipy), ``ode_ns_per_sample`` and
         ``ode_max_roundtrip_error_rel`` (per-sample ODE inverse on the same targets),
+        ``models`` (:func:`axis_model_costs`: every axis model's per-sample inverse at 100 kS/s),
         the settings, the targets and ``meets_targets``.
     """
     if block_samples < 1 or blocks < 1 or repeats < 1 or half_line_samples < 2:
@@ -160,7 +221,10 @@ def run_inverse_bench(
     ns = best_ours / n * 1e9
     ns_scipy = best_scipy / n * 1e9
     ratio = ns / ns_scipy
+    models = axis_model_costs(ode_x, block_samples, repeats, range_um, dt_s=1e-5)
     return {
+        "models": models,
+        "target_model_ns_per_sample": TARGET_MODEL_NS_PER_SAMPLE,
         "ns_per_sample": ns,
         "scipy_ns_per_sample": ns_scipy,
         "ratio": ratio,

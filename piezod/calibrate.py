@@ -73,7 +73,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares, minimize_scalar
 
 from piezod import __version__
-from piezod.config import AxisConfig, ScannerConfig, ThesisModelConfig
+from piezod.config import AxisConfig, ScannerConfig, ThesisModelConfig, calibrated_notes
 from piezod.errors import CalibrationError, ModelError
 from piezod.fitstats import at_bounds, fit_warnings, jacobian_covariance
 from piezod.model.params import ThesisParams
@@ -829,7 +829,7 @@ def calibrate(
 
 
 def result_json(result: CalibrationResult, *, inputs: Sequence[str] = ()) -> dict[str, Any]:
-    """The JSON document of ``piezod calibrate --json`` (DESIGN section 4)."""
+    """The JSON document of ``piezod calibrate --json`` (keys: docs/formats.md)."""
     corr = {
         a: {b: float(result.correlations[i, j]) for j, b in enumerate(result.free)}
         for i, a in enumerate(result.free)
@@ -942,6 +942,7 @@ def calibrated_config(
         data = base.model_dump()
         data["axes"] = {k: a.model_dump() for k, a in axes.items()}
         data["calibration"] = prov
+        data["notes"] = calibrated_notes(base.notes)
         try:
             return ScannerConfig.model_validate(data)
         except ValueError as exc:

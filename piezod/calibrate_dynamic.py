@@ -62,7 +62,13 @@ from scipy.optimize import least_squares, minimize_scalar
 from scipy.special import digamma
 
 from piezod import __version__
-from piezod.config import AxisConfig, DynamicModelConfig, ScannerConfig, ThesisModelConfig
+from piezod.config import (
+    AxisConfig,
+    DynamicModelConfig,
+    ScannerConfig,
+    ThesisModelConfig,
+    calibrated_notes,
+)
 from piezod.errors import CalibrationError, ModelError
 from piezod.fitstats import at_bounds, fit_warnings, jacobian_covariance
 from piezod.model.dynamic import (
@@ -962,7 +968,7 @@ def _finite(value: float) -> float | None:
 
 
 def result_json(result: DynamicCalibrationResult, *, inputs: Sequence[str] = ()) -> dict[str, Any]:
-    """The JSON document of a dynamic calibration (keys of DESIGN section 4, plus more)."""
+    """The JSON document of a dynamic calibration (keys of docs/formats.md, plus more)."""
     corr = {
         a: {b: float(result.correlations[i, j]) for j, b in enumerate(result.free)}
         for i, a in enumerate(result.free)
@@ -1112,6 +1118,7 @@ def calibrated_config(
         data = base.model_dump()
         data["axes"][axis] = base.axes[axis].model_copy(update=update).model_dump()
         data["calibration"] = {**(base.calibration or {}), "dynamic": prov}
+        data["notes"] = calibrated_notes(base.notes)
         try:
             return ScannerConfig.model_validate(data)
         except ValueError as exc:

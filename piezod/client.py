@@ -4,7 +4,7 @@
 
     from piezod.client import PiezodClient
 
-    with PiezodClient("unix:/run/piezod/piezod.sock") as daemon:
+    with PiezodClient("unix:/run/piezod/sim-stage.sock") as daemon:
         daemon.scan(range_um=10, line_rate_hz=2, lines=128, name="sample-a")
         for event in daemon.events(limit=10):
             print(event)
@@ -39,15 +39,19 @@ from piezod.service.schemas import (
     ScanRequest,
     Status,
 )
-from piezod.service.server import DEFAULT_API_SPEC, parse_api_spec
+from piezod.service.server import parse_api_spec
+from piezod.service.sockets import discover_api_spec
 
 #: Environment variable naming the API of ``piezod ctl`` and of a client without a spec.
 API_ENV = "PIEZOD_API"
 
 
 def default_api_spec() -> str:
-    """``$PIEZOD_API``, else :data:`~piezod.service.server.DEFAULT_API_SPEC`."""
-    return os.environ.get(API_ENV) or DEFAULT_API_SPEC
+    """``$PIEZOD_API``, else the one running daemon's socket.
+
+    See :func:`~piezod.service.sockets.discover_api_spec`.
+    """
+    return os.environ.get(API_ENV) or discover_api_spec()
 
 
 def _format_detail(body: Any) -> str:
@@ -77,8 +81,8 @@ class PiezodClient:
     Parameters
     ----------
     spec
-        ``unix:PATH`` or ``tcp:HOST:PORT``; default ``$PIEZOD_API`` or
-        ``unix:/run/piezod/piezod.sock``.
+        ``unix:PATH`` or ``tcp:HOST:PORT``; default ``$PIEZOD_API`` or the socket of the one
+        running daemon (:func:`~piezod.service.sockets.discover_api_spec`).
     token
         Bearer token, for a TCP API with a token file.
     timeout
@@ -231,13 +235,15 @@ class PiezodClient:
         name
             As listed by :meth:`recordings`.
         dest
-            A file, or an existing directory to put ``name`` in; default ``./name``.
-            Written to a temporary file first and renamed, so an interrupted
-            download leaves nothing behind.
+            A file, or a directory to put ``name`` in: an existing one, or one named
+            with a trailing ``/`` (created); default ``./name``. Missing parent
+            directories are created. Written to a temporary file first and renamed,
+            so an interrupted download leaves nothing behind.
         """
         target = Path(dest) if dest is not None else Path(name)
-        if target.is_dir():
+        if target.is_dir() or str(dest).endswith(("/", os.sep)):
             target = target / name
+        target.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
         try:
             with os.fdopen(fd, "wb") as out:

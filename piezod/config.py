@@ -16,7 +16,7 @@ import os
 import re
 import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin
@@ -628,8 +628,64 @@ def config_dir() -> Path:
 
 
 def default_sim_config_path() -> Path:
-    """``configs/sim-stage.yaml``, the simulated stage used by ``--sim``."""
+    """``configs/sim-stage.yaml``: the simulated stage (``simulation:``) with an uncalibrated host model."""
     return config_dir() / "sim-stage.yaml"
+
+
+def default_sim_scan_config_path() -> Path:
+    """``configs/sim-stage-calibrated.yaml``: the simulated stage with its shipped calibration.
+
+    ``scan --sim`` and ``serve --sim`` use it by default, so that a corrected scan on the
+    built-in stage is corrected by a calibrated model; ``calibrate --sim`` starts from
+    :func:`default_sim_config_path` (the first guess).
+    """
+    return config_dir() / "sim-stage-calibrated.yaml"
+
+
+def calibrated_notes(notes: list[str]) -> list[str]:
+    """A base config's notes for its calibrated copy: those saying it is uncalibrated dropped."""
+    return [n for n in notes if "uncalibrated" not in n.lower()]
+
+
+def calibrated_axes(config: ScannerConfig) -> frozenset[str]:
+    """The axes whose model the ``calibration:`` provenance covers.
+
+    ``piezod calibrate`` writes ``axis:`` (and ``dynamic: {axis: ...}``); a per-axis entry
+    (``calibration: {y: {...}}``) covers that axis; ``source:`` (parameters taken from a
+    publication, e.g. the thesis's tables) covers every axis.
+    """
+    cal = config.calibration or {}
+    if "source" in cal:
+        return frozenset(config.axes)
+    found = {str(cal["axis"])} if "axis" in cal else set()
+    dyn = cal.get("dynamic")
+    if isinstance(dyn, dict) and "axis" in dyn:
+        found.add(str(dyn["axis"]))
+    found.update(k for k in cal if k in config.axes)
+    return frozenset(found & set(config.axes))
+
+
+def uncalibrated_warning(
+    config: ScannerConfig,
+    path: str | os.PathLike[str] | None = None,
+    axes: Iterable[str] | None = None,
+) -> str | None:
+    """A one-line warning when an axis of ``axes`` (default: all) has an uncalibrated model, else None.
+
+    A config without ``calibration:`` provenance for an axis holds a first guess of its model
+    (e.g. ``configs/sim-stage.yaml``): a corrected scan with it is not linear.
+    ``piezod calibrate`` writes the provenance.
+    """
+    wanted = [a for a in (config.axes if axes is None else axes) if a in config.axes]
+    missing = [a for a in wanted if a not in calibrated_axes(config)]
+    if not missing:
+        return None
+    where = f"{os.fspath(path)}: " if path is not None else ""
+    which = "axis " + missing[0] if len(missing) == 1 else "axes " + ", ".join(missing)
+    return (
+        f"{where}scanner {config.name!r}, {which}: uncalibrated model (no calibration provenance), "
+        "a first guess: corrected scans will not be linear; run piezod calibrate"
+    )
 
 
 def json_schema() -> str:

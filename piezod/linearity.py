@@ -199,11 +199,20 @@ def experiment_linearity(
     where = (exp.path, exp.first_line)
     vinfo = exp.scan()
     info: ScanInfo = vinfo if exp.target_um is None else infer_scan(exp.t_s, exp.target_um)
+    src = "voltage" if exp.target_um is None else "target"
     if not info.is_periodic:
-        src = "voltage" if exp.target_um is None else "target"
         raise NotAScanError(
             f"experiment {exp.describe()}: the {src} is not a periodic back-and-forth scan with a "
             f"complete trace and retrace ({info.kind}: {info.reason})",
+            *where,
+        )
+    if info.kind != "triangle":
+        # (4.14)-(4.16) compare the position with a straight line in time: only a linear scan
+        # (a triangle of the target, or of the voltage when there is no target) has one.
+        raise NotAScanError(
+            f"experiment {exp.describe()}: the {src} is a {info.kind}, not a linear (triangular) scan; "
+            "linearity compares the position with a straight line in time"
+            + (" (record the target positions of a corrected scan)" if exp.target_um is None else ""),
             *where,
         )
     o = overscan if overscan is not None else (_metadata_float(exp, "overscan") or 0.0)
@@ -335,7 +344,7 @@ class LinearityReport:
         return max(abs(e.length_error_pct) for e in self.experiments)
 
     def to_json(self) -> dict[str, Any]:
-        """The document of ``piezod linearity --json`` (DESIGN section 4)."""
+        """The document of ``piezod linearity --json`` (keys: docs/formats.md)."""
         return {
             "experiments": [e.to_json() for e in self.experiments],
             "max_nonlinearity_pct": self.max_nonlinearity_pct,

@@ -1,4 +1,4 @@
-"""The recording format (DESIGN section 3): reader, streaming writer, experiments, scan inference.
+"""The recording format (docs/formats.md): reader, streaming writer, experiments.
 
 Format
 ------
@@ -50,10 +50,11 @@ Scan inference (what a voltage waveform is) lives in :mod:`piezod.scan_inference
 
 from __future__ import annotations
 
+import codecs
 import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
 from typing import IO
@@ -258,7 +259,55 @@ class Experiment:
 # ----------------------------------------------------------------------------------------------- reader
 
 
-def read_recording(path: str | os.PathLike[str], *, allow_truncated_tail: bool = False) -> Recording:
+def decode_text(raw: bytes, encoding: str | None, path: str | None = None) -> tuple[str, str]:
+    """Decode the bytes of a text file: ``encoding``, or detected.
+
+    Detection: a UTF-16 / UTF-32 byte-order mark, else UTF-8 (with or without BOM), else
+    Windows-1252 (a superset of Latin-1 in its printable range, what Windows instruments write),
+    else Latin-1, which decodes any byte.
+
+    Returns
+    -------
+    text, encoding
+        The text and the encoding used.
+
+    Raises
+    ------
+    RecordingError
+        An unknown ``encoding``, or bytes it cannot decode (with the line).
+    """
+    if encoding is not None:
+        try:
+            codecs.lookup(encoding)
+        except LookupError as exc:
+            raise RecordingError(f"unknown encoding {encoding!r}", path) from exc
+        try:
+            return raw.decode(encoding), encoding
+        except UnicodeDecodeError as exc:
+            line = raw.count(b"\n", 0, exc.start) + 1
+            raise RecordingError(f"not {encoding} text (byte 0x{raw[exc.start]:02x})", path, line) from exc
+    for bom, enc in (
+        (codecs.BOM_UTF32_LE, "utf-32"),
+        (codecs.BOM_UTF32_BE, "utf-32"),
+        (codecs.BOM_UTF16_LE, "utf-16"),
+        (codecs.BOM_UTF16_BE, "utf-16"),
+    ):
+        if raw.startswith(bom):
+            try:
+                return raw.decode(enc), enc
+            except UnicodeDecodeError as exc:
+                raise RecordingError(f"not {enc} text despite its byte-order mark", path) from exc
+    for enc in ("utf-8", "cp1252", "latin-1"):
+        try:
+            return raw.decode(enc), enc
+        except UnicodeDecodeError:
+            continue
+    raise RecordingError("cannot decode the file", path)  # pragma: no cover - latin-1 decodes anything
+
+
+def read_recording(
+    path: str | os.PathLike[str], *, allow_truncated_tail: bool = False, encoding: str | None = None
+) -> Recording:
     """Read a recording CSV file.
 
     Parameters
@@ -268,6 +317,10 @@ def read_recording(path: str | os.PathLike[str], *, allow_truncated_tail: bool =
     allow_truncated_tail
         Drop a final line that has no newline (left by a crash while writing)
         instead of parsing it.
+    encoding
+        Text encoding; None detects it (:func:`decode_text`: UTF-8, else Windows-1252 /
+        Latin-1 as instruments on Windows write); the encoding used is in the metadata
+        (``encoding``) when it is not UTF-8.
 
     Returns
     -------
@@ -277,8 +330,8 @@ def read_recording(path: str | os.PathLike[str], *, allow_truncated_tail: bool =
     Raises
     ------
     RecordingError
-        With ``path:line: reason`` for the first problem: unreadable or non-UTF-8
-        file, no header, missing / duplicate column, wrong number of cells,
+        With ``path:line: reason`` for the first problem: unreadable file or one
+        not in the given ``encoding``, no header, missing / duplicate column, wrong number of cells,
         non-numeric or non-finite number, bad axis or empty label, ``t`` not strictly
         increasing, non-contiguous experiment, no data rows.
     """
@@ -287,12 +340,11 @@ def read_recording(path: str | os.PathLike[str], *, allow_truncated_tail: bool =
         raw = Path(name).read_bytes()
     except OSError as exc:
         raise RecordingError(f"cannot read: {exc.strerror or exc}", name) from exc
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = raw.count(b"\n", 0, exc.start) + 1
-        raise RecordingError(f"not UTF-8 text (byte 0x{raw[exc.start]:02x})", name, line) from exc
-    return parse_recording(text, path=name, allow_truncated_tail=allow_truncated_tail)
+    text, used = decode_text(raw, encoding, name)
+    rec = parse_recording(text, path=name, allow_truncated_tail=allow_truncated_tail)
+    if used.replace("-", "").lower() not in ("utf8", "ascii"):
+        rec = replace(rec, metadata={**rec.metadata, "encoding": used})
+    return rec
 
 
 def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail: bool = False) -> Recording:
@@ -608,6 +660,12 @@ class RecordingWriter:
         self.rows_written += n
         return n
 
+    def comment(self, text: str) -> None:
+        """Append a comment line ``# text`` (e.g. a scan change between experiments) and flush."""
+        _meta_value(text)
+        self._fh.write(f"# {text}\n")
+        self._flush()
+
     def write_recording(self, rec: Recording) -> int:
         """Write all rows of ``rec`` (its columns must match the writer's)."""
         return self.write(
@@ -664,8 +722,31 @@ def write_recording(
 # ------------------------------------------------------------------------------------------ experiments
 
 
+#: A step of ``t`` longer than this many median sample intervals is a gap in the recording.
+GAP_FACTOR = 10.0
+
+
+def time_gaps(t_s: ArrayLike) -> NDArray[np.intp]:
+    """Indices where a gap in ``t`` starts a new piece (a step above :data:`GAP_FACTOR` x the median).
+
+    Nothing is interpolated across a gap: the samples on both sides become separate experiments.
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    if t.size < 3:
+        return np.zeros(0, dtype=np.intp)
+    dt = np.diff(t)
+    med = float(np.median(dt))
+    if not med > 0:
+        return np.zeros(0, dtype=np.intp)
+    return (np.flatnonzero(dt > GAP_FACTOR * med) + 1).astype(np.intp)
+
+
 def split_experiments(rec: Recording, *, default_label: str | None = None) -> list[Experiment]:
     """Split a recording into experiments, one per (label, axis), in file order.
+
+    A gap in ``t`` (a step longer than :data:`GAP_FACTOR` median sample intervals) splits an
+    experiment into pieces labelled ``label#1``, ``label#2``, ...; every later piece carries
+    ``gap_before_s`` and ``split_from`` in its metadata.
 
     Parameters
     ----------
@@ -707,24 +788,31 @@ def split_experiments(rec: Recording, *, default_label: str | None = None) -> li
                     )
                 seen.add(lab)
         for s, e, lab in bounds:
-            sel = rows[s:e]
-            sl: slice | NDArray[np.int64] = slice(int(sel[0]), int(sel[-1]) + 1) if ax is None else sel
-            out.append(
-                (
-                    int(sel[0]),
-                    Experiment(
-                        label=lab,
-                        axis=ax,
-                        t_s=rec.t_s[sl],
-                        voltage_v=rec.voltage_v[sl],
-                        position_um=rec.position_um[sl],
-                        target_um=None if rec.target_um is None else rec.target_um[sl],
-                        path=rec.path,
-                        line_numbers=None if rec.line_numbers is None else rec.line_numbers[sl],
-                        metadata=rec.metadata,
-                    ),
+            whole = rows[s:e]
+            cuts = time_gaps(rec.t_s[whole])
+            pieces = np.split(whole, cuts)
+            for k, sel in enumerate(pieces):
+                sl: slice | NDArray[np.int64] = slice(int(sel[0]), int(sel[-1]) + 1) if ax is None else sel
+                meta = rec.metadata
+                if k > 0:
+                    gap = float(rec.t_s[sel[0]] - rec.t_s[pieces[k - 1][-1]])
+                    meta = {**rec.metadata, "gap_before_s": f"{gap:.6g}", "split_from": lab}
+                out.append(
+                    (
+                        int(sel[0]),
+                        Experiment(
+                            label=lab if len(pieces) == 1 else f"{lab}#{k + 1}",
+                            axis=ax,
+                            t_s=rec.t_s[sl],
+                            voltage_v=rec.voltage_v[sl],
+                            position_um=rec.position_um[sl],
+                            target_um=None if rec.target_um is None else rec.target_um[sl],
+                            path=rec.path,
+                            line_numbers=None if rec.line_numbers is None else rec.line_numbers[sl],
+                            metadata=meta,
+                        ),
+                    )
                 )
-            )
     out.sort(key=lambda item: item[0])
     return [e for _, e in out]
 
@@ -734,6 +822,7 @@ def read_experiments(
     *,
     axis: str | None = None,
     allow_truncated_tail: bool = False,
+    encoding: str | None = None,
 ) -> list[Experiment]:
     """Read recordings and split them into experiments.
 
@@ -748,7 +837,7 @@ def read_experiments(
     """
     out: list[Experiment] = []
     for p in paths:
-        rec = read_recording(p, allow_truncated_tail=allow_truncated_tail)
+        rec = read_recording(p, allow_truncated_tail=allow_truncated_tail, encoding=encoding)
         for e in split_experiments(rec):
             if axis is not None and e.axis not in (None, axis):
                 continue

@@ -200,6 +200,15 @@ class RasterGenerator:
         return self._next
 
     @property
+    def pending_index(self) -> int | None:
+        """Sample index where requested new parameters take effect (the next line boundary), or None."""
+        if self._pending is None:
+            return None
+        line = self._line_at(self._next)
+        start = self._line_start(line)
+        return start if start == self._next else self._line_start(line + 1)
+
+    @property
     def done(self) -> bool:
         """True when a finite number of frames has been produced."""
         p = self._params

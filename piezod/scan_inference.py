@@ -244,7 +244,16 @@ def _drop_cut_edges(v: F64, idx: I64, kinds: I8, tol: float) -> tuple[I64, I8]:
     interior = np.ones(idx.size, dtype=bool)
     interior[[0, -1]] = False
     keep = interior.copy()
-    for edge in np.flatnonzero(~interior) if interior.any() else ():
+    if not interior.any():
+        # One or two candidates (a one-period triangle, a half loop): a candidate is a turning
+        # point when the waveform turns back on both sides of it by a third of the span, i.e.
+        # when its band run is not cut by the record's start or end.
+        span = float(np.ptp(v))
+        for j, (k, kind) in enumerate(zip(idx.tolist(), kinds.tolist(), strict=True)):
+            drop = kind * (v[k] - v)
+            keep[j] = bool(np.any(drop[: k + 1] >= span / 3.0) and np.any(drop[k:] >= span / 3.0))
+        return idx[keep], kinds[keep]
+    for edge in np.flatnonzero(~interior):
         same = kinds == kinds[edge]
         ref_pool = v[idx[same & interior]] if np.any(same & interior) else v[idx[same]]
         keep[edge] = abs(v[idx[edge]] - float(np.median(ref_pool))) <= tol

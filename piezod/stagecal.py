@@ -367,6 +367,51 @@ def _fit_dynamic_here(
     return ThesisFit(cd.result_json(result, inputs=[str(frame_path)]), config, float(result.fit_error_pct))
 
 
+def _choose_here(
+    frame_path: Path, axis: AxisName, base: ScannerConfig, ramp_v_per_s: float, rest_voltage_v: float
+) -> ThesisFit:
+    """Fit the family's laws, score them and the dynamic model of ``base`` on held-out experiments."""
+    from piezod import calibrate_dynamic as cd
+    from piezod import calibrate_family as cf
+    from piezod.model.family import CreepSpectrum, FamilyParams
+
+    data = cd.prepare_dynamic(
+        read_experiments([frame_path], axis=axis),
+        max_samples_per_loop=256,
+        slew_rate_v_per_s=ramp_v_per_s,
+        rest_voltage_v=rest_voltage_v,
+    )
+    ax = base.axes[axis]
+    others: dict[str, FamilyParams] = {}
+    alpha = None
+    if ax.dynamic is not None:
+        dyn = ax.dynamic.params()
+        alpha = dyn.alpha_per_v
+        spectrum = CreepSpectrum(tuple(map(float, dyn.taus_s)), tuple(map(float, dyn.weights)))
+        others["dynamic"] = FamilyParams(dyn.hysteresis, spectrum)
+    choice = cf.choose_model(data, others=others, alpha_per_v=alpha)
+    report: dict[str, Any] = {
+        "chosen": choice.chosen,
+        "held_out_experiments": list(choice.holdout),
+        "heldout_rms_um": choice.heldout_rms_um,
+        "train_rms_um": choice.train_rms_um,
+        "table": choice.table(),
+    }
+    config = base
+    if choice.fit is not None:
+        section = cf.family_model_config(choice.fit.params)
+        axes = dict(base.axes)
+        axes[axis] = ax.model_copy(update={"model": "family", "family": section})
+        config = base.model_copy(update={"axes": axes})
+        report["family"] = section.model_dump()
+        report["family_rms_um"] = choice.fit.rms_um
+    elif ax.dynamic is not None:
+        axes = dict(base.axes)
+        axes[axis] = ax.model_copy(update={"model": "dynamic"})
+        config = base.model_copy(update={"axes": axes})
+    return ThesisFit(report, config, float(choice.heldout_rms_um[choice.chosen]))
+
+
 def _linearity_here(path: Path, axis: AxisName) -> tuple[float, float]:
     e = linearity(read_experiments([path], axis=axis)).experiments[0]
     return float(e.nonlinearity_pct), float(e.length_error_pct)
@@ -415,6 +460,22 @@ class AnalysisWorker:
         return self._pool.submit(
             _fit_dynamic_here, frame_path, axis, base, ramp_v_per_s, rest_voltage_v
         ).result()
+
+    def choose_model(
+        self,
+        frame_path: Path,
+        base: ScannerConfig,
+        axis: AxisName,
+        *,
+        ramp_v_per_s: float,
+        rest_voltage_v: float,
+    ) -> ThesisFit:
+        """Fit the model family and choose the model (family laws, ``base``'s dynamic model) that
+        predicts held-out experiments of the frame best; the returned config uses it.
+
+        ``fit_error_pct`` of the result holds the chosen model's held-out RMS in um.
+        """
+        return self._pool.submit(_choose_here, frame_path, axis, base, ramp_v_per_s, rest_voltage_v).result()
 
     def linearity(self, path: Path, axis: AxisName = "x") -> tuple[float, float]:
         """(nonlinearity %, length error %) of the first experiment of ``axis`` in ``path``."""
@@ -481,6 +542,16 @@ def plot_verification(rows: Sequence[dict[str, Any]], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    fig = verification_figure(rows)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def verification_figure(rows: Sequence[dict[str, Any]]) -> Any:
+    """The figure of :func:`plot_verification` (a matplotlib ``Figure``)."""
+    import matplotlib.pyplot as plt
+
     models = sorted({r["model"] for r in rows})
     pts = [r for r in rows if r["model"] == models[0]]
     labels = [f"{r['range_um']:g} um\n{r['frequency_hz']:g} Hz\n{r['offset_um']:+g} um" for r in pts]
@@ -493,30 +564,42 @@ def plot_verification(rows: Sequence[dict[str, Any]], path: Path) -> Path:
         le = [math.nan if r.get("length_error_pct") is None else r["length_error_pct"] for r in sel]
         axes[0].bar(x + k * width, nl, width, label=model)
         axes[1].bar(x + k * width, le, width, label=model)
-    for i, r in enumerate(pts):
-        if not r["inside_frame"]:
-            for a in axes:
-                a.axvspan(i - 0.45, i + 0.45 + width * (len(models) - 1), color="0.9", zorder=0)
-    axes[0].set_ylabel("nonlinearity %")
-    axes[0].axhline(0.2, color="k", ls=":", lw=0.8, label="one pixel (0.2 %)")
+    outside = [i for i, r in enumerate(pts) if not r["inside_frame"]]
+    for i in outside:
+        for a in axes:
+            a.axvspan(i - 0.45, i + 0.45 + width * (len(models) - 1), color="0.9", zorder=0)
+    # Axis limits follow the data; a reference line is drawn only where it lies inside them.
+    nl_all = [r["nonlinearity_pct"] for r in rows if r.get("nonlinearity_pct") is not None]
+    le_all = [abs(r["length_error_pct"]) for r in rows if r.get("length_error_pct") is not None]
+    nl_top = 1.25 * max([*nl_all, 0.05])
+    le_lim = 1.25 * max([*le_all, 0.05])
+    axes[0].set_ylabel("nonlinearity (% of range)")
+    axes[0].set_ylim(0.0, nl_top)
+    if nl_top > 0.2:
+        axes[0].axhline(0.2, color="k", ls=":", lw=0.8, label="one pixel of 512 (0.2 %)")
     axes[0].axhline(0.05, color="g", ls="--", lw=0.8, label="target in frame (0.05 %)")
-    axes[1].set_ylabel("length error %")
+    axes[1].set_ylabel("length error (% of range)")
+    axes[1].set_ylim(-le_lim, le_lim)
     axes[1].axhline(0.0, color="k", lw=0.8)
-    for y in (-1.0, 1.0):
-        axes[1].axhline(y, color="r", ls=":", lw=0.8)
+    if le_lim > 1.0:
+        for y in (-1.0, 1.0):
+            axes[1].axhline(y, color="r", ls=":", lw=0.8, label="+-1 %" if y > 0 else None)
     axes[1].set_xticks(x + width * (len(models) - 1) / 2, labels, fontsize=7)
+    axes[1].set_xlabel("verification scan: range, line rate, offset")
     axes[0].legend()
-    axes[0].set_title("Online correction on the stage (grey: outside the frame)", fontsize=10)
+    title = "Online correction on the stage: linearity of verification scans per model"
+    if outside:
+        title += "\n(grey: outside the calibration frame)"
+    axes[0].set_title(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return fig
 
 
 def frame_summary(frame: Frame) -> str:
     """One line describing the frame."""
     (r0, r1), (f0, f1), (o0, o1) = frame.ranges_v, frame.frequencies_hz, frame.offsets_v
+    offsets = f"offset {o0:+g} V" if o0 == o1 else f"offsets {o0:+g}..{o1:+g} V"
     return (
         f"{len(frame.scans)} scans on {frame.axis}: {r0:g}-{r1:g} V p-p, {f0:g}-{f1:g} Hz, "
-        f"offsets {o0:+g}..{o1:+g} V, ~{frame.duration_s:.0f} s"
+        f"{offsets}, ~{frame.duration_s:.0f} s"
     )

@@ -1,4 +1,4 @@
-"""``piezod audit`` on the command line: report, JSON keys of DESIGN section 4, plots, errors."""
+"""``piezod audit`` on the command line: report, JSON keys of docs/formats.md, plots, errors."""
 
 from __future__ import annotations
 
@@ -65,6 +65,7 @@ def test_json_report_and_plots(delay_csv: Path, tmp_path: Path, capsys: pytest.C
     assert sorted(p.name for p in plots.iterdir()) == [
         "gains.png",
         "loops.png",
+        "prediction.png",
         "residuals.png",
         "structure.png",
         "summary.png",

@@ -41,6 +41,7 @@ from firmware_proto import (
     Start,
     Status,
     Stop,
+    Sync,
     VersionMismatchError,
     encode,
 )
@@ -688,3 +689,47 @@ def test_throughput_3_channels_100k(stage_config: StageConfig) -> None:
     )
     assert board.counters.underruns == 0
     assert played >= n_total - rate * 0.01
+
+
+def test_sync_outputs_follow_their_events_and_drop_when_the_clock_stops(stage_config: StageConfig) -> None:
+    board, _ = make_board(stage_config)
+    link = Link(board)
+    assert link.hello().sync_outputs == 3
+    link.request(configure())
+    for _ in range(2000):
+        if board.state is BoardState.IDLE:
+            break
+        link.pump(1e-3)
+    assert isinstance(link.request(Start(20_000, 100)), Acked)
+    # frame + line + pixel at the first sample, pixel clock every 10 samples (high for 5)
+    events = [(0, 0b111, 0b111), (5, 0b000, 0b111)]
+    for k in range(1, 10):
+        events += [(10 * k, 0b001, 0b001), (10 * k + 5, 0b000, 0b001)]
+    link.send(Sync(20_000, tuple(events)))
+    link.send(Sync(20_000, tuple(events[:4])))  # a resend (go-back-N): skipped, not doubled
+    # index 20001 lies behind the queue (skipped), 20500 past the run (queued, cleared at the stop)
+    link.send(Sync(20_000, ((1, 0b100, 0b100), (500, 0b010, 0b110))))
+    send_samples(link, 20_000, np.zeros((100, 3), dtype=np.int16))
+    link.run(0.05)  # 100 samples at 10 kS/s, then an underrun
+    got = board.sync_transitions
+    want = [(20_000, 0b111), (20_005, 0b000)]
+    for k in range(1, 10):
+        want += [(20_000 + 10 * k, 0b001), (20_005 + 10 * k, 0b000)]
+    assert got == want
+    assert link.msgs(Fault)[-1].code is FaultCode.UNDERRUN
+    # events past the end were never applied; outputs low while stopped; a frame in IDLE is dropped
+    before = link.last_status().frames_dropped
+    link.send(Sync(30_000, ((0, 0b111, 0b111),)))
+    link.settle()
+    assert board.sync_transitions == want and link.last_status().frames_dropped == before + 1
+
+
+def test_a_board_without_sync_outputs_drops_sync(stage_config: StageConfig) -> None:
+    board, _ = make_board(stage_config, sync_outputs=0)
+    link = Link(board)
+    link.setup()
+    assert isinstance(link.request(Start(0, 10)), Acked)
+    link.send(Sync(0, ((0, 1, 1),)))
+    send_samples(link, 0, np.zeros((10, 3), dtype=np.int16))
+    link.run(0.01)
+    assert board.sync_transitions == [] and board.capabilities.sync_outputs == 0

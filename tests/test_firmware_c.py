@@ -23,6 +23,8 @@ REPLY_CHECKS = {
     "ACK": "reply-to-CONFIGURE",
     "NAK_VERSION_MISMATCH": "reply-to-HELLO_V2",
     "NAK_BAD_VALUE": "reply-to-CONFIGURE",
+    "CAPABILITIES_SYNC": "reply-to-HELLO",
+    "SYNC": "outputs-follow-events",
 }
 
 

@@ -162,3 +162,16 @@ def test_non_scans_are_skipped_only_when_asked() -> None:
     assert len(rep.experiments) == 1 and len(rep.skipped) == 1
     with pytest.raises(RecordingError, match="not a periodic"):
         linearity([slow], skip_non_scans=True)
+
+
+def test_a_sine_is_refused_with_the_reason_not_compared_with_a_ramp() -> None:
+    t = np.arange(4000) / 1000.0
+    v = 50.0 * np.sin(2 * np.pi * 1.0 * t)
+    exp = Experiment("sine", None, t, v, 0.2 * v)
+    with pytest.raises(RecordingError, match="sine, not a linear") as info:
+        experiment_linearity(exp, range_um=20.0)
+    assert "target" in str(info.value)
+    # A corrected scan: its voltage is no triangle, but its target is; that one is measured.
+    target = 10.0 * (2.0 * np.abs(((t * 1.0) % 1.0) - 0.5) * 2.0 - 1.0)
+    corrected = Experiment("corrected", None, t, v, target + 0.001, target_um=target)
+    assert experiment_linearity(corrected).nonlinearity_pct < 0.1

@@ -17,12 +17,13 @@ import usb.util
 from fake_board import FakeBoard
 
 from firmware_proto import FrameDecoder, Hello, encode
+from hil_sim.usb_backend import SimSocketBackend
 from piezod.config import default_sim_config_path, load_config
 from piezod.errors import ConfigError, LinkClosedError
 from piezod.link.session import BoardSession, LinkSettings
 from piezod.link.streamer import Streamer, TriangleSource
 from piezod.link.transport import open_transport
-from piezod.link.usb import BACKEND_ENV, BOARD_PID, BOARD_VID, EP_IN, EP_OUT, SimSocketBackend, UsbTransport
+from piezod.link.usb import BACKEND_ENV, BOARD_PID, BOARD_VID, EP_IN, EP_OUT, UsbTransport
 
 
 @pytest.fixture

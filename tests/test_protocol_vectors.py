@@ -103,7 +103,9 @@ def test_message_summary_table_matches_codec_payload_sizes() -> None:
         msg = by_type[MessageType[name]]
         c = getattr(msg, "n_channels", 0)
         n = getattr(msg, "n_samples", 0)
-        expected = eval(size_expr.replace("C", str(c)).replace("N", str(n)), {})  # arithmetic only
+        e = len(getattr(msg, "events", ()))
+        expr = size_expr.replace("C", str(c)).replace("N", str(n)).replace("E", str(e))
+        expected = eval(expr, {})  # arithmetic only
         assert len(msg.pack_payload()) == expected, name
 
 
@@ -113,6 +115,7 @@ _ALIASES = {
     "fw_major": lambda m: m.firmware_version[0],
     "fw_minor": lambda m: m.firmware_version[1],
     "fw_patch": lambda m: m.firmware_version[2],
+    "n_events": lambda m: len(m.events),
 }
 
 

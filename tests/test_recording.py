@@ -175,12 +175,32 @@ def test_malformed_file_gives_file_line_and_reason(tmp_path: Path, text: str, li
     assert reason in err.reason
 
 
-def test_non_utf8_names_the_line(tmp_path: Path) -> None:
+def test_bytes_outside_the_given_encoding_name_the_line(tmp_path: Path) -> None:
     p = tmp_path / "bin.csv"
     p.write_bytes(b"t,voltage,position\n0,1,2\n1,\xff,2\n")
-    with pytest.raises(RecordingError, match=r"bin\.csv:3: not UTF-8") as info:
+    with pytest.raises(RecordingError, match=r"bin\.csv:3: not utf-8") as info:
+        read_recording(p, encoding="utf-8")
+    assert info.value.line == 3
+    # Detected as a single-byte encoding, the bad cell is then named as a bad number.
+    with pytest.raises(RecordingError, match=r"bin\.csv:3:") as info:
         read_recording(p)
     assert info.value.line == 3
+
+
+def test_latin1_and_utf16_instrument_exports_are_read(tmp_path: Path) -> None:
+    text = "# instrument: Interferometer \u00b5m, 23 \u00b0C\nt,voltage,position\n0,1,2\n1,2,3\n"
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes(text.encode("latin-1"))
+    rec = read_recording(latin)
+    assert rec.metadata["instrument"] == "Interferometer \u00b5m, 23 \u00b0C"
+    assert rec.metadata["encoding"] == "cp1252"
+    assert list(rec.position_um) == [2.0, 3.0]
+    assert read_recording(latin, encoding="latin-1").metadata["encoding"] == "latin-1"
+    wide = tmp_path / "wide.csv"
+    wide.write_bytes(text.encode("utf-16"))
+    assert list(read_recording(wide).voltage_v) == [1.0, 2.0]
+    with pytest.raises(RecordingError, match="unknown encoding"):
+        read_recording(latin, encoding="no-such-codec")
 
 
 def test_missing_file(tmp_path: Path) -> None:
@@ -348,3 +368,20 @@ def test_read_write_speed_against_loadtxt(tmp_path: Path) -> None:
         f"{t_savetxt:.3f} s)"
     )
     assert len(back) == n
+
+
+def test_a_gap_in_t_splits_the_experiment_and_is_not_interpolated(tmp_path: Path) -> None:
+    from piezod.recording import split_experiments
+
+    t = np.concatenate((np.arange(0.0, 1.0, 0.01), 2.0 + np.arange(0.0, 1.0, 0.01)))
+    v = np.sin(2 * np.pi * t)
+    rec = Recording(t_s=t, voltage_v=v, position_um=0.1 * v, path=str(tmp_path / "gap.csv"))
+    parts = split_experiments(rec)
+    assert [e.label for e in parts] == ["gap#1", "gap#2"]
+    assert [len(e) for e in parts] == [100, 100]
+    assert parts[1].t_s[0] == pytest.approx(2.0)
+    assert float(parts[1].metadata["gap_before_s"]) == pytest.approx(1.01)
+    assert parts[1].metadata["split_from"] == "gap"
+    # Jitter of the sample clock is not a gap.
+    jitter = np.cumsum(np.random.default_rng(0).uniform(0.009, 0.011, 300))
+    assert len(split_experiments(Recording(t_s=jitter, voltage_v=np.sin(jitter), position_um=jitter))) == 1

@@ -304,12 +304,16 @@ def test_piezod_sim_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
 
 
 def test_bad_input_fails_with_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from hil_sim.errors import SimLinkError
     from hil_sim.server import main, spawn_sim
+    from piezod import simulator
 
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: x\naxes: {}\n", encoding="utf-8")
-    with pytest.raises(LinkError, match=r"status 2 .*bad\.yaml"):
+    with pytest.raises(SimLinkError, match=r"status 2 .*bad\.yaml"):
         spawn_sim(bad)
+    with pytest.raises(LinkError, match=r"status 2 .*bad\.yaml"):  # the host's entry point
+        simulator.spawn_sim(bad)
     assert main(["--corrupt-rate", "2"]) == 2
     out = capsys.readouterr()
     assert out.out == "" and out.err.count("\n") == 1 and "corrupt_rate" in out.err

@@ -17,7 +17,17 @@ from piezod.audit.decide import AuditOptions, AuditResult, CandidateResult, run_
 from piezod.audit.report import print_summary, result_json
 
 #: Every ``cause`` the audit can name.
-CAUSES: tuple[str, ...] = ("none", *EFFECTS, "unexplained")
+#: ``switching``, ``sensitivity_loss`` come from the model-free checks (:mod:`piezod.audit.outside`),
+#: ``undetermined`` from :mod:`piezod.audit.degenerate`.
+CAUSES: tuple[str, ...] = (
+    "none",
+    *EFFECTS,
+    "switching",
+    "sensitivity_loss",
+    "sensitivity_gain",
+    "undetermined",
+    "unexplained",
+)
 
 __all__ = [
     "CAUSES",

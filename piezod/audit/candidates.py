@@ -1,4 +1,4 @@
-"""Candidate extensions of the baseline, one per physical effect (audit ids of DESIGN section 4).
+"""Candidate extensions of the baseline, one per physical effect (audit effect ids of docs/formats.md).
 
 Each candidate adds a physically motivated term with one or two parameters to the baseline.
 The extended model is evaluated as a pipeline in the order in which a real stage produces
@@ -38,7 +38,7 @@ from piezod.audit.dynamics import first_order_lag, lag_coefficients, pure_delay,
 
 F64 = NDArray[np.float64]
 
-#: Effect ids in the order of DESIGN section 4 (the candidates).
+#: Effect ids in the order of docs/formats.md (the candidates).
 EFFECTS: tuple[str, ...] = (
     "drift",
     "thermal",

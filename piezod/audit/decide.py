@@ -46,6 +46,8 @@ from piezod.audit.baseline import (
 )
 from piezod.audit.bounds import implausible as physically_implausible
 from piezod.audit.candidates import EFFECTS, AuditModel, Candidate, Scales, make_candidate
+from piezod.audit.degenerate import Degeneracy
+from piezod.audit.degenerate import check as check_degeneracy
 from piezod.audit.evidence import Structure, evidence, structure
 from piezod.audit.fitting import (
     Fit,
@@ -57,6 +59,8 @@ from piezod.audit.fitting import (
     heldout_cv,
     heldout_validate,
 )
+from piezod.audit.outside import Outside
+from piezod.audit.outside import check as check_outside
 from piezod.audit.residuals import noise_floor_data
 from piezod.errors import CalibrationError, PiezodError
 from piezod.recording import Experiment
@@ -159,10 +163,13 @@ class CandidateResult:
     evidence: str = ""
     gain_se: float = math.nan
     implausible: str = ""
+    gain_override: float = math.nan
 
     @property
     def gain(self) -> float:
         """Held-out RMS before / after."""
+        if math.isfinite(self.gain_override):
+            return self.gain_override
         if not (self.heldout_rms_after_um > 0):
             return math.nan
         return self.heldout_rms_before_um / self.heldout_rms_after_um
@@ -198,6 +205,10 @@ class AuditResult:
         Warnings and remarks.
     seconds
         Wall time.
+    outside
+        The model-free checks (switching, drift in voltage holds, lost sensitivity).
+    degeneracy
+        What the data cannot determine about the baseline.
     """
 
     cause: str
@@ -219,6 +230,8 @@ class AuditResult:
     final_structure: Structure
     notes: tuple[str, ...] = field(default=())
     seconds: float = 0.0
+    outside: Outside = field(default_factory=Outside)
+    degeneracy: Degeneracy | None = None
 
     @property
     def structure_ratio(self) -> float:
@@ -317,6 +330,15 @@ def run_audit(
         raise PiezodError(f"unknown effect(s) {', '.join(unknown)}; choose from {', '.join(EFFECTS)}")
     step = on_step or (lambda _s: None)
     notes: list[str] = []
+    outside = check_outside(experiments)
+    for e in experiments:
+        gap = e.metadata.get("gap_before_s")
+        if gap is not None:
+            where = f" ({e.path}:{e.first_line})" if e.path and e.first_line else ""
+            notes.append(
+                f"gap of {gap} s in t before {e.label}{where}: {e.metadata.get('split_from', '')} was split "
+                "there into separate experiments (nothing interpolated across the gap)"
+            )
     scans = [e.scan() for e in experiments]
     val_scans = [e.scan() for e in validate]
     kind = _choose_base(scans, val_scans, opts.base)
@@ -330,7 +352,18 @@ def run_audit(
     def start_fit(which: str) -> tuple[Fit, Scales]:
         if which == ODE:
             base: ThesisBase | OdeBase
-            base, z0 = ode_start(data)
+            try:
+                base, z0 = ode_start(data)
+            except CalibrationError as exc:
+                span = float(np.ptp(data.voltage_v))
+                if not span > 0:
+                    raise
+                # No actuator loop to start from (a butterfly, a loop without opening): fit from
+                # a nearly linear one; the degeneracy check says what the data do not determine.
+                notes.append(f"baseline start: {exc}; fitted from a nearly linear start")
+                base = OdeBase(alpha_bounds=(1e-4 / span, 60.0 / span))
+                slope = abs(float(np.polyfit(data.voltage_v, data.position_um, 1)[0])) + 1e-9
+                z0 = np.array([math.log(1e-2 / span), slope, 1e-6 * slope / span])
         else:
             base, z0, warns = thesis_start(list(experiments))
             notes.extend(warns)
@@ -381,11 +414,41 @@ def run_audit(
 
     base_ho = heldout(base_fit)
     step("baseline held-out")
+    degeneracy = check_degeneracy(base_fit, geo, rows)
     current, current_ho = base_fit, base_ho
     rounds: list[tuple[CandidateResult, ...]] = []
     findings: list[CandidateResult] = []
+    pre: list[CandidateResult] = []
     remaining = [e for e in opts.effects]
-    for rnd in range(1, opts.max_findings + 1):
+    stop = ""
+    if outside.switching is not None:
+        stop = "switching"
+        notes.append(f"switching: {outside.switching.text}")
+    drift = outside.drift
+    if drift is not None:
+        bad = physically_implausible("drift", {"rate_nm_per_s": drift.rate_nm_per_s}, scales)
+        if drift.significant and not bad and "drift" in remaining:
+            pre.append(
+                CandidateResult(
+                    effect="drift",
+                    round=0,
+                    testable="",
+                    params={"rate_nm_per_s": drift.rate_nm_per_s, "rate_se_nm_per_s": drift.rate_se_nm_per_s},
+                    rms_um=math.nan,
+                    bic_delta=drift.bic_delta,
+                    heldout_rms_before_um=math.nan,
+                    heldout_rms_after_um=math.nan,
+                    eligible=True,
+                    evidence=drift.text,
+                    gain_se=drift.gain_se,
+                    implausible=bad,
+                    gain_override=drift.gain,
+                )
+            )
+            remaining.remove("drift")
+        else:
+            notes.append(f"voltage holds: {drift.text}" + (f"; {bad}" if bad else "; not significant"))
+    for rnd in range(1, 0 if stop else opts.max_findings + 1):
         results: list[CandidateResult] = []
         for effect in remaining:
             cand = make_candidate(effect, kind)
@@ -404,7 +467,7 @@ def run_audit(
         eligible = [r for r in results if r.eligible]
         if not eligible:
             break
-        best = max(eligible, key=lambda r: (r.gain, -r.bic_delta))
+        best = _best(eligible)
         findings.append(best)
         assert best.fit is not None and best.heldout is not None
         current, current_ho = best.fit, best.heldout
@@ -441,9 +504,66 @@ def run_audit(
         )
         explained.append(replace(f, evidence=text))
         before = struct(f.fit)
-    findings = explained
+    findings = pre + explained
+    loss = outside.loss
+    if loss is not None:
+        findings.append(
+            CandidateResult(
+                effect="sensitivity_loss",
+                round=0,
+                testable="",
+                params={"loss_pct": loss.loss_pct, "after_peak_v": loss.peak_v},
+                rms_um=math.nan,
+                bic_delta=math.nan,
+                heldout_rms_before_um=math.nan,
+                heldout_rms_after_um=math.nan,
+                eligible=True,
+                evidence=loss.text,
+            )
+        )
+    for path, g in base_ho.gains.items():
+        if abs(g - 1.0) > 0.1:
+            findings.append(
+                CandidateResult(
+                    effect="sensitivity_loss" if g < 1.0 else "sensitivity_gain",
+                    round=0,
+                    testable="",
+                    params={"change_pct": 100.0 * (g - 1.0)},
+                    rms_um=math.nan,
+                    bic_delta=math.nan,
+                    heldout_rms_before_um=math.nan,
+                    heldout_rms_after_um=math.nan,
+                    eligible=True,
+                    evidence=(
+                        f"the validation session {path} has {100.0 * (g - 1.0):+.3g} % of the training "
+                        "session's sensitivity (fitted as its sensor gain)"
+                    ),
+                )
+            )
     final_struct = before
-    if findings:
+    if not stop and degeneracy.degenerate and (findings or ratio > opts.structure_max):
+        # The baseline alone is undetermined; a model with findings may be determined (an
+        # effect the baseline tried to absorb). No cause is named on an undetermined model.
+        final_deg = check_degeneracy(current, geo, rows) if current is not base_fit else degeneracy
+        if final_deg.degenerate and (final_deg.blocks_a_cause or not findings):
+            stop = "undetermined"
+            degeneracy = final_deg
+            notes.append(final_deg.text)
+            if findings:
+                notes.append("not named on the undetermined model: " + ", ".join(f.effect for f in findings))
+            findings = []
+        else:
+            told = (final_deg if final_deg.degenerate else degeneracy).text.split(". No cause")[0]
+            notes.append(
+                f"{told}. The findings do not depend on it (their parameters correlate with the "
+                f"baseline's by at most {final_deg.extension_correlation:.3g})"
+            )
+            degeneracy = final_deg
+    elif not stop and degeneracy.degenerate:
+        notes.append(degeneracy.text.split(". No cause")[0] + ". Nothing above the noise needs a cause.")
+    if stop:
+        cause = stop
+    elif findings:
         cause = findings[0].effect
         final_ratio = current.rms_um / floor if floor > 0 else math.inf
         if final_ratio > opts.structure_max:
@@ -475,7 +595,28 @@ def run_audit(
         final_structure=final_struct,
         notes=tuple(notes),
         seconds=time.perf_counter() - t_start,
+        outside=outside,
+        degeneracy=degeneracy,
     )
+
+
+def _best(eligible: Sequence[CandidateResult]) -> CandidateResult:
+    """The eligible candidate with the largest held-out gain; a lag before an indistinguishable resonance.
+
+    Far below its ``f0``, a resonance that hardly rings (``Q < 2``) acts as a lag: when a ``delay``
+    is eligible with a gain within the resonance's standard error, the lag is named.
+    """
+    best = max(eligible, key=lambda r: (r.gain, -r.bic_delta))
+    if best.effect == "resonance" and best.params.get("q", math.inf) < _RINGING_Q:
+        lag = [r for r in eligible if r.effect == "delay"]
+        se = best.gain_se if math.isfinite(best.gain_se) else 0.0
+        if lag and best.gain - lag[0].gain <= se:
+            return lag[0]
+    return best
+
+
+#: Below this Q a resonance hardly rings (the first overshoot is < 20 %): a lag explains it as well.
+_RINGING_Q = 2.0
 
 
 def _try(

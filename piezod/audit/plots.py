@@ -7,6 +7,7 @@
 * ``residuals.png``  baseline and final residual against session time, with the noise floor;
 * ``loops.png``      measured loops with the baseline and the final model, residual against voltage;
 * ``gains.png``      held-out gain and BIC change of every candidate in every round;
+* ``prediction.png`` measured position against the model's position, and the deviation;
 * ``structure.png``  residual binned against voltage, voltage rate and travel since the last
   reversal; per-experiment sensitivity error against time, offset, range and line rate; loop
   opening against line rate; residual spectra.
@@ -60,6 +61,7 @@ def write_plots(result: AuditResult, directory: str | os.PathLike[str]) -> list[
         ("loops.png", _loops),
         ("gains.png", _gains),
         ("structure.png", _structure),
+        ("prediction.png", _prediction),
     ):
         fig = fn(plt, result)
         path = d / name
@@ -92,6 +94,10 @@ def _summary(plt: Any, result: AuditResult) -> Any:
     for ho, color in ((result.base_heldout, "tab:red"), (result.final_heldout, "tab:blue")):
         a.plot(ho_data.t_s[ho.rows], ho.residual, ",", color=color, alpha=0.6, rasterized=True)
     a.set_xlabel("time (s)")
+    a.set_ylabel("held-out residual (um)")
+    a.plot([], [], "s", color="tab:red", label="baseline")
+    a.plot([], [], "s", color="tab:blue", label=label)
+    a.legend(fontsize=7, loc="upper right")
     a.set_title(
         f"held-out data ({result.heldout_method}): RMS {result.base_heldout.rms_um:.3g} -> "
         f"{result.final_heldout.rms_um:.3g} um",
@@ -131,150 +137,256 @@ def _residuals(plt: Any, result: AuditResult) -> Any:
     return fig
 
 
-def _pick(result: AuditResult, k: int = 4) -> list[int]:
+def _loops(plt: Any, result: AuditResult, max_panels: int = 16) -> Any:
     data = result.data
-    rms = np.array([p["rms_um"] for p in result.base_structure.per_experiment], dtype=float)
-    rms = np.where(np.isfinite(rms), rms, -1.0)
-    f = np.array([e.frequency_hz if math.isfinite(e.frequency_hz) else 0.0 for e in data.info])
-    picks = [int(np.argmax(rms)), int(np.argmax(f)), int(np.argmin(np.where(f > 0, f, np.inf)))]
-    picks.append(int(np.argmax([e.range_v for e in data.info])))
-    out: list[int] = []
-    for p in picks:
-        if p not in out:
-            out.append(p)
-    return out[:k]
-
-
-def _loops(plt: Any, result: AuditResult) -> Any:
-    data = result.data
-    idx = _pick(result)
-    fig, ax = plt.subplots(2, len(idx), figsize=(3.6 * len(idx), 6.5), squeeze=False)
+    n = data.n_experiments
+    idx = (
+        list(range(n)) if n <= max_panels else np.linspace(0, n - 1, max_panels).round().astype(int).tolist()
+    )
+    cols = min(4, len(idx))
+    rows = math.ceil(len(idx) / cols)
+    fig, ax = plt.subplots(rows, cols, figsize=(3.4 * cols + 0.8, 2.9 * rows + 0.9), squeeze=False)
     before = _full(result, result.base_fit.residual)
     after = _full(result, result.final_fit.residual)
     for j, i in enumerate(idx):
         sl = data.slice(i)
         v = data.voltage_v[sl]
         x = data.position_um[sl]
-        a = ax[0, j]
-        a.plot(v, x, ",", color="0.4", label="measured", rasterized=True)
-        a.plot(v, x - before[sl], lw=0.6, color="tab:red", label="baseline")
-        a.plot(v, x - after[sl], lw=0.6, color="tab:blue", ls="--", label=_label(result))
+        a = ax[j // cols, j % cols]
+        a.plot(v, x, ",", color="0.3", label="measured", rasterized=True)
+        a.plot(v, x - before[sl], lw=0.7, color="tab:red", label="baseline")
+        if result.findings:
+            a.plot(v, x - after[sl], lw=0.7, color="tab:blue", ls="--", label=_label(result))
         e = data.info[i]
         f = f"{e.frequency_hz:.3g} Hz" if math.isfinite(e.frequency_hz) else e.kind
-        a.set_title(f"{e.label[-24:]}\n{e.range_v:.0f} V p-p, {f}", fontsize=8)
-        a.set_xlabel("voltage (V)")
-        b = ax[1, j]
-        up = data.direction[sl] > 0
-        for mask, c_before, c_after in ((up, "tab:red", "tab:blue"), (~up, "tab:orange", "tab:cyan")):
-            b.plot(v[mask], before[sl][mask], ",", color=c_before, rasterized=True)
-            b.plot(v[mask], after[sl][mask], ",", color=c_after, rasterized=True)
-        b.set_xlabel("voltage (V)")
-    ax[0, 0].set_ylabel("position (um)")
-    ax[1, 0].set_ylabel("residual (um); red/orange baseline, blue/cyan final (trace/retrace)")
+        name = e.label if len(e.label) <= 28 else e.label[:12] + "..." + e.label[-13:]
+        a.set_title(f"{name}\n{e.v_min:.4g} to {e.v_max:.4g} V, {f}", fontsize=8)
+        a.tick_params(labelsize=7)
+    for j in range(len(idx), rows * cols):
+        ax[j // cols, j % cols].set_visible(False)
     ax[0, 0].legend(fontsize=7, markerscale=10)
+    fig.supxlabel("voltage (V)")
+    fig.supylabel("position (um)")
+    shown = (
+        ("the only experiment" if n == 1 else f"all {n} experiments")
+        if len(idx) == n
+        else f"{len(idx)} of {n} experiments (evenly spaced)"
+    )
+    fig.suptitle(f"measured loops and the fitted models, {shown}", fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def _status(result: AuditResult, rnd: int, c: Any) -> tuple[str, str]:
+    """Colour and legend label of a candidate in round ``rnd`` (0-based), as the decision treats it."""
+    chosen = [f.effect for f in result.findings if f.round == rnd + 1]
+    if c.effect in chosen:
+        return "tab:green", "finding (joins the model)"
+    if c.eligible:
+        return "#b7e4b0", "eligible, smaller gain"
+    if c.implausible:
+        return "tab:red", "implausible magnitude"
+    return "0.7", "not eligible"
 
 
 def _gain_bars(a: Any, result: AuditResult, rounds: int | None = None) -> None:
     rr = result.rounds if rounds is None else result.rounds[:rounds]
     effects = [c.effect for c in result.rounds[0]] if result.rounds else []
     width = 0.8 / max(len(rr), 1)
+    seen: set[str] = set()
+    top = 1.05
+    low = 0.95
     for k, rnd in enumerate(rr):
-        g = {c.effect: c.gain for c in rnd if c.fit is not None}
-        vals = [g.get(e, math.nan) for e in effects]
-        pos = np.arange(len(effects)) + k * width
-        colors = ["tab:green" if any(c.effect == e and c.eligible for c in rnd) else "0.6" for e in effects]
-        a.bar(
-            pos,
-            np.nan_to_num(np.array(vals, dtype=float), nan=0.0),
-            width=width,
-            color=colors,
-            edgecolor="k",
-            lw=0.3,
-            label=f"round {k + 1}",
-        )
+        by = {c.effect: c for c in rnd if c.fit is not None}
+        for m, e in enumerate(effects):
+            c = by.get(e)
+            x = m + k * width
+            if c is None or not math.isfinite(c.gain):
+                a.text(x, 1.0, "not\ntested", ha="center", va="bottom", fontsize=6, color="0.4")
+                continue
+            color, lab = _status(result, k, c)
+            se = c.gain_se if math.isfinite(c.gain_se) else 0.0
+            a.bar(
+                x,
+                c.gain - 1.0,
+                bottom=1.0,
+                width=width,
+                color=color,
+                edgecolor="k",
+                lw=0.3,
+                yerr=se,
+                ecolor="k",
+                capsize=2,
+                label=None if lab in seen else lab,
+            )
+            seen.add(lab)
+            a.text(x, max(c.gain, 1.0) + se, f"{c.gain:.3g}", ha="center", va="bottom", fontsize=6)
+            top = max(top, c.gain + se)
+            low = min(low, c.gain - se)
     a.axhline(1.0, color="k", lw=0.6)
-    a.axhline(result.options.gain_min, color="tab:green", lw=0.6, ls="--")
-    a.set_yscale("log")
-    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
-
-    a.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 1.2, 1.5, 2.0, 3.0, 5.0)))
-    a.yaxis.set_major_formatter(ScalarFormatter())
-    a.yaxis.set_minor_formatter(NullFormatter())
+    a.set_ylim(max(0.0, low - 0.05 * (top - low)), top + 0.12 * (top - low))
     a.set_xticks(np.arange(len(effects)) + 0.4 - width / 2)
     a.set_xticklabels(effects, rotation=45, fontsize=8)
     a.set_ylabel("held-out gain (RMS before / after)")
-    a.set_title("held-out gain per candidate (green: eligible)", fontsize=9)
+    rounds_txt = "" if len(rr) == 1 else f"; bars left to right: rounds 1-{len(rr)}"
+    a.set_title(f"held-out gain per candidate (+- its standard error){rounds_txt}", fontsize=9)
+    a.legend(fontsize=7, loc="upper left")
 
 
 def _gains(plt: Any, result: AuditResult) -> Any:
-    fig, ax = plt.subplots(1, 2, figsize=(12, 4))
+    fig, ax = plt.subplots(1, 2, figsize=(13, 4.6))
     _gain_bars(ax[0], result)
     effects = [c.effect for c in result.rounds[0]] if result.rounds else []
+    width = 0.8 / max(len(result.rounds), 1)
     for k, rnd in enumerate(result.rounds):
         b = {c.effect: c.bic_delta for c in rnd if c.fit is not None}
-        vals = np.array([b.get(e, math.nan) for e in effects], dtype=float)
-        ax[1].plot(np.arange(len(effects)), -vals, "o-", label=f"round {k + 1}")
-    ax[1].axhline(result.options.bic_min, color="tab:green", lw=0.6, ls="--")
-    ax[1].set_yscale("symlog")
-    ax[1].set_xticks(np.arange(len(effects)))
+        for m, e in enumerate(effects):
+            d = b.get(e, math.nan)
+            x = m + k * width
+            if not math.isfinite(d):
+                continue
+            if -d >= 1.0:
+                ax[1].bar(
+                    x,
+                    -d,
+                    width=width,
+                    color=f"C{k}",
+                    edgecolor="k",
+                    lw=0.3,
+                    label=f"round {k + 1}" if m == 0 else None,
+                )
+                ax[1].text(x, -d, f"{-d:.3g}", ha="center", va="bottom", fontsize=6)
+            else:
+                ax[1].text(x, 1.0, f"{-d:+.2g}", ha="center", va="bottom", fontsize=6, rotation=90)
+    ax[1].axhline(
+        result.options.bic_min,
+        color="tab:green",
+        lw=0.8,
+        ls="--",
+        label=f"threshold {result.options.bic_min:g}",
+    )
+    ax[1].set_yscale("log")
+    ax[1].set_ylim(bottom=1.0)
+    ax[1].set_xticks(np.arange(len(effects)) + 0.4 - width / 2)
     ax[1].set_xticklabels(effects, rotation=45, fontsize=8)
-    ax[1].set_ylabel("BIC decrease")
-    ax[1].legend(fontsize=8)
+    ax[1].set_ylabel("BIC decrease of the training fit")
+    ax[1].set_title("BIC decrease per candidate (numbers at the axis: no decrease)", fontsize=9)
+    ax[1].legend(fontsize=7)
+    fig.suptitle(f"piezod audit: what each candidate gains (cause {result.cause})", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def _prediction(plt: Any, result: AuditResult) -> Any:
+    """Measured position against the model's position (the target it predicts), fitted and held out."""
+    data = result.data
+    fig, ax = plt.subplots(1, 2, figsize=(12, 4.8))
+    rows = data.fit_mask
+    meas = data.position_um[rows]
+    for fit, color, name in (
+        (result.base_fit, "tab:red", "baseline"),
+        (result.final_fit, "tab:blue", _label(result)),
+    ):
+        model = meas - fit.residual
+        ax[0].plot(model, meas, ",", color=color, alpha=0.5, rasterized=True)
+        ax[1].plot(model, fit.residual, ",", color=color, alpha=0.5, rasterized=True)
+        ax[1].plot([], [], "s", color=color, label=f"{name}: rms {fit.rms_um:.3g} um")
+    lo, hi = float(meas.min()), float(meas.max())
+    ax[0].plot([lo, hi], [lo, hi], "k-", lw=0.6, label="measured = model")
+    ax[0].set_xlabel("model position (um, offsets fitted)")
+    ax[0].set_ylabel("measured position (um)")
+    ax[0].set_title("measured position against the model's (fitted data)", fontsize=9)
+    ax[0].legend(fontsize=7)
+    if math.isfinite(result.noise_floor_um):
+        for sgn in (-2.0, 2.0):
+            ax[1].axhline(sgn * result.noise_floor_um, color="k", lw=0.6, ls="--")
+    ax[1].set_xlabel("model position (um)")
+    ax[1].set_ylabel("measured - model (um)")
+    ax[1].set_title("deviation from the model (dashed: +-2 x noise floor)", fontsize=9)
+    ax[1].legend(fontsize=7, markerscale=1)
     fig.tight_layout()
     return fig
 
 
 def _structure(plt: Any, result: AuditResult) -> Any:
-    fig, ax = plt.subplots(3, 3, figsize=(13, 10))
-    for s, color, name in (
-        (result.base_structure, "tab:red", "baseline"),
-        (result.final_structure, "tab:blue", "final"),
-    ):
-        for a, key, xl in (
-            (ax[0, 0], "voltage_v", "voltage (V)"),
-            (ax[0, 1], "voltage_rate_v_per_s", "voltage rate (V/s)"),
-            (ax[0, 2], "since_reversal_v", "voltage since last reversal (V)"),
-        ):
-            bn = s.bins[key]
-            a.plot(bn["centre"], bn["mean_um"], "o-", color=color, ms=3, label=f"{name} mean")
-            a.plot(bn["centre"], bn["rms_um"], "s:", color=color, ms=3, label=f"{name} rms")
-            a.set_xlabel(xl)
-            a.set_ylabel("residual (um)")
-        per = s.per_experiment
-        ge = np.array([p["gain_error_pct"] for p in per], dtype=float)
-        for a, key, xl in (
-            (ax[1, 0], "t_mid_s", "session time (s)"),
-            (ax[1, 1], "offset_v", "scan offset (V)"),
-            (ax[1, 2], "range_v", "range (V p-p)"),
-        ):
-            xv = np.array([p[key] for p in per], dtype=float)
-            a.plot(xv, ge, "o", color=color, ms=3, label=name)
-            a.set_xlabel(xl)
-            a.set_ylabel("sensitivity error (%)")
-        f = np.array([p["frequency_hz"] for p in per], dtype=float)
-        ax[2, 0].plot(f, ge, "o", color=color, ms=3, label=name)
-        op = np.array([p["opening_error_um"] for p in per], dtype=float)
-        ax[2, 1].plot(f, op, "o", color=color, ms=3, label=name)
-    for a in (ax[2, 0], ax[2, 1]):
-        if np.any(np.isfinite([e.frequency_hz for e in result.data.info])):
-            a.set_xscale("log")
-        a.set_xlabel("line rate (Hz)")
-    ax[2, 0].set_ylabel("sensitivity error (%)")
-    ax[2, 1].set_ylabel("loop-opening error (um)")
+    """Only panels with something to show: binned residuals always, per-experiment ones with >= 3 points."""
     from piezod.audit.residuals import spectrum
 
-    for r, color, name in (
-        (result.base_fit.residual, "tab:red", "baseline"),
-        (result.final_fit.residual, "tab:blue", "final"),
+    panels: list[tuple[str, Any]] = []
+    pairs = (
+        (result.base_structure, "tab:red", "baseline"),
+        (result.final_structure, "tab:blue", _label(result)),
+    )
+    for key, xl in (
+        ("voltage_v", "voltage (V)"),
+        ("voltage_rate_v_per_s", "voltage rate (V/s)"),
+        ("since_reversal_v", "voltage travelled since the last reversal (V)"),
     ):
-        fr, amp = spectrum(result.data, result.data.fit_mask, r)
-        if fr.size:
-            ax[2, 2].loglog(fr, amp, color=color, lw=0.8, label=name)
-    ax[2, 2].set_xlabel("frequency (Hz)")
-    ax[2, 2].set_ylabel("residual amplitude (um/sqrt Hz)")
-    for a in ax.ravel():
+
+        def binned(a: Any, key: str = key, xl: str = xl) -> None:
+            for st, color, name in pairs:
+                bn = st.bins[key]
+                a.plot(bn["centre"], bn["mean_um"], "o-", color=color, ms=3, label=f"{name}: mean")
+                a.plot(bn["centre"], bn["rms_um"], "s:", color=color, ms=3, label=f"{name}: rms")
+            a.axhline(0.0, color="k", lw=0.4)
+            a.set_xlabel(xl)
+            a.set_ylabel("residual (um)")
+            a.set_title(f"residual binned by {xl.split(' (')[0]}", fontsize=9)
+
+        panels.append((key, binned))
+    per = result.base_structure.per_experiment
+    for key, xl, yk, yl, logx in (
+        ("t_mid_s", "session time (s)", "gain_error_pct", "sensitivity error (%)", False),
+        ("offset_v", "scan offset (V)", "gain_error_pct", "sensitivity error (%)", False),
+        ("range_v", "scan range (V peak-to-peak)", "gain_error_pct", "sensitivity error (%)", False),
+        ("frequency_hz", "line rate (Hz)", "gain_error_pct", "sensitivity error (%)", True),
+        ("frequency_hz", "line rate (Hz)", "opening_error_um", "loop-opening error (um)", True),
+    ):
+        xv = np.array([p[key] for p in per], dtype=float)
+        yv = np.array([p[yk] for p in per], dtype=float)
+        ok = np.isfinite(xv) & np.isfinite(yv)
+        if ok.sum() < 3 or np.unique(np.round(xv[ok], 9)).size < 3:
+            continue
+
+        def scatter(
+            a: Any, key: str = key, xl: str = xl, yk: str = yk, yl: str = yl, logx: bool = logx
+        ) -> None:
+            for st, color, name in pairs:
+                pe = st.per_experiment
+                a.plot([p[key] for p in pe], [p[yk] for p in pe], "o", color=color, ms=4, label=name)
+            a.axhline(0.0, color="k", lw=0.4)
+            if logx:
+                a.set_xscale("log")
+            a.set_xlabel(xl)
+            a.set_ylabel(yl)
+            a.set_title(f"per experiment: {yl.split(' (')[0]} vs {xl.split(' (')[0]}", fontsize=9)
+
+        panels.append((f"{key}:{yk}", scatter))
+
+    def spectra(a: Any) -> None:
+        for fit, color, name in (
+            (result.base_fit, "tab:red", "baseline"),
+            (result.final_fit, "tab:blue", _label(result)),
+        ):
+            fr, amp = spectrum(result.data, result.data.fit_mask, fit.residual)
+            if fr.size:
+                a.loglog(fr, amp, color=color, lw=0.8, label=name)
+        a.set_xlabel("frequency (Hz)")
+        a.set_ylabel("residual amplitude (um/sqrt(Hz))")
+        a.set_title("residual spectrum", fontsize=9)
+
+    panels.append(("spectrum", spectra))
+    cols = 3
+    rows = math.ceil(len(panels) / cols)
+    fig, ax = plt.subplots(rows, cols, figsize=(13, 3.4 * rows + 0.6), squeeze=False)
+    for j, (_, draw) in enumerate(panels):
+        a = ax[j // cols, j % cols]
+        draw(a)
         a.legend(fontsize=6)
+    for j in range(len(panels), rows * cols):
+        ax[j // cols, j % cols].set_visible(False)
+    fig.suptitle(
+        "structure of the residual: where the model is wrong (red baseline, blue final model)", fontsize=10
+    )
     fig.tight_layout()
     return fig

@@ -1,4 +1,4 @@
-"""The audit report: a text summary for the scientist and the JSON document of DESIGN section 4."""
+"""The audit report: a text summary for the scientist and the JSON document (keys: docs/formats.md)."""
 
 from __future__ import annotations
 
@@ -22,6 +22,10 @@ _MEANING = {
     "delay": "sensor or amplifier lag: the loop opens with speed",
     "saturation": "response compresses at large excursions",
     "creep": "creep law wrong: frequency dependence not as modelled",
+    "switching": "polarization switching: the actuator model does not apply (butterfly response, even in V)",
+    "sensitivity_loss": "sensitivity lost after a large excursion (depoling)",
+    "sensitivity_gain": "the validation session is more sensitive than the training session",
+    "undetermined": "the data do not determine the baseline model; no cause can be named",
 }
 
 
@@ -64,7 +68,7 @@ def _structure_json(s: Structure) -> dict[str, Any]:
 def result_json(
     result: AuditResult, *, inputs: Sequence[str] = (), validate: Sequence[str] = ()
 ) -> dict[str, Any]:
-    """The JSON document of ``piezod audit --json`` (DESIGN section 4, more keys welcome).
+    """The JSON document of ``piezod audit --json`` (keys: docs/formats.md, more keys welcome).
 
     Keys the checks read: ``cause``, ``findings[]`` (``effect, evidence, gain,
     heldout_rms_before_um, heldout_rms_after_um``) and ``baseline`` (``rms_um, heldout_rms_um``).
@@ -130,12 +134,59 @@ def result_json(
             "heldout_refit": opts.refit_cv,
             "rule": legend(opts),
         },
+        "outside_model": _outside_json(result),
+        "degeneracy": None
+        if result.degeneracy is None
+        else {
+            "degenerate": result.degeneracy.degenerate,
+            "undetermined": list(result.degeneracy.undetermined),
+            "on_bounds": list(result.degeneracy.on_bounds),
+            "condition_number": _num(result.degeneracy.condition_number),
+            "max_correlation": _num(result.degeneracy.max_correlation),
+            "text": result.degeneracy.text,
+        },
         "n_experiments": result.data.n_experiments,
         "n_samples": result.data.n,
         "notes": list(result.notes),
         "seconds": result.seconds,
         "inputs": list(inputs),
         "validate": list(validate),
+    }
+
+
+def _outside_json(result: AuditResult) -> dict[str, Any]:
+    o = result.outside
+    return {
+        "switching": None
+        if o.switching is None
+        else {
+            "onset_v": o.switching.onset_v,
+            "turn_fraction": o.switching.turn_fraction,
+            "experiments": list(o.switching.experiments),
+            "text": o.switching.text,
+        },
+        "hold_drift": None
+        if o.drift is None
+        else {
+            "rate_nm_per_s": o.drift.rate_nm_per_s,
+            "rate_se_nm_per_s": o.drift.rate_se_nm_per_s,
+            "gain": _num(o.drift.gain),
+            "gain_se": _num(o.drift.gain_se),
+            "bic_delta": o.drift.bic_delta,
+            "n_holds": o.drift.n_holds,
+            "seconds": o.drift.seconds,
+            "significant": o.drift.significant,
+            "text": o.drift.text,
+        },
+        "sensitivity_loss": None
+        if o.loss is None
+        else {
+            "loss_pct": o.loss.loss_pct,
+            "after": o.loss.after,
+            "peak_v": o.loss.peak_v,
+            "text": o.loss.text,
+        },
+        "holds": [{"experiment": lab, "first_sample": a, "stop_sample": b} for lab, a, b in o.holds],
     }
 
 

@@ -1,4 +1,4 @@
-"""The ``piezod`` command line (DESIGN section 4).
+"""The ``piezod`` command line (contract: docs/formats.md).
 
 Each subcommand lives in its own module of this package exposing
 ``register(subparsers)``; ``register`` adds the parser and sets ``func`` to a

@@ -62,15 +62,20 @@ def human_stream(args: argparse.Namespace) -> Any:
     return sys.stderr if getattr(args, "json", None) == "-" else sys.stdout
 
 
-def scanner_config_path(args: argparse.Namespace) -> Path:
-    """``--config`` or, with ``--sim``, the built-in simulated stage's config."""
-    from piezod.config import default_sim_config_path
+def scanner_config_path(args: argparse.Namespace, *, first_guess: bool = False) -> Path:
+    """``--config`` or, with ``--sim``, the built-in simulated stage's config.
+
+    With ``--sim`` that is the stage with its shipped calibration
+    (``configs/sim-stage-calibrated.yaml``), or with ``first_guess`` (``calibrate --sim``) the
+    uncalibrated ``configs/sim-stage.yaml``.
+    """
+    from piezod.config import default_sim_config_path, default_sim_scan_config_path
     from piezod.errors import ConfigError
 
     if getattr(args, "config", None):
         return Path(args.config)
     if getattr(args, "sim", False):
-        return default_sim_config_path()
+        return default_sim_config_path() if first_guess else default_sim_scan_config_path()
     raise ConfigError("--config F is required with --port (the scanner's YAML)")
 
 
@@ -119,7 +124,7 @@ def board_url(args: argparse.Namespace, config_path: Path) -> Iterator[str]:
     from piezod.errors import ConfigError
 
     if getattr(args, "sim", False):
-        from hil_sim.server import spawn_sim
+        from piezod.simulator import spawn_sim
 
         effects = tuple(getattr(args, "effect", None) or ())
         extra = sim_microscope_args(args)

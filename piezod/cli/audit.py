@@ -30,7 +30,7 @@ def register(sub: Any) -> None:
         nargs="+",
         type=input_file,
         metavar="REC.csv",
-        help="recordings to fit (DESIGN section 3)",
+        help="recordings to fit (docs/formats.md)",
     )
     p.add_argument(
         "--validate", nargs="+", default=[], metavar="REC.csv", help="held-out recordings (not fitted)"
@@ -64,6 +64,11 @@ def register(sub: Any) -> None:
         help="a few Gauss-Newton steps from the full fit per fold instead of a refit (faster, optimistic)",
     )
     p.add_argument(
+        "--encoding",
+        metavar="NAME",
+        help="text encoding of the recordings (default: detected; UTF-8, else Windows-1252/Latin-1)",
+    )
+    p.add_argument(
         "--allow-truncated-tail",
         action="store_true",
         help="drop an unterminated last line (crash while writing)",
@@ -71,8 +76,10 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _read(paths: list[str], axis: str | None, truncated: bool) -> tuple[list[Experiment], str | None]:
-    exps = read_experiments(paths, axis=axis, allow_truncated_tail=truncated)
+def _read(
+    paths: list[str], axis: str | None, truncated: bool, encoding: str | None
+) -> tuple[list[Experiment], str | None]:
+    exps = read_experiments(paths, axis=axis, allow_truncated_tail=truncated, encoding=encoding)
     axes = sorted({e.axis for e in exps if e.axis is not None})
     if axis is None and len(axes) > 1:
         raise PiezodError(f"the recordings contain axes {', '.join(axes)}: choose one with --axis")
@@ -83,10 +90,10 @@ def run(args: argparse.Namespace) -> int:
     """Run ``piezod audit``."""
     if args.folds < 2:
         raise PiezodError(f"--folds must be >= 2, got {args.folds}")
-    exps, axis = _read(list(args.recordings), args.axis, args.allow_truncated_tail)
+    exps, axis = _read(list(args.recordings), args.axis, args.allow_truncated_tail, args.encoding)
     val: list[Experiment] = []
     if args.validate:
-        val, _ = _read(list(args.validate), axis, args.allow_truncated_tail)
+        val, _ = _read(list(args.validate), axis, args.allow_truncated_tail, args.encoding)
     options = AuditOptions(
         folds=args.folds,
         base=args.baseline,

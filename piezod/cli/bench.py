@@ -22,10 +22,13 @@ def register(sub: Any) -> None:
             "inverse: time the full Lambert-W inverse on blocks of a triangular scan against the same "
             "inverse built on scipy.special.lambertw, in the same run, and report the worst round-trip "
             "error relative to the range. stream: stream samples to the simulated board and count "
-            "underruns and CRC errors."
+            "underruns and CRC errors. audit: run the audit over a corpus generated in process "
+            "(hidden-effect sessions, decimated and re-split variants, stand-ins for real data, the "
+            "P-885 recordings) and print the confusion matrix, false-alarm rate, invariance failures, "
+            "findings outside physical bounds and the time per audit."
         ),
     )
-    p.add_argument("which", choices=("inverse", "stream"), help="what to benchmark")
+    p.add_argument("which", choices=("inverse", "stream", "audit"), help="what to benchmark")
     add_json_option(p)
     inv = p.add_argument_group("inverse")
     inv.add_argument(
@@ -55,6 +58,10 @@ def register(sub: Any) -> None:
         "--api-clients", type=positive_int, default=2, metavar="N", help="polling clients (--api-load)"
     )
     stream.add_argument("--with-fit", action="store_true", help="also run calibration fits (--api-load)")
+    aud = p.add_argument_group("audit")
+    aud.add_argument(
+        "--sessions", type=int, default=2, metavar="N", help="hidden-effect sessions per effect (audit)"
+    )
     p.set_defaults(func=run)
 
 
@@ -76,6 +83,13 @@ def _run_inverse(args: argparse.Namespace) -> dict[str, Any]:
         f"round trip {result['ode_max_roundtrip_error_rel']:.2e}",
         file=out,
     )
+    for name, m in result["models"].items():
+        print(
+            f"axis model {name:<26} {m['ns_per_sample']:7.1f} ns/sample/axis "
+            f"(x{m['ns_per_sample'] / result['scipy_ns_per_sample']:.2f} of the scipy-based inverse), "
+            f"round trip {m['max_roundtrip_error_rel']:.1e} of range",
+            file=out,
+        )
     print(
         f"{result['samples']} samples in blocks of {result['block_samples']}, best of {result['repeats']}; "
         f"targets {'met' if result['meets_targets'] else 'NOT met'}",
@@ -117,8 +131,25 @@ def _run_link_stream(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def _run_audit(args: argparse.Namespace) -> dict[str, Any]:
+    from piezod.audit.bench import format_report, run_corpus
+    from piezod.progress import progress_bar
+
+    if args.sessions < 1:
+        raise PiezodError("--sessions must be >= 1")
+    with progress_bar(desc="audits", total=None, unit="audit") as bar:
+
+        def tick(_name: str) -> None:
+            bar.update(1)
+
+        result = run_corpus(args.sessions, on_audit=tick)
+    print(format_report(result), file=human_stream(args))
+    return result
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``piezod bench``."""
-    result = _run_inverse(args) if args.which == "inverse" else _run_stream(args)
+    runners = {"inverse": _run_inverse, "stream": _run_stream, "audit": _run_audit}
+    result = runners[args.which](args)
     write_json(args.json, result)
     return 0

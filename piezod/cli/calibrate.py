@@ -35,7 +35,7 @@ def register(sub: Any) -> None:
         ),
     )
     p.add_argument(
-        "recordings", nargs="*", type=input_file, metavar="REC.csv", help="recording files (DESIGN section 3)"
+        "recordings", nargs="*", type=input_file, metavar="REC.csv", help="recording files (docs/formats.md)"
     )
     p.add_argument(
         "--config",
@@ -64,6 +64,11 @@ def register(sub: Any) -> None:
         default=2048,
         metavar="N",
         help="keep every k-th sample so that a loop has at most N (0 = all; default 2048)",
+    )
+    p.add_argument(
+        "--encoding",
+        metavar="NAME",
+        help="text encoding of the recordings (default: detected; UTF-8, else Windows-1252/Latin-1)",
     )
     p.add_argument(
         "--allow-truncated-tail",
@@ -115,7 +120,12 @@ def run(args: argparse.Namespace) -> int:
     if args.skip_loops < 0:
         raise CalibrationError(f"--skip-loops must be >= 0, got {args.skip_loops}")
     base = load_config(args.config) if args.config else None
-    exps = read_experiments(args.recordings, axis=args.axis, allow_truncated_tail=args.allow_truncated_tail)
+    exps = read_experiments(
+        args.recordings,
+        axis=args.axis,
+        allow_truncated_tail=args.allow_truncated_tail,
+        encoding=args.encoding,
+    )
     axes = sorted({e.axis for e in exps if e.axis is not None})
     if args.axis is None and len(axes) > 1:
         raise CalibrationError(f"the recordings contain axes {', '.join(axes)}: choose one with --axis")

@@ -33,7 +33,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
         raise CalibrationError("--out F.yaml is required: where the calibrated scanner config goes")
     if args.recordings:
         raise CalibrationError("give recordings (offline fit) or --sim/--port (on the stage), not both")
-    config_path = scanner_config_path(args)
+    config_path = scanner_config_path(args, first_guess=True)
     base = load_config(config_path)
     axis: AxisName = args.axis or "x"
     reduced = args.frame == "reduced"
@@ -68,23 +68,37 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 rest_voltage_v=rest_v,
             )
             print(f"dynamic model fitted: worst fit error {dynamic.fit_error_pct:.3f} %", file=say)
-            calibrated = dynamic.config
+            choice = worker.choose_model(
+                frame_path,
+                dynamic.config,
+                axis,
+                ramp_v_per_s=base.service.ramp_rate_v_per_s,
+                rest_voltage_v=rest_v,
+            )
+            chosen = str(choice.report["chosen"])
+            print(f"model choice by held-out experiments of the frame:\n{choice.report['table']}", file=say)
+            calibrated = choice.config
             dump_config(
                 calibrated,
                 out,
                 header=(
                     f"calibrated on the stage by piezod calibrate ({frame_summary(frame)}); "
-                    "model: dynamic, the thesis parameters kept beside it"
+                    f"model: {calibrated.axes[axis].model} ({chosen}: best held-out prediction), "
+                    "the thesis and dynamic parameters kept beside it"
                 ),
             )
             print(f"-> {out}", file=say)
             report = dict(fitted.report)
             report["dynamic"] = dynamic.report
+            report["model_choice"] = choice.report
             report["frame"] = {"summary": frame_summary(frame), "recording": str(frame_path)}
             rows: list[dict[str, Any]] = []
             if not args.no_verify:
                 points = verification_points(calibrated, frame, reduced=reduced, axis=axis)
-                for model in ("thesis", "dynamic"):
+                models = [calibrated.axes[axis].model] + (
+                    ["dynamic"] if calibrated.axes[axis].model != "dynamic" else []
+                )
+                for model in models:
                     engine.set_axis_model(axis, calibrated.axes[axis].model_copy(update={"model": model}))
                     rows += verify(engine, points, recdir, model, worker)
                 print(format_table(rows), file=say)

@@ -12,7 +12,8 @@
       fetch NAME [-o F]                        download one ('-o -' = stdout)
       watch [--rate-hz HZ] [--count N]         follow live, one line per update
 
-``--api`` defaults to ``$PIEZOD_API``, else ``unix:/run/piezod/piezod.sock``.
+``--api`` defaults to ``$PIEZOD_API``, else the socket of the one running daemon (in
+/run/piezod, $XDG_RUNTIME_DIR or /tmp/piezod-<uid>, where ``serve`` puts it).
 ``--json F`` (``-`` = stdout) writes the answer as JSON; with ``watch`` one JSON
 object per line.
 """
@@ -88,7 +89,10 @@ def register(subparsers: Any) -> None:
         "ctl",
         help="client of a running daemon's API",
         description="Control a running piezod daemon through its API.",
-        epilog=f"--api defaults to ${API_ENV}, else unix:/run/piezod/piezod.sock.",
+        epilog=(
+            f"--api defaults to ${API_ENV}, else the one running daemon's socket "
+            "(/run/piezod/*.sock, $XDG_RUNTIME_DIR/piezod-*.sock, /tmp/piezod-<uid>/*.sock)."
+        ),
     )
     parser.add_argument("--api", metavar="SPEC", help="unix:PATH or tcp:HOST:PORT of the daemon")
     parser.add_argument("--token-file", metavar="F", help="file holding the API bearer token (TCP)")

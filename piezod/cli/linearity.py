@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from typing import Any
 
 from piezod.cli._common import (
@@ -29,7 +30,7 @@ def register(sub: Any) -> None:
         ),
     )
     p.add_argument(
-        "recordings", nargs="+", type=input_file, metavar="REC.csv", help="recording files (DESIGN section 3)"
+        "recordings", nargs="+", type=input_file, metavar="REC.csv", help="recording files (docs/formats.md)"
     )
     add_json_option(p)
     p.add_argument("--range-um", type=positive_float, metavar="R", help="nominal scan range (um)")
@@ -37,6 +38,11 @@ def register(sub: Any) -> None:
         "--overscan", type=nonneg_float, metavar="O", help="overscan fraction (default: from the file)"
     )
     p.add_argument("--axis", choices=AXES, help="only this axis")
+    p.add_argument(
+        "--encoding",
+        metavar="NAME",
+        help="text encoding of the recordings (default: detected; UTF-8, else Windows-1252/Latin-1)",
+    )
     p.add_argument(
         "--allow-truncated-tail",
         action="store_true",
@@ -47,7 +53,12 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``piezod linearity``."""
-    exps = read_experiments(args.recordings, axis=args.axis, allow_truncated_tail=args.allow_truncated_tail)
+    exps = read_experiments(
+        args.recordings,
+        axis=args.axis,
+        allow_truncated_tail=args.allow_truncated_tail,
+        encoding=args.encoding,
+    )
     several_axes = len({e.axis for e in exps}) > 1
     report = linearity(
         exps,
@@ -61,22 +72,33 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print_table(report: LinearityReport, out: Any) -> None:
+    w = max([10, *(len(e.label) for e in report.experiments)])  # whole names, never cut
     print(
-        f"{'experiment':<28} {'axis':>4} {'f Hz':>7} {'offs V':>7} {'range um':>9} {'meas um':>9} "
+        f"{'experiment':<{w}} {'axis':>4} {'f Hz':>7} {'offs V':>7} {'range um':>9} {'meas um':>9} "
         f"{'nonlin %':>9} {'length %':>9}",
         file=out,
     )
     for e in report.experiments:
         print(
-            f"{e.label[-28:]:<28} {e.axis or '-':>4} {e.frequency_hz:7.3g} {e.offset_v:7.1f} "
+            f"{e.label:<{w}} {e.axis or '-':>4} {e.frequency_hz:7.3g} {e.offset_v:7.1f} "
             f"{e.range_um:9.4g} {e.measured_range_um:9.4g} "
             f"{e.nonlinearity_pct:9.4f} {e.length_error_pct:+9.4f}",
             file=out,
         )
-    for label, axis, reason in report.skipped:
-        print(f"skipped {label} (axis {axis}): {reason}", file=out)
+    _print_skipped(report.skipped, out)
     print(
         f"max non-linearity {report.max_nonlinearity_pct:.4f} %, "
         f"max |length error| {report.max_abs_length_error_pct:.4f} %",
         file=out,
     )
+
+
+def _print_skipped(skipped: tuple[tuple[str, str, str], ...], out: Any) -> None:
+    """One line per axis and reason (a raster's slow axis is skipped in every experiment)."""
+    groups: dict[tuple[str, str], list[str]] = {}
+    for label, axis, reason in skipped:
+        why = re.sub(r"^experiment '.*?'( \(axis \w\))?: ", "", reason)
+        groups.setdefault((axis, why), []).append(label)
+    for (axis, why), labels in groups.items():
+        which = f"experiment {labels[0]}" if len(labels) == 1 else f"{len(labels)} experiments"
+        print(f"skipped axis {axis} of {which}: {why}", file=out)

@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.ExitStack() as stack:
         url = args.url
         if args.sim:
-            from hil_sim.server import spawn_sim
+            from piezod.simulator import spawn_sim
 
             url = stack.enter_context(spawn_sim()).path
         info = probe(url, args.timeout)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from piezod.cli._common import (
     scanner_config_path,
     with_microscope,
 )
-from piezod.config import load_config
+from piezod.config import load_config, uncalibrated_warning
 from piezod.errors import BoardFaultError, ConfigError
 from piezod.progress import progress_bar
 from piezod.service.engine import Engine
@@ -30,7 +31,9 @@ from piezod.service.schemas import ScanRequest
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add ``piezod scan``."""
     p = sub.add_parser("scan", help="run one scan on the stage and record it", description=__doc__)
-    p.add_argument("--config", metavar="F", help="scanner YAML (default with --sim: configs/sim-stage.yaml)")
+    p.add_argument(
+        "--config", metavar="F", help="scanner YAML (default with --sim: configs/sim-stage-calibrated.yaml)"
+    )
     add_port_options(p, required=True)
     p.add_argument("--effect", action="append", metavar="NAME=VALUE", help="simulator effect (with --sim)")
     p.add_argument("--range-um", type=positive_float, required=True, help="fast-axis scan range (um)")
@@ -59,6 +62,10 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     config_path = scanner_config_path(args)
     config = with_microscope(args, load_config(config_path))
+    slow = args.range_um if args.slow_range_um is None else args.slow_range_um
+    warning = uncalibrated_warning(config, config_path, ("x", "y") if slow > 0 and args.lines > 1 else ("x",))
+    if warning and not args.no_correction:
+        print(f"warning: {warning}", file=sys.stderr)
     if args.model:
         if args.model == "dynamic" and config.axes["x"].dynamic is None:
             raise ConfigError(
@@ -107,8 +114,8 @@ def run(args: argparse.Namespace) -> int:
     if state != "idle":
         faults = "; ".join(f"{f.code}: {f.message}" for f in status.faults[-3:])
         raise BoardFaultError(f"the scan ended in state {state}: {faults}")
-    model = config.axes["x"].model
-    mode = f"corrected ({model} model)" if request.correction else "uncorrected (plain triangle)"
+    model = config.axes["x"].model + (" model, UNCALIBRATED" if warning else " model")
+    mode = f"corrected ({model})" if request.correction else "uncorrected (plain triangle)"
     print(
         f"scanned {request.lines} lines of {request.range_um:g} um at {request.line_rate_hz:g} Hz, {mode}",
         file=say,

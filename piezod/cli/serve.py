@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import TextIO
 
 from piezod.cli._common import add_port_options, board_url, scanner_config_path
-from piezod.config import load_config
+from piezod.config import load_config, uncalibrated_warning
 from piezod.service.daemon import running_daemon, stop_on_signals
 from piezod.service.engine import Engine
 from piezod.service.logs import setup_logging
@@ -24,7 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser(
         "serve", help="run the daemon: stream, record, serve the control API", description=__doc__
     )
-    p.add_argument("--config", metavar="F", help="scanner YAML (default with --sim: configs/sim-stage.yaml)")
+    p.add_argument(
+        "--config", metavar="F", help="scanner YAML (default with --sim: configs/sim-stage-calibrated.yaml)"
+    )
     add_port_options(p, required=True)
     p.add_argument(
         "--api", metavar="SPEC", help="unix:PATH (default /run/piezod/<scanner>.sock) or tcp:HOST:PORT"
@@ -44,8 +46,12 @@ def run(args: argparse.Namespace) -> int:
     """Run until SIGTERM / SIGINT; exit 0 after ramping the outputs to the safe values."""
     setup_logging(logging.DEBUG if args.verbose else logging.INFO)
     stop = stop_on_signals()
-    config_path = scanner_config_path(args)
+    # the demo calibrates on the stage: it starts from the first guess
+    config_path = scanner_config_path(args, first_guess=args.demo)
     config = load_config(config_path)
+    warning = uncalibrated_warning(config, config_path, ("x", "y"))
+    if warning:
+        log.warning("%s", warning)
     recdir = Path(args.recordings or config.service.recording_dir)
     with board_url(args, config_path) as url:
         demo = _demo if args.demo else None

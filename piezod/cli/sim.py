@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from hil_sim.errors import SimError
-from hil_sim.server import add_sim_arguments, run_from_args
-from piezod.errors import ConfigError
+from piezod.simulator import add_sim_arguments, run_sim
 
 
 def register(sub: Any) -> None:
@@ -27,7 +25,4 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``piezod sim`` (the simulator's own errors become a one-line ConfigError)."""
-    try:
-        return run_from_args(args)
-    except SimError as exc:
-        raise ConfigError(str(exc)) from exc
+    return run_sim(args)

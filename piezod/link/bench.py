@@ -174,7 +174,7 @@ def run_stream_bench(args: argparse.Namespace) -> dict[str, Any]:
         At least ``axes, rate_hz, seconds, samples_sent, samples_read, underruns, crc_errors``,
         plus ``unexplained_loss``, ``min_lead_ms``, frame counts and CPU use.
     """
-    from hil_sim.server import spawn_sim
+    from piezod.simulator import spawn_sim
 
     axes = int(args.axes)
     rate_hz = float(args.rate_hz)

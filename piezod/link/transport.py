@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import importlib
 import os
 import re
 import select
@@ -33,7 +34,7 @@ import sys
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Literal
@@ -505,6 +506,12 @@ def _open_unix(spec: LinkUrl, read_timeout_s: float, write_timeout_s: float) -> 
     return socket_transport(sock, spec.raw, read_timeout_s=read_timeout_s, write_timeout_s=write_timeout_s)
 
 
+#: Transports in their own modules, looked up by URL kind and imported on first use
+#: (``"module:function"``, called with the parsed :class:`LinkUrl` and the timeouts). The USB
+#: transport needs pyusb, and depends on this module, not this module on it.
+BACKENDS: dict[str, str] = {"usb": "piezod.link.usb:open_usb"}
+
+
 def open_transport(
     url: str,
     *,
@@ -534,16 +541,17 @@ def open_transport(
     if read_timeout_s <= 0 or write_timeout_s <= 0:
         raise ValueError("read_timeout_s and write_timeout_s must be > 0")
     spec = parse_url(url)
-    if spec.kind == "usb":
-        from piezod.link.usb import open_usb
-
-        return open_usb(spec, read_timeout_s=read_timeout_s, write_timeout_s=write_timeout_s)
+    if spec.kind in BACKENDS:
+        module, _, name = BACKENDS[spec.kind].partition(":")
+        opener: Callable[..., Transport] = getattr(importlib.import_module(module), name)
+        return opener(spec, read_timeout_s=read_timeout_s, write_timeout_s=write_timeout_s)
     if spec.kind == "unix":
         return _open_unix(spec, read_timeout_s, write_timeout_s)
     return _open_serial(spec, read_timeout_s, write_timeout_s)
 
 
 __all__ = [
+    "BACKENDS",
     "DEFAULT_READ_TIMEOUT_S",
     "DEFAULT_WRITE_TIMEOUT_S",
     "READ_CHUNK",

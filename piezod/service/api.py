@@ -605,7 +605,7 @@ Errors are `{"detail": "<one line>", "error": "<name>"}`.
 _TAGS = [
     {"name": "status", "description": "What the daemon is doing, as a snapshot or a live event stream."},
     {"name": "scan", "description": "Raster scans and moves."},
-    {"name": "recordings", "description": "Sensor recordings the daemon wrote (CSV, DESIGN section 3)."},
+    {"name": "recordings", "description": "Sensor recordings the daemon wrote (CSV, docs/formats.md)."},
 ]
 
 _E409: dict[int | str, dict[str, Any]] = {

@@ -3,7 +3,7 @@
 A fresh simulator on a pty, the daemon's engine scanning continuously (endless raster, fast axis
 corrected), its control API on a Unix socket, ``clients`` threads requesting ``/v1/status`` as
 fast as they can over the socket, and optionally (``with_fit``) a calibration fit running over and
-over in the daemon's analysis worker. Reports the streaming counts of DESIGN section 4 plus the
+over in the daemon's analysis worker. Reports the streaming counts of docs/formats.md plus the
 API's request rate, so the cost of the API and the fits on the stream is measured in one run.
 """
 
@@ -42,7 +42,7 @@ def _fit_loop(stop: threading.Event, counter: list[int]) -> None:
 
 def run_api_load_bench(args: argparse.Namespace) -> dict[str, Any]:
     """Stream with the daemon while the API is polled (and a fit runs); see the module docstring."""
-    from hil_sim.server import spawn_sim
+    from piezod.simulator import spawn_sim
 
     axes, rate_hz, seconds = int(args.axes), float(args.rate_hz), float(args.seconds)
     clients = int(getattr(args, "api_clients", 2) or 2)

@@ -31,7 +31,7 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from firmware_proto import NO_INDEX
-from piezod.config import AxisConfig, AxisName, ScannerConfig
+from piezod.config import AxisConfig, AxisName, ScannerConfig, calibrated_axes
 from piezod.errors import (
     EngineStateError,
     LinkError,
@@ -60,7 +60,7 @@ from piezod.link.session import (
 )
 from piezod.link.streamer import MatchedBlock, Streamer
 from piezod.recording import RecordingWriter
-from piezod.scan import RasterGenerator, RasterParams, move_profile
+from piezod.scan import move_profile
 from piezod.service.axes import AxisDriver, PeriodicPlan
 from piezod.service.schemas import (
     EngineState,
@@ -73,6 +73,7 @@ from piezod.service.schemas import (
     Status,
 )
 from piezod.service.tracking import SensitivityTracker
+from piezod.trajectory import RasterTrajectory, Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +84,6 @@ FaultSource = Literal["board", "host", "link"]
 SLOW_BLOCK_S = 0.05
 #: Faults of one (source, code) closer together than this (s) are counted, not listed again.
 FAULT_REPEAT_S = 1.0
-#: Lines scanned before the recording of a scan starts (the loop settles, thesis section 3.1.2).
-SETTLE_LINES = 2
 #: Speed of the moves to the start of a scan, as a multiple of the scan's own speed (at most).
 MOVE_SPEED_FACTOR = 1.0
 
@@ -190,34 +189,48 @@ class MoveJob(Job):
 
 
 class ScanJob(Job):
-    """A raster scan: move to the start, settle, scan (recorded), then hold at the end."""
+    """A scan along a :class:`~piezod.trajectory.Trajectory`: move to its start, settle, scan
+    (recorded), then hold at the end."""
 
     state: EngineState = "scanning"
 
-    def __init__(self, engine: Engine, request: ScanRequest, params: RasterParams) -> None:
+    def __init__(self, engine: Engine, request: ScanRequest, trajectory: Trajectory) -> None:
         self.request = request
-        # Settling: SETTLE_LINES lines on the first row before the frame (not recorded).
-        settle = replace(params, lines=1, frames=SETTLE_LINES, bidirectional_slow=False)
-        self._settle: RasterGenerator | None = RasterGenerator(settle, engine.rate_hz)
-        self._gen = RasterGenerator(params, engine.rate_hz)
-        self.label = engine.label_id(request.name or "scan")
-        self._plans = engine.plans_for(params)
-        self._plan_key: RasterParams | None = params
+        self._traj = trajectory
+        # Settling: the trajectory's unrecorded lead-in (a raster: SETTLE_LINES on the first row).
+        self._settle: Trajectory | None = trajectory.settling()
+        self._name = request.name or "scan"
+        self.label = engine.label_id(self._name)
+        engine.set_label_note(self.label, None)
+        # Changes (ctl change) start a new experiment "<name>.<part>" at the line where they apply.
+        self._part = 1
+        self._scanned = False
+        self._change_text: list[str] = []
+        self._plans = engine.plans_for(trajectory)
+        self._plan_key: object = trajectory.key
         for name, plan in self._plans.items():
             engine.drivers[name].use_plan(plan)
-        first = self._gen_peek(engine)
-        speed = max(params.range_um * 2.0 * params.line_rate_hz * MOVE_SPEED_FACTOR, 1.0)
-        self._move: MoveJob | None = MoveJob(engine, first, speed)
+        speed = max(trajectory.speed_um_per_s() * MOVE_SPEED_FACTOR, 1.0)
+        self._move: MoveJob | None = MoveJob(engine, trajectory.start_um(), speed)
 
-    def _gen_peek(self, engine: Engine) -> dict[str, float]:
-        probe = RasterGenerator(self._gen.params, engine.rate_hz).next_block(1)
-        return {"x": float(probe.x_um[0]), "y": float(probe.y_um[0])}
-
-    def change(self, engine: Engine, change: ScanChange) -> RasterParams:
+    def change(self, engine: Engine, change: ScanChange) -> None:
         updates = change.model_dump(exclude_none=True)
-        new = self._gen.change(**updates)
-        engine.plans_for(new)  # refuse before it takes effect
-        return new
+        engine.plans_for(self._traj.changed(**updates))  # refuse before it takes effect
+        self._traj.change(**updates)
+        self._change_text.append(" ".join(f"{k}={v:g}" for k, v in updates.items()))
+
+    def _new_experiment(self, engine: Engine, start_index: int) -> None:
+        """New parameters took effect at ``start_index``: a new experiment, noted in the recording."""
+        if self._scanned:
+            self._part += 1
+            self.label = engine.label_id(f"{self._name}.{self._part}")
+        engine.set_label_note(
+            self.label,
+            f"change: experiment {engine.label_names(np.array([self.label]))[0]} from "
+            f"t = {start_index / engine.rate_hz:.6f} s: {'; '.join(self._change_text)} "
+            f"(now {self._traj.describe()})",
+        )
+        self._change_text = []
 
     def render(self, engine: Engine, n: int) -> Chunk:
         if self._move is not None:
@@ -226,19 +239,24 @@ class ScanJob(Job):
                 self._move = None
             return chunk
         settling = self._settle is not None
-        gen = self._settle if self._settle is not None else self._gen
-        block = gen.next_block(n)
+        traj = self._settle if self._settle is not None else self._traj
+        change_at = None if settling else self._traj.pending_index
+        if change_at is not None and change_at > self._traj.next_index:
+            n = min(n, change_at - self._traj.next_index)  # a block never spans a change
+        block = traj.next_block(n)
         if self._settle is not None and self._settle.done:
             self._settle = None
         m = block.x_um.size
         if m == 0:
-            self.done = self._settle is None and self._gen.done
+            self.done = self._settle is None and self._traj.done
             return engine.chunk(np.empty((len(engine.drivers), 0)), None)
-        if self._plan_key is not self._gen.params:
-            self._plan_key = self._gen.params
-            self._plans = engine.plans_for(self._gen.params)
+        if self._plan_key is not self._traj.key:
+            self._plan_key = self._traj.key
+            self._plans = engine.plans_for(self._traj)
             for name, plan in self._plans.items():
                 engine.drivers[name].use_plan(plan)
+            if not settling:
+                self._new_experiment(engine, engine.render_index)
         targets = np.full((len(engine.drivers), m), np.nan)
         volts = np.empty((len(engine.drivers), m))
         for i, (name, d) in enumerate(engine.drivers.items()):
@@ -256,23 +274,24 @@ class ScanJob(Job):
                     volts[i] = engine.drive(d, d.linear(tgt, plan))
             else:
                 volts[i] = d.hold(m).voltage_v
-        self.done = self._settle is None and self._gen.done
+        self.done = self._settle is None and self._traj.done
         if settling:
             return Chunk(
                 volts, targets, np.full(m, -1, dtype=np.int64), block.fast_direction, np.zeros(m, bool)
             )
         record = np.full(m, self.request.record)
+        self._scanned = True
         return Chunk(
             volts, targets, block.line, block.fast_direction, record, self.label, self.request.correction
         )
 
     @property
-    def params(self) -> RasterParams:
-        return self._gen.params
+    def trajectory(self) -> Trajectory:
+        return self._traj
 
     @property
     def line(self) -> int:
-        return max(0, self._gen._line_at(self._gen.next_index))
+        return max(0, self._traj.line)
 
 
 @dataclass(frozen=True, slots=True)
@@ -398,6 +417,7 @@ class _OpenRecording:
     rows: int = 0
     done: bool = False
     z_monitor_ratio: float | None = None
+    labels_seen: set[int] = field(default_factory=set)
 
 
 @dataclass
@@ -488,27 +508,35 @@ class Recorder(threading.Thread):
                 rec = self.recordings.get(int(ident))
             if rec is None:
                 continue
-            sel = record & (rec_id == ident)
-            names = self.engine.label_names(label[sel])
-            z_voltage = None
-            if rec.z_monitor_ratio is not None:
-                if "z" in block.axes:
-                    z_voltage = block.position_um[block.axes.index("z"), sel] * rec.z_monitor_ratio
-                else:
-                    z_voltage = np.full(int(sel.sum()), np.nan)
-            for i, axis in enumerate(block.axes):
-                if axis not in rec.axes:
-                    continue
-                rec.writer.write(
-                    t[sel],
-                    block.commanded_v[i, sel],
-                    block.position_um[i, sel],
-                    target_um=targets[i, sel] if rec.targets else None,
-                    axis=axis,
-                    experiment=names,
-                    z_voltage_v=z_voltage,
-                )
-                rec.rows += int(sel.sum())
+            rows = np.flatnonzero(record & (rec_id == ident))
+            z_all = None
+            if rec.z_monitor_ratio is not None and "z" in block.axes:
+                z_all = block.position_um[block.axes.index("z")] * rec.z_monitor_ratio
+            # one run per experiment, so that a change's note precedes its experiment's rows
+            for run in np.split(rows, np.flatnonzero(np.diff(label[rows])) + 1):
+                lab = int(label[run[0]])
+                if lab not in rec.labels_seen:
+                    rec.labels_seen.add(lab)
+                    note = self.engine.label_note(lab)
+                    if note is not None:
+                        rec.writer.comment(note)
+                names = self.engine.label_names(label[run])
+                z_voltage = None
+                if rec.z_monitor_ratio is not None:
+                    z_voltage = z_all[run] if z_all is not None else np.full(run.size, np.nan)
+                for i, axis in enumerate(block.axes):
+                    if axis not in rec.axes:
+                        continue
+                    rec.writer.write(
+                        t[run],
+                        block.commanded_v[i, run],
+                        block.position_um[i, run],
+                        target_um=targets[i, run] if rec.targets else None,
+                        axis=axis,
+                        experiment=names,
+                        z_voltage_v=z_voltage,
+                    )
+                    rec.rows += int(run.size)
 
     def _line_stats(
         self,
@@ -656,6 +684,9 @@ class Engine:
         )
         self._labels: list[str] = []
         self._label_ids: dict[str, int] = {}
+        self._label_notes: dict[int, str] = {}
+        #: Board sample index of the first sample the current job's render() produces.
+        self.render_index = 0
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -767,6 +798,7 @@ class Engine:
             t_locked = time.monotonic()
             while filled < n:
                 job = self._job
+                self.render_index = self._index + filled
                 try:
                     chunk = job.render(self, n - filled)
                 except (ModelError, SafetyError) as exc:
@@ -830,49 +862,26 @@ class Engine:
 
     # -- scan planning ---------------------------------------------------------------------------
 
-    def raster_params(self, request: ScanRequest) -> RasterParams:
-        """The raster of a scan request."""
-        return RasterParams(
-            range_um=request.range_um,
-            line_rate_hz=request.line_rate_hz,
-            lines=request.lines,
-            slow_range_um=request.slow_range_um,
-            offset_x_um=request.offset_x_um,
-            offset_y_um=request.offset_y_um,
-            rotation_deg=request.rotation_deg,
-            overscan=request.overscan,
-            slow_mode=request.slow_mode,
-            frames=request.frames,
-        )
-
-    def plans_for(self, params: RasterParams) -> dict[str, PeriodicPlan | None]:
-        """The steady loop of each scanned axis; refuses what the stage cannot do.
+    def plans_for(self, trajectory: Trajectory) -> dict[str, PeriodicPlan | None]:
+        """The steady loop of each axis the trajectory moves; refuses what the stage cannot do.
 
         Raises
         ------
         RangeUnreachableError, SafetyError
             With the reason (range beyond the limits, slew rate exceeded, missing axis).
         """
-        (x0, x1), (y0, y1) = params.extent_um()
-        c, s = (
-            abs(math.cos(math.radians(params.rotation_deg))),
-            abs(math.sin(math.radians(params.rotation_deg))),
-        )
-        frame_rate = params.line_rate_hz / (2.0 * max(params.lines, 1))
-        f_x = params.line_rate_hz if c >= s else frame_rate
-        f_y = frame_rate if c >= s else params.line_rate_hz
         plans: dict[str, PeriodicPlan | None] = {}
-        for name, (lo, hi), f in (("x", (x0, x1), f_x), ("y", (y0, y1), f_y)):
-            travel = hi - lo
+        for name, motion in trajectory.motion().items():
             if name not in self.drivers:
-                if travel > 1e-9:
+                if motion is not None:
                     raise SafetyError(f"the scan needs axis {name!r}, which the scanner config does not have")
                 continue
-            if travel <= 1e-9:
+            if motion is None:
                 plans[name] = None
                 continue
+            travel, f = motion.travel_um, motion.frequency_hz
             d = self.drivers[name]
-            plan = d.plan(travel, f, 0.5 * (lo + hi))
+            plan = d.plan(travel, f, motion.center_um)
             need = d.peak_slew_v_per_s(plan)
             if need > d.config.slew_rate_v_per_s:
                 raise SafetyError(
@@ -923,18 +932,18 @@ class Engine:
 
     def check_scan(self, request: ScanRequest) -> None:
         """Refuse a scan the stage cannot do (with the reason)."""
-        self.plans_for(self.raster_params(request))
+        self.plans_for(RasterTrajectory.from_request(request, self.rate_hz))
 
     def start_scan(self, request: ScanRequest, *, path: Path | None = None) -> Status:
         """Start a scan; recorded to ``path`` or to the recording directory."""
-        params = self.raster_params(request)
-        self.plans_for(params)
+        trajectory = RasterTrajectory.from_request(request, self.rate_hz)
+        self.plans_for(trajectory)
         with self._lock:
             if self._state not in ("idle",):
                 raise EngineStateError(f"cannot start a scan while {self._state}")
-            job = ScanJob(self, request, params)
+            job = ScanJob(self, request, trajectory)
             if request.record:
-                self._begin_recording(request, params, path)
+                self._begin_recording(request, trajectory, path)
             self._job = job
             self._state = "scanning"
         return self.status()
@@ -1087,7 +1096,7 @@ class Engine:
 
     # -- recordings ------------------------------------------------------------------------------
 
-    def _begin_recording(self, request: ScanRequest, params: RasterParams, path: Path | None) -> None:
+    def _begin_recording(self, request: ScanRequest, trajectory: Trajectory, path: Path | None) -> None:
         name = request.name or time.strftime("scan-%Y%m%d-%H%M%S")
         if path is None:
             path = self.recording_dir / (name if name.endswith(".csv") else name + ".csv")
@@ -1102,7 +1111,6 @@ class Engine:
             "offset_y_um": request.offset_y_um,
             "rotation_deg": request.rotation_deg,
             "overscan": request.overscan,
-            "correction": "thesis" if request.correction else "none",
             "sample_rate_hz": self.rate_hz,
             "pixels": request.pixels,
             "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -1119,13 +1127,24 @@ class Engine:
         if mic is not None:
             meta["position_sensor"] = "yes" if mic.position_sensor else "no"
             meta["z_monitor_ratio"] = mic.z_monitor_ratio
-        axes = tuple(a for a, plan in self.plans_for(params).items() if plan is not None) or ("x",)
+        axes = tuple(a for a, plan in self.plans_for(trajectory).items() if plan is not None) or ("x",)
         axes = tuple(a for a in axes if mic is None or a != "z")
+        meta["correction"] = self.correction_label(axes) if request.correction else "none"
+        uncal = [a for a in axes if a not in calibrated_axes(self.config)]
+        meta["calibrated"] = "no (axes " + ", ".join(uncal) + ")" if uncal else "yes"
         self._recorder.open(
             ident, path, meta, axes, z_monitor_ratio=None if mic is None else mic.z_monitor_ratio
         )
         self._recording_id = ident
         self._recording_name = path.name
+
+    def correction_label(self, axes: tuple[str, ...]) -> str:
+        """The model correcting ``axes`` now: ``dynamic``, ``thesis``, or per axis ``x=dynamic y=thesis``."""
+        with self._lock:
+            models = {a: self.drivers[a].model.kind for a in axes if a in self.drivers}
+        if len(set(models.values())) == 1:
+            return next(iter(models.values()))
+        return " ".join(f"{a}={m}" for a, m in models.items())
 
     def _end_recording(self, end_index: int | None = None) -> None:
         """Close the recording once the readback up to ``end_index`` (default: all computed) is in."""
@@ -1147,6 +1166,19 @@ class Engine:
                 self._label_ids[name] = len(self._labels)
                 self._labels.append(name)
             return self._label_ids[name]
+
+    def set_label_note(self, ident: int, note: str | None) -> None:
+        """A comment the recorder writes before the first row of experiment ``ident`` (None: none)."""
+        with self._lock:
+            if note is None:
+                self._label_notes.pop(ident, None)
+            else:
+                self._label_notes[ident] = note
+
+    def label_note(self, ident: int) -> str | None:
+        """The comment for experiment ``ident`` (see :meth:`set_label_note`)."""
+        with self._lock:
+            return self._label_notes.get(ident)
 
     def label_names(self, ids: NDArray[np.int64]) -> NDArray[np.str_]:
         """Label strings of label ids (``""`` for none)."""

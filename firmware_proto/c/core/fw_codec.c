@@ -70,7 +70,7 @@ void fw_put_f32(uint8_t *p, float v) {
 }
 
 bool fw_type_known(uint8_t t) {
-    return (t >= FW_HELLO && t <= FW_HEARTBEAT) || (t >= FW_SAMPLES && t <= FW_FAULT);
+    return (t >= FW_HELLO && t <= FW_HEARTBEAT) || (t >= FW_SAMPLES && t <= FW_SYNC);
 }
 
 static bool f32_finite(const uint8_t *p) { return (fw_get_u32(p) & 0x7F800000u) != 0x7F800000u; }
@@ -115,6 +115,21 @@ static enum fw_decode_error check_payload(uint8_t type, const uint8_t *pl, size_
         uint64_t first = fw_get_u64(pl);
         if (first + (uint64_t)(n - 1) >= FW_NO_INDEX || first + (uint64_t)(n - 1) < first) return FW_DEC_BAD_VALUE;
         if (type == FW_SENSOR && fw_get_u16(pl + 12) < 1) return FW_DEC_BAD_VALUE;
+        return FW_DEC_OK;
+    }
+    case FW_SYNC: {
+        if (len < 12) return FW_DEC_BAD_LENGTH;
+        uint16_t n = fw_get_u16(pl + 8);
+        if (len != 12u + 8u * (size_t)n) return FW_DEC_BAD_LENGTH;
+        if (n < 1) return FW_DEC_BAD_VALUE;
+        uint32_t prev = 0;
+        for (unsigned j = 0; j < n; j++) {
+            uint32_t off = fw_get_u32(pl + 12 + 8 * j);
+            if (off < prev) return FW_DEC_BAD_VALUE;
+            prev = off;
+        }
+        uint64_t first = fw_get_u64(pl);
+        if (first + prev >= FW_NO_INDEX || first + prev < first) return FW_DEC_BAD_VALUE;
         return FW_DEC_OK;
     }
     default: return FW_DEC_UNKNOWN_TYPE;

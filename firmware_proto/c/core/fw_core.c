@@ -6,6 +6,7 @@
 
 _Static_assert((FW_FIFO_DEPTH & (FW_FIFO_DEPTH - 1u)) == 0, "FW_FIFO_DEPTH must be a power of two");
 _Static_assert((FW_SENSOR_RING & (FW_SENSOR_RING - 1u)) == 0, "FW_SENSOR_RING must be a power of two");
+_Static_assert((FW_SYNC_QUEUE & (FW_SYNC_QUEUE - 1u)) == 0, "FW_SYNC_QUEUE must be a power of two");
 
 #define FIFO_MASK ((uint64_t)FW_FIFO_DEPTH - 1u)
 #define DEFAULT_PERIOD_US 10000u
@@ -16,6 +17,10 @@ uint16_t fw_max_rows(unsigned c) {
 }
 
 __attribute__((format(printf, 2, 3))) static void logf_(fw_board *b, const char *fmt, ...) {
+#ifdef FW_NO_LOG /* microcontroller builds: no printf in the firmware */
+    (void)b, (void)fmt;
+    return;
+#else
     if (!b->hal.log) return;
     char line[120];
     va_list ap;
@@ -23,6 +28,7 @@ __attribute__((format(printf, 2, 3))) static void logf_(fw_board *b, const char 
     vsnprintf(line, sizeof line, fmt, ap);
     va_end(ap);
     b->hal.log(b->hal.ctx, line);
+#endif
 }
 
 /* -- sending ----------------------------------------------------------------------------- */
@@ -142,6 +148,7 @@ static void send_capabilities(fw_board *b, uint32_t reply_to) {
     p[10] = c->n_channels;
     p[11] = c->dac_bits;
     p[12] = c->adc_bits;
+    p[13] = c->sync_outputs;
     fw_put_u16(p + 14, c->max_samples_per_frame);
     fw_put_u32(p + 16, c->sample_rate_min_hz);
     fw_put_u32(p + 20, c->sample_rate_max_hz);
@@ -161,6 +168,16 @@ static void apply_codes(fw_board *b) {
     b->hal.dac_write(b->hal.ctx, b->out_code, b->caps.n_channels);
 }
 
+/* Main loop, with the tick not running (clock stopped or not yet started). */
+static void clear_sync(fw_board *b) {
+    b->sync_tail = b->sync_head;
+    b->sync_any_queued = false;
+    if (b->sync_level) {
+        b->sync_level = 0;
+        if (b->hal.sync_out) b->hal.sync_out(b->hal.ctx, 0);
+    }
+}
+
 static void stop_clock(fw_board *b) {
     b->hal.timer(b->hal.ctx, 0);
     FW_CRITICAL_BEGIN();
@@ -169,6 +186,7 @@ static void stop_clock(fw_board *b) {
     b->stop_after = FW_NO_INDEX;
     FW_CRITICAL_END();
     b->status_due = true;
+    clear_sync(b);
 }
 
 static void begin_ramp(fw_board *b) {
@@ -315,6 +333,7 @@ static void on_start(fw_board *b, const uint8_t *f, uint32_t seq, bool req) {
     b->stop_after = FW_NO_INDEX;
     b->sens_countdown = 0;
     FW_CRITICAL_END();
+    clear_sync(b);
     clear_faults(b);
     logf_(b, "START at index %llu, prefill %lu", (unsigned long long)index, (unsigned long)b->prefill);
     set_state(b, FW_ARMED);
@@ -406,6 +425,44 @@ static void on_samples(fw_board *b, const uint8_t *f) {
     }
 }
 
+static void on_sync(fw_board *b, const uint8_t *f) {
+    uint8_t state = b->state;
+    if ((state != FW_ARMED && state != FW_RUNNING) || !b->caps.sync_outputs) {
+        b->cnt.frames_dropped++;
+        return;
+    }
+    uint64_t first = fw_get_u64(f + 8), P;
+    uint16_t n = fw_get_u16(f + 16);
+    FW_CRITICAL_BEGIN();
+    P = b->play_index;
+    FW_CRITICAL_END();
+    uint64_t floor = b->sync_any_queued && b->sync_last_queued + 1u > P ? b->sync_last_queued + 1u : P;
+    uint32_t fresh = 0;
+    for (unsigned j = 0; j < n; j++)
+        if (first + fw_get_u32(f + 20 + 8 * j) >= floor) fresh++;
+    uint32_t used = b->sync_head - b->sync_tail;
+    if (used + fresh > FW_SYNC_QUEUE) {
+        b->cnt.frames_dropped++;
+        b->cnt.overflows++;
+        fault(b, FW_FAULT_OVERFLOW, FW_NO_CHANNEL, first, 0);
+        return;
+    }
+    uint8_t enabled = (uint8_t)((1u << b->caps.sync_outputs) - 1u);
+    uint32_t head = b->sync_head;
+    for (unsigned j = 0; j < n; j++) {
+        uint64_t index = first + fw_get_u32(f + 20 + 8 * j);
+        if (index < floor) continue;
+        uint32_t slot = head & (FW_SYNC_QUEUE - 1u);
+        b->sync_index[slot] = index;
+        b->sync_lines[slot] = f[24 + 8 * j];
+        b->sync_mask[slot] = (uint8_t)(f[25 + 8 * j] & enabled);
+        head++;
+        b->sync_last_queued = index;
+        b->sync_any_queued = true;
+    }
+    b->sync_head = head; /* publish after the slots are written */
+}
+
 static const uint8_t nak_for_error[] = {
     [FW_DEC_UNKNOWN_TYPE] = FW_NAK_UNKNOWN_TYPE, [FW_DEC_BAD_VERSION] = FW_NAK_VERSION_MISMATCH,
     [FW_DEC_BAD_LENGTH] = FW_NAK_BAD_LENGTH, [FW_DEC_BAD_VALUE] = FW_NAK_BAD_VALUE,
@@ -433,7 +490,7 @@ static void process(fw_board *b, uint8_t *buf, size_t n) {
     b->wd_armed = true;
     switch (type) {
     case FW_HELLO: case FW_CONFIGURE: case FW_START: case FW_STOP: case FW_RAMP_TO_SAFE:
-    case FW_HEARTBEAT: case FW_SAMPLES:
+    case FW_HEARTBEAT: case FW_SAMPLES: case FW_SYNC:
         break;
     default:
         b->cnt.frames_dropped++; /* a board -> host type */
@@ -458,6 +515,10 @@ static void process(fw_board *b, uint8_t *buf, size_t n) {
         return;
     }
     if (type == FW_HEARTBEAT) return;
+    if (type == FW_SYNC) {
+        on_sync(b, buf);
+        return;
+    }
     if (type == FW_HELLO) {
         on_hello(b, buf, seq);
         return;
@@ -517,6 +578,21 @@ void fw_tick(fw_board *b) {
     uint64_t index = b->play_index++;
     b->last_played = index;
     b->cnt.samples_played++;
+    uint32_t st = b->sync_tail;
+    if (st != b->sync_head) {
+        uint8_t level = b->sync_level;
+        while (st != b->sync_head && b->sync_index[st & (FW_SYNC_QUEUE - 1u)] <= index) {
+            uint32_t slot = st & (FW_SYNC_QUEUE - 1u);
+            if (b->sync_index[slot] == index)
+                level = (uint8_t)((level & ~b->sync_mask[slot]) | (b->sync_lines[slot] & b->sync_mask[slot]));
+            st++;
+        }
+        b->sync_tail = st;
+        if (level != b->sync_level) {
+            b->sync_level = level;
+            if (b->hal.sync_out) b->hal.sync_out(b->hal.ctx, level);
+        }
+    }
     if (b->sens_countdown == 0) {
         b->sens_countdown = (uint16_t)(b->conf.sensor_decimation - 1u);
         uint32_t head = b->sens_head;
@@ -578,12 +654,14 @@ void fw_poll(fw_board *b, uint64_t now_us) {
     if (b->ev_stopped) {
         b->ev_stopped = 0;
         b->hal.timer(b->hal.ctx, 0);
+        clear_sync(b);
         b->status_due = true;
         logf_(b, "stopped after index %lld", (long long)b->last_played);
     }
     if (b->ev_underrun) {
         b->ev_underrun = 0;
         b->hal.timer(b->hal.ctx, 0);
+        clear_sync(b);
         b->status_due = true;
         logf_(b, "underrun (last valid index %lld)", (long long)b->last_played);
         flush_sensor(b, true);
@@ -609,6 +687,7 @@ void fw_poll(fw_board *b, uint64_t now_us) {
 void fw_init(fw_board *b, const fw_caps *caps, const fw_hal *hal, uint64_t now_us) {
     memset(b, 0, sizeof *b);
     b->caps = *caps;
+    if (b->caps.n_channels < 1 || b->caps.n_channels > FW_BOARD_CHANNELS) b->caps.n_channels = 1;
     b->hal = *hal;
     b->state = FW_UNCONFIGURED;
     b->last_played = FW_NO_INDEX;

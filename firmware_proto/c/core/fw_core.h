@@ -10,6 +10,10 @@
 
 #include "fw_codec.h"
 
+#ifdef FW_PORT_HEADER /* a port's FW_CRITICAL_* and sizes, e.g. -DFW_PORT_HEADER='"stm32f4/port.h"' */
+#include FW_PORT_HEADER
+#endif
+
 #ifndef FW_FIFO_DEPTH
 #define FW_FIFO_DEPTH 16384u
 #endif
@@ -20,6 +24,12 @@
 #define FW_CRITICAL_BEGIN() ((void)0)
 #define FW_CRITICAL_END() ((void)0)
 #endif
+#ifndef FW_BOARD_CHANNELS
+#define FW_BOARD_CHANNELS FW_MAX_CHANNELS /* channels this build supports (sizes the buffers) */
+#endif
+#ifndef FW_SYNC_QUEUE
+#define FW_SYNC_QUEUE 1024u /* sync events queued ahead (power of two, >= 1024 per PROTOCOL.md 4.14) */
+#endif
 #define FW_REPLY_CACHE 16u
 
 /* What the board is: reported in CAPABILITIES. */
@@ -27,6 +37,7 @@ typedef struct fw_caps {
     uint8_t fw_major, fw_minor;
     uint16_t fw_patch;
     uint8_t n_channels, dac_bits, adc_bits;
+    uint8_t sync_outputs; /* digital sync outputs driven from SYNC frames (0: none) */
     uint16_t max_samples_per_frame;
     uint32_t sample_rate_min_hz, sample_rate_max_hz, sample_clock_hz;
     uint32_t board_serial;
@@ -88,7 +99,7 @@ typedef struct fw_board {
     uint32_t tx_seq;
 
     /* FIFO of [play_index, write_index), C codes per row; clamped when stored */
-    int16_t fifo[FW_FIFO_DEPTH][FW_MAX_CHANNELS];
+    int16_t fifo[FW_FIFO_DEPTH][FW_BOARD_CHANNELS];
     uint64_t write_index, play_index, last_played, start_index, stop_after;
     uint32_t prefill;
 
@@ -98,11 +109,19 @@ typedef struct fw_board {
     uint64_t ramp_last_us;
 
     /* sensor rows converted by the tick, sent by the main loop */
-    int16_t sens[FW_SENSOR_RING][FW_MAX_CHANNELS];
+    int16_t sens[FW_SENSOR_RING][FW_BOARD_CHANNELS];
     uint64_t sens_index[FW_SENSOR_RING];
     volatile uint32_t sens_head, sens_tail; /* head: written by tick, tail: main loop */
     uint64_t sens_flush_us;
     uint16_t sens_countdown;
+
+    /* sync events: [sync_tail, sync_head) in index order; written by the main loop, read by the tick */
+    uint64_t sync_index[FW_SYNC_QUEUE];
+    uint8_t sync_lines[FW_SYNC_QUEUE], sync_mask[FW_SYNC_QUEUE];
+    volatile uint32_t sync_head, sync_tail;
+    uint64_t sync_last_queued;
+    bool sync_any_queued;
+    uint8_t sync_level;
 
     /* events raised in the tick for the main loop */
     volatile uint8_t ev_underrun, ev_stopped;
@@ -122,7 +141,8 @@ typedef struct fw_board {
     unsigned reply_next, reply_count;
 } fw_board;
 
-/* Power-up: state UNCONFIGURED, outputs at code 0 (written once through the HAL). */
+/* Power-up: state UNCONFIGURED, outputs at code 0 (written once through the HAL).
+ * caps->n_channels must lie in [1, FW_BOARD_CHANNELS]. */
 void fw_init(fw_board *b, const fw_caps *caps, const fw_hal *hal, uint64_t now_us);
 /* The host's bytes (main loop). */
 void fw_rx(fw_board *b, const uint8_t *data, size_t n, uint64_t now_us);

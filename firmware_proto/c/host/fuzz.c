@@ -60,7 +60,13 @@ static void adc(void *ctx, int16_t *dst, unsigned C) {
 
 static void timer(void *ctx, uint32_t r) { (void)ctx, (void)r; }
 
-static const fw_caps caps = {.fw_major = 1, .n_channels = 3, .dac_bits = 16, .adc_bits = 16,
+static void sync_out(void *ctx, uint8_t lines) {
+    (void)ctx;
+    if (lines & ~7u) fail("a sync output beyond the three advertised", 0, lines);
+    if (!in_tick && lines) fail("sync outputs raised outside a tick", 0, lines);
+}
+
+static const fw_caps caps = {.fw_major = 1, .n_channels = 3, .dac_bits = 16, .adc_bits = 16, .sync_outputs = 3,
                              .max_samples_per_frame = 64, .sample_rate_min_hz = 1, .sample_rate_max_hz = 200000,
                              .sample_clock_hz = 0, .board_serial = 1,
                              .amp_v_min = {-150.0f, -150.0f, -10.0f}, .amp_v_max = {150.0f, 150.0f, 150.0f}};
@@ -81,7 +87,7 @@ static void send_frame(uint8_t type, uint8_t flags, uint8_t version, const uint8
 }
 
 static void setup(void) {
-    fw_hal hal = {.tx = tx, .dac_write = dac, .adc_read = adc, .timer = timer};
+    fw_hal hal = {.tx = tx, .dac_write = dac, .adc_read = adc, .timer = timer, .sync_out = sync_out};
     now = 1000;
     memset(last_code, 0, sizeof last_code);
     fw_init(&board, &caps, &hal, now);
@@ -140,7 +146,7 @@ static void run_case(const uint8_t *data, size_t n) {
             break;
         default: {
             static const uint8_t types[] = {FW_HELLO, FW_CONFIGURE, FW_START, FW_STOP, FW_RAMP_TO_SAFE,
-                                            FW_HEARTBEAT, FW_SAMPLES, FW_SAMPLES, FW_SAMPLES, FW_STATUS, 0x7f};
+                                            FW_HEARTBEAT, FW_SAMPLES, FW_SAMPLES, FW_SAMPLES, FW_STATUS, FW_SYNC, FW_SYNC, 0x7f};
             uint8_t type = types[arg % sizeof types];
             uint8_t flags = (arg & 0x80u) ? 0 : 1;
             uint8_t version = (arg & 0x40u) && (op & 0x80u) ? 2 : 1;

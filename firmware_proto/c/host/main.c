@@ -118,6 +118,20 @@ static void hal_timer(void *ctx, uint32_t rate) {
     if (rate) h->stage_us = h->t0_us;
 }
 
+static unsigned long sync_changes;
+static uint8_t sync_level;
+
+static void hal_sync(void *ctx, uint8_t lines) {
+    (void)ctx;
+    if (lines != sync_level) sync_changes++;
+    if ((lines & 4u) && !(sync_level & 4u)) {
+        char line[80];
+        snprintf(line, sizeof line, "sync: frame clock high at index %llu", (unsigned long long)board.last_played);
+        logline("INFO", line);
+    }
+    sync_level = lines;
+}
+
 static void hal_log(void *ctx, const char *text) {
     (void)ctx;
     logline(strncmp(text, "watchdog", 8) == 0 || strncmp(text, "underrun", 8) == 0 ? "WARNING" : "INFO", text);
@@ -315,12 +329,12 @@ int main(int argc, char **argv) {
     H.backlog = malloc(BACKLOG_MAX); /* the host program's only allocation; the core has none */
     if (!H.backlog) die("malloc");
     fw_caps caps = {.fw_major = 1, .fw_minor = 0, .fw_patch = 0, .n_channels = (uint8_t)H.C,
-                    .dac_bits = 16, .adc_bits = 16, .max_samples_per_frame = fw_max_rows(H.C),
+                    .dac_bits = 16, .adc_bits = 16, .sync_outputs = 3, .max_samples_per_frame = fw_max_rows(H.C),
                     .sample_rate_min_hz = 1, .sample_rate_max_hz = rate_max, .sample_clock_hz = 0,
                     .board_serial = serial};
     for (unsigned c = 0; c < H.C; c++) caps.amp_v_min[c] = H.amp_lo[c], caps.amp_v_max[c] = H.amp_hi[c];
     fw_hal hal = {.ctx = &H, .tx = hal_tx, .dac_write = hal_dac, .adc_read = hal_adc, .timer = hal_timer,
-                  .sync_out = NULL, .log = hal_log};
+                  .sync_out = hal_sync, .log = hal_log};
     uint64_t t = now_us();
     H.stage_us = t;
     fw_init(&board, &caps, &hal, t);

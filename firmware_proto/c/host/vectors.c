@@ -53,14 +53,62 @@ static void dac(void *ctx, const int16_t *c, unsigned n) { (void)ctx, (void)c, (
 static void adc(void *ctx, int16_t *c, unsigned n) { (void)ctx, memset(c, 0, 2 * n); }
 static void timer(void *ctx, uint32_t r) { (void)ctx, (void)r; }
 
+static uint64_t sync_at[16];
+static uint8_t sync_to[16];
+static unsigned n_sync;
+static void sync_out(void *ctx, uint8_t lines) {
+    (void)ctx;
+    if (n_sync < 16) sync_at[n_sync] = board.last_played, sync_to[n_sync++] = lines;
+}
+
 static void new_board(float ch1_lo) {
     fw_caps caps = {.fw_major = 1, .fw_minor = 2, .fw_patch = 3, .n_channels = 3, .dac_bits = 16,
                     .adc_bits = 16, .max_samples_per_frame = 1024, .sample_rate_min_hz = 1000,
                     .sample_rate_max_hz = 200000, .sample_clock_hz = 0, .board_serial = 12648430,
                     .amp_v_min = {-150.0f, ch1_lo, -10.0f}, .amp_v_max = {150.0f, 150.0f, 150.0f}};
-    fw_hal hal = {.tx = tx, .dac_write = dac, .adc_read = adc, .timer = timer};
+    fw_hal hal = {.tx = tx, .dac_write = dac, .adc_read = adc, .timer = timer, .sync_out = sync_out};
     fw_init(&board, &caps, &hal, 0);
     out_len = 0;
+}
+
+/* Revision 1: SYNC events drive the outputs at their sample's tick (PROTOCOL.md 4.14). */
+static void sync_check(void) {
+    const vec *hello = find("HELLO"), *conf = find("CONFIGURE"), *start = find("START"), *sync = find("SYNC");
+    if (!hello || !conf || !start || !sync) {
+        result("SYNC", "outputs-follow-events", 0, "vector missing");
+        return;
+    }
+    new_board(-150.0f);
+    board.caps.sync_outputs = 3;
+    fw_rx(&board, hello->wire, hello->wire_len, 1000);
+    fw_rx(&board, conf->wire, conf->wire_len, 2000);
+    const vec *hb = find("HEARTBEAT");
+    uint64_t t = 3000;
+    for (; t < 3000000 && board.state != FW_IDLE; t += 1000)
+        hb ? fw_rx(&board, hb->wire, hb->wire_len, t) : fw_poll(&board, t);
+    /* START at 20000 with prefill 20 (the START vector starts at 0: build our own frame) */
+    static uint8_t f[FW_MAX_FRAME], w[FW_MAX_WIRE];
+    memset(f, 0, 8 + 16);
+    f[0] = 1, f[1] = FW_START, f[2] = 1, f[4] = 40;
+    fw_put_u64(f + 8, 20000);
+    fw_put_u32(f + 16, 20);
+    fw_rx(&board, w, fw_finish_frame(f, 16, w), t + 1);
+    fw_rx(&board, sync->wire, sync->wire_len, t + 2);
+    memset(f, 0, sizeof f);
+    f[0] = 1, f[1] = FW_SAMPLES, f[4] = 41;
+    fw_put_u64(f + 8, 20000);
+    f[16] = 3;
+    fw_put_u16(f + 18, 20);
+    fw_rx(&board, w, fw_finish_frame(f, 12 + 6 * 20, w), t + 3);
+    n_sync = 0;
+    for (int k = 0; k < 21; k++) fw_tick(&board); /* the 21st underruns */
+    fw_poll(&board, t + 4);
+    static const uint64_t want_at[] = {20000, 20005, 20010, 20015};
+    static const uint8_t want_to[] = {7, 0, 1, 0};
+    int ok = board.state == FW_IDLE && n_sync == 4;
+    for (unsigned k = 0; ok && k < 4; k++) ok = sync_at[k] == want_at[k] && sync_to[k] == want_to[k];
+    if (!ok) fprintf(stderr, "sync: state %u n %u first %llu->%u\n", (unsigned)board.state, n_sync, (unsigned long long)sync_at[0], sync_to[0]);
+    result("SYNC", "outputs-follow-events", ok, "sync transitions differ from the vector's events");
 }
 
 /* Feed vector `in` to the board (tx_seq preset) and compare the first frame out with `want`. */
@@ -111,6 +159,10 @@ int main(void) {
     reply_check("CONFIGURE", "ACK", 1);
     new_board(-150.0f);
     reply_check("HELLO_V2", "NAK_VERSION_MISMATCH", 3);
+    new_board(-150.0f);
+    board.caps.sync_outputs = 3;
+    reply_check("HELLO", "CAPABILITIES_SYNC", 0);
+    sync_check();
     new_board(-100.0f); /* channel 1's amplifier starts above the vector's code_min: refused at 64 */
     const vec *hello = find("HELLO");
     if (hello) fw_rx(&board, hello->wire, hello->wire_len, 500);

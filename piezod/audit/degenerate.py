@@ -1,0 +1,137 @@
+"""Is the baseline determined by the data? Parameters on bounds, collapsed directions, correlations.
+
+A baseline the data cannot determine (``alpha`` collapsing to its bound with ``b`` running away,
+a condition number of 1e10, two parameters correlated to 0.99999) fits any residual structure
+with an arbitrary mix of its parameters: no cause can be named on top of it. The audit states
+what the data cannot determine and which measurement would determine it, and names no cause.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from piezod.audit.baseline import Geometry, OdeBase
+from piezod.audit.fitting import Fit, Problem, jacobian
+from piezod.fitstats import jacobian_covariance
+
+F64 = NDArray[np.float64]
+
+#: Condition number (column-normalised Jacobian) above which the baseline counts as undetermined.
+MAX_CONDITION = 1e7
+#: Largest |correlation| of two baseline parameters that is still determined.
+MAX_CORRELATION = 0.99999
+#: A condition number above this is a collapse (a direction the data do not see at all).
+COLLAPSED_CONDITION = 1e10
+#: Largest |correlation| of a candidate's parameter with a baseline parameter on an undetermined baseline.
+MAX_EXTENSION_CORRELATION = 0.99
+
+#: Which measurement determines each (public) baseline parameter.
+_MEASUREMENT = {
+    "alpha_per_v": "loops of several amplitudes (nested minor loops, or a larger voltage span)",
+    "b_um_per_v": "loops of several amplitudes with a larger voltage span",
+    "u_um_per_v": "loops of several amplitudes with a larger voltage span",
+    "tau_s": "triangular scans at line rates a decade or more apart",
+    "a1": "triangular scans at line rates a decade or more apart",
+    "a2_per_v": "scans of several ranges and offsets",
+    "a3": "scans of several ranges and offsets",
+}
+
+
+@dataclass(frozen=True)
+class Degeneracy:
+    """What the baseline fit cannot determine.
+
+    Attributes
+    ----------
+    undetermined
+        Public baseline parameters the data do not determine.
+    condition_number
+        Of the column-normalised baseline Jacobian.
+    max_correlation
+        Largest |correlation| between two baseline parameters.
+    on_bounds
+        Parameters that sit on a bound.
+    text
+        The plain statement for the report (empty when determined).
+    collapsed
+        Parameters on bounds or a condition number above :data:`COLLAPSED_CONDITION` (not only
+        a strong correlation between two baseline parameters).
+    extension_correlation
+        Largest |correlation| of a candidate parameter with a baseline parameter (0 without
+        candidates): above :data:`MAX_EXTENSION_CORRELATION` the extension is entangled with
+        what the data do not determine.
+    """
+
+    undetermined: tuple[str, ...]
+    condition_number: float
+    max_correlation: float
+    on_bounds: tuple[str, ...]
+    text: str
+    collapsed: bool = False
+    extension_correlation: float = 0.0
+
+    @property
+    def blocks_a_cause(self) -> bool:
+        """No cause may be named: collapsed, or the extension entangled with the undetermined part."""
+        return self.degenerate and (self.collapsed or self.extension_correlation > MAX_EXTENSION_CORRELATION)
+
+    @property
+    def degenerate(self) -> bool:
+        """The data do not determine the baseline."""
+        return bool(self.text)
+
+
+def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
+    """Conditioning, correlations and bounds of the fitted baseline ``fit`` (no candidates)."""
+    model = fit.model
+    # Public name of every internal baseline parameter (ODE: (ln alpha, u, alpha (b - u))).
+    names = (
+        ("alpha_per_v", "u_um_per_v", "b_um_per_v") if isinstance(model.base, OdeBase) else model.base.names
+    )
+    free = model.free()
+    lo, hi = model.bounds()
+    p = fit.p
+    on: list[str] = []
+    for k in np.flatnonzero(free[: model.n_base]).tolist():
+        for b in (lo[k], hi[k]):
+            if math.isfinite(b) and abs(p[k] - b) <= 1e-6 * max(1.0, abs(b)):
+                on.append(names[k])
+    if isinstance(model.base, OdeBase) and p[2] <= 1e-12:
+        on.append("alpha_per_v")  # b = u, no loop opening: alpha has no effect
+    prob = Problem(model, geo, rows)
+    jac = jacobian(prob, p, free, central=True)
+    cov = jacobian_covariance(jac, fit.rss, max(fit.n - fit.k, 1))
+    corr = np.nan_to_num(np.abs(cov.corr - np.eye(cov.corr.shape[0])), nan=1.0)
+    max_corr = float(corr.max()) if corr.size else 0.0
+    bad = list(dict.fromkeys(on))
+    fidx = np.flatnonzero(free).tolist()
+    if cov.condition_number > MAX_CONDITION:
+        # The parameters in the direction the data do not see (smallest singular vector).
+        norms = np.linalg.norm(jac, axis=0)
+        norms[norms == 0] = 1.0
+        _, _, vt = np.linalg.svd(jac / norms, full_matrices=False)
+        weak = np.flatnonzero(np.abs(vt[-1]) > 0.3).tolist()
+        bad += [names[fidx[j]] for j in weak if fidx[j] < model.n_base]
+    if max_corr > MAX_CORRELATION:
+        i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
+        bad += [names[fidx[k]] for k in (int(i), int(j)) if fidx[k] < model.n_base]
+    bad = list(dict.fromkeys(bad))
+    nb = sum(1 for k in fidx if k < model.n_base)
+    ext = float(corr[:nb, nb:].max()) if corr.shape[0] > nb and nb > 0 else 0.0
+    collapsed = bool(on) or cov.condition_number > COLLAPSED_CONDITION
+    if not bad:
+        return Degeneracy((), cov.condition_number, max_corr, tuple(on), "", collapsed, ext)
+    public = model.base.public(p[: model.n_base])
+    vals = ", ".join(f"{k} = {public[k]:.4g}" for k in bad if k in public)
+    need = list(dict.fromkeys(_MEASUREMENT.get(k, "more varied scans") for k in bad))
+    text = (
+        f"the data do not determine the baseline: {vals}"
+        + (f" (on a bound: {', '.join(on)})" if on else "")
+        + f"; condition number {cov.condition_number:.3g}, largest correlation {max_corr:.6f}. "
+        f"What would determine it: {'; '.join(need)}. No cause is named on an undetermined baseline."
+    )
+    return Degeneracy(tuple(bad), cov.condition_number, max_corr, tuple(on), text, collapsed, ext)

@@ -1,0 +1,617 @@
+"""Calibration of the model family (:mod:`piezod.model.family`) and the choice of model by held-out data.
+
+The session is laid out exactly as for the dynamic model (:func:`piezod.calibrate_dynamic.prepare_dynamic`:
+every recorded experiment in time order, the unrecorded moves, holds and settling loops
+reconstructed, the rate-independent hysteresis run on a subsequence that keeps every turning
+point). On it the family's position is
+
+    x = x_c + kappa x_c^2,    x_c = (1 + W) x_h + E[x_h] w,    x_h = F theta
+
+with ``F`` the hysteresis features at the compared samples -- ``[V, P_r1[V], ..., P_rm[V]]`` for
+Prandtl-Ishlinskii (plays with thresholds spread over the recorded voltage span), ``[V, Y_alpha]``
+for Coleman-Hodgdon -- and ``E[.]`` the creep element deviations (linear in the drive, one column
+per relaxation time). Given the creep weights ``w`` the position is linear in ``theta`` and
+``kappa``; given ``theta`` it is linear in ``w``. The fit alternates the two bounded linear
+least-squares problems (:func:`solve_linear`: non-negative ``theta`` and ``w``, Tikhonov
+regularisation of the creep spectrum, one position offset per experiment eliminated by
+projection) until the residual stops falling; Coleman-Hodgdon's ``alpha`` is an outer bounded
+scalar search. The relaxation times are log-spaced, ``per_decade`` per decade, from 0.1 ms
+(well below the shortest loop time) to the session length: the data decide the spectrum.
+
+Choosing the model
+------------------
+:func:`choose_model` fits every candidate (the laws; and any further candidates the caller
+evaluates, such as the dynamic model) on the *training* experiments and compares the RMS of the
+predictions on the *held-out* experiments (every ``holdout_every``-th experiment, spread over
+ranges, rates and offsets), which the fit never saw. The best one is refitted on all
+experiments. There is no default model.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import lsq_linear, minimize_scalar
+
+from piezod.calibrate_dynamic import (
+    DynamicCalibrationData,
+    _centre,
+    _Deviations,
+    _hysteresis_unit,
+)
+from piezod.config import FamilyModelConfig
+from piezod.errors import CalibrationError, ModelError
+from piezod.model.dynamic import MAX_TOTAL_CREEP
+from piezod.model.family import CreepSpectrum, FamilyParams
+from piezod.model.params import HysteresisParams
+from piezod.model.play import PlayParams, PlayState, play_forward
+
+F64 = NDArray[np.float64]
+
+LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "coleman-hodgdon")
+#: Longest drive lag the fit considers (s).
+_MAX_LAG_S = 0.05
+
+
+# ------------------------------------------------------------------------------ the shared linear path
+
+
+def solve_linear(
+    a: F64,
+    y: F64,
+    *,
+    lower: F64 | None = None,
+    upper: F64 | None = None,
+    ridge: F64 | None = None,
+) -> tuple[F64, float]:
+    """Bounded, optionally Tikhonov-regularised linear least squares ``min |A c - y|^2 + |R c|^2``.
+
+    The one linear least-squares path of the calibrations (and of the audit's linear
+    sub-problems): :func:`scipy.optimize.lsq_linear` (trust-region reflective) on the stacked
+    system.
+
+    Parameters
+    ----------
+    a
+        Design matrix, shape ``(n, p)``.
+    y
+        Data, shape ``(n,)``.
+    lower, upper
+        Bounds per coefficient (default unbounded).
+    ridge
+        Regularisation matrix ``R``, shape ``(k, p)`` (default none).
+
+    Returns
+    -------
+    coefficients : ndarray
+        The solution.
+    rms : float
+        RMS of ``A c - y`` (without the regularisation rows).
+    """
+    p = a.shape[1]
+    lo = np.full(p, -np.inf) if lower is None else np.asarray(lower, dtype=np.float64)
+    hi = np.full(p, np.inf) if upper is None else np.asarray(upper, dtype=np.float64)
+    fixed = lo >= hi
+    if fixed.any():
+        c: F64 = np.where(fixed, lo, 0.0)
+        free = ~fixed
+        if not free.any():
+            return c, float(np.sqrt(np.mean((a @ c - y) ** 2)))
+        sub, _ = solve_linear(
+            a[:, free],
+            y - a[:, fixed] @ lo[fixed],
+            lower=lo[free],
+            upper=hi[free],
+            ridge=None if ridge is None else ridge[:, free],
+        )
+        c[free] = sub
+        return c, float(np.sqrt(np.mean((a @ c - y) ** 2)))
+    if ridge is not None:
+        a_full = np.vstack([a, ridge])
+        y_full = np.concatenate([y, np.zeros(ridge.shape[0])])
+    else:
+        a_full, y_full = a, y
+    scale = np.linalg.norm(a_full, axis=0)
+    scale[scale == 0.0] = 1.0
+    res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="trf", lsmr_tol="auto")
+    sol: F64 = res.x / scale
+    return sol, float(np.sqrt(np.mean((a @ sol - y) ** 2)))
+
+
+# ------------------------------------------------------------------------------------------ features
+
+
+def _play_features(data: DynamicCalibrationData, thresholds: F64) -> F64:
+    """``[V, P_r1[V], ...]`` at the grid samples, from rest at the rest voltage."""
+    v = data.hysteresis_voltage_v
+    unit = PlayParams(1.0, 1.0, tuple(map(float, thresholds)), tuple(0.0 for _ in thresholds))
+    r = unit.r
+    state = PlayState(data.rest_voltage_v, np.full(r.size, data.rest_voltage_v), 0.0)
+    # play outputs: run the forward law per play (weights one-hot) through the vectorised runs
+    out = np.empty((data.grid_index.size, r.size + 1))
+    out[:, 0] = v[data.grid_index]
+    p = state.plays_v
+    from piezod.model.play import _runs
+
+    starts, dirs = _runs(v, state.voltage_v)
+    bounds = np.append(starts, v.size)
+    plays = np.empty((r.size, v.size))
+    for k, direction in enumerate(dirs):
+        seg = v[bounds[k] : bounds[k + 1]]
+        if direction > 0:
+            blk = np.maximum(p[:, None], seg[None, :] - r[:, None])
+        elif direction < 0:
+            blk = np.minimum(p[:, None], seg[None, :] + r[:, None])
+        else:
+            blk = np.repeat(p[:, None], seg.size, axis=1)
+        plays[:, bounds[k] : bounds[k + 1]] = blk
+        p = blk[:, -1]
+    out[:, 1:] = plays[:, data.grid_index].T
+    return out
+
+
+def default_thresholds(data: DynamicCalibrationData, count: int) -> F64:
+    """Play half-widths spread evenly up to half the recorded voltage span."""
+    v = data.grid_voltage_v[data.compared]
+    span = float(np.max(v) - np.min(v))
+    if not span > 0.0:
+        raise CalibrationError("the recordings span no voltage: nothing to fit a hysteresis law to")
+    return 0.5 * span * np.arange(1, count + 1) / (count + 1)
+
+
+def default_taus(data: DynamicCalibrationData, per_decade: int = 2, tau_min_s: float = 1e-4) -> F64:
+    """Log-spaced relaxation times from ``tau_min_s`` to the session length."""
+    _, session = data.time_scales_s()
+    tau_max = max(10.0 * tau_min_s, session)
+    count = max(2, round(math.log10(tau_max / tau_min_s) * per_decade) + 1)
+    return np.logspace(math.log10(tau_min_s), math.log10(tau_max), count)
+
+
+# ---------------------------------------------------------------------------------------------- fit
+
+
+@dataclass(frozen=True, eq=False)
+class FamilyFit:
+    """A fitted member of the family.
+
+    Attributes
+    ----------
+    params
+        The frozen model parameters.
+    rms_um
+        RMS residual on the experiments it was fitted to (um, offsets removed per experiment).
+    heldout_rms_um
+        RMS prediction error on the held-out experiments (um), or nan when none were held out.
+    iterations
+        Alternations until convergence.
+    """
+
+    params: FamilyParams
+    rms_um: float
+    heldout_rms_um: float
+    iterations: int
+
+    @property
+    def law(self) -> str:
+        """The hysteresis law."""
+        return self.params.law
+
+
+class _Session:
+    """Cached pieces of a session for repeated fits (features, deviations operator, centring)."""
+
+    def __init__(
+        self, data: DynamicCalibrationData, taus: F64, train: NDArray[np.bool_], skip_s: float = 0.0
+    ) -> None:
+        self.data = data
+        self.taus = taus
+        self.dev = _Deviations(data, taus)
+        self.y = data.position_um
+        exp_of_row = np.repeat(np.arange(data.n_experiments), data.counts)
+        keep = settled_rows(data, skip_s)
+        self.train_rows = train[exp_of_row] & keep
+        self.test_rows = ~train[exp_of_row] & keep
+        self.yc = _centre(data, self.y)
+        # Tikhonov on the creep weights: second differences over log tau plus a small ridge
+        m = taus.size
+        d2 = np.diff(np.eye(m), n=2, axis=0) if m > 2 else np.zeros((0, m))
+        self.creep_reg = np.vstack([d2, 0.1 * np.eye(m)])
+
+    def creep_columns(self, features: F64) -> list[F64]:
+        """``E[F_j]`` at the compared samples for every feature column (shape ``(n_cmp, m)`` each)."""
+        rest = self.data.rest_voltage_v
+        return [
+            self.dev(features[:, j], rest if j < features.shape[1] else 0.0) for j in range(features.shape[1])
+        ]
+
+
+def _rate(data: DynamicCalibrationData, grid_values: F64) -> F64:
+    """Time derivative of a grid signal at the compared samples (per uniform piece)."""
+    out = np.zeros(grid_values.size)
+    for dt_s, start, stop in data.pieces:
+        if stop - start > 1:
+            out[start:stop] = np.gradient(grid_values[start:stop], dt_s)
+    rate: F64 = out[data.compared]
+    return rate
+
+
+def settled_rows(data: DynamicCalibrationData, skip_s: float) -> NDArray[np.bool_]:
+    """Compared samples at least ``skip_s`` after the start of their experiment (start-up transients out)."""
+    keep = np.ones(data.compared.size, dtype=bool)
+    if skip_s <= 0.0:
+        return keep
+    for e, start, count in zip(data.experiments, data.starts, data.counts, strict=True):
+        step = e.duration_s / max(1, int(count) - 1)
+        n_skip = min(int(count), math.ceil(skip_s / step)) if step > 0 else 0
+        keep[int(start) : int(start) + n_skip] = False
+    return keep
+
+
+def _alternate(
+    s: _Session, f_grid: F64, f_rest: F64, lam: float, max_iter: int = 15, tol: float = 1e-5
+) -> tuple[F64, F64, float, float, float, int]:
+    """Alternating bounded least squares: ``(theta, w, kappa, tau_lag, rms_train, iterations)``.
+
+    The drive lag enters to first order: ``x(V lagged by tau) = x(V) - tau dx/dt``.
+    """
+    data = s.data
+    f = f_grid[data.compared]
+    e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(f_grid.shape[1])]
+    n_f, m = f.shape[1], s.taus.size
+    w = np.zeros(m)
+    kappa = 0.0
+    xc = f @ np.ones(n_f) * 0.0
+    tr = s.train_rows
+    yc = s.yc[tr]
+    last = math.inf
+    rms = math.inf
+    stall = 0
+    best: tuple[F64, F64, float, float, float, int] = (
+        np.zeros(f.shape[1]),
+        np.zeros(s.taus.size),
+        0.0,
+        0.0,
+        rms,
+        0,
+    )
+    theta = np.zeros(n_f)
+    rate = np.zeros(f.shape[0])
+    tau = 0.0
+    it = 0
+    while it < max_iter:
+        it += 1
+        total = float(w.sum())
+        a = np.column_stack([(1.0 + total) * f[:, j] + e_f[j] @ w for j in range(n_f)] + [xc * xc])
+        ac = _centre(data, a)[tr]
+        lower = np.concatenate([np.full(n_f, 0.0), [-np.inf]])
+        upper = np.full(n_f + 1, np.inf)
+        lower[0] = 1e-9
+        # a feature the training data never move (a play wider than any loop) stays at 0
+        norms = np.linalg.norm(ac, axis=0)
+        dead = norms <= 1e-9 * float(np.max(norms))
+        lower[dead] = 0.0
+        upper[dead] = 0.0
+        coef, _ = solve_linear(ac, yc + _centre(data, tau * rate)[tr], lower=lower, upper=upper)
+        theta, kappa = coef[:n_f], float(coef[-1])
+        xh = f @ theta
+        e_x = sum(theta[j] * e_f[j] for j in range(n_f))
+        assert isinstance(e_x, np.ndarray)
+        xc_new = (1.0 + total) * xh + e_x @ w
+        b_cols = xh[:, None] + e_x
+        rate = (1.0 + total) * _rate(data, f_grid @ theta)
+        target = s.yc - _centre(data, xh + kappa * xc_new * xc_new - tau * rate)
+        bc = _centre(data, b_cols)
+        scale = float(np.linalg.norm(bc[tr])) / math.sqrt(m)
+        w, _ = solve_linear(
+            bc[tr],
+            target[tr],
+            lower=np.zeros(m),
+            upper=np.full(m, MAX_TOTAL_CREEP / m),
+            ridge=math.sqrt(lam) * scale * s.creep_reg,
+        )
+        xc = (1.0 + float(w.sum())) * xh + e_x @ w
+        # the lag to first order, x(V lagged by tau) = x(V) - tau dx/dt: a 1-D least squares
+        without = _centre(data, xc + kappa * xc * xc) - s.yc
+        rate_c = _centre(data, rate)
+        denom = float(rate_c[tr] @ rate_c[tr])
+        tau = 0.0 if denom <= 0.0 else float(np.clip((without[tr] @ rate_c[tr]) / denom, 0.0, _MAX_LAG_S))
+        resid = without - tau * rate_c
+        rms = float(np.sqrt(np.mean(resid[tr] ** 2)))
+        if rms < last * (1.0 - tol):
+            best = (theta.copy(), w.copy(), kappa, tau, rms, it)
+            last, stall = rms, 0
+        else:
+            stall += 1
+            if stall >= 2:
+                break
+    return best
+
+
+def _heldout(s: _Session, params: FamilyParams) -> float:
+    if not s.test_rows.any():
+        return math.nan
+    x = session_positions(s.data, params, s.dev)
+    resid = _centre(s.data, x) - s.yc
+    return float(np.sqrt(np.mean(resid[s.test_rows] ** 2)))
+
+
+def session_positions(
+    data: DynamicCalibrationData, params: FamilyParams, dev: _Deviations | None = None
+) -> F64:
+    """The model's positions at the compared samples of a session (the lag to first order).
+
+    Parameters
+    ----------
+    data
+        The session.
+    params
+        The model.
+    dev
+        A deviations operator on ``params.creep.taus_s`` (built when not given).
+    """
+    if dev is None or not np.array_equal(dev.taus, params.creep.taus_s):
+        dev = _Deviations(data, np.asarray(params.creep.taus_s))
+    h = params.hysteresis
+    v = data.hysteresis_voltage_v
+    if isinstance(h, PlayParams):
+        state = PlayState(data.rest_voltage_v, np.full(h.r.size, data.rest_voltage_v), 0.0)
+        xh_all, _ = play_forward(h, v, state)
+        xh_all = xh_all - 0.0
+    else:
+        from piezod.model.ode import HysteresisState, hysteresis_step
+
+        xh_all, _ = hysteresis_step(
+            h, v, HysteresisState(data.rest_voltage_v, h.b_um_per_v * data.rest_voltage_v)
+        )
+    xh_grid = xh_all[data.grid_index]
+    total = params.creep.total_creep
+    rest_xh = float(xh_grid[0]) if False else _rest_position(h, data.rest_voltage_v)
+    e = dev(xh_grid, rest_xh)
+    xc = (1.0 + total) * xh_grid[data.compared] + e @ params.creep.weights
+    kappa = params.stiffness_pct_per_um / 200.0
+    rate = (1.0 + total) * _rate(data, xh_grid)
+    out: F64 = xc + kappa * xc * xc - params.lag_time_constant_s * rate
+    return out
+
+
+def _rest_position(h: HysteresisParams | PlayParams, v: float) -> float:
+    if isinstance(h, PlayParams):
+        return h.b_um_per_v * h.total_weight * v
+    return h.b_um_per_v * v
+
+
+def fit_family(
+    data: DynamicCalibrationData,
+    law: str,
+    *,
+    alpha_per_v: float | None = None,
+    train: NDArray[np.bool_] | None = None,
+    plays: int = 16,
+    taus: F64 | None = None,
+    regularisation: float = 1e-4,
+    skip_s: float = 0.0,
+) -> FamilyFit:
+    """Fit one law of the family to a session.
+
+    Parameters
+    ----------
+    data
+        The session (:func:`piezod.calibrate_dynamic.prepare_dynamic`).
+    law
+        ``prandtl-ishlinskii`` or ``coleman-hodgdon``.
+    alpha_per_v
+        Coleman-Hodgdon: hold ``alpha`` here (e.g. from the dynamic fit) instead of searching it.
+    train
+        Experiments to fit (default all); the others give :attr:`FamilyFit.heldout_rms_um`.
+    plays
+        Number of play operators (Prandtl-Ishlinskii).
+    taus
+        Relaxation times (default :func:`default_taus`).
+    regularisation
+        Tikhonov weight of the creep spectrum (relative to the data scale).
+    skip_s
+        Leave the first ``skip_s`` seconds of every experiment out of the fit and the scores
+        (start-up transients the session reconstruction cannot know).
+
+    Raises
+    ------
+    CalibrationError
+        Unknown law, or the fit gives parameters the model refuses.
+    """
+    if law not in LAWS:
+        raise CalibrationError(f"unknown hysteresis law {law!r} (one of {', '.join(LAWS)})")
+    taus = default_taus(data) if taus is None else np.asarray(taus, dtype=np.float64)
+    mask = np.ones(data.n_experiments, dtype=bool) if train is None else np.asarray(train, dtype=bool)
+    if not mask.any():
+        raise CalibrationError("no experiment left to fit")
+    s = _Session(data, taus, mask, skip_s)
+    rest_v = data.rest_voltage_v
+    try:
+        if law == "prandtl-ishlinskii":
+            r = default_thresholds(data, plays)
+            f_grid = _play_features(data, r)
+            theta, w, kappa, tau, rms, it = _alternate(s, f_grid, np.full(plays + 1, rest_v), regularisation)
+            b = float(theta.sum())
+            hyst: HysteresisParams | PlayParams = PlayParams(
+                b, float(theta[0] / b), tuple(map(float, r)), tuple(float(t / b) for t in theta[1:])
+            )
+        else:
+
+            def run(log_alpha: float) -> tuple[float, F64, F64, float, int]:
+                alpha = math.exp(log_alpha)
+                y = _hysteresis_unit(data, alpha)
+                f_grid = np.column_stack([data.grid_voltage_v, y])
+                res = _alternate(s, f_grid, np.array([rest_v, 0.0]), regularisation, max_iter=4)
+                return res[4], res[0], res[1], res[2], res[5]
+
+            if alpha_per_v is None:
+                best = minimize_scalar(
+                    lambda la: run(la)[0],
+                    bounds=(math.log(1e-4), math.log(0.1)),
+                    method="bounded",
+                    options={"xatol": 0.05, "maxiter": 14},
+                )
+                alpha = math.exp(float(best.x))
+            else:
+                alpha = float(alpha_per_v)
+            y = _hysteresis_unit(data, alpha)
+            f_grid = np.column_stack([data.grid_voltage_v, y])
+            theta, w, kappa, tau, rms, it = _alternate(s, f_grid, np.array([rest_v, 0.0]), regularisation)
+            b, delta = float(theta[0]), float(theta[1])
+            u = max(b - alpha * delta, 1e-6 * b)
+            hyst = HysteresisParams(alpha, b, u)
+        params = FamilyParams(
+            hyst, CreepSpectrum(tuple(map(float, taus)), tuple(map(float, w))), tau, 200.0 * kappa
+        )
+    except ModelError as exc:
+        raise CalibrationError(f"family fit ({law}): {exc}") from exc
+    return FamilyFit(params, rms, _heldout(s, params), it)
+
+
+@dataclass(frozen=True, eq=False)
+class ModelChoice:
+    """The outcome of :func:`choose_model`.
+
+    Attributes
+    ----------
+    chosen
+        Name of the chosen candidate.
+    fit
+        The chosen family member refitted on all experiments (None when a non-family
+        candidate won).
+    heldout_rms_um
+        Held-out prediction RMS per candidate (um).
+    train_rms_um
+        Training RMS per candidate (um).
+    holdout
+        Indices of the held-out experiments.
+    """
+
+    chosen: str
+    fit: FamilyFit | None
+    heldout_rms_um: dict[str, float]
+    train_rms_um: dict[str, float]
+    holdout: tuple[int, ...]
+    fits: dict[str, FamilyFit] = field(default_factory=dict)
+
+    def table(self) -> str:
+        """One line per candidate: training and held-out RMS, the chosen one marked."""
+        lines = [f"{'model':<26} {'train RMS (nm)':>15} {'held-out RMS (nm)':>18}"]
+        for name in self.heldout_rms_um:
+            mark = "  <- chosen" if name == self.chosen else ""
+            train, held = 1e3 * self.train_rms_um[name], 1e3 * self.heldout_rms_um[name]
+            lines.append(f"{name:<26} {train:>15.2f} {held:>18.2f}{mark}")
+        return "\n".join(lines)
+
+
+def holdout_mask(n_experiments: int, every: int = 4) -> NDArray[np.bool_]:
+    """Training mask holding out experiments ``every - 1, 2 every - 1, ...`` (at least one trains)."""
+    train = np.ones(n_experiments, dtype=bool)
+    if n_experiments >= 2:
+        train[every - 1 :: every] = False
+        if not train.any():
+            train[0] = True
+    return train
+
+
+def choose_model(
+    data: DynamicCalibrationData,
+    *,
+    laws: Sequence[str] = LAWS,
+    holdout_every: int = 4,
+    others: dict[str, FamilyParams] | None = None,
+    plays: int = 16,
+    alpha_per_v: float | None = None,
+) -> ModelChoice:
+    """Fit every law on the training experiments, compare held-out prediction RMS, refit the best.
+
+    Parameters
+    ----------
+    data
+        The session.
+    laws
+        Family laws to try.
+    holdout_every
+        Every ``holdout_every``-th experiment is held out.
+    others
+        Further candidates, already fitted (e.g. the dynamic model as a family member), scored on
+        the same held-out experiments; they win only by predicting better.
+    plays
+        Play operators of the Prandtl-Ishlinskii law.
+    alpha_per_v
+        Coleman-Hodgdon's ``alpha`` (searched when None).
+    """
+    train = holdout_mask(data.n_experiments, holdout_every)
+    heldout: dict[str, float] = {}
+    train_rms: dict[str, float] = {}
+    fits: dict[str, FamilyFit] = {}
+    for law in laws:
+        fit = fit_family(data, law, train=train, plays=plays, alpha_per_v=alpha_per_v)
+        name = f"family/{law}"
+        fits[name] = fit
+        heldout[name] = fit.heldout_rms_um
+        train_rms[name] = fit.rms_um
+    for name, params in (others or {}).items():
+        s = _Session(data, np.asarray(params.creep.taus_s), train)
+        x = session_positions(data, params, s.dev)
+        resid = _centre(data, x) - s.yc
+        train_rms[name] = float(np.sqrt(np.mean(resid[s.train_rows] ** 2)))
+        heldout[name] = float(np.sqrt(np.mean(resid[s.test_rows] ** 2))) if s.test_rows.any() else math.nan
+    scores = {k: (v if math.isfinite(v) else train_rms[k]) for k, v in heldout.items()}
+    chosen = min(scores, key=lambda k: scores[k])
+    final = None
+    if chosen in fits:
+        final = fit_family(data, fits[chosen].law, plays=plays, alpha_per_v=alpha_per_v)
+    holdout = tuple(int(i) for i in np.flatnonzero(~train))
+    return ModelChoice(chosen, final, heldout, train_rms, holdout, fits)
+
+
+def family_model_config(params: FamilyParams) -> FamilyModelConfig:
+    """The ``family:`` config section of ``params``.
+
+    Raises
+    ------
+    CalibrationError
+        The values do not fit the config schema.
+    """
+    h = params.hysteresis
+    fields: dict[str, Any] = {
+        "law": params.law,
+        "b_um_per_v": h.b_um_per_v,
+        "creep_taus_s": [float(f"{t:.6g}") for t in params.creep.taus],
+        "creep_weights": [float(f"{w:.6g}") for w in params.creep.w],
+        "lag_time_constant_s": params.lag_time_constant_s,
+        "stiffness_pct_per_um": params.stiffness_pct_per_um,
+    }
+    if isinstance(h, PlayParams):
+        fields.update(
+            pi_rho0=h.rho0,
+            pi_thresholds_v=[float(f"{r:.6g}") for r in h.thresholds_v],
+            pi_weights=[float(f"{w:.6g}") for w in h.weights],
+        )
+    else:
+        fields.update(alpha_per_v=h.alpha_per_v, u_um_per_v=h.u_um_per_v)
+    try:
+        return FamilyModelConfig(**fields)
+    except ValueError as exc:
+        raise CalibrationError(f"fitted family parameters are outside the config limits: {exc}") from exc
+
+
+__all__ = [
+    "LAWS",
+    "FamilyFit",
+    "ModelChoice",
+    "choose_model",
+    "default_taus",
+    "default_thresholds",
+    "family_model_config",
+    "fit_family",
+    "holdout_mask",
+    "session_positions",
+    "solve_linear",
+]

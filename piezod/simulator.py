@@ -1,0 +1,59 @@
+"""The host's one entry point to the simulator (:mod:`hil_sim`), used only when the user asks for it.
+
+``--sim`` (``scan``, ``serve``, ``calibrate``, ``probe``, the benches), ``piezod sim`` and the
+``simsock:`` USB backend reach the simulated board through these functions, which import
+:mod:`hil_sim` lazily: without them the host never loads the simulator. :mod:`hil_sim` itself
+imports nothing from :mod:`piezod` (checked by ``tests/test_import_rules.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from piezod.errors import ConfigError, LinkError, LinkTimeoutError
+
+if TYPE_CHECKING:
+    from hil_sim.server import SimProcess
+
+
+def spawn_sim(config: str | Path | None = None, **kwargs: Any) -> SimProcess:
+    """Start the simulated board on a pty (:func:`hil_sim.server.spawn_sim`); a context manager.
+
+    Its ``path`` is the pty (or ``link``) the host opens.
+    """
+    from hil_sim.errors import SimError, SimLinkTimeoutError
+    from hil_sim.server import spawn_sim as _spawn
+
+    try:
+        return _spawn(config, **kwargs)
+    except SimLinkTimeoutError as exc:
+        raise LinkTimeoutError(str(exc)) from exc
+    except SimError as exc:
+        raise LinkError(str(exc)) from exc
+
+
+def usb_sim_backend(socket_path: str) -> Any:
+    """The pyusb backend forwarding to the simulator's USB socket (``hil_sim.usb_backend``)."""
+    from hil_sim.usb_backend import SimSocketBackend
+
+    return SimSocketBackend(socket_path)
+
+
+def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
+    """The simulator's command-line options (``piezod sim``)."""
+    from hil_sim.server import add_sim_arguments as _add
+
+    _add(parser)
+
+
+def run_sim(args: argparse.Namespace) -> int:
+    """Run the simulator until killed (``piezod sim``); its errors become a one-line ConfigError."""
+    from hil_sim.errors import SimError
+    from hil_sim.server import run_from_args
+
+    try:
+        return int(run_from_args(args))
+    except SimError as exc:
+        raise ConfigError(str(exc)) from exc

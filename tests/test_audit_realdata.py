@@ -1,0 +1,131 @@
+"""The audit on stand-ins for real recordings (tests/standins.py) and on the real P-885 data.
+
+Stable verdicts: the same cause, with a magnitude within its standard error, when a recording
+is decimated, split in time, or held out by a validation file instead of a blocked split.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from piezod.audit import run_audit
+from piezod.audit.bounds import implausible
+from piezod.audit.decide import AuditResult
+from piezod.audit.standins import actuator_5khz, butterfly_session, decimate, pnzt_hold_session
+from piezod.recording import Experiment, read_experiments
+
+DATA = Path(__file__).resolve().parents[1] / "piezod" / "data" / "real" / "pi-p885"
+
+
+def _all_plausible(result: AuditResult) -> None:
+    for f in result.findings:
+        assert not f.implausible, (f.effect, f.implausible)
+        if f.effect in ("drift", "delay", "creep", "resonance", "stiffness", "thermal"):
+            assert implausible(f.effect, f.params, result.final_fit.model.scales) == "", f
+
+
+def test_linear_drift_in_a_long_voltage_hold_is_drift_with_its_rate() -> None:
+    result = run_audit(pnzt_hold_session(0.63))
+    assert result.cause == "drift"
+    rate = result.findings[0].params["rate_nm_per_s"]
+    assert rate == pytest.approx(0.63, rel=0.3)
+    assert result.outside.drift is not None and result.outside.drift.n_holds == 1
+    _all_plausible(result)
+
+
+def test_a_hold_without_drift_names_no_drift() -> None:
+    result = run_audit(pnzt_hold_session(0.0, hold_s=400.0))
+    assert "drift" not in [f.effect for f in result.findings]
+
+
+def test_butterfly_above_the_coercive_voltage_is_switching_and_the_lost_sensitivity_a_finding() -> None:
+    result = run_audit(butterfly_session(v_c=600.0, loss=0.77))
+    assert result.cause == "switching"
+    sw = result.outside.switching
+    assert sw is not None
+    assert abs(sw.onset_v) == pytest.approx(600.0, rel=0.1)
+    assert sw.experiments == ("large_loops",)  # the loops below the coercive voltage are ordinary
+    loss = [f for f in result.findings if f.effect == "sensitivity_loss"]
+    assert loss and loss[0].params["loss_pct"] == pytest.approx(77.0, abs=5.0)
+
+
+def test_ordinary_loops_are_not_switching() -> None:
+    exps = butterfly_session(v_max=500.0, v_c=600.0, loss=0.0)
+    result = run_audit(exps)
+    assert result.outside.switching is None
+    assert result.cause != "switching"
+
+
+def _lag(result: AuditResult) -> float:
+    f = result.findings[0]
+    return f.params["delay_s"] + f.params["lag_time_constant_s"]
+
+
+def test_5khz_recording_and_its_200hz_decimation_give_the_same_cause() -> None:
+    fast = actuator_5khz(seconds=6.0, lag_s=2e-3)
+    slow = decimate(fast, 25)
+    a, b = run_audit([fast]), run_audit([slow])
+    assert a.cause == b.cause == "delay"
+    assert _lag(a) == pytest.approx(2e-3, rel=0.3)
+    assert _lag(b) == pytest.approx(_lag(a), rel=0.1)
+    _all_plausible(a)
+    _all_plausible(b)
+
+
+def test_split_in_time_gives_the_same_cause() -> None:
+    e = decimate(actuator_5khz(seconds=12.0, lag_s=2e-3), 25)
+    half = len(e) // 2
+    parts = [
+        Experiment(f"part{k}", None, e.t_s[sl], e.voltage_v[sl], e.position_um[sl])
+        for k, sl in enumerate((slice(0, half), slice(half, None)))
+    ]
+    whole, split = run_audit([e]), run_audit(parts)
+    assert whole.cause == split.cause == "delay"
+    assert _lag(split) == pytest.approx(_lag(whole), rel=0.15)
+
+
+def test_p885_decimated_and_split_by_validation_file_keep_the_cause() -> None:
+    ident = read_experiments([DATA / "identification.csv"])
+    val = read_experiments([DATA / "validation.csv"])
+    by_file = run_audit(ident, val)
+    blocked = run_audit(ident)
+    halved = run_audit([decimate(e, 2) for e in ident])
+    assert by_file.cause == blocked.cause == halved.cause == "delay"
+    assert by_file.findings[0].gain - 2.0 * by_file.findings[0].gain_se >= 1.2
+    lags = np.array([_lag(r) for r in (by_file, blocked, halved)])
+    assert np.ptp(lags) <= 0.2 * lags.mean()
+    for r in (by_file, blocked, halved):
+        _all_plausible(r)
+        assert r.degeneracy is not None and not r.degeneracy.degenerate
+
+
+def test_a_baseline_the_data_cannot_determine_names_no_cause() -> None:
+    # A stage without hysteresis (no loop opening): alpha collapses and b = u; a sensor ripple
+    # leaves structure above the noise. The audit states what is undetermined, names no cause.
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 20.0, 0.005)
+    v = 60.0 * np.sin(2 * np.pi * 0.5 * t) * (0.5 + 0.5 * t / 20.0)
+    x = 0.1 * v + 0.05 * np.sin(2 * np.pi * 0.1 * v) + rng.normal(0.0, 0.002, t.size)
+    result = run_audit([Experiment("linear", None, t, v, x)])
+    assert result.cause == "undetermined"
+    assert result.findings == ()
+    deg = result.degeneracy
+    assert deg is not None and deg.degenerate and "alpha_per_v" in deg.undetermined
+    assert "loops of several amplitudes" in deg.text
+
+
+def test_one_period_triangles_keep_their_turning_points_and_show_the_rate_dependence() -> None:
+    from piezod.audit.standins import one_period_triangles
+
+    exps = one_period_triangles((1.0, 0.1, 0.01))
+    for e in exps:
+        info = e.scan()
+        assert info.kind == "triangle" and info.turning_indices.size == 2, info.reason
+        assert info.frequency_hz == pytest.approx(float(e.label.split("_")[1][:-2]), rel=0.01)
+    result = run_audit(exps)
+    assert result.cause == "creep"
+    assert result.findings[0].params["creep_pct_per_decade"] == pytest.approx(3.0, rel=0.3)
+    _all_plausible(result)
