@@ -368,8 +368,6 @@ class Board:
             if "z" not in stage.axes:
                 raise ConfigError("board: the simulated microscope needs a stage with a z axis")
             self._microscope = Microscope(self._cfg.microscope, stage.config)
-        self._truth: list[F64] = []
-        self._truth_first = 0
         self._truth_fh = open(self._cfg.truth_log, "ab") if self._cfg.truth_log else None  # noqa: SIM115
         # sync outputs: queued events (index, lines, mask), the present levels, their changes
         self._sync_queue: deque[tuple[int, int, int]] = deque()
@@ -846,36 +844,13 @@ class Board:
         self._sensor_rows_sent += table.shape[0]
 
     def _record_truth(self, first: int, rows: F64) -> None:
-        if self._truth_fh is not None:
-            j = np.arange(rows.shape[1])
-            sel = (first + j) % _TRUTH_EVERY == 0
-            block = np.vstack(((first + j[sel]).astype(np.float64), rows[:, sel]))
-            self._truth_fh.write(np.ascontiguousarray(block.T, dtype=np.float64).tobytes())
-            self._truth_fh.flush()
-        if not self._truth or self._truth_first + sum(r.shape[1] for r in self._truth) != first:
-            self._truth = []
-            self._truth_first = first
-        self._truth.append(rows)
-        total = sum(r.shape[1] for r in self._truth)
-        keep = 1 << 20
-        while total - self._truth[0].shape[1] >= keep:
-            total -= self._truth[0].shape[1]
-            self._truth_first += self._truth[0].shape[1]
-            self._truth.pop(0)
-
-    def microscope_truth(self) -> tuple[int, F64]:
-        """The hidden truth of the simulated microscope over the latest played samples.
-
-        Returns
-        -------
-        first_index, rows
-            Sample index of the first column and rows ``(x_um, y_um, z_voltage_v, z_um)``: the true
-            tip position, the z-piezo voltage and the true z extension (at most 1 Mi samples; empty
-            without a microscope).
-        """
-        if not self._truth:
-            return self._truth_first, np.zeros((4, 0))
-        return self._truth_first, np.concatenate(self._truth, axis=1)
+        if self._truth_fh is None:
+            return
+        j = np.arange(rows.shape[1])
+        sel = (first + j) % _TRUTH_EVERY == 0
+        block = np.vstack(((first + j[sel]).astype(np.float64), rows[:, sel]))
+        self._truth_fh.write(np.ascontiguousarray(block.T, dtype=np.float64).tobytes())
+        self._truth_fh.flush()
 
     def _stop_clock(self, t: float) -> None:
         """Leave RUNNING / ARMED at ``t``: run the stage over what was played, empty the FIFO, hold."""
