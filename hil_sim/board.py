@@ -21,6 +21,10 @@ ramp end) are processed in time order.
 
 Fault injection (:class:`BoardConfig`): bit flips in outgoing and incoming bytes and dropped
 outgoing frames, from a generator seeded by ``BoardConfig.seed``.
+
+Over 800 lines because it is the firmware's whole state machine (PROTOCOL.md sections 2-7) in
+one class, as the C firmware under ``firmware_proto/c`` is one core; splitting it would put the
+FIFO, the clock and the fault handling, which change state together, in different files.
 """
 
 from __future__ import annotations

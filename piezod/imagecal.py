@@ -433,6 +433,10 @@ def run_image_scans(
     out_dir.mkdir(parents=True, exist_ok=True)
     for sc in scans:
         path = out_dir / f"{sc.name()}.csv"
+        n = 2
+        while path.exists():  # recordings are never overwritten: a repeated scan gets a new name
+            path = out_dir / f"{sc.name()}-r{n}.csv"
+            n += 1
         # at least two samples per pixel (fast lines at a low sample rate get fewer pixels)
         per_half_line = engine.rate_hz / (2.0 * sc.line_rate_hz)
         request = ScanRequest(

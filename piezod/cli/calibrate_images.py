@@ -100,7 +100,7 @@ def _verify_here(path: Path, pitch_um: float, truth: Path | None, rate_hz: float
 def _scan_with_retry(engine: Any, scans: list[Any], out_dir: Path, say: Any, **kw: Any) -> list[Path]:
     """Scan each image; one ended by a fault (an underrun or a lost link on a loaded machine: the
     board ramped to safe) is repeated, at most twice, after clearing the fault. The repeat is a new
-    measurement; the faulted recording is replaced."""
+    measurement under a new name (the faulted recording is kept, never overwritten)."""
     paths = []
     for sc in scans:
         for attempt in range(3):

@@ -12,6 +12,10 @@ Samples are never paced one by one from Python: the board's clock does the pacin
 
 Sensor readback is matched to sample indices: every :class:`~piezod.link.session.SensorBlock`
 is paired with the voltages that were commanded at the same indices (:class:`MatchedBlock`).
+
+Just over 800 lines because credits, staging, rewind after lost frames and the end of a run
+(stop, underrun, link loss) are one state machine on one thread; it is the streaming half of
+:class:`piezod.link.board.SerialBoard`.
 """
 
 from __future__ import annotations

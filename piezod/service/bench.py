@@ -20,6 +20,7 @@ from piezod.client import PiezodClient
 from piezod.config import default_sim_config_path, load_config
 from piezod.errors import ConfigError
 from piezod.link.bench import bench_config
+from piezod.link.board import SerialBoard
 from piezod.progress import progress_bar
 from piezod.service.api import EventHub, create_app
 from piezod.service.engine import Engine
@@ -90,9 +91,10 @@ def run_api_load_bench(args: argparse.Namespace) -> dict[str, Any]:
             for t in threads:
                 t.join(timeout=60.0)
             status = engine.status()
-            assert engine._session is not None
-            c = engine._session.counters()
-            stats = engine._streamer.stats if engine._streamer is not None else None
+            board = engine.board
+            assert isinstance(board, SerialBoard) and board.session is not None
+            c = board.session.counters()
+            stats = board.streamer.stats if board.streamer is not None else None
         finally:
             stop.set()
             server.stop()

@@ -1,9 +1,11 @@
 """The streaming engine: scan jobs -> inverse model -> voltage blocks -> board, sensor -> recordings.
 
 The board owns the sample clock. The engine is the :class:`~piezod.link.streamer.BlockSource`
-of a :class:`~piezod.link.streamer.Streamer`, which asks for blocks ahead of the clock (the lead,
-at least 100 ms) and keeps the board FIFO filled by credits. Every block is computed in numpy
-by the current *job* (hold, move, scan, ramp to safe) through the per-axis
+of a :class:`~piezod.link.board.Board` (today the framed-serial
+:class:`~piezod.link.board.SerialBoard`, whose :class:`~piezod.link.streamer.Streamer` asks
+for blocks ahead of the clock, the lead of at least 100 ms, and keeps the board FIFO filled by
+credits). Scans come from a :class:`~piezod.trajectory.Trajectory` (the raster today). Every
+block is computed in numpy by the current *job* (hold, move, scan, ramp to safe) through the per-axis
 :class:`~piezod.service.axes.AxisDriver`, whose model state carries over from job to job.
 
 The stream runs continuously while the board is connected (idle = hold the last voltages), so
@@ -13,27 +15,26 @@ remembers per sample index, and goes to a recorder thread that appends it to the
 (flushed per block, so a crash loses at most the last block) and computes the linearity of the
 last complete line.
 
-Safety: every voltage is clamped to the axis limits and slew-limited before it leaves the host
-(clamping is reported as a fault); ``stop()`` holds; a fault, a lost link and shutdown ramp the
+Safety: every voltage is clamped to the axis limits and slew-limited before it leaves the host,
+by the driver and again by :meth:`~piezod.link.board.Board.limit` for any board (clamping is
+reported as a fault); ``stop()`` holds; a fault, a lost link and shutdown ramp the
 outputs to the safe values (the board also ramps by itself when the host's heartbeat stops).
 """
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import logging
 import math
-import queue
 import stat
 import threading
 import time
-from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,11 +46,12 @@ from piezod.errors import (
     LinkError,
     ModelError,
     PiezodError,
+    RecordingError,
     SafetyError,
 )
+from piezod.link.board import Board, SerialBoard
 from piezod.link.session import (
     BoardFault,
-    BoardSession,
     HostLimitFault,
     LinkDown,
     LinkEvent,
@@ -58,10 +60,21 @@ from piezod.link.session import (
     Reconnected,
     SensorGap,
 )
-from piezod.link.streamer import MatchedBlock, Streamer
-from piezod.recording import RecordingWriter
-from piezod.scan import move_profile
+from piezod.link.streamer import MatchedBlock
 from piezod.service.axes import AxisDriver, PeriodicPlan
+from piezod.service.jobs import (
+    MAX_CHECK_SAMPLES,
+    MAX_MOVE_S,
+    Chunk,
+    HoldJob,
+    Job,
+    MoveJob,
+    ProgramJob,
+    RampJob,
+    ScanJob,
+    Segment,
+)
+from piezod.service.recorder import Recorder, TargetRing
 from piezod.service.schemas import (
     EngineState,
     FaultInfo,
@@ -73,7 +86,7 @@ from piezod.service.schemas import (
     Status,
 )
 from piezod.service.tracking import SensitivityTracker
-from piezod.trajectory import RasterTrajectory, Trajectory
+from piezod.trajectory import SETTLE_LINES, RasterTrajectory, Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -84,530 +97,49 @@ FaultSource = Literal["board", "host", "link"]
 SLOW_BLOCK_S = 0.05
 #: Faults of one (source, code) closer together than this (s) are counted, not listed again.
 FAULT_REPEAT_S = 1.0
-#: Speed of the moves to the start of a scan, as a multiple of the scan's own speed (at most).
-MOVE_SPEED_FACTOR = 1.0
 
 
-@dataclass(slots=True)
-class Chunk:
-    """What a job produced for some samples.
-
-    Attributes
-    ----------
-    volts
-        ``(axes, n)`` voltages.
-    targets
-        ``(axes, n)`` target positions (um), NaN where the axis has no target.
-    line
-        Line number per sample (-1 outside scan lines).
-    direction
-        +1 trace / -1 retrace / 0 (per sample).
-    record
-        Whether the sample is recorded.
-    label
-        Experiment label id of the chunk (:meth:`Engine.label_id`), -1 for none.
-    """
-
-    volts: FloatArray
-    targets: FloatArray
-    line: NDArray[np.int64]
-    direction: NDArray[np.int8]
-    record: NDArray[np.bool_]
-    label: int = -1
-    corrected: bool = False
-
-
-class Job(ABC):
-    """Something the engine streams: produces chunks until :attr:`done`."""
-
-    state: EngineState = "idle"
-    done = False
-
-    @abstractmethod
-    def render(self, engine: Engine, n: int) -> Chunk:
-        """The next ``n`` samples (fewer when the job ends inside them)."""
-
-
-class HoldJob(Job):
-    """Hold the last voltages (idle)."""
-
-    def __init__(self, state: EngineState = "idle") -> None:
-        self.state = state
-
-    def render(self, engine: Engine, n: int) -> Chunk:
-        volts = np.stack([d.hold(n).voltage_v for d in engine.drivers.values()])
-        return engine.chunk(volts, None)
-
-
-class RampJob(Job):
-    """Ramp every axis linearly to a voltage (the safe values by default), then hold."""
-
-    def __init__(
-        self, engine: Engine, target_v: dict[str, float] | None, rate_v_per_s: float, state: EngineState
-    ):
-        self.state = state
-        volts = []
-        for name, d in engine.drivers.items():
-            goal = d.config.safe_voltage_v if target_v is None else target_v.get(name, d.voltage_v)
-            volts.append(d.ramp_to(goal, rate_v_per_s, engine.rate_hz))
-        length = max(v.size for v in volts)
-        self._volts = np.stack([np.concatenate([v, np.full(length - v.size, v[-1])]) for v in volts])
-        self._pos = 0
-
-    def render(self, engine: Engine, n: int) -> Chunk:
-        take = min(n, self._volts.shape[1] - self._pos)
-        out = self._volts[:, self._pos : self._pos + take]
-        self._pos += take
-        self.done = self._pos >= self._volts.shape[1]
-        return engine.chunk(out, None)
-
-
-class MoveJob(Job):
-    """A slew-limited move in position (through the inverse model), then done."""
-
-    state: EngineState = "moving"
-
-    def __init__(self, engine: Engine, goal_um: dict[str, float], speed_um_per_s: float) -> None:
-        start = np.array([d.position_um for d in engine.drivers.values()])
-        end = np.array([goal_um.get(name, start[i]) for i, name in enumerate(engine.drivers)])
-        self._path = move_profile(start, end, speed_um_per_s, engine.rate_hz)
-        self._moving = np.abs(end - start) > 0
-        self._pos = 0
-
-    def render(self, engine: Engine, n: int) -> Chunk:
-        take = min(n, self._path.shape[1] - self._pos)
-        targets = self._path[:, self._pos : self._pos + take]
-        self._pos += take
-        self.done = self._pos >= self._path.shape[1]
-        volts = np.empty_like(targets)
-        for i, d in enumerate(engine.drivers.values()):
-            if self._moving[i]:
-                volts[i] = engine.drive(d, d.corrected(targets[i]))
-            else:
-                volts[i] = d.hold(take).voltage_v
-        return engine.chunk(volts, targets)
-
-
-class ScanJob(Job):
-    """A scan along a :class:`~piezod.trajectory.Trajectory`: move to its start, settle, scan
-    (recorded), then hold at the end."""
-
-    state: EngineState = "scanning"
-
-    def __init__(self, engine: Engine, request: ScanRequest, trajectory: Trajectory) -> None:
-        self.request = request
-        self._traj = trajectory
-        # Settling: the trajectory's unrecorded lead-in (a raster: SETTLE_LINES on the first row).
-        self._settle: Trajectory | None = trajectory.settling()
-        self._name = request.name or "scan"
-        self.label = engine.label_id(self._name)
-        engine.set_label_note(self.label, None)
-        # Changes (ctl change) start a new experiment "<name>.<part>" at the line where they apply.
-        self._part = 1
-        self._scanned = False
-        self._change_text: list[str] = []
-        self._plans = engine.plans_for(trajectory)
-        self._plan_key: object = trajectory.key
-        for name, plan in self._plans.items():
-            engine.drivers[name].use_plan(plan)
-        speed = max(trajectory.speed_um_per_s() * MOVE_SPEED_FACTOR, 1.0)
-        self._move: MoveJob | None = MoveJob(engine, trajectory.start_um(), speed)
-
-    def change(self, engine: Engine, change: ScanChange) -> None:
-        updates = change.model_dump(exclude_none=True)
-        engine.plans_for(self._traj.changed(**updates))  # refuse before it takes effect
-        self._traj.change(**updates)
-        self._change_text.append(" ".join(f"{k}={v:g}" for k, v in updates.items()))
-
-    def _new_experiment(self, engine: Engine, start_index: int) -> None:
-        """New parameters took effect at ``start_index``: a new experiment, noted in the recording."""
-        if self._scanned:
-            self._part += 1
-            self.label = engine.label_id(f"{self._name}.{self._part}")
-        engine.set_label_note(
-            self.label,
-            f"change: experiment {engine.label_names(np.array([self.label]))[0]} from "
-            f"t = {start_index / engine.rate_hz:.6f} s: {'; '.join(self._change_text)} "
-            f"(now {self._traj.describe()})",
-        )
-        self._change_text = []
-
-    def render(self, engine: Engine, n: int) -> Chunk:
-        if self._move is not None:
-            chunk = self._move.render(engine, n)
-            if self._move.done:
-                self._move = None
-            return chunk
-        settling = self._settle is not None
-        traj = self._settle if self._settle is not None else self._traj
-        change_at = None if settling else self._traj.pending_index
-        if change_at is not None and change_at > self._traj.next_index:
-            n = min(n, change_at - self._traj.next_index)  # a block never spans a change
-        block = traj.next_block(n)
-        if self._settle is not None and self._settle.done:
-            self._settle = None
-        m = block.x_um.size
-        if m == 0:
-            self.done = self._settle is None and self._traj.done
-            return engine.chunk(np.empty((len(engine.drivers), 0)), None)
-        if self._plan_key is not self._traj.key:
-            self._plan_key = self._traj.key
-            self._plans = engine.plans_for(self._traj)
-            for name, plan in self._plans.items():
-                engine.drivers[name].use_plan(plan)
-            if not settling:
-                self._new_experiment(engine, engine.render_index)
-        targets = np.full((len(engine.drivers), m), np.nan)
-        volts = np.empty((len(engine.drivers), m))
-        for i, (name, d) in enumerate(engine.drivers.items()):
-            if name in ("x", "y"):
-                tgt = block.x_um if name == "x" else block.y_um
-                targets[i] = tgt
-                plan = self._plans.get(name)
-                scale = engine.tracked_scale(name) if self.request.correction else 1.0
-                if scale != 1.0 and plan is not None:
-                    # the stage is `scale` times as sensitive as the model: shorten the travel
-                    tgt = plan.center_um + (tgt - plan.center_um) / scale
-                if self.request.correction or plan is None:
-                    volts[i] = engine.drive(d, d.corrected(tgt))
-                else:
-                    volts[i] = engine.drive(d, d.linear(tgt, plan))
-            else:
-                volts[i] = d.hold(m).voltage_v
-        self.done = self._settle is None and self._traj.done
-        if settling:
-            return Chunk(
-                volts, targets, np.full(m, -1, dtype=np.int64), block.fast_direction, np.zeros(m, bool)
-            )
-        record = np.full(m, self.request.record)
-        self._scanned = True
-        return Chunk(
-            volts, targets, block.line, block.fast_direction, record, self.label, self.request.correction
-        )
-
-    @property
-    def trajectory(self) -> Trajectory:
-        return self._traj
-
-    @property
-    def line(self) -> int:
-        return max(0, self._traj.line)
-
-
-@dataclass(frozen=True, slots=True)
-class Segment:
-    """One piece of a voltage program: samples for one axis, labelled, recorded or not."""
-
-    volts: FloatArray
-    label: str
-    record: bool = True
-
-
-class ProgramJob(Job):
-    """Play voltage segments on one axis (others hold), each preceded by a ramp to its start.
-
-    This is how a calibration frame runs: the thesis's uncorrected triangles, settling loops
-    unrecorded, then the recorded loops, each experiment labelled.
-    """
-
-    state: EngineState = "scanning"
-
-    def __init__(self, engine: Engine, axis: str, segments: list[Segment], ramp_v_per_s: float) -> None:
-        if axis not in engine.drivers:
-            raise SafetyError(f"the scanner has no axis {axis!r}")
-        lo, hi = engine.drivers[axis].limits
-        for seg in segments:
-            if seg.volts.size == 0 or not (np.all(seg.volts >= lo) and np.all(seg.volts <= hi)):
-                raise SafetyError(f"segment {seg.label!r}: voltages outside [{lo:g}, {hi:g}] V or empty")
-        self.axis = axis
-        self._axis_index = list(engine.drivers).index(axis)
-        self._segments = list(segments)
-        self._ramp = ramp_v_per_s
-        self._current: FloatArray | None = None
-        self._current_seg: Segment | None = None
-        self._pos = 0
-        self._label = -1
-
-    def _advance(self, engine: Engine) -> bool:
-        if not self._segments:
-            return False
-        seg = self._segments.pop(0)
-        driver = engine.drivers[self.axis]
-        start = float(seg.volts[0])
-        n_ramp = math.ceil(abs(start - driver.voltage_v) / self._ramp * engine.rate_hz)
-        ramp = driver.voltage_v + (start - driver.voltage_v) * np.arange(1, n_ramp + 1) / max(n_ramp, 1)
-        self._ramp_len = n_ramp
-        self._current = np.concatenate([ramp, seg.volts])
-        self._current_seg = seg
-        self._pos = 0
-        self._label = engine.label_id(seg.label)
-        return True
-
-    def render(self, engine: Engine, n: int) -> Chunk:
-        if (self._current is None or self._pos >= self._current.size) and not self._advance(engine):
-            self.done = True
-            return engine.chunk(np.empty((len(engine.drivers), 0)), None)
-        assert self._current is not None and self._current_seg is not None
-        take = min(n, self._current.size - self._pos)
-        piece = self._current[self._pos : self._pos + take]
-        in_seg = np.arange(self._pos, self._pos + take) >= self._ramp_len
-        self._pos += take
-        volts = np.empty((len(engine.drivers), take))
-        for i, d in enumerate(engine.drivers.values()):
-            volts[i] = engine.drive(d, d.direct(piece)) if i == self._axis_index else d.hold(take).voltage_v
-        chunk = engine.chunk(volts, None)
-        chunk.record = in_seg & self._current_seg.record
-        chunk.label = self._label
-        if self._pos >= self._current.size and not self._segments:
-            self.done = True
-        return chunk
-
-
-class TargetRing:
-    """What the engine commanded per sample index, for matching the sensor readback."""
-
-    def __init__(self, axes: int, capacity: int) -> None:
-        self.capacity = capacity
-        self.targets = np.full((axes, capacity), np.nan)
-        self.line = np.full(capacity, -1, dtype=np.int64)
-        self.direction = np.zeros(capacity, dtype=np.int8)
-        self.record = np.zeros(capacity, dtype=bool)
-        self.recording = np.full(capacity, -1, dtype=np.int64)
-        self.label = np.full(capacity, -1, dtype=np.int64)
-        self.corrected = np.zeros(capacity, dtype=bool)
-        self.hi = 0
-        self.lock = threading.Lock()
-
-    def put(self, first: int, chunk: Chunk, recording_id: int) -> None:
-        n = chunk.volts.shape[1]
-        slots = np.arange(first, first + n) % self.capacity
-        with self.lock:
-            self.targets[:, slots] = chunk.targets
-            self.line[slots] = chunk.line
-            self.direction[slots] = chunk.direction
-            self.record[slots] = chunk.record
-            self.recording[slots] = recording_id if chunk.record.any() else -1
-            self.label[slots] = chunk.label
-            self.corrected[slots] = chunk.corrected
-            self.hi = max(self.hi, first + n)
-
-    def get(self, idx: NDArray[np.int64]) -> tuple[Any, ...]:
-        """(targets, line, direction, record, recording id, label id) at the sample indices."""
-        slots = idx % self.capacity
-        with self.lock:
-            known = (idx < self.hi) & (idx >= self.hi - self.capacity)
-            return (
-                self.targets[:, slots].copy(),
-                self.line[slots].copy(),
-                self.direction[slots].copy(),
-                self.record[slots] & known,
-                np.where(known, self.recording[slots], -1),
-                self.label[slots].copy(),
-                self.corrected[slots].copy(),
-            )
-
-
-@dataclass
-class _OpenRecording:
-    ident: int
-    path: Path
-    writer: RecordingWriter
-    axes: tuple[str, ...]
-    targets: bool
-    rows: int = 0
-    done: bool = False
-    z_monitor_ratio: float | None = None
-    labels_seen: set[int] = field(default_factory=set)
-
-
-@dataclass
-class _LineAccumulator:
-    line: int = -1
-    direction: int = 0
-    corrected: bool = False
-    target: list[FloatArray] = field(default_factory=list)
-    position: list[FloatArray] = field(default_factory=list)
-
-
-class Recorder(threading.Thread):
-    """Appends matched sensor blocks to the open recording; line linearity of the fast axis."""
+class _ShadowEngine:
+    """What a job needs of the engine, on copies of its axis drivers: to try a job without effect."""
 
     def __init__(self, engine: Engine) -> None:
-        super().__init__(name="piezod-recorder", daemon=True)
-        self.engine = engine
-        self.queue: queue.Queue[tuple[MatchedBlock | None, tuple[Any, ...]] | None] = queue.Queue()
-        self.recordings: dict[int, _OpenRecording] = {}
-        self.lock = threading.Lock()
-        self.error: BaseException | None = None
-        self._acc = _LineAccumulator()
-        self._pending_close: dict[int, int] = {}
+        self.rate_hz = engine.rate_hz
+        self.render_index = 0
+        self._engine = engine
+        with engine._lock:
+            self.drivers = {name: copy.deepcopy(d) for name, d in engine.drivers.items()}
+        self.clamped = dict.fromkeys(self.drivers, 0)
 
-    def open(
-        self,
-        ident: int,
-        path: Path,
-        metadata: dict[str, object],
-        axes: tuple[str, ...],
-        *,
-        targets: bool = True,
-        z_monitor_ratio: float | None = None,
-    ) -> None:
-        height = ("z_voltage",) if z_monitor_ratio is not None else ()
-        target = ("target",) if targets else ()
-        columns = ("t", "voltage", "position", *target, *height, "axis", "experiment")
-        writer = RecordingWriter(path, columns, metadata=metadata, append=False)
-        with self.lock:
-            self.recordings[ident] = _OpenRecording(
-                ident, path, writer, axes, targets, z_monitor_ratio=z_monitor_ratio
-            )
+    def label_id(self, name: str) -> int:
+        return -1
 
-    def run(self) -> None:
-        while True:
-            item = self.queue.get()
-            if item is None:
-                self.queue.task_done()
-                break
-            block, meta = item
-            try:
-                if block is None:
-                    self._pending_close[int(meta[1])] = int(meta[2])
-                else:
-                    if self.error is None:
-                        self._write(block, meta)
-                    last = int(block.indices[-1]) if block.indices.size else -1
-                    for ident, end in list(self._pending_close.items()):
-                        if last >= end - 1:
-                            del self._pending_close[ident]
-                            self._close(ident)
-            except (OSError, PiezodError, ValueError) as exc:
-                log.exception("recorder failed")
-                self.error = exc
-                self.engine.fault("host", "RECORDING", f"recording failed, recording stopped: {exc}")
-            finally:
-                self.queue.task_done()
-        with self.lock:
-            for rec in self.recordings.values():
-                rec.writer.close()
+    def set_label_note(self, ident: int, note: str | None) -> None:
+        pass
 
-    def _close(self, ident: int) -> None:
-        with self.lock:
-            rec = self.recordings.pop(ident, None)
-        if rec is not None:
-            rec.writer.close()
-            log.info("recording %s closed (%d rows)", rec.path, rec.rows)
+    def label_names(self, ids: NDArray[np.int64]) -> NDArray[np.str_]:
+        return np.full(ids.shape, "", dtype=str)
 
-    def _write(self, block: MatchedBlock, meta: tuple[Any, ...]) -> None:
-        targets, line, direction, record, rec_id, label, corrected = meta
-        rate = self.engine.rate_hz
-        t = block.indices / rate
-        self._line_stats(block, targets, line, direction, corrected)
-        if not record.any():
-            return
-        for ident in np.unique(rec_id[record]):
-            with self.lock:
-                rec = self.recordings.get(int(ident))
-            if rec is None:
-                continue
-            rows = np.flatnonzero(record & (rec_id == ident))
-            z_all = None
-            if rec.z_monitor_ratio is not None and "z" in block.axes:
-                z_all = block.position_um[block.axes.index("z")] * rec.z_monitor_ratio
-            # one run per experiment, so that a change's note precedes its experiment's rows
-            for run in np.split(rows, np.flatnonzero(np.diff(label[rows])) + 1):
-                lab = int(label[run[0]])
-                if lab not in rec.labels_seen:
-                    rec.labels_seen.add(lab)
-                    note = self.engine.label_note(lab)
-                    if note is not None:
-                        rec.writer.comment(note)
-                names = self.engine.label_names(label[run])
-                z_voltage = None
-                if rec.z_monitor_ratio is not None:
-                    z_voltage = z_all[run] if z_all is not None else np.full(run.size, np.nan)
-                for i, axis in enumerate(block.axes):
-                    if axis not in rec.axes:
-                        continue
-                    rec.writer.write(
-                        t[run],
-                        block.commanded_v[i, run],
-                        block.position_um[i, run],
-                        target_um=targets[i, run] if rec.targets else None,
-                        axis=axis,
-                        experiment=names,
-                        z_voltage_v=z_voltage,
-                    )
-                    rec.rows += int(run.size)
+    def plans_for(self, trajectory: Trajectory) -> dict[str, PeriodicPlan | None]:
+        return self._engine.plans_for(trajectory)
 
-    def _line_stats(
-        self,
-        block: MatchedBlock,
-        targets: FloatArray,
-        line: NDArray[np.int64],
-        direction: NDArray[np.int8],
-        corrected: NDArray[np.bool_],
-    ) -> None:
-        if "x" not in block.axes:
-            return
-        ix = block.axes.index("x")
-        acc = self._acc
-        # Split at changes of (line, direction); finish a trace/retrace when it ends.
-        key = line * 4 + (direction + 1)
-        cuts = np.flatnonzero(np.diff(key)) + 1
-        for seg in np.split(np.arange(key.size), cuts):
-            if seg.size == 0:
-                continue
-            ln, dr = int(line[seg[0]]), int(direction[seg[0]])
-            if (ln, dr) != (acc.line, acc.direction):
-                self._finish_line()
-                acc.line, acc.direction = ln, dr
-                acc.target, acc.position = [], []
-                acc.corrected = bool(corrected[seg[0]])
-            if ln >= 0:
-                acc.target.append(targets[ix, seg])
-                acc.position.append(block.position_um[ix, seg])
+    def tracked_scale(self, axis: str) -> float:
+        return self._engine.tracked_scale(axis)
 
-    def _finish_line(self) -> None:
-        acc = self._acc
-        if acc.line < 0 or not acc.target:
-            return
-        tgt = np.concatenate(acc.target)
-        pos = np.concatenate(acc.position)
-        ok = np.isfinite(tgt) & np.isfinite(pos)
-        if ok.sum() < 8:
-            return
-        tgt, pos = tgt[ok], pos[ok]
-        nominal = float(tgt.max() - tgt.min())
-        if nominal <= 0:
-            return
-        slope, intercept = np.polyfit(tgt, pos, 1)
-        resid = pos - (slope * tgt + intercept)
-        measured = slope * nominal
-        self.engine.set_line_linearity(
-            LineLinearity(
-                line=acc.line,
-                direction="trace" if acc.direction > 0 else "retrace",
-                nonlinearity_pct=float(100.0 * np.std(resid) / measured) if measured else math.inf,
-                length_error_pct=float(100.0 * (measured - nominal) / nominal),
-            ),
-            acc.corrected,
+    def drive(self, driver: AxisDriver, out: Any) -> FloatArray:
+        if out.clamped:
+            self.clamped[driver.name] += int(out.clamped)
+        volts: FloatArray = out.voltage_v
+        return volts
+
+    def chunk(self, volts: FloatArray, targets: FloatArray | None) -> Chunk:
+        n = volts.shape[1]
+        return Chunk(
+            volts,
+            np.full(volts.shape, np.nan) if targets is None else targets,
+            np.full(n, -1, dtype=np.int64),
+            np.zeros(n, dtype=np.int8),
+            np.zeros(n, dtype=bool),
         )
-
-
-def capped_lead_s(lead_s: float, session: BoardSession, rate_hz: float) -> float:
-    """The lead, capped at 60 % of the board FIFO (at high sample rates a long lead does not fit)."""
-    caps = session.capabilities
-    if caps is None:
-        return lead_s
-    fit = 0.6 * caps.fifo_depth_samples / rate_hz
-    if lead_s > fit:
-        log.info(
-            "lead %.0f ms capped at %.0f ms: the board FIFO holds %d samples",
-            1e3 * lead_s,
-            1e3 * fit,
-            caps.fifo_depth_samples,
-        )
-        return fit
-    return lead_s
 
 
 class Engine:
@@ -664,8 +196,7 @@ class Engine:
         self._recording_name: str | None = None
         self._next_recording = 0
         self._last_line: LineLinearity | None = None
-        self._session: BoardSession | None = None
-        self._streamer: Streamer | None = None
+        self._board: Board = SerialBoard(url, config, self._on_link_event, self.settings)
         self._clamped = 0
         self._closing = threading.Event()
         self._supervisor: threading.Thread | None = None
@@ -688,21 +219,18 @@ class Engine:
         #: Board sample index of the first sample the current job's render() produces.
         self.render_index = 0
 
+    @property
+    def board(self) -> Board:
+        """The board the engine streams to."""
+        return self._board
+
     # -- lifecycle ------------------------------------------------------------------------------
 
     def open(self, timeout_s: float = 10.0) -> None:
         """Connect to the board, configure it, start streaming (hold), start the recorder."""
         self._recorder.start()
-        self._session = BoardSession.open(
-            self.url,
-            config=self.config,
-            settings=self.settings,
-            on_event=self._on_link_event,
-            timeout_s=timeout_s,
-        )
-        plan = self._session.plan
-        assert plan is not None
-        order = list(plan.axes)
+        self._board.open(timeout_s)
+        order = list(self._board.axes)
         if order != list(self.drivers):
             self.drivers = {name: self.drivers[name] for name in order}
             self._ring = TargetRing(len(self.drivers), self._ring.capacity)
@@ -711,31 +239,31 @@ class Engine:
         self._supervisor.start()
 
     def _start_stream(self) -> None:
-        assert self._session is not None
-        lead = capped_lead_s(self.config.service.lead_ms / 1000.0, self._session, self.rate_hz)
+        lead = self.config.service.lead_ms / 1000.0
+        if isinstance(self._board, SerialBoard):
+            capped = self._board.capped_lead_s(lead)
+            if capped < lead:
+                log.info("lead %.0f ms capped at %.0f ms by the board FIFO", 1e3 * lead, 1e3 * capped)
+            lead = capped
         block = max(1, round(self.rate_hz * self.config.service.block_ms / 1000.0))
-        self._streamer = Streamer(
-            self._session, self, lead_s=lead, block_samples=block, on_block=self._on_block
-        )
         with self._lock:
             self._job = HoldJob("idle")
             self._queue.clear()
             if self._state in ("starting", "disconnected"):
                 self._state = "idle" if not self._fault_latched else "fault"
-        self._streamer.start(self._index)
+        self._board.start(self, self._index, lead_s=lead, block_samples=block, on_block=self._on_block)
 
     def _supervise(self) -> None:
         """Restart the stream after an underrun or a reconnect; report the reason."""
+        board = self._board
         while not self._closing.is_set():
-            streamer = self._streamer
-            if streamer is None or not streamer.wait(0.2):
+            if not board.wait_ended(0.2):
                 continue
             if self._closing.is_set():
                 return
-            run = streamer.stats.runs[-1] if streamer.stats.runs else None
-            how = run.ended_by if run is not None else None
+            how = board.ended_by()
             try:
-                streamer.check()
+                board.check()
             except PiezodError as exc:
                 self.fault("host", "STREAM", f"streaming ended: {exc}")
             if how not in (None, "stop"):
@@ -744,19 +272,16 @@ class Engine:
             with self._lock:
                 self._state = "disconnected" if how == "link" else "fault"
                 self._fault_latched = True
-            # Wait for the session to be usable again, then stream (hold) again.
-            session = self._session
-            if session is None:
-                return
-            while not self._closing.is_set() and not session.connected:
+            # Wait for the board to be usable again, then stream (hold) again.
+            while not self._closing.is_set() and not board.connected:
                 time.sleep(0.1)
             if self._closing.is_set():
                 return
-            self._index = max(self._index, streamer.next_index) + int(self.rate_hz)
+            self._index = max(self._index, board.next_index) + int(self.rate_hz)
             try:
                 # After any abnormal end the outputs go to the safe values (the board's ramp after a
                 # watchdog, or the reconfiguration here), and the model forgets the history.
-                session.prepare_restart(timeout_s=10.0)
+                board.restart(timeout_s=10.0)
                 for d in self.drivers.values():
                     d.reset(d.config.safe_voltage_v)
                 self._start_stream()
@@ -766,8 +291,8 @@ class Engine:
 
     def close(self, *, ramp: bool = True, timeout_s: float = 20.0) -> None:
         """Ramp the outputs to the safe values, stop streaming, close recordings and the link."""
-        streamer, session = self._streamer, self._session
-        if ramp and streamer is not None and streamer.running:
+        board = self._board
+        if ramp and board.running:
             done = threading.Event()
             with self._lock:
                 self._queue.clear()
@@ -778,14 +303,12 @@ class Engine:
             done.wait(timeout_s)
         self._closing.set()
         try:
-            if streamer is not None and streamer.running:
-                streamer.finish(timeout_s=timeout_s)
+            board.finish(timeout_s=timeout_s)
         finally:
             self._end_recording()
             self._recorder.queue.put(None)
             self._recorder.join(timeout=10.0)
-            if session is not None:
-                session.close(ramp_to_safe=True)
+            board.close(ramp_to_safe=True)
 
     # -- the block source (streamer thread) ------------------------------------------------------
 
@@ -803,6 +326,9 @@ class Engine:
                     chunk = job.render(self, n - filled)
                 except (ModelError, SafetyError) as exc:
                     self.fault("host", "MODEL", f"{type(job).__name__}: {exc}")
+                    if isinstance(job, ScanJob | ProgramJob):
+                        self._end_recording(self._index + filled)  # closed, not leaked
+                    self._queue.clear()
                     self._job = RampJob(self, None, self.config.service.ramp_rate_v_per_s, "fault")
                     self._fault_latched = True
                     continue
@@ -894,21 +420,27 @@ class Engine:
     # -- EngineControl ---------------------------------------------------------------------------
 
     def status(self) -> Status:
-        """A snapshot (cheap, thread-safe)."""
+        """A snapshot (cheap, thread-safe).
+
+        While the board is disconnected no position or voltage is reported: what the board applies
+        then is not known to the host (it ramps to its safe values when the heartbeat stops).
+        """
         with self._lock:
-            job = self._job
-            state = self._state
-            scan = job.request if isinstance(job, ScanJob) else None
-            line = job.line if isinstance(job, ScanJob) else None
-        session = self._session
-        fifo_ms = 0.0
-        underruns = crc = dropped = 0
-        if session is not None:
-            st = session.status
-            if st is not None and st.last_played_index != NO_INDEX:
-                fifo_ms = 1000.0 * max(0, st.write_index - st.last_played_index - 1) / self.rate_hz
-            c = session.counters()
-            underruns, crc, dropped = c.underruns, c.crc_errors, c.frames_dropped_board
+            return self._status_locked()
+
+    def _status_locked(self) -> Status:
+        job = self._job
+        state = self._state
+        scan = job.request if isinstance(job, ScanJob) else None
+        line = job.line if isinstance(job, ScanJob) else None
+        known = state not in ("disconnected", "starting")
+        snap = self._board.snapshot()
+        fifo_ms, underruns, crc, dropped = (
+            snap.fifo_level_ms,
+            snap.underruns,
+            snap.crc_errors,
+            snap.frames_dropped,
+        )
         return Status(
             state=state,
             scanner=self.config.name,
@@ -924,46 +456,100 @@ class Engine:
             frames_dropped=dropped,
             faults=list(self._faults)[-20:],
             last_line=self._last_line,
-            position_um={n: d.position_um for n, d in self.drivers.items()},
-            voltage_v={n: d.voltage_v for n, d in self.drivers.items()},
+            position_um={n: d.position_um for n, d in self.drivers.items()} if known else {},
+            voltage_v={n: d.voltage_v for n, d in self.drivers.items()} if known else {},
             recording=self._recording_name,
             sensitivity_scale={a: t.scale for a, t in self._trackers.items()},
         )
 
     def check_scan(self, request: ScanRequest) -> None:
-        """Refuse a scan the stage cannot do (with the reason)."""
-        self.plans_for(RasterTrajectory.from_request(request, self.rate_hz))
+        """Refuse a scan the stage cannot do (with the reason).
+
+        Besides the steady loop (:meth:`plans_for`), the start of the scan (the move to its first
+        point, the settling lines and the first lines of the frame) is rendered on copies of the
+        axis drivers, outside the engine lock: a scan that would clamp any sample to the voltage
+        limits there (an offset that drives an axis into its limits while the creep settles) is
+        refused with the numbers instead of being clamped while it runs.
+        """
+        trajectory = RasterTrajectory.from_request(request, self.rate_hz)
+        self._check_scan_start(request, trajectory, self.plans_for(trajectory))
+
+    def _check_scan_start(
+        self, request: ScanRequest, trajectory: Trajectory, plans: dict[str, PeriodicPlan | None]
+    ) -> None:
+        shadow = _ShadowEngine(self)
+        job = ScanJob(cast(Engine, shadow), request, trajectory.restarted(), plans)
+        lines_s = (SETTLE_LINES + 2 + 1) / max(request.line_rate_hz, 1e-9)
+        budget = min(int(self.rate_hz * lines_s) + 1, MAX_CHECK_SAMPLES)
+        block = max(1, round(self.rate_hz * self.config.service.block_ms / 1000.0))
+        total = rendered = 0
+        while not job.done and (job._move is not None or rendered < budget) and total < MAX_CHECK_SAMPLES:
+            in_move = job._move is not None
+            m = job.render(cast(Engine, shadow), block).volts.shape[1]
+            total += m
+            if not in_move:
+                rendered += m
+            if m == 0 and not job.done:
+                break
+        bad = {axis: n for axis, n in shadow.clamped.items() if n}
+        if bad:
+            axis, n = next(iter(bad.items()))
+            lo, hi = self.drivers[axis].limits
+            raise SafetyError(
+                f"axis {axis}: the start of this scan (range {request.range_um:g} um, offset "
+                f"({request.offset_x_um:g}, {request.offset_y_um:g}) um) would drive {n} samples beyond the "
+                f"voltage limits [{lo:g}, {hi:g}] V while the stage settles; reduce the offset or the range"
+            )
 
     def start_scan(self, request: ScanRequest, *, path: Path | None = None) -> Status:
         """Start a scan; recorded to ``path`` or to the recording directory."""
         trajectory = RasterTrajectory.from_request(request, self.rate_hz)
-        self.plans_for(trajectory)
+        plans = self.plans_for(trajectory)  # the heavy parts, outside the lock
+        self._check_scan_start(request, trajectory, plans)
         with self._lock:
             if self._state not in ("idle",):
                 raise EngineStateError(f"cannot start a scan while {self._state}")
-            job = ScanJob(self, request, trajectory)
             if request.record:
-                self._begin_recording(request, trajectory, path)
+                self._begin_recording(request, trajectory, path, plans)
+            try:
+                job = ScanJob(self, request, trajectory, plans)
+            except BaseException:
+                self._discard_recording()
+                raise
             self._job = job
             self._state = "scanning"
         return self.status()
 
     def change_scan(self, change: ScanChange) -> Status:
-        """Change the running scan at the next line."""
+        """Change the running scan at the next line; a refused change has no effect at all."""
+        updates = change.model_dump(exclude_none=True)
         with self._lock:
             job = self._job
             if not isinstance(job, ScanJob):
                 raise EngineStateError(f"no scan is running (state {self._state})")
+            candidate = job.trajectory.changed(**updates)
+        self.plans_for(candidate)  # the heavy check, outside the lock (its plans are cached)
+        with self._lock:
+            if self._job is not job:
+                raise EngineStateError("the scan ended meanwhile; nothing was changed")
             job.change(self, change)
         return self.status()
 
     def stop(self) -> Status:
-        """Stop scanning / moving and hold; clears a latched fault."""
+        """Stop scanning / moving and hold; clears a latched fault.
+
+        While the board is disconnected there is nothing to stop here (the board ramps to its safe
+        values by itself when the heartbeat stops, and is reconfigured when it is back): the answer
+        says ``disconnected``.
+        """
         with self._lock:
             self._queue.clear()
-            if isinstance(self._job, ScanJob):
+            if isinstance(self._job, ScanJob | ProgramJob):
                 self._end_recording()
             self._fault_latched = False
+            if self._state in ("disconnected", "starting"):
+                self._job = HoldJob(self._state)
+                return self._status_locked()
             self._job = HoldJob("idle")
             self._state = "idle"
         return self.status()
@@ -987,6 +573,7 @@ class Engine:
     def move(self, request: MoveRequest) -> Status:
         """Move to a position (slew-limited), then hold."""
         self.check_move(request)
+        self._check_move_duration(request)
         goal = {
             k: v for k, v in (("x", request.x_um), ("y", request.y_um), ("z", request.z_um)) if v is not None
         }
@@ -996,6 +583,20 @@ class Engine:
             self._job = MoveJob(self, goal, request.speed_um_per_s)
             self._state = "moving"
         return self.status()
+
+    def _check_move_duration(self, request: MoveRequest) -> None:
+        """Refuse a move that would take longer than :data:`MAX_MOVE_S` (with the speed it needs)."""
+        with self._lock:
+            here = {n: d.position_um for n, d in self.drivers.items()}
+        goal = {"x": request.x_um, "y": request.y_um, "z": request.z_um}
+        dist = max((abs(v - here[k]) for k, v in goal.items() if v is not None and k in here), default=0.0)
+        duration = 0.5 * math.pi * dist / request.speed_um_per_s
+        if duration > MAX_MOVE_S:
+            need = 0.5 * math.pi * dist / MAX_MOVE_S
+            raise SafetyError(
+                f"a move of {dist:.4g} um at {request.speed_um_per_s:g} um/s takes {duration:.4g} s, longer "
+                f"than the {MAX_MOVE_S:g} s a move may take; use at least {need:.3g} um/s"
+            )
 
     def recordings(self) -> list[RecordingInfo]:
         """The recordings in the recording directory."""
@@ -1035,7 +636,7 @@ class Engine:
             self._next_recording += 1
             ident = self._next_recording
             meta = {"scanner": self.config.name, "sample_rate_hz": self.rate_hz, **metadata}
-            self._recorder.open(ident, path, meta, (axis,), targets=False)
+            self._recorder.open(ident, path, meta, (axis,), targets=False)  # exclusive
             self._recording_id = ident
             self._recording_name = path.name
             self._job = job
@@ -1052,8 +653,7 @@ class Engine:
 
     def healthy(self) -> bool:
         """Streaming runs and the board reports in time (the systemd watchdog is pinged only then)."""
-        streamer, session = self._streamer, self._session
-        if streamer is None or session is None or not streamer.running or not session.connected:
+        if not self._board.running or not self._board.connected:
             return False
         with self._lock:
             return self._state not in ("disconnected", "starting")
@@ -1086,8 +686,8 @@ class Engine:
         target = self._index
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            st = self._session.status if self._session is not None else None
-            if st is not None and st.last_played_index != NO_INDEX and st.last_played_index + 1 >= target:
+            played = self._board.snapshot().last_played_index
+            if played is not None and played + 1 >= target:
                 break
             time.sleep(0.02)
         # SENSOR frames follow the played samples within a few status periods.
@@ -1096,10 +696,13 @@ class Engine:
 
     # -- recordings ------------------------------------------------------------------------------
 
-    def _begin_recording(self, request: ScanRequest, trajectory: Trajectory, path: Path | None) -> None:
-        name = request.name or time.strftime("scan-%Y%m%d-%H%M%S")
-        if path is None:
-            path = self.recording_dir / (name if name.endswith(".csv") else name + ".csv")
+    def _begin_recording(
+        self,
+        request: ScanRequest,
+        trajectory: Trajectory,
+        path: Path | None,
+        plans: dict[str, PeriodicPlan | None],
+    ) -> None:
         self._next_recording += 1
         ident = self._next_recording
         meta: dict[str, object] = {
@@ -1127,16 +730,57 @@ class Engine:
         if mic is not None:
             meta["position_sensor"] = "yes" if mic.position_sensor else "no"
             meta["z_monitor_ratio"] = mic.z_monitor_ratio
-        axes = tuple(a for a, plan in self.plans_for(trajectory).items() if plan is not None) or ("x",)
+        z_ratio = None if mic is None else mic.z_monitor_ratio
+        axes = tuple(a for a, plan in plans.items() if plan is not None) or ("x",)
         axes = tuple(a for a in axes if mic is None or a != "z")
         meta["correction"] = self.correction_label(axes) if request.correction else "none"
         uncal = [a for a in axes if a not in calibrated_axes(self.config)]
         meta["calibrated"] = "no (axes " + ", ".join(uncal) + ")" if uncal else "yes"
-        self._recorder.open(
-            ident, path, meta, axes, z_monitor_ratio=None if mic is None else mic.z_monitor_ratio
-        )
+        if path is not None or request.name:
+            if path is None:
+                name = request.name or ""
+                path = self.recording_dir / (name if name.endswith(".csv") else name + ".csv")
+            self._recorder.open(ident, path, meta, axes, z_monitor_ratio=z_ratio)
+        else:
+            # unnamed: scan-<time>, then -2, -3 ... for scans started within the same second
+            stem = time.strftime("scan-%Y%m%d-%H%M%S")
+            for n in range(1, 1000):
+                path = self.recording_dir / (f"{stem}.csv" if n == 1 else f"{stem}-{n}.csv")
+                try:
+                    self._recorder.open(ident, path, meta, axes, z_monitor_ratio=z_ratio)
+                    break
+                except RecordingError as exc:
+                    if not isinstance(exc.__cause__, FileExistsError):
+                        raise
+            else:
+                raise RecordingError(f"no free recording name {stem}-N.csv", str(self.recording_dir))
+        assert path is not None
         self._recording_id = ident
         self._recording_name = path.name
+
+    def _discard_recording(self) -> None:
+        if self._recording_id >= 0:
+            self._recorder.discard(self._recording_id)
+            self._recording_id = -1
+            self._recording_name = None
+
+    def recording_failed(self, ident: int, message: str) -> None:
+        """The recorder lost recording ``ident`` (a full disk): stop its scan and hold; a fault.
+
+        The stage holds where it is (no jump, no ramp that might move a probe near a surface);
+        the fault stays until ``stop()``. The next scan opens a new recording, so recording
+        resumes by itself once space returns (or is refused with the reason if it has not).
+        """
+        with self._lock:
+            if ident == self._recording_id:
+                self._recording_id = -1
+                self._recording_name = None
+                if isinstance(self._job, ScanJob | ProgramJob):
+                    self._queue.clear()
+                    self._job = HoldJob("fault")
+                    self._state = "fault"
+                    self._fault_latched = True
+        self.fault("host", "RECORDING", message)
 
     def correction_label(self, axes: tuple[str, ...]) -> str:
         """The model correcting ``axes`` now: ``dynamic``, ``thesis``, or per axis ``x=dynamic y=thesis``."""
@@ -1242,3 +886,6 @@ class Engine:
                 f"{ev.missing_rows} sensor rows missing at {ev.expected_index}",
                 ev.expected_index,
             )
+
+
+__all__ = ["Engine", "FaultSource", "Segment"]
