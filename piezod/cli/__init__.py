@@ -31,6 +31,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "scan",
     "calibrate",
     "linearity",
+    "image",
     "audit",
     "bench",
     "sim",
