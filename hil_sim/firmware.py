@@ -20,8 +20,8 @@ import tty
 from collections.abc import Sequence
 from pathlib import Path
 
+from hil_sim.errors import SimLinkError
 from hil_sim.server import SimProcess, _read_path_line
-from piezod.errors import LinkError
 
 FIRMWARE_DIR = Path(__file__).resolve().parent.parent / "firmware_proto" / "c"
 """The firmware sources (a Makefile and C11 code)."""
@@ -37,7 +37,7 @@ def build_firmware(out_dir: str | Path, target: str = "host") -> Path:
 
     Raises
     ------
-    LinkError
+    SimLinkError
         ``make`` failed (the message carries the compiler's last lines).
     """
     out = Path(out_dir)
@@ -49,7 +49,7 @@ def build_firmware(out_dir: str | Path, target: str = "host") -> Path:
     )
     if done.returncode != 0:
         tail = "\n".join((done.stdout + done.stderr).strip().splitlines()[-15:])
-        raise LinkError(f"make {target} in {FIRMWARE_DIR} failed:\n{tail}")
+        raise SimLinkError(f"make {target} in {FIRMWARE_DIR} failed:\n{tail}")
     return out
 
 
@@ -123,7 +123,7 @@ def spawn_qemu(elf: str | Path, machine: str = "mps2-an385", *, timeout_s: float
 
     Raises
     ------
-    LinkError
+    SimLinkError
         QEMU exited or named no pty in time.
     """
     fd, name = tempfile.mkstemp(prefix="fw_qemu-", suffix=".log")
@@ -150,7 +150,7 @@ def spawn_qemu(elf: str | Path, machine: str = "mps2-an385", *, timeout_s: float
         time.sleep(0.05)
     text = log_path.read_text(encoding="utf-8", errors="replace").strip()
     board.close()
-    raise LinkError(f"qemu-system-arm named no pty within {timeout_s} s: {text[-300:]}")
+    raise SimLinkError(f"qemu-system-arm named no pty within {timeout_s} s: {text[-300:]}")
 
 
 __all__ = ["FIRMWARE_DIR", "build_firmware", "missing_tools", "spawn_firmware", "spawn_qemu"]

@@ -21,7 +21,9 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import random
 import tempfile
+import time
 from collections.abc import Generator, Iterator
 from pathlib import Path
 from types import TracebackType
@@ -153,11 +155,37 @@ class PiezodClient:
             error=error if isinstance(error, str) else None,
         )
 
+    def _retry_after(self, response: httpx.Response, deadline: float) -> bool:
+        """True (after waiting) if a 429 may be retried before ``deadline``.
+
+        The daemon answers 429 before a request reaches the engine, so any request may be sent again.
+        """
+        if response.status_code != 429:
+            return False
+        try:
+            wait = min(max(float(response.headers.get("retry-after", "1")), 0.05), 5.0)
+        except ValueError:
+            wait = 1.0
+        wait *= 0.5 + random.random()  # spread the retries of many clients
+        if time.monotonic() + wait > deadline:
+            return False
+        time.sleep(wait)
+        return True
+
     def _request(self, method: str, path: str, body: dict[str, Any] | None = None) -> Any:
         try:
-            response = self._http.request(method, path, json=body)
-        except httpx.TransportError as exc:
-            raise self._unreachable(method, path, exc) from exc
+            content = None if body is None else json.dumps(body, allow_nan=False).encode()
+        except ValueError as exc:
+            raise ApiError(f"{method} {path}: {exc} (numbers must be finite)", status_code=None) from exc
+        headers = {"content-type": "application/json"} if content is not None else None
+        deadline = time.monotonic() + self.timeout
+        while True:
+            try:
+                response = self._http.request(method, path, content=content, headers=headers)
+            except httpx.TransportError as exc:
+                raise self._unreachable(method, path, exc) from exc
+            if not self._retry_after(response, deadline):
+                break
         self._check(response)
         return response.json()
 
@@ -208,10 +236,17 @@ class PiezodClient:
         self, path: str, params: dict[str, Any] | None = None, read_timeout: float | None = None
     ) -> Iterator[httpx.Response]:
         timeout = httpx.Timeout(self.timeout, read=read_timeout if read_timeout else self.timeout)
+        deadline = time.monotonic() + self.timeout
         try:
-            with self._http.stream("GET", path, params=params, timeout=timeout) as response:
-                self._check(response)
-                yield response
+            while True:
+                with self._http.stream("GET", path, params=params, timeout=timeout) as response:
+                    if response.status_code == 429:
+                        response.read()
+                    if self._retry_after(response, deadline):
+                        continue
+                    self._check(response)
+                    yield response
+                    return
         except httpx.TransportError as exc:
             raise self._unreachable("GET", path, exc) from exc
 

@@ -40,7 +40,8 @@ reader accepts an unterminated final line if it parses; if it does not, the erro
 says so and names the line. ``allow_truncated_tail=True`` drops any unterminated
 final line unread (a complete-looking one may still be cut inside a number).
 Reopening a file with ``RecordingWriter(..., append=True)`` truncates such a partial
-line before appending.
+line before appending. A block that cannot be written (a full disk) is cut back, so the
+file always ends with a complete line; ``exclusive=True`` never opens an existing file.
 
 Scan inference (what a voltage waveform is) lives in :mod:`piezod.scan_inference`;
 :class:`ScanInfo` and :func:`infer_scan` are re-exported here.
@@ -49,13 +50,13 @@ Scan inference (what a voltage waveform is) lives in :mod:`piezod.scan_inference
 from __future__ import annotations
 
 import codecs
+import contextlib
 import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
-from typing import IO
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -519,6 +520,13 @@ class RecordingWriter:
         last line (no newline) is truncated first. A missing or empty file is created.
     fsync
         ``os.fsync`` after every block (durable against power loss, slower).
+    exclusive
+        Create the file, never open an existing one (``O_EXCL``): raises
+        :class:`FileExistsError` if it exists, so a recording is never truncated or reused.
+
+    A block that cannot be written completely (a full disk) is taken back: the file is cut to
+    its last complete block, so it stays parseable to its last line, and the ``OSError`` is
+    raised. The writer stays usable; a later block is written when space returns.
     """
 
     def __init__(
@@ -529,6 +537,7 @@ class RecordingWriter:
         metadata: Mapping[str, object] | None = None,
         append: bool = False,
         fsync: bool = False,
+        exclusive: bool = False,
     ) -> None:
         self.path = os.fspath(path)
         self.columns = tuple(columns)
@@ -539,15 +548,46 @@ class RecordingWriter:
         self.fsync = fsync
         self.rows_written = 0
         self.dropped_tail_bytes = 0
+        self._fd = -1
         p = Path(self.path)
-        if append and p.exists() and p.stat().st_size > 0:
+        if append and not exclusive and p.exists() and p.stat().st_size > 0:
             self._check_existing(p)
-            self._fh: IO[str] = open(p, "a", encoding="utf-8", newline="\n")  # noqa: SIM115
-        else:
-            self._fh = open(p, "w", encoding="utf-8", newline="\n")  # noqa: SIM115
-            head = "".join(f"# {_check_meta(k)}: {_meta_value(v)}\n" for k, v in (metadata or {}).items())
-            self._fh.write(head + ",".join(self.columns) + "\n")
-            self._flush()
+            self._fd = os.open(p, os.O_WRONLY | os.O_APPEND | os.O_CLOEXEC)
+            self._size = os.fstat(self._fd).st_size
+            return
+        flags = os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC | (os.O_EXCL if exclusive else os.O_TRUNC)
+        self._fd = os.open(p, flags, 0o644)
+        self._size = 0
+        head = "".join(f"# {_check_meta(k)}: {_meta_value(v)}\n" for k, v in (metadata or {}).items())
+        try:
+            self._append((head + ",".join(self.columns) + "\n").encode("utf-8"))
+        except OSError:
+            os.close(self._fd)
+            self._fd = -1
+            if exclusive:  # ours, and holding no data: leave no empty file behind
+                with contextlib.suppress(OSError):
+                    os.unlink(p)
+            raise
+
+    @property
+    def size_bytes(self) -> int:
+        """Bytes in the file, all of them complete lines."""
+        return self._size
+
+    def _append(self, data: bytes) -> None:
+        """Write all of ``data`` at the end or none of it (cut back on failure)."""
+        view = memoryview(data)
+        try:
+            while view:
+                n = os.write(self._fd, view)
+                view = view[n:]
+            if self.fsync:
+                os.fsync(self._fd)
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._fd, self._size)
+            raise
+        self._size += len(data)
 
     def _check_existing(self, p: Path) -> None:
         with open(p, "rb") as fh:
@@ -645,16 +685,18 @@ class RecordingWriter:
                 lists.append(labels.tolist())
         fmt = ",".join(parts) + "\n"
         block = "".join(map(fmt.__mod__, zip(*lists, strict=True)))
-        self._fh.write(block)
-        self._flush()
+        if self._fd < 0:
+            raise RecordingError("write: the writer is closed", self.path)
+        self._append(block.encode("utf-8"))
         self.rows_written += n
         return n
 
     def comment(self, text: str) -> None:
         """Append a comment line ``# text`` (e.g. a scan change between experiments) and flush."""
         _meta_value(text)
-        self._fh.write(f"# {text}\n")
-        self._flush()
+        if self._fd < 0:
+            raise RecordingError("comment: the writer is closed", self.path)
+        self._append(f"# {text}\n".encode())
 
     def write_recording(self, rec: Recording) -> int:
         """Write all rows of ``rec`` (its columns must match the writer's)."""
@@ -667,16 +709,11 @@ class RecordingWriter:
             experiment=rec.experiment,
         )
 
-    def _flush(self) -> None:
-        self._fh.flush()
-        if self.fsync:
-            os.fsync(self._fh.fileno())
-
     def close(self) -> None:
-        """Flush and close the file."""
-        if not self._fh.closed:
-            self._flush()
-            self._fh.close()
+        """Close the file (every block is already written)."""
+        if self._fd >= 0:
+            fd, self._fd = self._fd, -1
+            os.close(fd)
 
     def __enter__(self) -> RecordingWriter:
         return self

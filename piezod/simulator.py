@@ -9,6 +9,7 @@ imports nothing from :mod:`piezod` (checked by ``tests/test_import_rules.py``).
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,16 +19,25 @@ if TYPE_CHECKING:
     from hil_sim.server import SimProcess
 
 
-def spawn_sim(config_path: str | Path | None = None, **kwargs: Any) -> SimProcess:
+def spawn_sim(
+    config_path: str | Path | None = None,
+    effects: Sequence[str] = (),
+    seed: int = 0,
+    extra_args: Sequence[str] = (),
+    link: str | Path | None = None,
+    *,
+    timeout_s: float = 30.0,
+) -> SimProcess:
     """Start the simulated board on a pty (:func:`hil_sim.server.spawn_sim`); a context manager.
 
-    Its ``path`` is the pty (or ``link``) the host opens.
+    Its ``path`` is the pty (or ``link``) the host opens; the parameters are those of
+    :func:`hil_sim.server.spawn_sim`.
     """
     from hil_sim.errors import SimError, SimLinkTimeoutError
     from hil_sim.server import spawn_sim as _spawn
 
     try:
-        return _spawn(config_path, **kwargs)
+        return _spawn(config_path, effects, seed, extra_args, link, timeout_s=timeout_s)
     except SimLinkTimeoutError as exc:
         raise LinkTimeoutError(str(exc)) from exc
     except SimError as exc:

@@ -27,7 +27,7 @@ from piezod.config import AxisName, ScannerConfig
 from piezod.errors import CalibrationError, PiezodError
 from piezod.linearity import linearity
 from piezod.model.thesis import scan_range_um
-from piezod.recording import read_experiments
+from piezod.recording import Experiment, read_experiments
 from piezod.service.engine import Engine, Segment
 from piezod.service.schemas import ScanRequest
 
@@ -370,13 +370,30 @@ def _fit_dynamic_here(
 def _choose_here(
     frame_path: Path, axis: AxisName, base: ScannerConfig, ramp_v_per_s: float, rest_voltage_v: float
 ) -> ThesisFit:
-    """Fit the family's laws, score them and the dynamic model of ``base`` on held-out experiments."""
+    return choose_for_experiments(
+        read_experiments([frame_path], axis=axis), axis, base, ramp_v_per_s, rest_voltage_v
+    )
+
+
+def choose_for_experiments(
+    experiments: Sequence[Experiment],
+    axis: AxisName,
+    base: ScannerConfig,
+    ramp_v_per_s: float,
+    rest_voltage_v: float,
+) -> ThesisFit:
+    """Fit the family's laws, score them and the dynamic model of ``base`` on held-out experiments.
+
+    Returns the config using the model that predicts the held-out experiments best
+    (``model: family`` with its section, or ``model: dynamic``), the report (``table``,
+    ``chosen``, RMS per candidate) and, as ``fit_error_pct``, the chosen model's held-out RMS in um.
+    """
     from piezod import calibrate_dynamic as cd
     from piezod import calibrate_family as cf
     from piezod.model.family import CreepSpectrum, FamilyParams
 
     data = cd.prepare_dynamic(
-        read_experiments([frame_path], axis=axis),
+        experiments,
         max_samples_per_loop=256,
         slew_rate_v_per_s=ramp_v_per_s,
         rest_voltage_v=rest_voltage_v,

@@ -129,3 +129,16 @@ def test_one_period_triangles_keep_their_turning_points_and_show_the_rate_depend
     assert result.cause == "creep"
     assert result.findings[0].params["creep_pct_per_decade"] == pytest.approx(3.0, rel=0.3)
     _all_plausible(result)
+
+
+def test_holds_are_found_behind_a_slow_ramp_and_in_a_noisy_voltage() -> None:
+    from piezod.audit.outside import holds
+
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 600.0, 0.1)
+    for sigma in (0.0, 1.0):
+        v = np.where(t < 100.0, 4.0 * t, 400.0) + rng.normal(0.0, sigma, t.size)
+        ((a, b),) = holds(Experiment("h", None, t, v, 0.0 * v))
+        assert 99.0 <= t[a] <= 102.0 and b == t.size
+    sine = 300.0 * np.sin(2 * np.pi * 0.05 * t)
+    assert holds(Experiment("s", None, t, sine, sine)) == []

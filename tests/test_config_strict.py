@@ -51,6 +51,7 @@ def test_the_base_config_loads_and_round_trips(tmp_path: Path) -> None:
 
 
 def test_duplicate_key_is_refused_with_both_lines(tmp_path: Path) -> None:
+    """Tried: a YAML with voltage_max_v twice (230, then 2000). Held: refused naming both lines."""
     text = BASE.replace("voltage_max_v: 230.0", "voltage_max_v: 230.0\n    voltage_max_v: 2000", 1)
     assert text != BASE
     msg = _refused(_write(tmp_path, text))
@@ -67,6 +68,7 @@ def test_duplicate_key_is_refused_with_both_lines(tmp_path: Path) -> None:
     ],
 )
 def test_non_finite_numbers_are_refused(tmp_path: Path, old: str, new: str, field: str) -> None:
+    """Tried: slew_rate_v_per_s: .inf, tau_s: .nan. Held: refused, FILE:LINE: field."""
     assert old in BASE
     text = BASE.replace(old, new, 1)
     msg = _refused(_write(tmp_path, text))
@@ -74,6 +76,7 @@ def test_non_finite_numbers_are_refused(tmp_path: Path, old: str, new: str, fiel
 
 
 def test_a_bool_is_not_a_number(tmp_path: Path) -> None:
+    """Tried: sample_rate_hz: true. Held: refused (not read as 1 Hz)."""
     text = BASE.replace("sample_rate_hz: 10000.0", "sample_rate_hz: true")
     msg = _refused(_write(tmp_path, text))
     assert "sample_rate_hz" in msg and ":28:" in msg
@@ -85,6 +88,9 @@ def test_scientific_notation_without_a_dot_is_a_number(tmp_path: Path) -> None:
 
 
 def test_billion_laughs_is_refused_without_expanding(tmp_path: Path) -> None:
+    """Tried: a billion-laughs YAML (9 levels of 9 aliases). Held: refused after 100k values, nothing
+    expanded.
+    """
     lines = ['a0: &a0 ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
     for i in range(1, 10):
         refs = ",".join([f"*a{i - 1}"] * 9)
@@ -95,11 +101,13 @@ def test_billion_laughs_is_refused_without_expanding(tmp_path: Path) -> None:
 
 
 def test_deep_nesting_is_refused(tmp_path: Path) -> None:
+    """Tried: 20,000 nested [. Held: refused (32 levels), no RecursionError."""
     msg = _refused(_write(tmp_path, "notes: " + "[" * 20_000 + "]" * 20_000 + "\n"))
     assert "nested" in msg
 
 
 def test_a_latin1_byte_names_its_line(tmp_path: Path) -> None:
+    """Tried: a Latin-1 byte (0xb5). Held: refused naming the line and the byte."""
     raw = BASE.encode() + b"description: \xb5m scanner\n"
     msg = _refused(_write(tmp_path, raw))
     line = raw.count(b"\n")
@@ -107,6 +115,7 @@ def test_a_latin1_byte_names_its_line(tmp_path: Path) -> None:
 
 
 def test_huge_files_and_devices_are_not_read(tmp_path: Path) -> None:
+    """Tried: a 1 MiB+ file; /dev/zero as a config. Held: refused after reading at most 1 MiB."""
     big = _write(tmp_path, b"# " + b"x" * MAX_CONFIG_BYTES + b"\n")
     assert "larger than" in _refused(big)
     with pytest.raises(ConfigError, match="not a regular file"):
@@ -114,6 +123,9 @@ def test_huge_files_and_devices_are_not_read(tmp_path: Path) -> None:
 
 
 def test_typo_is_an_unknown_key_with_a_suggestion_not_a_missing_field(tmp_path: Path) -> None:
+    """Tried: voltage_mn_v (a typo). Held: 'unknown key (did you mean voltage_min_v?)', no 'Field
+    required'.
+    """
     text = BASE.replace("voltage_min_v:", "voltage_mn_v:", 1)
     msg = _refused(_write(tmp_path, text))
     assert "voltage_mn_v: unknown key (did you mean voltage_min_v?)" in msg
@@ -121,6 +133,7 @@ def test_typo_is_an_unknown_key_with_a_suggestion_not_a_missing_field(tmp_path: 
 
 
 def test_every_problem_is_listed(tmp_path: Path) -> None:
+    """Tried: a config with four problems. Held: four lines, one per problem (no 'and 3 more')."""
     text = BASE.replace("voltage_min_v:", "voltage_mn_v:", 1)
     text = text.replace("tau_s:", "tau_s: -1 #", 1)
     text = "bogus_key: 1\n" + text.replace("sample_rate_hz: 10000.0", "sample_rate_hz: -5")
@@ -132,6 +145,7 @@ def test_every_problem_is_listed(tmp_path: Path) -> None:
 
 
 def test_config_errors_through_the_real_cli_are_one_line_per_problem(tmp_path: Path) -> None:
+    """Tried: piezod serve --config with bad files, and /dev/zero. Held: exit 2, no traceback."""
     text = BASE.replace("sample_rate_hz: 10000.0", "sample_rate_hz: true").replace(
         "voltage_max_v: 230.0", "voltage_max_v: 230.0\n    voltage_max_v: 2000", 1
     )

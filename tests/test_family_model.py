@@ -126,3 +126,16 @@ def test_bad_parameters_are_refused() -> None:
         FamilyParams(PI, SPEC, -1.0)
     with pytest.raises(ValueError, match="pi_rho0"):
         FamilyModelConfig(law="prandtl-ishlinskii", b_um_per_v=0.1, creep_taus_s=[1, 2], creep_weights=[0, 0])
+
+
+def test_a_fitted_spectrum_with_zero_weights_is_pruned_and_inverts() -> None:
+    spectrum = CreepSpectrum((1e-3, 1e-2, 1e-1, 1.0, 10.0), (0.01, 0.0, 0.0, 0.02, 0.0))
+    p = FamilyParams(PI, spectrum)
+    assert p.creep.taus == (1e-3, 1.0)
+    dt = 1e-4
+    x = _smooth_targets(3000, dt, 4)
+    s0 = family_rest_state(p)
+    v, _ = family_inverse(p, x, dt, s0)
+    xf, _ = family_forward(p, v, dt, s0)
+    np.testing.assert_allclose(xf, x, atol=1e-9)
+    assert FamilyParams(PI, CreepSpectrum((1.0, 2.0), (0.0, 0.0))).creep.total_creep == 0.0

@@ -74,6 +74,10 @@ def _unchanged(d: RealDaemon, underruns_before: int) -> None:
     ids=["nan", "inf", "-inf", "duplicate", "deep", "very-deep", "truncated", "1000-keys"],
 )
 def test_malformed_json_is_a_one_line_4xx_and_changes_nothing(scanning: RealDaemon, body: bytes) -> None:
+    """Tried: API bodies with NaN, ±Infinity, duplicate keys, 1000 keys, 5000-deep nesting, truncated JSON,
+    to PATCH/POST scan and move while scanning. Held: 413/422 with one line each; the scan, its settings
+    and the underrun count unchanged; no traceback logged.
+    """
     before = scanning.status().underruns
     for method, path in (("PATCH", "/v1/scan"), ("POST", "/v1/move"), ("POST", "/v1/scan")):
         with raw(scanning) as c:
@@ -86,6 +90,9 @@ def test_malformed_json_is_a_one_line_4xx_and_changes_nothing(scanning: RealDaem
 
 
 def test_huge_bodies_are_refused_before_they_are_read(scanning: RealDaemon) -> None:
+    """Tried: a 3.4 MB body of 150k unknown keys; a 32 MB chunked body without Content-Length. Held: 413
+    before the body is read (16 KiB limit); the scan unchanged, no underrun.
+    """
     before = scanning.status().underruns
     many_keys = json.dumps({f"unknown_key_{i}": i for i in range(150_000)}).encode()  # ~3.4 MB
     t0 = time.monotonic()
@@ -104,6 +111,9 @@ def test_huge_bodies_are_refused_before_they_are_read(scanning: RealDaemon) -> N
 
 
 def test_cross_site_and_rebinding_requests_are_refused(scanning: RealDaemon) -> None:
+    """Tried: a cross-site text/plain POST /v1/stop with Origin evil.example; form and text/plain bodies;
+    Host evil.example (DNS rebinding); Origin null. Held: 403/415; the scan keeps running.
+    """
     before = scanning.status().underruns
     # a web page's "simple" POST: text/plain, no preflight
     r = _post(scanning, "/v1/stop", b"{}", {"content-type": "text/plain", "origin": "http://evil.example"})
@@ -123,6 +133,7 @@ def test_cross_site_and_rebinding_requests_are_refused(scanning: RealDaemon) -> 
 
 
 def test_unknown_fields_and_bad_values_are_named(scanning: RealDaemon) -> None:
+    """Tried: an unknown field, a negative range. Held: 422 naming the field; nothing changed."""
     before = scanning.status().underruns
     r = _post(scanning, "/v1/move", json.dumps({"x_um": 1, "colour": "red"}).encode())
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "colour"]
@@ -132,6 +143,9 @@ def test_unknown_fields_and_bad_values_are_named(scanning: RealDaemon) -> None:
 
 
 def test_a_dangling_symlink_in_the_recordings_is_not_listed(scanning: RealDaemon) -> None:
+    """Tried: a dangling *.csv symlink in the recording directory. Held: listing answers 200 without it;
+    fetching it is 404.
+    """
     link = scanning.recordings / "gone.csv"
     link.symlink_to(scanning.recordings / "does-not-exist.csv")
     try:
@@ -151,6 +165,10 @@ def _free_port() -> int:
 
 
 def test_tcp_needs_a_token_and_wrong_tokens_are_throttled(tmp_path: Path) -> None:
+    """Tried: --api tcp: without a token file; 60 wrong bearer tokens in a row; the right token with Host
+    evil.example. Held: exit 2 with one line before the board is touched; failures delayed and then 429,
+    at most one log line per 10 s; the right token answered at once; 403 for the foreign Host.
+    """
     port = _free_port()
     # without api.token_file the daemon refuses to listen on TCP: one line, exit 2
     proc = subprocess.run(
@@ -193,6 +211,10 @@ def test_tcp_needs_a_token_and_wrong_tokens_are_throttled(tmp_path: Path) -> Non
 
 
 def test_the_socket_directory_must_be_ours(tmp_path: Path) -> None:
+    """Tried: a socket directory with mode 0777, owned by another user, or a symlink (the /tmp/piezod-<uid>
+    fallback included). Held: refused with the owner/mode and what to do; only a 0700 directory of the
+    daemon's user is used.
+    """
     mine = private_dir(tmp_path / "fresh")
     assert stat.S_IMODE(os.lstat(mine).st_mode) == 0o700
     loose = tmp_path / "loose"

@@ -58,10 +58,15 @@ SCAN = ["scan", "--sim", "--out", "x.csv"]
     ids=lambda v: " ".join(v) if isinstance(v, list) else v,
 )
 def test_bad_arguments_are_one_line_errors(tmp_path: Path, args: list[str], needle: str) -> None:
+    """Tried: piezod scan with negative/NaN/zero/inf range, NaN/negative rate, --lines 0 or 2.5, --offset-
+    um inf; ctl --timeout nan/-1; ctl scan --range-um nan; linearity/calibrate/audit of /dev/zero or a
+    missing file. Held: one line naming the argument, exit 2, no traceback.
+    """
     assert_one_line_error(piezod(*args), needle)
 
 
 def test_unwritable_output_is_a_one_line_error(tmp_path: Path) -> None:
+    """Tried: piezod scan --out into a path whose parent is a file. Held: one line naming the path, exit 2."""
     (tmp_path / "a-file").write_text("not a directory")
     proc = piezod(
         "scan",
@@ -79,6 +84,7 @@ def test_unwritable_output_is_a_one_line_error(tmp_path: Path) -> None:
 
 
 def test_an_output_path_with_spaces_simply_works(tmp_path: Path) -> None:
+    """Tried: piezod scan --out 'my scan (1).csv'. Held: the scan runs and the recording parses."""
     out = tmp_path / "my scan (1).csv"
     proc = piezod(
         "scan", "--sim", "--range-um", "5", "--line-rate-hz", "4", "--lines", "2", "--out", str(out)

@@ -45,7 +45,15 @@ from piezod.audit.baseline import (
     thesis_start,
 )
 from piezod.audit.bounds import implausible as physically_implausible
-from piezod.audit.candidates import EFFECTS, AuditModel, Candidate, Scales, make_candidate
+from piezod.audit.candidates import (
+    EFFECTS,
+    AuditModel,
+    Candidate,
+    Resonance,
+    Scales,
+    make_candidate,
+    spectral_peak,
+)
 from piezod.audit.degenerate import Degeneracy
 from piezod.audit.degenerate import check as check_degeneracy
 from piezod.audit.evidence import Structure, evidence, structure
@@ -467,7 +475,13 @@ def run_audit(
         eligible = [r for r in results if r.eligible]
         if not eligible:
             break
-        best = _best(eligible)
+        ringing = None
+        if any(r.effect == "resonance" for r in eligible):
+            rc = make_candidate("resonance", kind)
+            assert isinstance(rc, Resonance)
+            lo, hi = rc._f_range(scales)
+            ringing = spectral_peak(geo, rows, current.residual, lo, hi)
+        best = _best(eligible, ringing)
         findings.append(best)
         assert best.fit is not None and best.heldout is not None
         current, current_ho = best.fit, best.heldout
@@ -600,23 +614,23 @@ def run_audit(
     )
 
 
-def _best(eligible: Sequence[CandidateResult]) -> CandidateResult:
-    """The eligible candidate with the largest held-out gain; a lag before an indistinguishable resonance.
+def _best(eligible: Sequence[CandidateResult], ringing_hz: float | None) -> CandidateResult:
+    """The eligible candidate with the largest held-out gain; a lag before an unproven resonance.
 
-    Far below its ``f0``, a resonance that hardly rings (``Q < 2``) acts as a lag: when a ``delay``
-    is eligible with a gain within the resonance's standard error, the lag is named.
+    A resonance is proven by ringing: a peak of the residual spectrum right after the voltage
+    reversals (``ringing_hz``) within 20 % of its ``f0``. Without it, a resonance acts as a lag
+    (far below ``f0`` the two have the same phase): when a ``delay`` is eligible with a gain
+    within the resonance's standard error, the lag is named.
     """
     best = max(eligible, key=lambda r: (r.gain, -r.bic_delta))
-    if best.effect == "resonance" and best.params.get("q", math.inf) < _RINGING_Q:
+    if best.effect == "resonance":
+        f0 = best.params.get("f0_hz", math.nan)
+        rings = ringing_hz is not None and abs(f0 / ringing_hz - 1.0) < 0.2
         lag = [r for r in eligible if r.effect == "delay"]
         se = best.gain_se if math.isfinite(best.gain_se) else 0.0
-        if lag and best.gain - lag[0].gain <= se:
+        if lag and not rings and best.gain - lag[0].gain <= se:
             return lag[0]
     return best
-
-
-#: Below this Q a resonance hardly rings (the first overshoot is < 20 %): a lag explains it as well.
-_RINGING_Q = 2.0
 
 
 def _try(

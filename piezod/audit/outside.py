@@ -239,16 +239,32 @@ def holds(e: Experiment) -> list[tuple[int, int]]:
     if v.size < HOLD_MIN_SAMPLES:
         return []
     span = float(np.ptp(v))
-    tol = max(2e-3 * span, 1e-6 * max(float(np.max(np.abs(v))), 1.0))
+    # A noisy voltage monitor: look at the voltage averaged over a few samples.
+    w = 9
+    v = np.convolve(np.pad(v, w // 2, mode="edge"), np.ones(w) / w, mode="valid")
+    d2 = np.diff(v, 2)
+    # White noise of the recorded voltage (MAD of second differences): a noisy monitor still holds.
+    noise = float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0)) if d2.size else 0.0
+    tol = max(2e-3 * span, 4.0 * noise, 1e-6 * max(float(np.max(np.abs(v))), 1.0))
     still = np.abs(np.diff(v)) <= tol
     out: list[tuple[int, int]] = []
     edges = np.flatnonzero(np.diff(np.concatenate(([0], still.astype(np.int8), [0]))))
-    for a, b in zip(edges[::2], edges[1::2], strict=True):
-        stop = int(b) + 1
-        a = int(a)
-        if stop - a < HOLD_MIN_SAMPLES or t[stop - 1] - t[a] < HOLD_MIN_S:
+    for a0, b0 in zip(edges[::2], edges[1::2], strict=True):
+        a0, stop0 = int(a0), int(b0) + 1
+        if stop0 - a0 < HOLD_MIN_SAMPLES:
             continue
-        if np.ptp(v[a:stop]) > 4.0 * tol:
+        # A slow ramp into the hold moves by less than tol per sample too: keep the longest
+        # stretch at the level the run ends at (within 2 tol).
+        seg = v[a0:stop0]
+        level = float(np.median(seg[-max(HOLD_MIN_SAMPLES // 2, 1) :]))
+        near = np.abs(seg - level) <= 2.0 * tol
+        e2 = np.flatnonzero(np.diff(np.concatenate(([0], near.astype(np.int8), [0]))))
+        if e2.size == 0:
+            continue
+        lens = e2[1::2] - e2[::2]
+        j = int(np.argmax(lens))
+        a, stop = a0 + int(e2[2 * j]) + w, a0 + int(e2[2 * j + 1])
+        if stop - a < HOLD_MIN_SAMPLES or t[stop - 1] - t[a] < HOLD_MIN_S:
             continue
         out.append((a, stop))
     return out

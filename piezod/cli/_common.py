@@ -165,3 +165,19 @@ def input_file(text: str) -> str:
     if not stat.S_ISREG(st.st_mode):
         raise argparse.ArgumentTypeError(f"{text}: not a regular file")
     return text
+
+
+def fresh_dir(path: Path) -> Path:
+    """Create a new directory ``path`` (or ``path-2``, ``path-3``, ... if it exists) and return it.
+
+    Recordings are never overwritten: a run that writes fixed file names gets a directory of its own.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for n in range(1, 10_000):
+        candidate = path if n == 1 else path.with_name(f"{path.name}-{n}")
+        try:
+            candidate.mkdir()
+        except FileExistsError:
+            continue
+        return candidate
+    raise FileExistsError(f"{path}: no free directory name")

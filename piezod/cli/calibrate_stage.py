@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from piezod.cli._common import board_url, human_stream, scanner_config_path, write_json
+from piezod.cli._common import board_url, fresh_dir, human_stream, scanner_config_path, write_json
 from piezod.config import AxisName, dump_config, load_config
 from piezod.errors import CalibrationError
 from piezod.progress import progress_bar
@@ -39,8 +39,11 @@ def run_on_stage(args: argparse.Namespace) -> int:
     reduced = args.frame == "reduced"
     frame = default_frame(base, axis, reduced=reduced)
     out = Path(args.out)
-    recdir = Path(args.recordings_dir) if args.recordings_dir else out.parent / f"{out.stem}-recordings"
-    recdir.mkdir(parents=True, exist_ok=True)
+    if args.recordings_dir:
+        recdir = Path(args.recordings_dir)
+        recdir.mkdir(parents=True, exist_ok=True)
+    else:
+        recdir = fresh_dir(out.parent / f"{out.stem}-recordings")
     say = human_stream(args)
     print(f"calibration frame: {frame_summary(frame)}", file=say)
     t_start = time.monotonic()

@@ -20,7 +20,7 @@ from piezod.cli._common import (
     scanner_config_path,
 )
 from piezod.config import load_config, uncalibrated_warning
-from piezod.errors import BoardFaultError, ConfigError
+from piezod.errors import BoardFaultError, ConfigError, RecordingError
 from piezod.progress import progress_bar
 from piezod.service.engine import Engine
 from piezod.service.schemas import ScanRequest
@@ -47,7 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     p.add_argument("--no-correction", action="store_true", help="drive the plain triangle (no model)")
     p.add_argument(
-        "--model", choices=("thesis", "dynamic"), help="override the scanner config's model on every axis"
+        "--model",
+        choices=("thesis", "dynamic", "family"),
+        help="override the scanner config's model on every axis",
     )
     p.add_argument("--out", required=True, metavar="REC.csv", help="the recording to write")
     p.set_defaults(func=run)
@@ -63,19 +65,22 @@ def run(args: argparse.Namespace) -> int:
     if warning and not args.no_correction:
         print(f"warning: {warning}", file=sys.stderr)
     if args.model:
-        if args.model == "dynamic" and config.axes["x"].dynamic is None:
+        if args.model != "thesis" and getattr(config.axes["x"], args.model) is None:
             raise ConfigError(
-                f"{config_path}: --model dynamic needs a 'dynamic:' section on axis x (calibrate first)"
+                f"{config_path}: --model {args.model} needs a '{args.model}:' section on axis x"
+                " (calibrate first)"
             )
         # axes without what the model needs keep their own model
         axes = {
             name: ax.model_copy(update={"model": args.model})
-            if args.model == "thesis" or ax.dynamic is not None
+            if args.model == "thesis" or getattr(ax, args.model) is not None
             else ax
             for name, ax in config.axes.items()
         }
         config = config.model_copy(update={"axes": axes})
     out = Path(args.out)
+    if out.exists() or out.is_symlink():
+        raise RecordingError("exists; recordings are never overwritten: choose another --out", str(out))
     request = ScanRequest(
         range_um=args.range_um,
         line_rate_hz=args.line_rate_hz,

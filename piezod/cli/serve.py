@@ -5,10 +5,11 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 from pathlib import Path
 from typing import TextIO
 
-from piezod.cli._common import add_port_options, board_url, scanner_config_path
+from piezod.cli._common import add_port_options, board_url, fresh_dir, scanner_config_path
 from piezod.config import load_config, uncalibrated_warning
 from piezod.service.daemon import running_daemon, stop_on_signals
 from piezod.service.engine import Engine
@@ -72,13 +73,14 @@ def _demo(engine: Engine) -> None:
     """Calibrate on the stage, then scan uncorrected and corrected and show the linearity."""
     say = sys.stdout
     frame = default_frame(engine.config, "x", reduced=True)
+    demo_dir = fresh_dir(engine.recording_dir / time.strftime("demo-%Y%m%d-%H%M%S"))
     print(f"demo 1/3: calibration frame on the stage: {frame_summary(frame)}", file=say, flush=True)
     with AnalysisWorker() as worker:
-        _demo_steps(engine, worker, frame, say)
+        _demo_steps(engine, worker, frame, say, demo_dir)
 
 
-def _demo_steps(engine: Engine, worker: AnalysisWorker, frame: Frame, say: TextIO) -> None:
-    frame_path = run_frame(engine, frame, engine.recording_dir / "demo-frame.csv")
+def _demo_steps(engine: Engine, worker: AnalysisWorker, frame: Frame, say: TextIO, demo_dir: Path) -> None:
+    frame_path = run_frame(engine, frame, demo_dir / "demo-frame.csv")
     fitted = worker.fit_thesis(frame_path, engine.config, "x")
     axis_cfg = fitted.config.axes["x"]
     engine.set_axis_model("x", axis_cfg)
@@ -97,7 +99,7 @@ def _demo_steps(engine: Engine, worker: AnalysisWorker, frame: Frame, say: TextI
     for i, correction in enumerate((False, True)):
         what = "corrected" if correction else "uncorrected"
         print(f"demo {2 + i}/3: {what} scan, 20 um at 1 Hz, 8 lines", file=say, flush=True)
-        path = engine.recording_dir / f"demo-{what}.csv"
+        path = demo_dir / f"demo-{what}.csv"
         req = ScanRequest(
             range_um=20.0, line_rate_hz=1.0, lines=8, correction=correction, name=f"demo-{what}"
         )

@@ -193,7 +193,7 @@ def run_stream_bench(args: argparse.Namespace) -> dict[str, Any]:
         result = stream_bench(str(port), config, rate_hz=rate_hz, seconds=seconds, lead_s=lead_s)
         result["simulator"] = f"the board at {port}"
         return result
-    with spawn_sim(config_path=config_path, seed=int(getattr(args, "seed", 0) or 0), extra_args=extra) as sim:
+    with spawn_sim(config_path, seed=int(getattr(args, "seed", 0) or 0), extra_args=extra) as sim:
         result = stream_bench(
             sim.path,
             config,

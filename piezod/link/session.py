@@ -531,6 +531,9 @@ class BoardSession:
             self._generation += 1
             conn = _Connection(transport, self.settings, self._generation)
             self._conn = conn
+            # a STATUS of an earlier connection says nothing about the board now (it may have been
+            # power-cycled: UNCONFIGURED, outputs at rest)
+            self._status = None
             self._sensor_next = None
             self._tail = None
             self._loss_pos = self._losses_now()
@@ -1135,7 +1138,12 @@ class BoardSession:
             raise ProtocolError("prepare_restart: the board was never configured in this session")
         st = self.status
         if st is not None and st.state in (BoardState.ARMED, BoardState.RUNNING):
-            self.stop()
+            try:
+                self.stop()
+            except BoardRefusedError as exc:
+                if exc.nak.reason != NakReason.BAD_STATE:
+                    raise
+                log.info("STOP refused (%s): the board is not running; configuring it", exc)
         if reconfigure:
             self.configure(timeout_s=timeout_s)
         return self.wait_status(lambda s: s.state == BoardState.IDLE, timeout_s=timeout_s, fresh=False)

@@ -66,8 +66,8 @@ class CreepSpectrum:
     w: tuple[float, ...]
 
     def __post_init__(self) -> None:
-        if len(self.taus) != len(self.w) or len(self.taus) < 2:
-            raise ModelError("a creep spectrum needs at least two relaxation times, one weight each")
+        if len(self.taus) != len(self.w) or len(self.taus) < 1:
+            raise ModelError("a creep spectrum needs relaxation times, one weight each")
         if not all(math.isfinite(t) and t > 0 for t in self.taus) or list(self.taus) != sorted(self.taus):
             raise ModelError("creep relaxation times must be finite, > 0 and ascending")
         if not all(math.isfinite(x) and x >= 0 for x in self.w):
@@ -84,6 +84,17 @@ class CreepSpectrum:
         taus = np.logspace(math.log10(tau_min_s), math.log10(tau_max_s), count)
         w = np.broadcast_to(np.asarray(weights, dtype=np.float64), taus.shape)
         return cls(tuple(map(float, taus)), tuple(map(float, w)))
+
+    def pruned(self, min_weight: float = 1e-9) -> CreepSpectrum:
+        """The elements that creep (weight above ``min_weight``); at least one is kept.
+
+        Elements of zero weight contribute nothing but make the inverse's secular equation
+        degenerate (a root on a pole), so a fitted spectrum is pruned before use.
+        """
+        keep = [i for i, w in enumerate(self.w) if w > min_weight]
+        if not keep:
+            return CreepSpectrum((self.taus[0],), (0.0,))
+        return CreepSpectrum(tuple(self.taus[i] for i in keep), tuple(self.w[i] for i in keep))
 
     @cached_property
     def taus_s(self) -> F64:
@@ -121,7 +132,7 @@ class FamilyParams:
         The rate-independent law: Coleman-Hodgdon (:class:`HysteresisParams`) or
         Prandtl-Ishlinskii (:class:`PlayParams`).
     creep
-        The creep spectrum.
+        The creep spectrum (elements of zero weight are dropped).
     lag_time_constant_s
         Drive pole (s), >= 0.
     stiffness_pct_per_um
@@ -134,6 +145,7 @@ class FamilyParams:
     stiffness_pct_per_um: float = 0.0
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "creep", self.creep.pruned())
         if not (math.isfinite(self.lag_time_constant_s) and 0.0 <= self.lag_time_constant_s <= 1.0):
             raise ModelError(f"lag_time_constant_s must lie in [0, 1] s, got {self.lag_time_constant_s!r}")
         if not (math.isfinite(self.stiffness_pct_per_um) and abs(self.stiffness_pct_per_um) <= 5.0):

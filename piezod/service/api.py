@@ -21,6 +21,7 @@ with their traceback and answered with 500 without it.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hmac
 import json
 import logging
@@ -218,6 +219,8 @@ class EventHub:
         with self._lock:
             if self._closed:
                 raise _RefusedError(503, "the daemon is shutting down", "ShuttingDown")
+            if len(self._subscribers) >= MAX_EVENT_STREAMS:
+                raise _RefusedError(503, f"{MAX_EVENT_STREAMS} event streams are open already", "Busy")
             self._subscribers.add(sub)
         return sub
 
@@ -307,6 +310,13 @@ MAX_BODY_BYTES = 16 * 1024
 #: Most members of a JSON object / items of an array in a body, and deepest nesting.
 MAX_JSON_MEMBERS = 64
 MAX_JSON_DEPTH = 4
+#: Requests per second the API serves (a burst of as many is allowed); beyond, 429 after a delay.
+MAX_REQUESTS_PER_S = 50.0
+THROTTLE_DELAY_S = 0.1
+#: Open event streams at most (503 beyond).
+MAX_EVENT_STREAMS = 8
+#: Threads running engine calls at most (the stream's threads share the interpreter with them).
+API_THREADS = 4
 #: Host names every listener answers to (the client's ``http://piezod`` over the Unix socket, loopback).
 LOOPBACK_HOSTS = frozenset({"piezod", "localhost", "127.0.0.1", "::1"})
 
@@ -412,14 +422,38 @@ class RequestGuardMiddleware:
         app: ASGIApp,
         allowed_hosts: frozenset[str] | None = LOOPBACK_HOSTS,
         max_body_bytes: int = MAX_BODY_BYTES,
+        max_requests_per_s: float = MAX_REQUESTS_PER_S,
     ) -> None:
         self.app = app
         self.allowed_hosts = allowed_hosts
         self.max_body_bytes = max_body_bytes
+        self.max_requests_per_s = max_requests_per_s
+        self._bucket = max_requests_per_s
+        self._bucket_t = time.monotonic()
+        self.throttled = 0
+
+    def _admit(self) -> bool:
+        now = time.monotonic()
+        rate = self.max_requests_per_s
+        self._bucket = min(rate, self._bucket + (now - self._bucket_t) * rate)
+        self._bucket_t = now
+        if self._bucket < 1.0:
+            return False
+        self._bucket -= 1.0
+        return True
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        if not self._admit():
+            # the stream shares this process: the API's share of it is bounded, whoever asks
+            self.throttled += 1
+            _throttled_log("rate", "API requests throttled: more than %g per second", self.max_requests_per_s)
+            await asyncio.sleep(THROTTLE_DELAY_S)
+            await _answer(
+                send, 429, "too many requests; retry later", "TooManyRequests", {"retry-after": "1"}
+            )
             return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
         what = f"{scope.get('method')} {scope.get('path')}"
@@ -692,6 +726,14 @@ def _complete_lines_size(fd: int, size: int) -> int:
     return 0
 
 
+@contextlib.asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    from anyio import to_thread
+
+    to_thread.current_default_thread_limiter().total_tokens = API_THREADS
+    yield
+
+
 def create_app(
     engine: EngineControl,
     *,
@@ -725,6 +767,7 @@ def create_app(
         description=_DESCRIPTION,
         openapi_tags=_TAGS,
         responses=_E500,
+        lifespan=_lifespan,
     )
     app.router.route_class = _LoggedRoute
     app.state.engine = engine
@@ -885,6 +928,10 @@ def create_app(
         """Server-sent events: status snapshots at ``rate_hz`` (default 5 Hz), faults at once."""
         if hub.closed:
             raise _RefusedError(503, "the daemon is shutting down", "ShuttingDown")
+        if hub.subscribers >= MAX_EVENT_STREAMS:
+            raise _RefusedError(
+                503, f"{MAX_EVENT_STREAMS} event streams are open already; retry later", "Busy"
+            )
         return StreamingResponse(
             _event_stream(engine, hub, rate_hz or hub.rate_hz, limit),
             media_type="text/event-stream",

@@ -23,14 +23,16 @@ outputs to the safe values (the board also ramps by itself when the host's heart
 
 from __future__ import annotations
 
+import copy
 import logging
+import math
 import stat
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,6 +44,7 @@ from piezod.errors import (
     LinkError,
     ModelError,
     PiezodError,
+    RecordingError,
     SafetyError,
 )
 from piezod.link.board import Board, SerialBoard
@@ -58,6 +61,8 @@ from piezod.link.session import (
 from piezod.link.streamer import MatchedBlock
 from piezod.service.axes import AxisDriver, PeriodicPlan
 from piezod.service.jobs import (
+    MAX_CHECK_SAMPLES,
+    MAX_MOVE_S,
     Chunk,
     HoldJob,
     Job,
@@ -79,7 +84,7 @@ from piezod.service.schemas import (
     Status,
 )
 from piezod.service.tracking import SensitivityTracker
-from piezod.trajectory import RasterTrajectory, Trajectory
+from piezod.trajectory import SETTLE_LINES, RasterTrajectory, Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +95,49 @@ FaultSource = Literal["board", "host", "link"]
 SLOW_BLOCK_S = 0.05
 #: Faults of one (source, code) closer together than this (s) are counted, not listed again.
 FAULT_REPEAT_S = 1.0
+
+
+class _ShadowEngine:
+    """What a job needs of the engine, on copies of its axis drivers: to try a job without effect."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.rate_hz = engine.rate_hz
+        self.render_index = 0
+        self._engine = engine
+        with engine._lock:
+            self.drivers = {name: copy.deepcopy(d) for name, d in engine.drivers.items()}
+        self.clamped = dict.fromkeys(self.drivers, 0)
+
+    def label_id(self, name: str) -> int:
+        return -1
+
+    def set_label_note(self, ident: int, note: str | None) -> None:
+        pass
+
+    def label_names(self, ids: NDArray[np.int64]) -> NDArray[np.str_]:
+        return np.full(ids.shape, "", dtype=str)
+
+    def plans_for(self, trajectory: Trajectory) -> dict[str, PeriodicPlan | None]:
+        return self._engine.plans_for(trajectory)
+
+    def tracked_scale(self, axis: str) -> float:
+        return self._engine.tracked_scale(axis)
+
+    def drive(self, driver: AxisDriver, out: Any) -> FloatArray:
+        if out.clamped:
+            self.clamped[driver.name] += int(out.clamped)
+        volts: FloatArray = out.voltage_v
+        return volts
+
+    def chunk(self, volts: FloatArray, targets: FloatArray | None) -> Chunk:
+        n = volts.shape[1]
+        return Chunk(
+            volts,
+            np.full(volts.shape, np.nan) if targets is None else targets,
+            np.full(n, -1, dtype=np.int64),
+            np.zeros(n, dtype=np.int8),
+            np.zeros(n, dtype=bool),
+        )
 
 
 class Engine:
@@ -276,6 +324,9 @@ class Engine:
                     chunk = job.render(self, n - filled)
                 except (ModelError, SafetyError) as exc:
                     self.fault("host", "MODEL", f"{type(job).__name__}: {exc}")
+                    if isinstance(job, ScanJob | ProgramJob):
+                        self._end_recording(self._index + filled)  # closed, not leaked
+                    self._queue.clear()
                     self._job = RampJob(self, None, self.config.service.ramp_rate_v_per_s, "fault")
                     self._fault_latched = True
                     continue
@@ -367,19 +418,23 @@ class Engine:
     # -- EngineControl ---------------------------------------------------------------------------
 
     def status(self) -> Status:
-        """A snapshot (cheap, thread-safe)."""
+        """A snapshot (cheap, thread-safe).
+
+        While the board is disconnected no position or voltage is reported: what the board applies
+        then is not known to the host (it ramps to its safe values when the heartbeat stops).
+        """
         with self._lock:
-            job = self._job
-            state = self._state
-            scan = job.request if isinstance(job, ScanJob) else None
-            line = job.line if isinstance(job, ScanJob) else None
+            return self._status_locked()
+
+    def _status_locked(self) -> Status:
+        job = self._job
+        state = self._state
+        scan = job.request if isinstance(job, ScanJob) else None
+        line = job.line if isinstance(job, ScanJob) else None
+        known = state not in ("disconnected", "starting")
         snap = self._board.snapshot()
-        fifo_ms, underruns, crc, dropped = (
-            snap.fifo_level_ms,
-            snap.underruns,
-            snap.crc_errors,
-            snap.frames_dropped,
-        )
+        fifo_ms, underruns = snap.fifo_level_ms, snap.underruns
+        crc, dropped = snap.crc_errors, snap.frames_dropped
         return Status(
             state=state,
             scanner=self.config.name,
@@ -395,46 +450,100 @@ class Engine:
             frames_dropped=dropped,
             faults=list(self._faults)[-20:],
             last_line=self._last_line,
-            position_um={n: d.position_um for n, d in self.drivers.items()},
-            voltage_v={n: d.voltage_v for n, d in self.drivers.items()},
+            position_um={n: d.position_um for n, d in self.drivers.items()} if known else {},
+            voltage_v={n: d.voltage_v for n, d in self.drivers.items()} if known else {},
             recording=self._recording_name,
             sensitivity_scale={a: t.scale for a, t in self._trackers.items()},
         )
 
     def check_scan(self, request: ScanRequest) -> None:
-        """Refuse a scan the stage cannot do (with the reason)."""
-        self.plans_for(RasterTrajectory.from_request(request, self.rate_hz))
+        """Refuse a scan the stage cannot do (with the reason).
+
+        Besides the steady loop (:meth:`plans_for`), the start of the scan (the move to its first
+        point, the settling lines and the first lines of the frame) is rendered on copies of the
+        axis drivers, outside the engine lock: a scan that would clamp any sample to the voltage
+        limits there (an offset that drives an axis into its limits while the creep settles) is
+        refused with the numbers instead of being clamped while it runs.
+        """
+        trajectory = RasterTrajectory.from_request(request, self.rate_hz)
+        self._check_scan_start(request, trajectory, self.plans_for(trajectory))
+
+    def _check_scan_start(
+        self, request: ScanRequest, trajectory: Trajectory, plans: dict[str, PeriodicPlan | None]
+    ) -> None:
+        shadow = _ShadowEngine(self)
+        job = ScanJob(cast(Engine, shadow), request, trajectory.restarted(), plans)
+        lines_s = (SETTLE_LINES + 2 + 1) / max(request.line_rate_hz, 1e-9)
+        budget = min(int(self.rate_hz * lines_s) + 1, MAX_CHECK_SAMPLES)
+        block = max(1, round(self.rate_hz * self.config.service.block_ms / 1000.0))
+        total = rendered = 0
+        while not job.done and (job._move is not None or rendered < budget) and total < MAX_CHECK_SAMPLES:
+            in_move = job._move is not None
+            m = job.render(cast(Engine, shadow), block).volts.shape[1]
+            total += m
+            if not in_move:
+                rendered += m
+            if m == 0 and not job.done:
+                break
+        bad = {axis: n for axis, n in shadow.clamped.items() if n}
+        if bad:
+            axis, n = next(iter(bad.items()))
+            lo, hi = self.drivers[axis].limits
+            raise SafetyError(
+                f"axis {axis}: the start of this scan (range {request.range_um:g} um, offset "
+                f"({request.offset_x_um:g}, {request.offset_y_um:g}) um) would drive {n} samples beyond the "
+                f"voltage limits [{lo:g}, {hi:g}] V while the stage settles; reduce the offset or the range"
+            )
 
     def start_scan(self, request: ScanRequest, *, path: Path | None = None) -> Status:
         """Start a scan; recorded to ``path`` or to the recording directory."""
         trajectory = RasterTrajectory.from_request(request, self.rate_hz)
-        self.plans_for(trajectory)
+        plans = self.plans_for(trajectory)  # the heavy parts, outside the lock
+        self._check_scan_start(request, trajectory, plans)
         with self._lock:
             if self._state not in ("idle",):
                 raise EngineStateError(f"cannot start a scan while {self._state}")
-            job = ScanJob(self, request, trajectory)
             if request.record:
-                self._begin_recording(request, trajectory, path)
+                self._begin_recording(request, trajectory, path, plans)
+            try:
+                job = ScanJob(self, request, trajectory, plans)
+            except BaseException:
+                self._discard_recording()
+                raise
             self._job = job
             self._state = "scanning"
         return self.status()
 
     def change_scan(self, change: ScanChange) -> Status:
-        """Change the running scan at the next line."""
+        """Change the running scan at the next line; a refused change has no effect at all."""
+        updates = change.model_dump(exclude_none=True)
         with self._lock:
             job = self._job
             if not isinstance(job, ScanJob):
                 raise EngineStateError(f"no scan is running (state {self._state})")
+            candidate = job.trajectory.changed(**updates)
+        self.plans_for(candidate)  # the heavy check, outside the lock (its plans are cached)
+        with self._lock:
+            if self._job is not job:
+                raise EngineStateError("the scan ended meanwhile; nothing was changed")
             job.change(self, change)
         return self.status()
 
     def stop(self) -> Status:
-        """Stop scanning / moving and hold; clears a latched fault."""
+        """Stop scanning / moving and hold; clears a latched fault.
+
+        While the board is disconnected there is nothing to stop here (the board ramps to its safe
+        values by itself when the heartbeat stops, and is reconfigured when it is back): the answer
+        says ``disconnected``.
+        """
         with self._lock:
             self._queue.clear()
-            if isinstance(self._job, ScanJob):
+            if isinstance(self._job, ScanJob | ProgramJob):
                 self._end_recording()
             self._fault_latched = False
+            if self._state in ("disconnected", "starting"):
+                self._job = HoldJob(self._state)
+                return self._status_locked()
             self._job = HoldJob("idle")
             self._state = "idle"
         return self.status()
@@ -458,6 +567,7 @@ class Engine:
     def move(self, request: MoveRequest) -> Status:
         """Move to a position (slew-limited), then hold."""
         self.check_move(request)
+        self._check_move_duration(request)
         goal = {
             k: v for k, v in (("x", request.x_um), ("y", request.y_um), ("z", request.z_um)) if v is not None
         }
@@ -467,6 +577,20 @@ class Engine:
             self._job = MoveJob(self, goal, request.speed_um_per_s)
             self._state = "moving"
         return self.status()
+
+    def _check_move_duration(self, request: MoveRequest) -> None:
+        """Refuse a move that would take longer than :data:`MAX_MOVE_S` (with the speed it needs)."""
+        with self._lock:
+            here = {n: d.position_um for n, d in self.drivers.items()}
+        goal = {"x": request.x_um, "y": request.y_um, "z": request.z_um}
+        dist = max((abs(v - here[k]) for k, v in goal.items() if v is not None and k in here), default=0.0)
+        duration = 0.5 * math.pi * dist / request.speed_um_per_s
+        if duration > MAX_MOVE_S:
+            need = 0.5 * math.pi * dist / MAX_MOVE_S
+            raise SafetyError(
+                f"a move of {dist:.4g} um at {request.speed_um_per_s:g} um/s takes {duration:.4g} s, longer "
+                f"than the {MAX_MOVE_S:g} s a move may take; use at least {need:.3g} um/s"
+            )
 
     def recordings(self) -> list[RecordingInfo]:
         """The recordings in the recording directory."""
@@ -506,7 +630,7 @@ class Engine:
             self._next_recording += 1
             ident = self._next_recording
             meta = {"scanner": self.config.name, "sample_rate_hz": self.rate_hz, **metadata}
-            self._recorder.open(ident, path, meta, (axis,), targets=False)
+            self._recorder.open(ident, path, meta, (axis,), targets=False)  # exclusive
             self._recording_id = ident
             self._recording_name = path.name
             self._job = job
@@ -566,10 +690,13 @@ class Engine:
 
     # -- recordings ------------------------------------------------------------------------------
 
-    def _begin_recording(self, request: ScanRequest, trajectory: Trajectory, path: Path | None) -> None:
-        name = request.name or time.strftime("scan-%Y%m%d-%H%M%S")
-        if path is None:
-            path = self.recording_dir / (name if name.endswith(".csv") else name + ".csv")
+    def _begin_recording(
+        self,
+        request: ScanRequest,
+        trajectory: Trajectory,
+        path: Path | None,
+        plans: dict[str, PeriodicPlan | None],
+    ) -> None:
         self._next_recording += 1
         ident = self._next_recording
         meta: dict[str, object] = {
@@ -583,13 +710,55 @@ class Engine:
             "overscan": request.overscan,
             "sample_rate_hz": self.rate_hz,
         }
-        axes = tuple(a for a, plan in self.plans_for(trajectory).items() if plan is not None) or ("x",)
+        axes = tuple(a for a, plan in plans.items() if plan is not None) or ("x",)
         meta["correction"] = self.correction_label(axes) if request.correction else "none"
         uncal = [a for a in axes if a not in calibrated_axes(self.config)]
         meta["calibrated"] = "no (axes " + ", ".join(uncal) + ")" if uncal else "yes"
-        self._recorder.open(ident, path, meta, axes)
+        if path is not None or request.name:
+            if path is None:
+                name = request.name or ""
+                path = self.recording_dir / (name if name.endswith(".csv") else name + ".csv")
+            self._recorder.open(ident, path, meta, axes)
+        else:
+            # unnamed: scan-<time>, then -2, -3 ... for scans started within the same second
+            stem = time.strftime("scan-%Y%m%d-%H%M%S")
+            for n in range(1, 1000):
+                path = self.recording_dir / (f"{stem}.csv" if n == 1 else f"{stem}-{n}.csv")
+                try:
+                    self._recorder.open(ident, path, meta, axes)
+                    break
+                except RecordingError as exc:
+                    if not isinstance(exc.__cause__, FileExistsError):
+                        raise
+            else:
+                raise RecordingError(f"no free recording name {stem}-N.csv", str(self.recording_dir))
+        assert path is not None
         self._recording_id = ident
         self._recording_name = path.name
+
+    def _discard_recording(self) -> None:
+        if self._recording_id >= 0:
+            self._recorder.discard(self._recording_id)
+            self._recording_id = -1
+            self._recording_name = None
+
+    def recording_failed(self, ident: int, message: str) -> None:
+        """The recorder lost recording ``ident`` (a full disk): stop its scan and hold; a fault.
+
+        The stage holds where it is (no jump, no ramp that might move a probe near a surface);
+        the fault stays until ``stop()``. The next scan opens a new recording, so recording
+        resumes by itself once space returns (or is refused with the reason if it has not).
+        """
+        with self._lock:
+            if ident == self._recording_id:
+                self._recording_id = -1
+                self._recording_name = None
+                if isinstance(self._job, ScanJob | ProgramJob):
+                    self._queue.clear()
+                    self._job = HoldJob("fault")
+                    self._state = "fault"
+                    self._fault_latched = True
+        self.fault("host", "RECORDING", message)
 
     def correction_label(self, axes: tuple[str, ...]) -> str:
         """The model correcting ``axes`` now: ``dynamic``, ``thesis``, or per axis ``x=dynamic y=thesis``."""

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from piezod.errors import (
     SafetyError,
 )
-from piezod.scan import move_profile
+from piezod.service.axes import PeriodicPlan
 from piezod.service.schemas import (
     EngineState,
     ScanChange,
@@ -32,8 +32,13 @@ log = logging.getLogger("piezod.service.engine")
 
 FloatArray = NDArray[np.float64]
 
+
 #: Speed of the moves to the start of a scan, as a multiple of the scan's own speed (at most).
 MOVE_SPEED_FACTOR = 1.0
+#: Longest move a request may ask for (s): a slower one is refused with the speed it needs.
+MAX_MOVE_S = 600.0
+#: Most samples :meth:`Engine.check_scan` renders to check the start of a scan.
+MAX_CHECK_SAMPLES = 200_000
 
 
 @dataclass(slots=True)
@@ -111,22 +116,40 @@ class RampJob(Job):
 
 
 class MoveJob(Job):
-    """A slew-limited move in position (through the inverse model), then done."""
+    """A slew-limited move in position (through the inverse model), then done.
+
+    The raised-cosine profile is computed block by block from where the axes are when the move
+    begins, so a long move costs no memory and no time up front (and none under the engine lock).
+    """
 
     state: EngineState = "moving"
 
     def __init__(self, engine: Engine, goal_um: dict[str, float], speed_um_per_s: float) -> None:
-        start = np.array([d.position_um for d in engine.drivers.values()])
-        end = np.array([goal_um.get(name, start[i]) for i, name in enumerate(engine.drivers)])
-        self._path = move_profile(start, end, speed_um_per_s, engine.rate_hz)
-        self._moving = np.abs(end - start) > 0
+        self._goal = dict(goal_um)
+        self._speed = float(speed_um_per_s)
+        self._a: FloatArray | None = None
+        self._b = np.empty(0)
+        self._n = 0
         self._pos = 0
+        self._moving = np.zeros(0, dtype=bool)
+
+    def _begin(self, engine: Engine) -> None:
+        a = np.array([d.position_um for d in engine.drivers.values()])
+        b = np.array([self._goal.get(name, a[i]) for i, name in enumerate(engine.drivers)])
+        self._a, self._b = a, b
+        self._n = move_samples(float(np.max(np.abs(b - a))), self._speed, engine.rate_hz)
+        self._moving = np.abs(b - a) > 0
 
     def render(self, engine: Engine, n: int) -> Chunk:
-        take = min(n, self._path.shape[1] - self._pos)
-        targets = self._path[:, self._pos : self._pos + take]
+        if self._a is None:
+            self._begin(engine)
+        assert self._a is not None
+        take = min(n, self._n - self._pos)
+        u = np.arange(self._pos + 1, self._pos + take + 1) / self._n
+        w = 0.5 - 0.5 * np.cos(np.pi * u)
+        targets = self._a[:, None] + (self._b - self._a)[:, None] * w[None, :]
         self._pos += take
-        self.done = self._pos >= self._path.shape[1]
+        self.done = self._pos >= self._n
         volts = np.empty_like(targets)
         for i, d in enumerate(engine.drivers.values()):
             if self._moving[i]:
@@ -136,13 +159,25 @@ class MoveJob(Job):
         return engine.chunk(volts, targets)
 
 
+def move_samples(distance_um: float, speed_um_per_s: float, rate_hz: float) -> int:
+    """Samples of a raised-cosine move of ``distance_um`` with peak speed ``speed_um_per_s`` (>= 1)."""
+    duration = 0.5 * math.pi * abs(distance_um) / speed_um_per_s
+    return max(1, math.ceil(duration * rate_hz))
+
+
 class ScanJob(Job):
     """A scan along a :class:`~piezod.trajectory.Trajectory`: move to its start, settle, scan
     (recorded), then hold at the end."""
 
     state: EngineState = "scanning"
 
-    def __init__(self, engine: Engine, request: ScanRequest, trajectory: Trajectory) -> None:
+    def __init__(
+        self,
+        engine: Engine,
+        request: ScanRequest,
+        trajectory: Trajectory,
+        plans: dict[str, PeriodicPlan | None] | None = None,
+    ) -> None:
         self.request = request
         self._traj = trajectory
         # Settling: the trajectory's unrecorded lead-in (a raster: SETTLE_LINES on the first row).
@@ -154,7 +189,7 @@ class ScanJob(Job):
         self._part = 1
         self._scanned = False
         self._change_text: list[str] = []
-        self._plans = engine.plans_for(trajectory)
+        self._plans = plans if plans is not None else engine.plans_for(trajectory)
         self._plan_key: object = trajectory.key
         for name, plan in self._plans.items():
             engine.drivers[name].use_plan(plan)

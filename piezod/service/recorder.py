@@ -4,6 +4,7 @@ recording (flushed per block), and the linearity of the last complete line of th
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import queue
@@ -17,6 +18,7 @@ from numpy.typing import NDArray
 
 from piezod.errors import (
     PiezodError,
+    RecordingError,
 )
 from piezod.link.streamer import MatchedBlock
 from piezod.recording import RecordingWriter
@@ -85,6 +87,7 @@ class _OpenRecording:
     axes: tuple[str, ...]
     targets: bool
     rows: int = 0
+    last_t: float = 0.0
     done: bool = False
     labels_seen: set[int] = field(default_factory=set)
 
@@ -107,7 +110,7 @@ class Recorder(threading.Thread):
         self.queue: queue.Queue[tuple[MatchedBlock | None, tuple[Any, ...]] | None] = queue.Queue()
         self.recordings: dict[int, _OpenRecording] = {}
         self.lock = threading.Lock()
-        self.error: BaseException | None = None
+        self.failed = 0
         self._acc = _LineAccumulator()
         self._pending_close: dict[int, int] = {}
 
@@ -120,10 +123,33 @@ class Recorder(threading.Thread):
         *,
         targets: bool = True,
     ) -> None:
+        """Create the recording ``path`` (exclusively: an existing file is never reused or truncated).
+
+        Raises
+        ------
+        RecordingError
+            If ``path`` exists or cannot be created (a full disk): nothing is left behind.
+        """
         columns = ("t", "voltage", "position", *(("target",) if targets else ()), "axis", "experiment")
-        writer = RecordingWriter(path, columns, metadata=metadata, append=False)
+        try:
+            writer = RecordingWriter(path, columns, metadata=metadata, exclusive=True)
+        except FileExistsError as exc:
+            raise RecordingError(
+                "exists; recordings are never overwritten or reused: choose another name", str(path)
+            ) from exc
+        except OSError as exc:
+            raise RecordingError(f"cannot create the recording: {exc.strerror or exc}", str(path)) from exc
         with self.lock:
             self.recordings[ident] = _OpenRecording(ident, path, writer, axes, targets)
+
+    def discard(self, ident: int) -> None:
+        """Close and delete a recording that never started (its scan was refused)."""
+        with self.lock:
+            rec = self.recordings.pop(ident, None)
+        if rec is not None:
+            rec.writer.close()
+            with contextlib.suppress(OSError):
+                rec.path.unlink()
 
     def run(self) -> None:
         while True:
@@ -136,22 +162,46 @@ class Recorder(threading.Thread):
                 if block is None:
                     self._pending_close[int(meta[1])] = int(meta[2])
                 else:
-                    if self.error is None:
-                        self._write(block, meta)
+                    self._write(block, meta)
                     last = int(block.indices[-1]) if block.indices.size else -1
                     for ident, end in list(self._pending_close.items()):
                         if last >= end - 1:
                             del self._pending_close[ident]
                             self._close(ident)
             except (OSError, PiezodError, ValueError) as exc:
+                # not one recording's disk error (handled in _write): stop every open recording
                 log.exception("recorder failed")
-                self.error = exc
-                self.engine.fault("host", "RECORDING", f"recording failed, recording stopped: {exc}")
+                with self.lock:
+                    idents = list(self.recordings)
+                for ident in idents:
+                    self._fail(ident, exc)
             finally:
                 self.queue.task_done()
         with self.lock:
             for rec in self.recordings.values():
                 rec.writer.close()
+
+    def _fail(self, ident: int, exc: BaseException) -> None:
+        """A recording cannot be written: keep what it holds, close it, stop its scan, report it."""
+        with self.lock:
+            rec = self.recordings.pop(ident, None)
+        if rec is None:
+            return
+        rec.writer.close()
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        self.failed += 1
+        if rec.rows == 0:  # created by us, holding no data: leave no empty recording behind
+            with contextlib.suppress(OSError):
+                rec.path.unlink()
+            kept = "nothing was recorded (the empty file is removed)"
+        else:
+            kept = (
+                f"its {rec.rows} rows up to t = {rec.last_t:.3f} s are kept (the file ends with a "
+                "complete line)"
+            )
+        self.engine.recording_failed(
+            ident, f"recording {rec.path.name} stopped: {reason}; {kept}; the scan was stopped"
+        )
 
     def _close(self, ident: int) -> None:
         with self.lock:
@@ -173,27 +223,42 @@ class Recorder(threading.Thread):
             if rec is None:
                 continue
             rows = np.flatnonzero(record & (rec_id == ident))
-            # one run per experiment, so that a change's note precedes its experiment's rows
-            for run in np.split(rows, np.flatnonzero(np.diff(label[rows])) + 1):
-                lab = int(label[run[0]])
-                if lab not in rec.labels_seen:
-                    rec.labels_seen.add(lab)
-                    note = self.engine.label_note(lab)
-                    if note is not None:
-                        rec.writer.comment(note)
-                names = self.engine.label_names(label[run])
-                for i, axis in enumerate(block.axes):
-                    if axis not in rec.axes:
-                        continue
-                    rec.writer.write(
-                        t[run],
-                        block.commanded_v[i, run],
-                        block.position_um[i, run],
-                        target_um=targets[i, run] if rec.targets else None,
-                        axis=axis,
-                        experiment=names,
-                    )
-                    rec.rows += int(run.size)
+            try:
+                self._write_rows(rec, block, rows, t, targets, label)
+            except OSError as exc:  # a full disk, an I/O error: this recording ends here
+                self._fail(int(ident), exc)
+
+    def _write_rows(
+        self,
+        rec: _OpenRecording,
+        block: MatchedBlock,
+        rows: NDArray[np.intp],
+        t: FloatArray,
+        targets: FloatArray,
+        label: NDArray[np.int64],
+    ) -> None:
+        # one run per experiment, so that a change's note precedes its experiment's rows
+        for run in np.split(rows, np.flatnonzero(np.diff(label[rows])) + 1):
+            lab = int(label[run[0]])
+            if lab not in rec.labels_seen:
+                rec.labels_seen.add(lab)
+                note = self.engine.label_note(lab)
+                if note is not None:
+                    rec.writer.comment(note)
+            names = self.engine.label_names(label[run])
+            for i, axis in enumerate(block.axes):
+                if axis not in rec.axes:
+                    continue
+                rec.writer.write(
+                    t[run],
+                    block.commanded_v[i, run],
+                    block.position_um[i, run],
+                    target_um=targets[i, run] if rec.targets else None,
+                    axis=axis,
+                    experiment=names,
+                )
+                rec.rows += int(run.size)
+                rec.last_t = float(t[run][-1])
 
     def _line_stats(
         self,

@@ -617,8 +617,10 @@ void fw_tick(fw_board *b) {
 
 /* -- the main loop's timers ------------------------------------------------------------------ */
 
+void fw_sensor_done(fw_board *b, uint32_t rows) { b->sens_ready += rows; }
+
 static void flush_sensor(fw_board *b, bool force) {
-    uint32_t head = b->sens_head, tail = b->sens_tail;
+    uint32_t head = b->sens_deferred ? b->sens_ready : b->sens_head, tail = b->sens_tail;
     uint32_t avail = head - tail;
     uint16_t mspf = b->caps.max_samples_per_frame;
     if (avail == 0) return;
@@ -651,14 +653,17 @@ static void flush_sensor(fw_board *b, bool force) {
 
 void fw_poll(fw_board *b, uint64_t now_us) {
     if (now_us > b->now_us) b->now_us = now_us;
-    if (b->ev_stopped) {
+    /* deferred conversions of a run that just ended: its last SENSOR rows go out before the
+     * STATUS / FAULT that end it, as on a board whose ADC completes within the tick */
+    bool hold = b->sens_deferred && b->sens_ready != b->sens_head && b->state != FW_RUNNING;
+    if (b->ev_stopped && !hold) {
         b->ev_stopped = 0;
         b->hal.timer(b->hal.ctx, 0);
         clear_sync(b);
         b->status_due = true;
         logf_(b, "stopped after index %lld", (long long)b->last_played);
     }
-    if (b->ev_underrun) {
+    if (b->ev_underrun && !hold) {
         b->ev_underrun = 0;
         b->hal.timer(b->hal.ctx, 0);
         clear_sync(b);
@@ -681,7 +686,7 @@ void fw_poll(fw_board *b, uint64_t now_us) {
     }
     if (b->state == FW_RAMPING && b->now_us > b->ramp_last_us) ramp_step(b);
     if (b->configured) flush_sensor(b, b->state != FW_RUNNING);
-    if (b->configured && (b->status_due || b->now_us >= b->next_status_us)) send_status(b);
+    if (b->configured && !hold && (b->status_due || b->now_us >= b->next_status_us)) send_status(b);
 }
 
 void fw_init(fw_board *b, const fw_caps *caps, const fw_hal *hal, uint64_t now_us) {

@@ -112,6 +112,8 @@ typedef struct fw_board {
     int16_t sens[FW_SENSOR_RING][FW_BOARD_CHANNELS];
     uint64_t sens_index[FW_SENSOR_RING];
     volatile uint32_t sens_head, sens_tail; /* head: written by tick, tail: main loop */
+    bool sens_deferred;             /* the port completes conversions later: fw_sensor_done() */
+    volatile uint32_t sens_ready;   /* with sens_deferred: rows [.., sens_ready) are converted */
     uint64_t sens_flush_us;
     uint16_t sens_countdown;
 
@@ -150,6 +152,9 @@ void fw_rx(fw_board *b, const uint8_t *data, size_t n, uint64_t now_us);
 void fw_poll(fw_board *b, uint64_t now_us);
 /* One tick of the sample clock (interrupt context). */
 void fw_tick(fw_board *b);
+/* With b->sens_deferred set (after fw_init), the port's adc_read only names the slot and the
+ * port reports conversions complete, in tick order, with this (main loop). */
+void fw_sensor_done(fw_board *b, uint32_t rows);
 /* Most SENSOR / SAMPLES rows per frame for C channels. */
 uint16_t fw_max_rows(unsigned n_channels);
 

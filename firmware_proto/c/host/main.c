@@ -21,6 +21,14 @@
 #include "fw_core.h"
 
 #define MAX_BLOCK 8192u
+#define MAX_PENDING 8u
+
+/* A block of ticks sent to the stage helper, waiting for its sensed positions. */
+typedef struct pending {
+    unsigned n_rows, n_adc;
+    int16_t *dst[MAX_BLOCK];
+    uint16_t row[MAX_BLOCK];
+} pending;
 #define BACKLOG_MAX (8u << 20)
 
 static fw_board board;
@@ -37,18 +45,22 @@ typedef struct host {
     uint32_t rate;
     uint64_t t0_us, ticks_done;
     /* stage */
-    FILE *to_stage, *from_stage;
+    FILE *to_stage;
+    int from_stage;
+    pending pend[MAX_PENDING];
+    unsigned pend_head, pend_tail;
+    uint8_t *rbuf;
+    size_t rbuf_len;
     unsigned C;
     float amp_lo[FW_MAX_CHANNELS], amp_hi[FW_MAX_CHANNELS];
     float volts[MAX_BLOCK][FW_MAX_CHANNELS];
-    int16_t *adc_dst[MAX_BLOCK];
     unsigned n_rows, n_adc;
-    unsigned adc_row[MAX_BLOCK];
     float out_v[FW_MAX_CHANNELS];
     uint64_t stage_us;
 } host;
 
 static host H;
+static pending block; /* the conversions of the ticks run in this loop iteration */
 
 static uint64_t now_us(void) {
     struct timespec ts;
@@ -105,8 +117,8 @@ static void hal_adc(void *ctx, int16_t *dst, unsigned C) {
     host *h = ctx;
     (void)C;
     if (h->n_rows == 0 || h->n_adc >= MAX_BLOCK) return;
-    h->adc_dst[h->n_adc] = dst;
-    h->adc_row[h->n_adc] = h->n_rows - 1u;
+    block.dst[h->n_adc] = dst;
+    block.row[h->n_adc] = (uint16_t)(h->n_rows - 1u);
     h->n_adc++;
 }
 
@@ -141,40 +153,84 @@ static void hal_log(void *ctx, const char *text) {
 
 static double linear_gain_um_per_v = 0.1;
 
-/* Step the stage over rows[0..n) of volts, each dt long; positions (um) into pos. */
-static void stage_step(host *h, unsigned n, double dt, float (*rows)[FW_MAX_CHANNELS], float *pos) {
+static double dac_code_to_adc(unsigned c, float pos_um) {
+    const fw_channel *ch = &board.conf.ch[c];
+    double code = rint(((double)pos_um - ch->adc_offset_um) / ch->adc_um_per_code);
+    return code < -32768.0 ? -32768.0 : code > 32767.0 ? 32767.0 : code;
+}
+
+/* Fill the conversions of a block from the positions (um) of its rows. */
+static void complete(host *h, const pending *p, const float *pos) {
+    for (unsigned k = 0; k < p->n_adc; k++)
+        for (unsigned c = 0; c < h->C; c++)
+            p->dst[k][c] = (int16_t)dac_code_to_adc(c, pos[(size_t)p->row[k] * h->C + c]);
+    fw_sensor_done(&board, p->n_adc);
+}
+
+/* Read what the stage helper answered; complete the blocks whose answer is whole. With `wait`,
+ * block until at least the oldest pending block is complete. */
+static void stage_collect(host *h, bool wait) {
+    while (h->pend_tail != h->pend_head) {
+        const pending *p = &h->pend[h->pend_tail % MAX_PENDING];
+        size_t need = (size_t)p->n_rows * h->C * sizeof(float);
+        if (h->rbuf_len >= need) {
+            complete(h, p, (const float *)(void *)h->rbuf);
+            memmove(h->rbuf, h->rbuf + need, h->rbuf_len - need);
+            h->rbuf_len -= need;
+            h->pend_tail++;
+            wait = false;
+            continue;
+        }
+        struct pollfd pfd = {.fd = h->from_stage, .events = POLLIN};
+        if (poll(&pfd, 1, wait ? 10000 : 0) <= 0) {
+            if (wait) {
+                errno = ETIMEDOUT;
+                die("stage helper silent for 10 s");
+            }
+            return;
+        }
+        ssize_t n = read(h->from_stage, h->rbuf + h->rbuf_len, (size_t)MAX_BLOCK * FW_MAX_CHANNELS * 4u - h->rbuf_len);
+        if (n <= 0) {
+            errno = EPIPE;
+            die("stage helper exited");
+        }
+        h->rbuf_len += (size_t)n;
+    }
+}
+
+/* Send rows[0..n) of volts (each dt long) to the stage; `p` names the conversions they feed. */
+static void stage_send(host *h, unsigned n, double dt, float (*rows)[FW_MAX_CHANNELS], const pending *p) {
     if (!h->to_stage) {
+        static float pos[MAX_BLOCK * FW_MAX_CHANNELS];
         for (unsigned j = 0; j < n; j++)
             for (unsigned c = 0; c < h->C; c++) pos[j * h->C + c] = (float)(linear_gain_um_per_v * rows[j][c]);
+        if (p) complete(h, p, pos);
         return;
     }
+    if (h->pend_head - h->pend_tail == MAX_PENDING) stage_collect(h, true);
+    pending *slot = &h->pend[h->pend_head % MAX_PENDING];
+    if (p) {
+        slot->n_adc = p->n_adc;
+        memcpy(slot->dst, p->dst, p->n_adc * sizeof p->dst[0]);
+        memcpy(slot->row, p->row, p->n_adc * sizeof p->row[0]);
+    } else {
+        slot->n_adc = 0;
+    }
+    slot->n_rows = n;
+    h->pend_head++;
     uint32_t nn = n;
     if (fwrite(&nn, 4, 1, h->to_stage) != 1 || fwrite(&dt, 8, 1, h->to_stage) != 1) die("stage pipe");
     for (unsigned j = 0; j < n; j++)
         if (fwrite(rows[j], sizeof(float), h->C, h->to_stage) != h->C) die("stage pipe");
     if (fflush(h->to_stage) != 0) die("stage pipe");
-    if (fread(pos, sizeof(float), (size_t)n * h->C, h->from_stage) != (size_t)n * h->C) {
-        errno = EPIPE;
-        die("stage helper exited");
-    }
 }
-
-static float pos_buf[MAX_BLOCK * FW_MAX_CHANNELS];
 
 static void run_stage_block(host *h) {
     if (h->n_rows == 0) return;
     double dt = 1.0 / (h->rate ? h->rate : board.conf.sample_rate_hz);
-    stage_step(h, h->n_rows, dt, h->volts, pos_buf);
-    for (unsigned k = 0; k < h->n_adc; k++) {
-        const float *p = pos_buf + (size_t)h->adc_row[k] * h->C;
-        for (unsigned c = 0; c < h->C; c++) {
-            const fw_channel *ch = &board.conf.ch[c];
-            double code = rint(((double)p[c] - ch->adc_offset_um) / ch->adc_um_per_code);
-            if (code < -32768.0) code = -32768.0;
-            if (code > 32767.0) code = 32767.0;
-            h->adc_dst[k][c] = (int16_t)code;
-        }
-    }
+    block.n_rows = h->n_rows;
+    block.n_adc = h->n_adc;
+    stage_send(h, h->n_rows, dt, h->volts, &block);
     h->n_rows = h->n_adc = 0;
 }
 
@@ -184,7 +240,7 @@ static void idle_stage(host *h, uint64_t t) {
     if (n > MAX_BLOCK) n = MAX_BLOCK;
     double dt = (double)(t - h->stage_us) * 1e-6 / n;
     for (unsigned j = 0; j < n; j++) memcpy(h->volts[j], h->out_v, sizeof h->out_v);
-    stage_step(h, n, dt, h->volts, pos_buf);
+    stage_send(h, n, dt, h->volts, NULL);
     h->stage_us = t;
 }
 
@@ -204,20 +260,22 @@ static void start_stage(host *h, const char *cmd) {
     close(to[0]);
     close(from[1]);
     h->to_stage = fdopen(to[1], "wb");
-    h->from_stage = fdopen(from[0], "rb");
+    h->from_stage = from[0];
+    FILE *head = fdopen(dup(from[0]), "rb");
     char magic[4];
     uint32_t C;
-    if (fread(magic, 1, 4, h->from_stage) != 4 || memcmp(magic, "PZST", 4) || fread(&C, 4, 1, h->from_stage) != 1 ||
+    if (!head || fread(magic, 1, 4, head) != 4 || memcmp(magic, "PZST", 4) || fread(&C, 4, 1, head) != 1 ||
         C < 1 || C > FW_MAX_CHANNELS) {
         fprintf(stderr, "piezod-fw-host: error: --stage-cmd %s: no stage header\n", cmd);
         exit(2);
     }
     h->C = C;
     for (unsigned c = 0; c < C; c++)
-        if (fread(&h->amp_lo[c], 4, 1, h->from_stage) != 1 || fread(&h->amp_hi[c], 4, 1, h->from_stage) != 1) {
+        if (fread(&h->amp_lo[c], 4, 1, head) != 1 || fread(&h->amp_hi[c], 4, 1, head) != 1) {
             fprintf(stderr, "piezod-fw-host: error: --stage-cmd %s: short stage header\n", cmd);
             exit(2);
         }
+    fclose(head);
 }
 
 /* -- the pty -------------------------------------------------------------------------------- */
@@ -326,8 +384,10 @@ int main(int argc, char **argv) {
     }
     signal(SIGPIPE, SIG_IGN);
     if (stage_cmd) start_stage(&H, stage_cmd);
-    H.backlog = malloc(BACKLOG_MAX); /* the host program's only allocation; the core has none */
-    if (!H.backlog) die("malloc");
+    /* the host program's only allocations; the core has none */
+    H.backlog = malloc(BACKLOG_MAX);
+    H.rbuf = malloc((size_t)MAX_BLOCK * FW_MAX_CHANNELS * sizeof(float));
+    if (!H.backlog || !H.rbuf) die("malloc");
     fw_caps caps = {.fw_major = 1, .fw_minor = 0, .fw_patch = 0, .n_channels = (uint8_t)H.C,
                     .dac_bits = 16, .adc_bits = 16, .sync_outputs = 3, .max_samples_per_frame = fw_max_rows(H.C),
                     .sample_rate_min_hz = 1, .sample_rate_max_hz = rate_max, .sample_clock_hz = 0,
@@ -338,6 +398,7 @@ int main(int argc, char **argv) {
     uint64_t t = now_us();
     H.stage_us = t;
     fw_init(&board, &caps, &hal, t);
+    board.sens_deferred = true; /* the stage helper answers later: conversions complete in stage_collect */
     struct sigaction sa = {0};
     sa.sa_handler = on_signal;
     sigaction(SIGTERM, &sa, NULL);
@@ -363,12 +424,15 @@ int main(int argc, char **argv) {
                 fw_tick(&board);
                 H.ticks_done++;
             }
-            run_stage_block(&H);
+            /* the stage in blocks of >= 10 ms of ticks: the helper's cost per call dominates small blocks */
+            uint32_t flush_rows = H.rate / 100u > MAX_BLOCK / 2u ? MAX_BLOCK / 2u : H.rate / 100u;
+            if (H.n_rows >= flush_rows || H.n_rows >= MAX_BLOCK || board.state != FW_RUNNING) run_stage_block(&H);
             H.stage_us = t;
         } else {
             run_stage_block(&H);
             idle_stage(&H, t);
         }
+        if (H.to_stage) stage_collect(&H, board.state != FW_RUNNING && board.sens_ready != board.sens_head);
         fw_poll(&board, t);
         pty_write(&H);
         if (sig_unplug) {

@@ -1,0 +1,353 @@
+"""Soaks against the real daemon on the real simulator: a corrupted, lossy link; hostile API clients
+while scanning 3 axes at 20 kS/s; a board side that sends fuzzed but well-framed messages.
+
+Each runs briefly by default (CI) and long with ``-m soak``. What every one checks: the daemon stays
+up and answers, nothing it logs is a traceback, the board never had to clamp a sample (no voltage
+outside the limits reached it), refused requests changed nothing, and (clients) no underrun.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import random
+import select
+import termios
+import threading
+import time
+import tty
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import pytest
+from real_daemon import SLOW, RealDaemon
+
+from firmware_proto import Message, encode
+from piezod.client import PiezodClient
+from piezod.config import load_config
+from piezod.errors import ApiError
+from piezod.recording import read_recording
+from piezod.service.schemas import Status
+
+
+def _no_crash(d: RealDaemon) -> None:
+    text = d.log_text()
+    assert "Traceback" not in text and "Exception in thread" not in text, text[-3000:]
+    assert d.proc is not None and d.proc.poll() is None, "the daemon died"
+    assert d.sim is not None
+    clamped = [ln for ln in d.sim.stderr_text().splitlines() if "clamped" in ln]
+    assert not clamped, clamped[:3]
+
+
+def _in_limits(d: RealDaemon, st: Status) -> None:
+    cfg = load_config(d.config)
+    for axis, v in st.voltage_v.items():
+        ax = cfg.axes[axis]  # type: ignore[index]
+        assert ax.voltage_min_v <= v <= ax.voltage_max_v, (axis, v)
+
+
+def _complete(d: RealDaemon, name: str, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s * SLOW
+    with d.client() as c:
+        while not any(r.name == name and r.complete for r in c.recordings()):
+            assert time.monotonic() < deadline, f"{name} not complete"
+            time.sleep(0.2)
+    time.sleep(1.0)
+
+
+# --------------------------------------------------------------------------------------------- lossy link
+
+
+def _lossy_link(tmp: Path, seconds: float) -> None:
+    args = ("--corrupt-rate", "2e-5", "--corrupt-in-rate", "2e-5", "--drop-rate", "2e-3")
+    with RealDaemon(tmp, sim_args=args) as d, d.client() as c:
+        c.scan(range_um=10.0, line_rate_hz=4.0, lines=64, frames=0, name="lossy")
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            st = c.status()
+            _in_limits(d, st)
+            time.sleep(0.5)
+        st = c.status()
+        assert st.crc_errors + st.frames_dropped > 0, "the link was not lossy: the soak tested nothing"
+        c.stop()
+        d.wait_state({"idle"}, 30.0)
+        _complete(d, "lossy.csv")
+        _no_crash(d)
+        rec = read_recording(d.recordings / "lossy.csv")  # every line parses
+        assert rec.t_s.size > 1000
+        assert (d.recordings / "lossy.csv").read_bytes().endswith(b"\n")
+
+
+def test_lossy_link_short(tmp_path: Path) -> None:
+    """Tried: 8 s scanning over a link with 2e-5 bit flips per byte both ways and 2e-3 dropped frames (300
+    s with -m soak). Held: daemon up, no traceback, the board never clamped a sample, the recording
+    parses.
+    """
+    _lossy_link(tmp_path, 8.0)
+
+
+@pytest.mark.soak
+def test_lossy_link_soak(tmp_path: Path) -> None:
+    _lossy_link(tmp_path, float(os.environ.get("PIEZOD_SOAK_S", "300")))
+
+
+# --------------------------------------------------------------------------------------------- clients
+
+
+@dataclass
+class _Tally:
+    ok: int = 0
+    refused: dict[int, int] = field(default_factory=dict)
+    errors: list[str] = field(default_factory=list)
+
+    def add(self, code: int) -> None:
+        if code < 400:
+            self.ok += 1
+        else:
+            self.refused[code] = self.refused.get(code, 0) + 1
+
+
+def _raw(d: RealDaemon) -> httpx.Client:
+    return httpx.Client(
+        transport=httpx.HTTPTransport(uds=str(d.socket)), base_url="http://piezod", timeout=30.0
+    )
+
+
+_JSON = {"content-type": "application/json"}
+_HOSTILE: list[tuple[str, str, bytes, dict[str, str]]] = [
+    ("PATCH", "/v1/scan", b'{"range_um": NaN}', _JSON),
+    ("PATCH", "/v1/scan", b'{"range_um": 500}', _JSON),
+    ("POST", "/v1/scan", b'{"range_um": 5, "line_rate_hz": 2}', _JSON),  # busy: 409
+    ("POST", "/v1/move", json.dumps({f"k{i}": i for i in range(2000)}).encode(), _JSON),  # 413
+    ("POST", "/v1/move", b'{"x_um": 1, "speed_um_per_s": 1e-6}', _JSON),  # busy / too slow
+    ("POST", "/v1/stop", b"{}", {"content-type": "text/plain", "origin": "http://evil.example"}),
+    ("POST", "/v1/stop", b"", {"host": "evil.example"}),
+    ("GET", "/v1/recordings/..%2f..%2fetc%2fpasswd", b"", {}),
+    ("PATCH", "/v1/scan", b"[" * 3000, _JSON),
+]
+
+
+def _hostile_clients(tmp: Path, seconds: float) -> tuple[int, _Tally]:
+    with RealDaemon(tmp) as d:
+        cfg = load_config(d.config)
+        assert len(cfg.axes) == 3 and cfg.sample_rate_hz >= 20_000
+        with d.client() as c:
+            c.scan(range_um=10.0, line_rate_hz=4.0, lines=64, frames=0, name="under-fire")
+        d.wait_state({"scanning"}, 20.0)
+        first = d.status()
+        stop = threading.Event()
+        tally = _Tally()
+        lock = threading.Lock()
+
+        def run(fn: Callable[[], None]) -> None:
+            while not stop.is_set():
+                try:
+                    fn()
+                except Exception as exc:  # collected, asserted empty below
+                    with lock:
+                        tally.errors.append(repr(exc))
+                    return
+
+        def hostile() -> None:
+            rnd = random.Random(threading.get_ident())
+            with _raw(d) as h:
+                while not stop.is_set():
+                    method, path, body, headers = rnd.choice(_HOSTILE)
+                    r = h.request(method, path, content=body or None, headers=headers)
+                    with lock:
+                        tally.add(r.status_code)
+
+        def poller() -> None:
+            with PiezodClient(d.api, timeout=30.0) as pc:
+                while not stop.is_set():
+                    pc.status()
+                    pc.recordings()
+                    with lock:
+                        tally.add(200)
+
+        def watcher() -> None:
+            with PiezodClient(d.api, timeout=30.0) as pc:
+                for _ in pc.events(rate_hz=50.0):
+                    if stop.is_set():
+                        return
+
+        def downloader() -> None:
+            with PiezodClient(d.api, timeout=30.0) as pc:
+                while not stop.is_set():
+                    for _ in pc.iter_recording("under-fire.csv"):
+                        if stop.is_set():
+                            return
+
+        threads = [threading.Thread(target=run, args=(fn,)) for fn in (hostile,) * 6]
+        threads += [threading.Thread(target=run, args=(fn,)) for fn in (poller,) * 2]
+        threads += [
+            threading.Thread(target=run, args=(watcher,)),
+            threading.Thread(target=run, args=(downloader,)),
+        ]
+        for t in threads:
+            t.start()
+        time.sleep(seconds)
+        stop.set()
+        for t in threads:
+            t.join(60.0)
+        st = d.status()
+        assert not tally.errors, tally.errors[:5]
+        new_faults = [f for f in st.faults if f.time_s > first.uptime_s]
+        # the only faults a starved host may show are the stream's (an underrun and its restart);
+        # nothing a request could have caused
+        assert {f.code for f in new_faults} <= {"UNDERRUN", "STREAM", "STREAM_END"}, new_faults[-3:]
+        if not new_faults:
+            assert st.state == "scanning" and st.scan == first.scan, st.faults[-3:]
+        _in_limits(d, st)
+        _no_crash(d)
+        assert set(tally.refused) <= {403, 404, 409, 413, 415, 422, 429, 503}, tally.refused
+        return st.underruns - first.underruns, tally
+
+
+def _saturated() -> bool:
+    """True when other work keeps more runnable processes than cores (the 1-minute load average)."""
+    return os.getloadavg()[0] > (os.cpu_count() or 1)
+
+
+def test_hostile_clients_short(tmp_path: Path) -> None:
+    """Tried: 8 s of 6 hostile clients (NaN, huge, cross-site, rebinding, refused and busy requests) +
+    pollers, a 50 Hz event stream and a downloader while scanning 3 axes at 20 kS/s. Held: 0 underruns,
+    no fault, the scan unchanged, every refusal a 4xx.
+    """
+    underruns, tally = _hostile_clients(tmp_path, 8.0)
+    load = os.getloadavg()[0]
+    print(
+        f"hostile clients 8 s: {tally.ok} answered, refused {tally.refused}, "
+        f"underruns {underruns}, load {load:.1f}"
+    )
+    assert sum(tally.refused.values()) > 50
+    if underruns and _saturated():
+        # the stream's margin (the FIFO lead) cannot cover a machine saturated by other work; the
+        # soak variant (-m soak) asserts 0 unconditionally and is run on a quiet machine
+        warnings.warn(
+            f"{underruns} underruns with load average {load:.1f} on {os.cpu_count()} cores", stacklevel=1
+        )
+    else:
+        assert underruns == 0
+
+
+@pytest.mark.soak
+def test_hostile_clients_60s_no_underrun(tmp_path: Path) -> None:
+    """Tried: the same client mix for 60 s (-m soak). Held: 0 underruns."""
+    underruns, tally = _hostile_clients(tmp_path, 60.0)
+    print(f"hostile clients 60 s: {tally.ok} answered, refused {tally.refused}, underruns {underruns}")
+    assert underruns == 0
+
+
+# --------------------------------------------------------------------------------------------- board side
+
+
+class FuzzProxy:
+    """A pty between the daemon and the simulator that adds fuzzed, correctly framed messages.
+
+    Bytes pass both ways unchanged; towards the host, every ``1/rate_hz`` s on average, a message
+    of any type with arbitrary field values (firmware_proto's hypothesis strategies) and an
+    arbitrary sequence number is inserted between two frames, as a confused or hostile board would.
+    """
+
+    def __init__(self, rate_hz: float, seed: int) -> None:
+        from firmware_proto.strategies import messages
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.pool: list[Message] = [messages(max_samples=8).example() for _ in range(300)]
+        self.rate_hz = rate_hz
+        self.rnd = random.Random(seed)
+        self.master, slave = os.openpty()
+        tty.setraw(slave)
+        self.path = os.ttyname(slave)
+        self._slave = slave
+        self.board = -1
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def connect(self, board_path: str) -> str:
+        self.board = os.open(board_path, os.O_RDWR | os.O_NOCTTY)
+        tty.setraw(self.board)
+        termios.tcflush(self.board, termios.TCIOFLUSH)
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self.path
+
+    def _run(self) -> None:
+        next_fuzz = time.monotonic()
+        pending = b""
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.master, self.board], [], [], 0.01)
+            with contextlib.suppress(OSError):
+                if self.master in ready:
+                    os.write(self.board, os.read(self.master, 65536))
+                if self.board in ready:
+                    pending += os.read(self.board, 65536)
+                    cut = pending.rfind(b"\0") + 1  # forward whole frames, insert between them
+                    if cut:
+                        os.write(self.master, pending[:cut])
+                        pending = pending[cut:]
+                now = time.monotonic()
+                if now >= next_fuzz:
+                    msg = self.rnd.choice(self.pool)
+                    os.write(self.master, encode(msg, self.rnd.getrandbits(32)))
+                    self.sent += 1
+                    next_fuzz = now + self.rnd.expovariate(self.rate_hz)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        for fd in (self.master, self._slave, self.board):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def _board_fuzz(tmp: Path, seconds: float, rate_hz: float) -> None:
+    proxy = FuzzProxy(rate_hz, seed=13)
+    try:
+        with RealDaemon(tmp, port_via=proxy.connect) as d, d.client() as c:
+            with contextlib.suppress(ApiError):  # a fuzzed FAULT may already have latched one
+                c.scan(range_um=10.0, line_rate_hz=4.0, lines=64, frames=0, name="fuzzed")
+            end = time.monotonic() + seconds
+            states: set[str] = set()
+            while time.monotonic() < end:
+                st = c.status()  # the API always answers
+                states.add(st.state)
+                _in_limits(d, st)
+                time.sleep(0.2)
+            assert proxy.sent > seconds * rate_hz / 3
+            proxy.rate_hz = 1e-9  # the board behaves again: the daemon must be usable, not wedged
+            time.sleep(1.0)
+            deadline = time.monotonic() + 60.0 * SLOW
+            while True:
+                st = c.stop()
+                if st.state == "idle":
+                    break
+                assert time.monotonic() < deadline, f"wedged in {st.state}: {st.faults[-3:]}"
+                time.sleep(0.5)
+            c.scan(range_um=5.0, line_rate_hz=8.0, lines=1, name="after-fuzz")
+            d.wait_state({"idle"}, 60.0)
+            _no_crash(d)
+            print(f"board fuzz: {proxy.sent} fuzzed messages, states {sorted(states)}")
+    finally:
+        proxy.close()
+
+
+def test_board_side_fuzz_short(tmp_path: Path) -> None:
+    """Tried: 8 s of fuzzed, correctly framed board messages of every type (hypothesis strategies) inserted
+    by a pty proxy at 20/s (300 s at 50/s with -m soak). Held: the API always answers, no traceback, the
+    board never clamped a sample; afterwards stop reaches idle and a scan runs.
+    """
+    _board_fuzz(tmp_path, 8.0, rate_hz=20.0)
+
+
+@pytest.mark.soak
+def test_board_side_fuzz_soak(tmp_path: Path) -> None:
+    _board_fuzz(tmp_path, float(os.environ.get("PIEZOD_SOAK_S", "300")), rate_hz=50.0)

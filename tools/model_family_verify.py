@@ -1,0 +1,177 @@
+"""Calibrate-and-verify on a simulated stage, in process (deterministic, independent of machine load).
+
+Usage::
+
+    python tools/model_family_verify.py --stage pi-stage [--json out.json]
+
+The same steps as ``piezod calibrate --sim --config configs/sim-NAME.yaml`` with the full frame,
+but the stage (:class:`hil_sim.stage.Stage`, the preset's ``simulation:`` section) is stepped in
+this process instead of behind the pty, so a loaded machine cannot spoil the run with underruns:
+
+1. the frame of :func:`piezod.stagecal.default_frame` (uncorrected triangles: 5 ranges x 6 rates
+   + offsets, settling loops unrecorded, ramps between scans at the service ramp rate);
+2. the thesis fit, the dynamic fit, the family fit and the held-out choice
+   (:func:`piezod.stagecal.choose_for_experiments`, the function ``piezod calibrate`` runs);
+3. the verification points of :func:`piezod.stagecal.verification_points` (inside the frame;
+   10x slower, 10x faster, offsets beyond it), each driven through
+   :class:`piezod.service.axes.AxisDriver` with the chosen model and with the dynamic model
+   (one unrecorded warm-up loop, then 4 recorded loops; the stage keeps its whole history),
+   scored by :func:`piezod.linearity.experiment_linearity`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil_sim.stage import Stage, StageConfig, resolve_stage
+from piezod import calibrate_dynamic as cd
+from piezod.calibrate import calibrate, calibrated_config
+from piezod.config import load_config
+from piezod.linearity import experiment_linearity
+from piezod.recording import Experiment
+from piezod.service.axes import AxisDriver
+from piezod.stagecal import choose_for_experiments, default_frame, verification_points
+
+
+class Bench:
+    """The stage and its clock: voltages in, sensed positions out, history kept."""
+
+    def __init__(self, stage: Stage, rate_hz: float) -> None:
+        self.stage = stage
+        self.dt = 1.0 / rate_hz
+        self.t = 0.0
+        self.v = 0.0
+
+    def play(self, volts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xs = []
+        for i in range(0, volts.size, 1 << 16):
+            xs.append(self.stage.sense(self.stage.step(volts[i : i + (1 << 16)], self.dt)))
+        t = self.t + self.dt * np.arange(1, volts.size + 1)
+        self.t = float(t[-1])
+        self.v = float(volts[-1])
+        return t, np.concatenate(xs)
+
+    def ramp(self, to_v: float, rate: float) -> None:
+        n = max(1, math.ceil(abs(to_v - self.v) / rate / self.dt))
+        self.play(self.v + (to_v - self.v) * np.arange(1, n + 1) / n)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--stage", default="pi-stage", help="preset name or scanner YAML with simulation:")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--loops", type=int, default=4)
+    args = ap.parse_args()
+    path = resolve_stage(args.stage)
+    assert path is not None
+    base = load_config(path)
+    axis = "x"
+    rate = base.sample_rate_hz
+    stage = Stage(StageConfig.from_file(path), axes=(axis,))
+    bench = Bench(stage, rate)
+    ramp = base.service.ramp_rate_v_per_s
+    t0 = time.perf_counter()
+    frame = default_frame(base, axis)
+    exps: list[Experiment] = []
+    for scan in frame.scans:
+        segs = scan.segments(rate)
+        bench.ramp(float(segs[0].volts[0]), ramp)
+        for seg in segs:
+            t, x = bench.play(np.asarray(seg.volts, dtype=np.float64))
+            if seg.record:
+                exps.append(Experiment(scan.label, axis, t, np.asarray(seg.volts, dtype=np.float64), x))
+    print(f"frame: {len(exps)} experiments, {bench.t:.0f} s simulated")
+    thesis = calibrated_config(calibrate(exps), axis=axis, base=base)
+    dyn = cd.calibrate_dynamic(exps, slew_rate_v_per_s=ramp, rest_voltage_v=base.axes[axis].safe_voltage_v)
+    with_dyn = cd.calibrated_config(dyn, axis=axis, base=thesis)
+    choice = choose_for_experiments(exps, axis, with_dyn, ramp, base.axes[axis].safe_voltage_v)
+    print(choice.report["table"])
+    calibrated = choice.config
+    chosen_kind = calibrated.axes[axis].model
+    rows: list[dict[str, Any]] = []
+    points = verification_points(calibrated, frame, axis=axis)
+    kinds = [chosen_kind] + (["dynamic"] if chosen_kind != "dynamic" else [])
+    for kind in kinds:
+        cfg = calibrated.axes[axis].model_copy(update={"model": kind, "slew_rate_v_per_s": 1e6})
+        driver = AxisDriver(axis, cfg, rate)
+        driver.reset(bench.v)
+        # as piezod calibrate's verification: one unrecorded warm-up scan at the first point
+        # after a model is switched in (its creep memory starts from rest, the stage's does not)
+        for k, pt in enumerate([points[0], *points]):
+            warm_up = k == 0
+            plan = driver.plan(pt.range_um, pt.frequency_hz, pt.offset_um)
+            driver.use_plan(plan)
+            lo = pt.offset_um - 0.5 * pt.range_um
+            per = max(8, round(rate / pt.frequency_hz))
+            n_move = max(
+                1, round(abs(lo - driver.position_um) / (0.5 * pt.range_um * pt.frequency_hz) * rate)
+            )
+            move = np.linspace(driver.position_um, lo, n_move + 1)[1:]
+            phase = (np.arange(1, per * (1 + args.loops) + 1) % per) / per
+            scan = lo + pt.range_um * np.where(phase < 0.5, 2 * phase, 2 - 2 * phase)
+            target = np.concatenate([move, scan])
+            volts = []
+            faults = 0
+            for i in range(0, target.size, 4096):
+                out = driver.corrected(target[i : i + 4096])
+                faults += out.clamped
+                volts.append(out.voltage_v)
+            v = np.concatenate(volts)
+            t, x = bench.play(v)
+            if warm_up:
+                continue
+            k0 = n_move + per
+            exp = Experiment("verify", axis, t[k0:], v[k0:], x[k0:], target_um=target[k0:])
+            lin = experiment_linearity(exp)
+            rows.append(
+                {
+                    "model": kind,
+                    "why": pt.why,
+                    "inside_frame": pt.inside_frame,
+                    "range_um": pt.range_um,
+                    "frequency_hz": pt.frequency_hz,
+                    "offset_um": pt.offset_um,
+                    "nonlinearity_pct": float(lin.nonlinearity_pct),
+                    "length_error_pct": float(lin.length_error_pct),
+                    "clamped": faults,
+                }
+            )
+            r = rows[-1]
+            print(
+                f"{kind:<8} {pt.why:<34} {pt.range_um:6.1f} um {pt.frequency_hz:7.3f} Hz "
+                f"offset {pt.offset_um:+6.2f} um: nonlinearity {r['nonlinearity_pct']:.3f} %, "
+                f"length error {r['length_error_pct']:+.3f} %" + (f" ({faults} clamped)" if faults else "")
+            )
+    summary: dict[str, dict[str, float]] = {}
+    for kind in kinds:
+        for inside in (True, False):
+            sel = [r for r in rows if r["model"] == kind and r["inside_frame"] == inside]
+            if sel:
+                summary[f"{kind}/{'inside' if inside else 'outside'}"] = {
+                    "max_nonlinearity_pct": max(r["nonlinearity_pct"] for r in sel),
+                    "max_abs_length_error_pct": max(abs(r["length_error_pct"]) for r in sel),
+                }
+    for k, s in summary.items():
+        print(
+            f"{k:<20} max nonlinearity {s['max_nonlinearity_pct']:.3f} %, max |length error| "
+            f"{s['max_abs_length_error_pct']:.3f} %"
+        )
+    print(f"{time.perf_counter() - t0:.0f} s")
+    if args.json:
+        Path(args.json).write_text(
+            json.dumps(
+                {"stage": str(path), "choice": choice.report, "rows": rows, "summary": summary}, indent=2
+            )
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
