@@ -19,6 +19,11 @@ Safety: every voltage is clamped to the axis limits and slew-limited before it l
 by the driver and again by :meth:`~piezod.link.board.Board.limit` for any board (clamping is
 reported as a fault); ``stop()`` holds; a fault, a lost link and shutdown ramp the
 outputs to the safe values (the board also ramps by itself when the host's heartbeat stops).
+
+The jobs live in :mod:`piezod.service.jobs`, the recorder in :mod:`piezod.service.recorder`.
+This module is still a little over 800 lines: the engine's public control surface (scan,
+change, move, stop, programs, status, recordings, faults) shares one lock and one job state;
+the shadow engine that checks a scan before it starts stays next to it.
 """
 
 from __future__ import annotations
