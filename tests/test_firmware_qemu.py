@@ -5,10 +5,10 @@ The emulated CMSDK UART has a one-byte receive buffer that QEMU's pty backend re
 main-loop wakeup: it carries about 8 kB/s host -> board, which with the host's 5 ms SAMPLES
 frames (27 bytes of framing each) is a few hundred samples/s on three channels
 (``piezod bench stream --port`` against it reports the figure, docs/hardware.md the sweep). On a
-busy machine QEMU's main loop wakes less often and the figure drops, so the default test queues
-a whole run before the clock starts (no timing pressure) and streaming with the real host link is
-``-m slow``. (The real daemon, whose link sends STATUS every 10 ms, underruns on it even at
-100 samples/s: the board's own output competes for the same emulated byte path.) Skipped, with
+busy machine QEMU's main loop wakes less often and the figure drops, so the first test queues
+a whole run before the clock starts (no timing pressure). The real daemon (``piezod serve``) streams
+a scan on it when the scanner YAML gives the link's capacity (``service.link_bytes_per_s``): it
+then derives a status period and frame size the emulated UART carries (piezod.link.budget). Skipped, with
 the install command, where the cross toolchain or QEMU is missing."""
 
 from __future__ import annotations

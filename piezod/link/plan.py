@@ -112,6 +112,9 @@ class LinkSettings:
             base.update(
                 status_period_ms=budget.status_period_ms, frame_samples=budget.frame_samples, budget=budget
             )
+        if config.microscope is not None and "z" in config.axes:
+            # the z channel's ADC reads the z-piezo voltage monitor (the height signal), not a sensor
+            base["sensor_full_scale_um_by_axis"] = {"z": float(config.microscope.z_monitor_full_scale)}
         base.update(overrides)
         return cls(**base)
 
