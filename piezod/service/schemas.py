@@ -42,12 +42,6 @@ class ScanRequest(_Body):
     correction: bool = Field(default=True, description="false drives the plain triangle (no model)")
     record: bool = Field(default=True, description="record the sensor readback")
     name: str | None = Field(default=None, description="recording name (letters, digits, . _ -)")
-    pixels: int = Field(
-        default=512,
-        ge=1,
-        le=65_536,
-        description="pixels per trace (and per retrace): the pixel clock of the board's sync outputs",
-    )
 
     @field_validator("name")
     @classmethod

@@ -7,7 +7,8 @@ An existing SPM controller acquires in step with piezod's raster from three digi
   and its retrace) and fall half a line later, at the first sample of the retrace;
 - the pixel clock rises at the first sample of each pixel and falls half a pixel later
   (``max(1, round(samples per pixel / 2))`` samples). A line holds ``pixels`` pixels on the
-  trace and again on the retrace; the pixels tile the image width (``range_um``) in the image
+  trace and again on the retrace (the scan request's ``pixels``, the image width ``piezod image``
+  uses); the pixels tile the image width (``range_um``) in the image
   frame, so the overscan at the turning points has no pixel clock. A pixel shorter than two
   samples has no visible pixel clock (its fall and the next rise share a tick).
 
@@ -28,10 +29,6 @@ from numpy.typing import NDArray
 from piezod.scan import ScanBlock
 
 PIXEL, LINE, FRAME = 0b001, 0b010, 0b100
-
-DEFAULT_PIXELS = 512
-"""Pixels per trace (and per retrace) of a scan request that does not say."""
-
 
 class SyncSchedule:
     """Sync events by absolute sample index, merged per index (a later event wins its bits).
@@ -135,4 +132,4 @@ class SyncPlanner:
         self._dir, self._pix = int(direction[-1]), int(pix[-1])
 
 
-__all__ = ["DEFAULT_PIXELS", "FRAME", "LINE", "PIXEL", "SyncPlanner", "SyncSchedule"]
+__all__ = ["FRAME", "LINE", "PIXEL", "SyncPlanner", "SyncSchedule"]
