@@ -326,7 +326,8 @@ class Streamer:
         self.sync: Callable[[int, int], list[tuple[int, int, int]]] | None = (
             sync if callable(sync) and caps.sync_outputs >= SYNC_OUTPUTS_USED else None
         )
-        budget = session.settings.budget
+        settings = getattr(session, "settings", None)  # stand-in sessions in tests may have none
+        budget = settings.budget if settings is not None else None
         usable = budget.usable_bytes_per_s if budget is not None else None
         #: Seconds the link needs per row sent (a slow link: frames on the way are not lost frames).
         self._link_s_per_row = (
