@@ -213,6 +213,18 @@ class ServiceConfig(StrictModel):
         default=500, ge=50, le=60_000, description="board watchdog timeout (ms)"
     )
     ramp_rate_v_per_s: float = Field(default=200.0, gt=0, le=1e5, description="ramp-to-safe rate (V/s)")
+    link_bytes_per_s: float | None = Field(
+        default=None,
+        gt=0,
+        le=1e9,
+        description=(
+            "bytes/s the board link carries each way (a UART: baud / 10); the status period and "
+            "frame size are derived from it and the sample rate (docs/hardware.md); null = a fast link"
+        ),
+    )
+    link_shared: bool = Field(
+        default=False, description="both directions share link_bytes_per_s (QEMU's emulated UART on a pty)"
+    )
     sensitivity_tracking: bool = Field(
         default=True, description="correct slow sensitivity drift from the sensor readback of corrected scans"
     )

@@ -5,15 +5,17 @@ The emulated CMSDK UART has a one-byte receive buffer that QEMU's pty backend re
 main-loop wakeup: it carries about 8 kB/s host -> board, which with the host's 5 ms SAMPLES
 frames (27 bytes of framing each) is a few hundred samples/s on three channels
 (``piezod bench stream --port`` against it reports the figure, docs/hardware.md the sweep). On a
-busy machine QEMU's main loop wakes less often and the figure drops, so the default test queues
-a whole run before the clock starts (no timing pressure) and streaming with the real host link is
-``-m slow``. (The real daemon, whose link sends STATUS every 10 ms, underruns on it even at
-100 samples/s: the board's own output competes for the same emulated byte path.) Skipped, with
+busy machine QEMU's main loop wakes less often and the figure drops, so the first test queues
+a whole run before the clock starts (no timing pressure). The real daemon (``piezod serve``) streams
+a scan on it when the scanner YAML gives the link's capacity (``service.link_bytes_per_s``): it
+then derives a status period and frame size the emulated UART carries (piezod.link.budget). Skipped, with
 the install command, where the cross toolchain or QEMU is missing."""
 
 from __future__ import annotations
 
+import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,6 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 import serial
+import yaml
 
 from firmware_proto import (
     Ack,
@@ -41,9 +44,11 @@ from firmware_proto import (
     encode,
 )
 from hil_sim.firmware import build_firmware, missing_tools, spawn_qemu
+from piezod.client import PiezodClient
 from piezod.config import default_sim_config_path, load_config
 from piezod.link.bench import bench_config, stream_bench
 from piezod.link.session import LinkSettings
+from piezod.recording import read_recording
 
 INSTALL = "apt-get install gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm"
 QEMU_RATE_HZ = 100
@@ -175,3 +180,74 @@ def test_cycle_budget_per_sample_at_70k(tmp_path: Path) -> None:
     budget = SYSCLK_STM32F405_HZ / 70_000
     print(f"per sample: {fields} -> ~{cycles:.0f} cycles of {budget:.0f} at 70 kS/s")
     assert cycles < budget
+
+
+QEMU_LINK_BYTES_PER_S = 6000
+"""What the emulated UART on a pty carries, both directions together (docs/hardware.md): the
+daemon derives its status period and frame size from it (piezod.link.budget)."""
+
+
+def _qemu_scanner_yaml(tmp_path: Path, rate_hz: float) -> Path:
+    raw = yaml.safe_load(default_sim_config_path().read_text())
+    raw["sample_rate_hz"] = rate_hz
+    service = raw.setdefault("service", {})
+    service.update(link_bytes_per_s=QEMU_LINK_BYTES_PER_S, link_shared=True, lead_ms=500.0)
+    out = tmp_path / "qemu-stage.yaml"
+    out.write_text(yaml.safe_dump(raw))
+    return out
+
+
+def _serve_scan_on_qemu(qemu: Any, tmp_path: Path, rate_hz: float, lines: int) -> None:
+    """``piezod serve`` on the emulated MCU's pty: a scan of ``lines`` lines at ``rate_hz``, no loss."""
+    config = _qemu_scanner_yaml(tmp_path, rate_hz)
+    api = tmp_path / "api.sock"
+    log_path = tmp_path / "daemon.log"
+    cmd = [sys.executable, "-m", "piezod", "serve", "--config", str(config), "--port", qemu.path]
+    cmd += ["--api", f"unix:{api}", "--recordings", str(tmp_path / "rec")]
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log)
+    try:
+        deadline = time.monotonic() + 90.0
+        while not api.exists():
+            assert proc.poll() is None and time.monotonic() < deadline, log_path.read_text()
+            time.sleep(0.2)
+        with PiezodClient(f"unix:{api}", timeout=30.0) as client:
+            while client.status().state != "idle":
+                assert time.monotonic() < deadline, client.status()
+                time.sleep(0.2)
+            per_line = round(rate_hz / 1.0)
+            client.scan(range_um=5.0, line_rate_hz=1.0, lines=lines, pixels=8, name="qemu")
+            end = time.monotonic() + 60.0 + 3 * lines
+            while (st := client.status()).state == "scanning":
+                assert time.monotonic() < end, st
+                time.sleep(0.5)
+            assert st.state == "idle", st.faults
+            assert st.underruns == 0 and st.crc_errors == 0 and st.frames_dropped == 0, st
+            assert not [f for f in st.faults if f.code != "LINK"], st.faults
+            time.sleep(2.0)  # the last sensor rows reach the recording
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(60.0) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = log_path.read_text()
+    budget = [line for line in text.splitlines() if "link budget" in line]
+    assert budget, text
+    print(f"\n{budget[0].split('link budget', 1)[1].strip()}")
+    rec = read_recording(tmp_path / "rec" / "qemu.csv")
+    x = rec.axis == "x"
+    index = np.rint(rec.t_s[x] * rate_hz).astype(np.int64)
+    # every scan sample was played and read back, in order, once
+    assert index.size == lines * per_line and np.all(np.diff(index) == 1), (index.size, lines * per_line)
+    assert np.all(np.isfinite(rec.position_um[x]))
+    print(f"QEMU mps2-an385 + piezod serve: {lines * per_line} samples at {rate_hz:g} S/s, no loss")
+
+
+def test_real_daemon_streams_a_scan_on_the_emulated_mcu(qemu: Any, tmp_path: Path) -> None:
+    _serve_scan_on_qemu(qemu, tmp_path, QEMU_RATE_HZ, lines=2)
+
+
+@pytest.mark.slow
+def test_real_daemon_streams_a_longer_scan_on_the_emulated_mcu(qemu: Any, tmp_path: Path) -> None:
+    _serve_scan_on_qemu(qemu, tmp_path, 2 * QEMU_RATE_HZ, lines=10)

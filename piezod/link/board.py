@@ -11,6 +11,7 @@ clamps it to the axes' voltage limits and slew rates and reports what it had to 
 
 from __future__ import annotations
 
+import logging
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -25,6 +26,9 @@ from piezod.link.session import BoardSession, HostLimitFault, LinkEvent, LinkSet
 from piezod.link.streamer import BlockSource, MatchedBlock, Streamer
 
 FloatArray = NDArray[np.float64]
+
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,9 +79,14 @@ class Board(ABC):
         """Stream ``source``'s blocks from sample ``start_index``, each through :meth:`limit`."""
         board = self
 
+        sync = getattr(source, "sync_events", None)
+
         class _Limited:
             def next_block(self, n: int) -> FloatArray:
                 return board.limit(source.next_block(n), board.next_index)
+
+            def sync_events(self, first_index: int, n: int) -> list[tuple[int, int, int]]:
+                return sync(first_index, n) if callable(sync) else []
 
         self._do_start(_Limited(), start_index, lead_s=lead_s, block_samples=block_samples, on_block=on_block)
 
@@ -187,6 +196,8 @@ class SerialBoard(Board):
             self.url, config=self.config, settings=self.settings, on_event=self.on_event, timeout_s=timeout_s
         )
         assert self.session.plan is not None
+        if self.settings.budget is not None:
+            log.info("%s", self.settings.budget.describe())
         return tuple(self.session.plan.axes)
 
     def capped_lead_s(self, lead_s: float) -> float:
@@ -207,7 +218,12 @@ class SerialBoard(Board):
     ) -> None:
         assert self.session is not None
         self.streamer = Streamer(
-            self.session, source, lead_s=lead_s, block_samples=block_samples, on_block=on_block
+            self.session,
+            source,
+            lead_s=lead_s,
+            block_samples=block_samples,
+            on_block=on_block,
+            frame_samples=self.session.settings.frame_samples,
         )
         self.streamer.start(start_index)
 

@@ -27,6 +27,7 @@ from piezod.errors import (
     SafetyError,
     from_wire,
 )
+from piezod.link.budget import LinkBudget, plan_link_budget
 
 DEFAULT_AXIS_CHANNELS: Mapping[str, int] = {"x": 0, "y": 1, "z": 2}
 """Board channel of each axis unless :attr:`LinkSettings.axis_channels` says otherwise."""
@@ -70,6 +71,10 @@ class LinkSettings:
     silence_timeout_s
         A configured board that sent no valid frame for this long is considered gone;
         ``None`` = ``max(1 s, 50 status periods)``.
+    frame_samples
+        Rows per SAMPLES frame; ``None`` = 5 ms worth (the streamer's default).
+    budget
+        The link budget the status period and frame size were derived from (``None``: the defaults).
     """
 
     heartbeat_timeout_ms: int = 500
@@ -87,11 +92,26 @@ class LinkSettings:
     reconnect_max_s: float = 2.0
     reconnect_give_up_s: float | None = None
     silence_timeout_s: float | None = None
+    frame_samples: int | None = None
+    budget: LinkBudget | None = None
 
     @classmethod
     def from_config(cls, config: ScannerConfig, **overrides: Any) -> LinkSettings:
         """Settings taken from the scanner config's ``service`` section, then ``overrides``."""
-        base: dict[str, Any] = {"heartbeat_timeout_ms": int(config.service.heartbeat_timeout_ms)}
+        svc = config.service
+        base: dict[str, Any] = {"heartbeat_timeout_ms": int(svc.heartbeat_timeout_ms)}
+        if svc.link_bytes_per_s is not None:
+            # the board's channels: at least the axes (a SAMPLES row holds every board channel)
+            budget = plan_link_budget(
+                svc.link_bytes_per_s,
+                float(config.sample_rate_hz),
+                max(3, len(config.axes)),
+                lead_s=svc.lead_ms / 1000.0,
+                shared=svc.link_shared,
+            )
+            base.update(
+                status_period_ms=budget.status_period_ms, frame_samples=budget.frame_samples, budget=budget
+            )
         if config.microscope is not None and "z" in config.axes:
             # the z channel's ADC reads the z-piezo voltage monitor (the height signal), not a sensor
             base["sensor_full_scale_um_by_axis"] = {"z": float(config.microscope.z_monitor_full_scale)}

@@ -69,6 +69,7 @@ from firmware_proto import (
     Start,
     Status,
     Stop,
+    Sync,
     TimedOut,
     check_capabilities,
 )
@@ -1206,6 +1207,27 @@ class BoardSession:
             seq = conn.endpoint.send(msg, time.monotonic())
             self._tally.samples_frames_sent += 1
             self._tally.sample_rows_sent += msg.n_samples
+        conn.wake.set()
+        return seq
+
+    def send_sync(self, first_index: int, events: tuple[tuple[int, int, int], ...]) -> int:
+        """Queue one SYNC data frame (PROTOCOL.md 4.14); returns its sequence number.
+
+        ``events`` are ``(offset, lines, mask)`` from ``first_index``. Like SAMPLES it is not
+        acknowledged: the streamer sends it with the SAMPLES of the same indices, again after a
+        go-back-N rewind (the board skips events it already queued).
+
+        Raises
+        ------
+        LinkClosedError
+            The link is down.
+        """
+        msg = Sync(first_index, events)
+        with self._lock:
+            conn = self._conn
+            if conn is None or not conn.alive:
+                raise LinkClosedError(f"{self.url}: the link is down")
+            seq = conn.endpoint.send(msg, time.monotonic())
         conn.wake.set()
         return seq
 

@@ -31,7 +31,7 @@ from typing import Literal, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from firmware_proto import NO_INDEX, BoardState, FaultCode, FaultFlags, Status
+from firmware_proto import MAX_SYNC_EVENTS, NO_INDEX, BoardState, FaultCode, FaultFlags, Status
 from firmware_proto import ProtocolError as WireProtocolError
 from piezod.errors import BoardFaultError, ConfigError, LinkError, ProtocolError
 from piezod.link.session import (
@@ -57,6 +57,27 @@ class BlockSource(Protocol):
 
     def next_block(self, n: int) -> FloatArray:
         """The next ``n`` samples: volts, shape ``(axes, n)`` in the session's axis order."""
+        ...
+
+
+#: Sync outputs a source needs on the board to get :meth:`SyncSource.sync_events` sent (pixel, line, frame).
+SYNC_OUTPUTS_USED = 3
+#: Sync events the host keeps queued on the board at most: PROTOCOL.md 4.14 guarantees 1024, a
+#: margin covers the host's estimate of what was played (a SYNC that does not fit is dropped whole).
+SYNC_QUEUE_EVENTS = 768
+#: Pending sync events sent at once even before they are due (within the lead).
+SYNC_BATCH_EVENTS = 256
+
+
+class SyncSource(Protocol):
+    """A block source that also drives the board's sync outputs (PROTOCOL.md 4.14)."""
+
+    def sync_events(self, first_index: int, n: int) -> list[tuple[int, int, int]]:
+        """``(offset from first_index, lines, mask)`` of the sync events at indices ``[first, first + n)``.
+
+        Called after the samples of these indices were produced (:meth:`BlockSource.next_block`),
+        in index order, and again for the same indices after a go-back-N rewind.
+        """
         ...
 
 
@@ -198,6 +219,9 @@ class StreamStats:
     runs: list[RunRecord] = field(default_factory=list)
     matched_rows: int = 0
     unmatched_rows: int = 0
+    sync_frames_sent: int = 0
+    sync_events_sent: int = 0
+    sync_events_late: int = 0
 
     @property
     def samples_sent(self) -> int:
@@ -297,6 +321,20 @@ class Streamer:
             else max(self.frame_samples, round(self.rate_hz * 0.02))
         )
         self.status_period_s = plan.configure.status_period_ms / 1000.0
+        sync = getattr(source, "sync_events", None)
+        #: Where the sync events come from: the source's, when the board has the outputs it drives.
+        self.sync: Callable[[int, int], list[tuple[int, int, int]]] | None = (
+            sync if callable(sync) and caps.sync_outputs >= SYNC_OUTPUTS_USED else None
+        )
+        settings = getattr(session, "settings", None)  # stand-in sessions in tests may have none
+        budget = settings.budget if settings is not None else None
+        usable = budget.usable_bytes_per_s if budget is not None else None
+        #: Seconds the link needs per row sent (a slow link: frames on the way are not lost frames).
+        self._link_s_per_row = (
+            budget.host_to_board_bytes_per_s / self.rate_hz / usable
+            if budget is not None and usable is not None
+            else 0.0
+        )
         self.stats = StreamStats()
         cap = max(lead_samples_for(self.rate_hz, history_s), 4 * fifo)
         self._hist = np.zeros((cap, self.converter.n_channels), dtype=np.int16)
@@ -332,6 +370,9 @@ class Streamer:
         self._quit = threading.Event()
         self._wake = threading.Event()
         self._done = threading.Event()
+        self._sync_pending: deque[tuple[int, int, int]] = deque()
+        self._sync_queued: deque[int] = deque()
+        self._sync_hw = 0
         self._unsubscribe = session.subscribe(self._on_event)
 
     # -- public -------------------------------------------------------------------------------
@@ -478,6 +519,9 @@ class Streamer:
         self._credit = start_index + caps.fifo_depth_samples
         self._next_index = start_index
         self._sent_hw = start_index
+        self._sync_hw = start_index
+        self._sync_pending.clear()
+        self._sync_queued.clear()  # START empties the board's queue
         self._inflight.clear()
         self._raw_gaps = None
         self._raw_underruns = None
@@ -529,8 +573,9 @@ class Streamer:
                 played = st.last_played_index if running else self._run_start() - 1
                 elapsed = max(0.0, now - st_time) if running else 0.0
                 est_played = played + int(elapsed * self.rate_hz)
+                acked_played = played
             else:
-                est_played = self._run_start() - 1
+                est_played = acked_played = self._run_start() - 1
             target = est_played + 1 + self.fill_samples
             limit = min(self._credit, target)
             if self._finishing:
@@ -539,6 +584,8 @@ class Streamer:
                     self._pad_short_run()
                 limit = min(self._credit, self._data_end())
             self._send_until(limit, urgent=self._next_index - est_played - 1 < self.lead_samples, now=now)
+            if self._sync_pending:
+                self._send_sync(acked_played)
             if (
                 self._finishing
                 and not self._stop_sent
@@ -616,7 +663,8 @@ class Streamer:
         # a STATUS generated this long after our last frame must show it (else it was lost), unless
         # the board is still taking in what is on the way (write_index moving): a busy board is not
         # a lost frame; the floor covers a board (or simulator) busy for a few status periods
-        settle = max(2 * self.status_period_s, STALL_FLOOR_S)
+        drain = 2 * (self._next_index - w) * self._link_s_per_row
+        settle = max(2 * self.status_period_s, STALL_FLOOR_S, drain)
         if self._gap_pending and now - self._last_rewind > rtt:
             self._gap_pending = False
             self._rewind(w, now, "index gap / overflow reported")
@@ -679,6 +727,11 @@ class Streamer:
         self._inflight.clear()
         log.info("go-back-N (%s): resending from index %d (was at %d)", why, write_index, self._next_index)
         self._next_index = write_index
+        if self._sync_hw > write_index:
+            # the events are fetched again with their samples; the board skips those it queued
+            self._sync_hw = write_index
+            while self._sync_pending and self._sync_pending[-1][0] >= write_index:
+                self._sync_pending.pop()
         self._last_rewind = now
         self.stats.rewinds += 1
 
@@ -733,6 +786,11 @@ class Streamer:
             rows = self._take(want)
             first = self._next_index
             self.session.send_samples(first, rows)
+            if self.sync is not None and first + want > self._sync_hw:
+                lo = max(first, self._sync_hw)
+                events = self.sync(lo, first + want - lo)
+                self._sync_pending.extend((lo + o, lines, mask) for o, lines, mask in events)
+                self._sync_hw = first + want
             self._inflight.append((first, rows))
             self._next_index = first + want
             self._last_send = time.monotonic()
@@ -746,6 +804,28 @@ class Streamer:
                 if self._run is not None:
                     end = self._sent_hw if self._end_index is None else min(self._sent_hw, self._end_index)
                     self._run.end_index = end
+
+    def _send_sync(self, played: int) -> None:
+        """Send the pending sync events that fit the board's queue (events up to ``played`` are gone).
+
+        Events of samples already played are dropped here (counted in ``sync_events_late``).
+        """
+        queued, pending = self._sync_queued, self._sync_pending
+        while queued and queued[0] <= played:
+            queued.popleft()
+        while pending and pending[0][0] <= played:
+            pending.popleft()
+            self.stats.sync_events_late += 1
+        if not pending or (pending[0][0] - played > self.lead_samples and len(pending) < SYNC_BATCH_EVENTS):
+            return  # not due yet: gather more events per frame (a slow link pays ~34 bytes per frame)
+        while pending and len(queued) < SYNC_QUEUE_EVENTS:
+            n = min(len(pending), SYNC_QUEUE_EVENTS - len(queued), MAX_SYNC_EVENTS)
+            part = [pending.popleft() for _ in range(n)]
+            base = part[0][0]
+            self.session.send_sync(base, tuple((i - base, lines, mask) for i, lines, mask in part))
+            queued.extend(i for i, _, _ in part)
+            self.stats.sync_frames_sent += 1
+            self.stats.sync_events_sent += n
 
     def _take(self, n: int) -> npt.NDArray[np.int16]:
         parts: list[npt.NDArray[np.int16]] = []

@@ -90,6 +90,7 @@ from piezod.service.schemas import (
     ScanRequest,
     Status,
 )
+from piezod.service.sync import SyncSchedule
 from piezod.service.tracking import SensitivityTracker
 from piezod.trajectory import SETTLE_LINES, RasterTrajectory, Trajectory
 
@@ -114,6 +115,7 @@ class _ShadowEngine:
         with engine._lock:
             self.drivers = {name: copy.deepcopy(d) for name, d in engine.drivers.items()}
         self.clamped = dict.fromkeys(self.drivers, 0)
+        self.sync_schedule = SyncSchedule(history=0)  # a trial's sync events go nowhere
 
     def label_id(self, name: str) -> int:
         return -1
@@ -196,6 +198,8 @@ class Engine:
         self._fault_latched = False
         self._index = 0
         self._ring = TargetRing(len(self.drivers), max(1 << 16, int(self.rate_hz * 8)))
+        #: The sync-output events of the scans (sent when the board has pixel, line and frame outputs).
+        self.sync_schedule = SyncSchedule(self._ring.capacity)
         self._recorder = Recorder(self)
         self._recording_id = -1
         self._recording_name: str | None = None
@@ -356,6 +360,11 @@ class Engine:
             )
         self._index += n
         return out
+
+    def sync_events(self, first_index: int, n: int) -> list[tuple[int, int, int]]:
+        """The scans' sync events at ``[first, first + n)`` (:class:`~piezod.link.streamer.SyncSource`)."""
+        with self._lock:
+            return self.sync_schedule.between(first_index, n)
 
     def _job_finished(self, job: Job, end_index: int) -> None:
         if isinstance(job, ScanJob | ProgramJob):

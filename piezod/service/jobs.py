@@ -22,7 +22,8 @@ from piezod.service.schemas import (
     ScanChange,
     ScanRequest,
 )
-from piezod.trajectory import Trajectory
+from piezod.service.sync import SyncPlanner
+from piezod.trajectory import RasterTrajectory, Trajectory
 
 if TYPE_CHECKING:
     from piezod.service.axes import PeriodicPlan
@@ -195,6 +196,7 @@ class ScanJob(Job):
             engine.drivers[name].use_plan(plan)
         speed = max(trajectory.speed_um_per_s() * MOVE_SPEED_FACTOR, 1.0)
         self._move: MoveJob | None = MoveJob(engine, trajectory.start_um(), speed)
+        self._sync = SyncPlanner(engine.sync_schedule, request.pixels)
 
     def change(self, engine: Engine, change: ScanChange) -> None:
         updates = change.model_dump(exclude_none=True)
@@ -262,6 +264,10 @@ class ScanJob(Job):
             return Chunk(
                 volts, targets, np.full(m, -1, dtype=np.int64), block.fast_direction, np.zeros(m, bool)
             )
+        if isinstance(self._traj, RasterTrajectory):
+            p = self._traj.params
+            spl = engine.rate_hz / p.line_rate_hz
+            self._sync.add_block(engine.render_index, block, p.range_um, spl, p.overscan)
         record = np.full(m, self.request.record)
         self._scanned = True
         return Chunk(
