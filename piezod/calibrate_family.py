@@ -668,6 +668,7 @@ def family_model_config(params: FamilyParams) -> FamilyModelConfig:
 
 
 __all__ = [
+    "CREEP_DRIVERS",
     "LAWS",
     "FamilyFit",
     "ModelChoice",
