@@ -70,6 +70,7 @@ from firmware_proto import (
     max_samples_per_frame,
 )
 from hil_sim.errors import SimConfigError as ConfigError
+from hil_sim.microscope import Microscope, MicroscopeConfig
 from hil_sim.stage import PRESET_DIR, Stage, StageConfig
 
 F64 = NDArray[np.float64]
@@ -83,6 +84,7 @@ _IDLE_MIN_SPAN_S = 1e-9
 _DEFAULT_STATUS_PERIOD_S = 0.01
 """FAULT rate limit before the first CONFIGURE (no ``status_period_ms`` yet)."""
 _MAX_PENDING_TICKS = 1 << 16
+_TRUTH_EVERY = 10
 
 _NAK_FOR_DECODE_ERROR = {
     ErrorKind.UNKNOWN_TYPE: NakReason.UNKNOWN_TYPE,
@@ -153,6 +155,16 @@ class BoardConfig:
         Probability per outgoing frame of being dropped entirely.
     seed
         Seed of the fault-injection generator.
+    microscope
+        The simulated microscope (:mod:`hil_sim.microscope`), or None (a bare stage). With it the
+        z channel's ADC reads the z-piezo voltage through the amplifier's monitor
+        (``V_z / monitor_ratio``) while the z feedback drives the z piezo, and without its
+        position sensor the x / y ADC channels read 0.
+    truth_log
+        With a microscope: append the hidden truth to this file, every 10th played sample, as
+        float64 rows ``(sample_index, x_um, y_um, z_voltage_v, z_um)`` (raw, native byte order):
+        the true tip position an external interferometer would measure, for checking sensorless
+        calibrations (``piezod.imagecal.read_truth_log``).
     sync_outputs
         Digital sync outputs driven from SYNC frames (0..8; CAPABILITIES ``sync_outputs``).
     """
@@ -174,6 +186,8 @@ class BoardConfig:
     corrupt_in_rate: float = 0.0
     drop_rate: float = 0.0
     seed: int = 0
+    microscope: MicroscopeConfig | None = None
+    truth_log: str | None = None
     sync_outputs: int = 3
 
     def __post_init__(self) -> None:
@@ -353,6 +367,12 @@ class Board:
         self._ramp_target = np.zeros(C)
         self._ramp_rate = np.ones(C)
 
+        self._microscope: Microscope | None = None
+        if self._cfg.microscope is not None:
+            if "z" not in stage.axes:
+                raise ConfigError("board: the simulated microscope needs a stage with a z axis")
+            self._microscope = Microscope(self._cfg.microscope, stage.config)
+        self._truth_fh = open(self._cfg.truth_log, "ab") if self._cfg.truth_log else None  # noqa: SIM115
         # sync outputs: queued events (index, lines, mask), the present levels, their changes
         self._sync_queue: deque[tuple[int, int, int]] = deque()
         self._sync_level = 0
@@ -410,6 +430,14 @@ class Board:
             ranges = tuple(limits[a] for a in stage.axes)
             cfg = dataclasses.replace(cfg, amplifier_ranges_v=ranges)
         cfg = dataclasses.replace(cfg, seed=seed)
+        section = _microscope_section(p)
+        if cfg.microscope is None and section is not None:
+            if not isinstance(section, dict):
+                raise ConfigError(f"{p}: simulation.microscope: must be a mapping")
+            try:
+                cfg = dataclasses.replace(cfg, microscope=MicroscopeConfig(**section))
+            except (TypeError, ValueError) as exc:
+                raise ConfigError(f"{p}: simulation.microscope: {exc}") from exc
         return cls(stage, cfg, now=now)
 
     # -- public state ----------------------------------------------------------------------
@@ -786,12 +814,28 @@ class Board:
         dt = 1.0 / self._conf.sample_rate_hz
         x = self._stage.step(v, dt)
         self._stage_t = self._tick_time(first + v.shape[1] - 1)
+        z_monitor: F64 | None = None
+        mic = self._microscope
+        if mic is not None:
+            axes = self._stage.axes
+            xt = x[axes.index("x")] if "x" in axes else np.zeros(x.shape[1])
+            yt = x[axes.index("y")] if "y" in axes else np.zeros(x.shape[1])
+            vz, ez = mic.step(xt, yt, dt)
+            z_monitor = vz / mic.config.monitor_ratio
+            self._record_truth(first, np.stack((xt, yt, vz, ez)))
         dec = self._conf.sensor_decimation
         offset = (self._start_index - first) % dec
         rows = x[:, offset::dec]
         if rows.shape[1] == 0:
             return
         sensed = self._stage.sense(rows)
+        if mic is not None and z_monitor is not None:
+            axes = self._stage.axes
+            sensed[axes.index("z")] = z_monitor[offset::dec]
+            if not mic.config.position_sensor:
+                for a in ("x", "y"):
+                    if a in axes:
+                        sensed[axes.index(a)] = 0.0
         step = float(1 << (16 - self._cfg.adc_bits))
         codes = np.rint((sensed - self._adc_offset[:, None]) / (self._adc_scale[:, None] * step)) * step
         codes = np.clip(codes, -32768.0, 32768.0 - step)
@@ -802,6 +846,15 @@ class Board:
         for lo in range(0, table.shape[0], mspf):
             self._ep.send(Sensor(first_row + lo * dec, dec, table[lo : lo + mspf]), now)
         self._sensor_rows_sent += table.shape[0]
+
+    def _record_truth(self, first: int, rows: F64) -> None:
+        if self._truth_fh is None:
+            return
+        j = np.arange(rows.shape[1])
+        sel = (first + j) % _TRUTH_EVERY == 0
+        block = np.vstack(((first + j[sel]).astype(np.float64), rows[:, sel]))
+        self._truth_fh.write(np.ascontiguousarray(block.T, dtype=np.float64).tobytes())
+        self._truth_fh.flush()
 
     def _stop_clock(self, t: float) -> None:
         """Leave RUNNING / ARMED at ``t``: run the stage over what was played, empty the FIFO, hold."""
@@ -1084,6 +1137,16 @@ class Board:
             self._t0 = now + 1.0 / self._conf.sample_rate_hz
             self._set_state(BoardState.RUNNING)
             log.info("clock running from index %d", self._start_index)
+
+
+def _microscope_section(path: Path) -> object:
+    """``simulation.microscope`` of a scanner YAML, or None (read problems are reported elsewhere)."""
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return None
+    sim = data.get("simulation") if isinstance(data, dict) else None
+    return sim.get("microscope") if isinstance(sim, dict) else None
 
 
 def _voltage_limits(path: Path) -> dict[str, tuple[float, float]]:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import errno
 import logging
 import os
@@ -34,8 +35,11 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType, TracebackType
 
+import yaml
+
 from hil_sim.board import Board, BoardConfig
-from hil_sim.errors import SimError, SimLinkError, SimLinkTimeoutError
+from hil_sim.errors import SimConfigError, SimError, SimLinkError, SimLinkTimeoutError
+from hil_sim.microscope import MicroscopeConfig
 from hil_sim.stage import resolve_stage
 from hil_sim.usb_bridge import UsbSocketServer
 
@@ -381,7 +385,53 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="MS",
         help=f"longest wait of the serving loop (default {DEFAULT_TICK_S * 1e3:g} ms)",
     )
+    parser.add_argument(
+        "--sample",
+        metavar="NAME",
+        help="simulate a microscope imaging this sample (line-3um, grating-200nm, grating-10um, "
+        "steps-100nm, flat): the z channel's ADC then reads the z-piezo voltage / 100; "
+        "default: the scanner YAML's simulation.microscope section, else none",
+    )
+    parser.add_argument(
+        "--no-position-sensor",
+        action="store_true",
+        help="with a microscope: the board has no x / y position sensor (those ADC channels read 0)",
+    )
+    parser.add_argument(
+        "--feedback-bandwidth-hz", type=float, metavar="F", help="with a microscope: z loop bandwidth (Hz)"
+    )
+    parser.add_argument(
+        "--truth-log",
+        metavar="PATH",
+        help="with a microscope: append the true tip position to PATH (hidden truth for checks)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log every dropped frame")
+
+
+def _microscope_from_args(args: argparse.Namespace, stage_path: Path | None) -> MicroscopeConfig:
+    """The scanner YAML's ``simulation.microscope`` section, overridden by ``--sample`` /
+    ``--no-position-sensor`` / ``--feedback-bandwidth-hz``."""
+    section: dict[str, object] = {}
+    if stage_path is not None:
+        try:
+            doc = yaml.safe_load(Path(stage_path).read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError):
+            doc = None  # Board.from_scanner_file reports the file's problem
+        sim = doc.get("simulation") if isinstance(doc, dict) else None
+        found = sim.get("microscope") if isinstance(sim, dict) else None
+        if isinstance(found, dict):
+            section = dict(found)
+    if args.sample is not None:
+        section["sample"] = args.sample
+    if args.no_position_sensor:
+        section["position_sensor"] = False
+    if args.feedback_bandwidth_hz is not None:
+        section["feedback_bandwidth_hz"] = args.feedback_bandwidth_hz
+    section.setdefault("seed", args.seed)
+    try:
+        return MicroscopeConfig(**section)  # type: ignore[arg-type]
+    except (TypeError, ValueError) as exc:
+        raise SimConfigError(f"--sample / simulation.microscope: {exc}") from exc
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -409,6 +459,12 @@ def run_from_args(args: argparse.Namespace) -> int:
         corrupt_in_rate=args.corrupt_in_rate,
         drop_rate=args.drop_rate,
     )
+    if args.sample is not None or args.no_position_sensor or args.feedback_bandwidth_hz is not None:
+        config = dataclasses.replace(
+            config, microscope=_microscope_from_args(args, resolve_stage(args.config))
+        )
+    if args.truth_log:
+        config = dataclasses.replace(config, truth_log=str(args.truth_log))
     board = Board.from_scanner_file(
         resolve_stage(args.config), effects=tuple(args.effect), seed=args.seed, config=config, now=clock()
     )

@@ -368,7 +368,10 @@ def _validate_simulation(name: str, scanner_axes: Sequence[str], section: Any) -
             f"scanner {name!r}: simulation: missing (the simulated stage needs the true physics)", ()
         )
     try:
-        stage = StageConfig.model_validate(section)
+        # simulation.microscope is the simulated microscope's (hil_sim.microscope), not the stage's
+        stage = StageConfig.model_validate(
+            {k: v for k, v in section.items() if k != "microscope"} if isinstance(section, dict) else section
+        )
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ("simulation", *err["loc"])

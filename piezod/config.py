@@ -231,6 +231,19 @@ class ServiceConfig(StrictModel):
     )
 
 
+class MicroscopeSection(StrictModel):
+    """The microscope around the scanner: where the height signal comes from (``piezod image``)."""
+
+    z_monitor_ratio: float = Field(
+        default=100.0, gt=0, le=1e4, description="the z channel's ADC reads the z-piezo voltage / this"
+    )
+    z_monitor_full_scale: float = Field(
+        default=2.56, gt=0, le=1e3, description="ADC full scale of the z monitor input (monitor volts)"
+    )
+    position_sensor: bool = Field(default=True, description="false: the x / y ADC channels carry no sensor")
+    pixels: int = Field(default=256, ge=2, le=16_384, description="default pixels per image line")
+
+
 class ScannerConfig(StrictModel):
     """A scanner: its axes, and optional sections used by the simulator and the service."""
 
@@ -246,6 +259,9 @@ class ScannerConfig(StrictModel):
     )
     calibration: dict[str, Any] | None = Field(
         default=None, description="provenance of the model parameters (written by piezod calibrate)"
+    )
+    microscope: MicroscopeSection | None = Field(
+        default=None, description="a microscope records height on the z channel (z-piezo voltage monitor)"
     )
 
     @model_validator(mode="after")

@@ -17,7 +17,9 @@ A recording is a UTF-8 CSV file::
 * Exactly one header line names the columns, in any order. Required: ``t`` (s, since
   the start of the measurement session, strictly increasing per axis), ``voltage`` (V
   at the piezo), ``position`` (um, sensor). Optional: ``target`` (um, commanded
-  position), ``axis`` (``x``/``y``/``z``), ``experiment`` (a label). Unknown columns
+  position), ``axis`` (``x``/``y``/``z``), ``experiment`` (a label), ``z_voltage`` (V, the
+  height channel of a microscope: the z-piezo voltage its z feedback applied at that
+  sample; ``piezod image`` makes height images of it). Unknown columns
   are allowed and ignored (:attr:`Recording.ignored_columns`); every data line must
   still have one cell per header column.
 * Numbers are finite decimal floats. Labels may not contain ``,``, ``"`` or line
@@ -82,13 +84,13 @@ __all__ = [
 F64 = NDArray[np.float64]
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("t", "voltage", "position")
-NUMERIC_COLUMNS: tuple[str, ...] = ("t", "voltage", "position", "target")
+NUMERIC_COLUMNS: tuple[str, ...] = ("t", "voltage", "position", "target", "z_voltage")
 TEXT_COLUMNS: tuple[str, ...] = ("axis", "experiment")
 KNOWN_COLUMNS: tuple[str, ...] = NUMERIC_COLUMNS + TEXT_COLUMNS
 AXES: tuple[str, ...] = ("x", "y", "z")
 
 #: printf formats of the writer: t to 15 significant digits (0.1 ns after a day), others to 10.
-_FORMATS = {"t": "%.15g", "voltage": "%.10g", "position": "%.10g", "target": "%.10g"}
+_FORMATS = {"t": "%.15g", "voltage": "%.10g", "position": "%.10g", "target": "%.10g", "z_voltage": "%.10g"}
 _META_RE = re.compile(r"^#\s*([A-Za-z_][A-Za-z0-9_.\-]*)\s*:\s*(.*?)\s*$")
 _BAD_LABEL_CHARS = re.compile(r"[,\"\r\n]")
 _TRUNCATED_HINT = (
@@ -113,6 +115,9 @@ class Recording:
         The required columns, shape ``(n,)``.
     target_um
         Commanded position (um) or None.
+    z_voltage_v
+        The height channel of a microscope (V): the z-piezo voltage the z feedback applied at the
+        row's sample (column ``z_voltage``), or None.
     axis
         Axis name per row (``x``/``y``/``z``) or None when the file has no axis column.
     experiment
@@ -138,13 +143,14 @@ class Recording:
     metadata: Mapping[str, str] = field(default_factory=dict)
     path: str | None = None
     line_numbers: NDArray[np.int64] | None = None
+    z_voltage_v: F64 | None = None
     ignored_columns: tuple[str, ...] = ()
     dropped_tail: bool = False
 
     def __post_init__(self) -> None:
         n = np.shape(self.t_s)[0] if np.ndim(self.t_s) == 1 else -1
         set_ = object.__setattr__
-        for name in ("t_s", "voltage_v", "position_um", "target_um"):
+        for name in ("t_s", "voltage_v", "position_um", "target_um", "z_voltage_v"):
             value = getattr(self, name)
             if value is None:
                 continue
@@ -179,6 +185,7 @@ class Recording:
             "voltage": True,
             "position": True,
             "target": self.target_um is not None,
+            "z_voltage": self.z_voltage_v is not None,
             "axis": self.axis is not None,
             "experiment": self.experiment is not None,
         }
@@ -452,6 +459,7 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
         voltage_v=cols["voltage"],
         position_um=cols["position"],
         target_um=cols.get("target"),
+        z_voltage_v=cols.get("z_voltage"),
         axis=axis,
         experiment=text_cols.get("experiment"),
         metadata=metadata,
@@ -629,6 +637,7 @@ class RecordingWriter:
         target_um: ArrayLike | None = None,
         axis: str | Sequence[str] | NDArray[np.str_] | None = None,
         experiment: str | Sequence[str] | NDArray[np.str_] | None = None,
+        z_voltage_v: ArrayLike | None = None,
     ) -> int:
         """Append a block of rows and flush.
 
@@ -646,6 +655,7 @@ class RecordingWriter:
             "voltage": voltage_v,
             "position": position_um,
             "target": target_um,
+            "z_voltage": z_voltage_v,
             "axis": axis,
             "experiment": experiment,
         }
@@ -707,6 +717,7 @@ class RecordingWriter:
             target_um=rec.target_um,
             axis=rec.axis,
             experiment=rec.experiment,
+            z_voltage_v=rec.z_voltage_v,
         )
 
     def close(self) -> None:

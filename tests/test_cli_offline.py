@@ -100,11 +100,17 @@ def test_json_to_stdout_moves_the_table_to_stderr(
     assert "worst fit error" in cap.err
 
 
-def test_on_stage_calibration_arguments_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
+def test_on_stage_calibration_arguments_are_checked(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     # (the on-stage run itself is tested in tests/test_stagecal.py)
     assert main(["calibrate", "--sim"]) == 2
     assert "--out F.yaml is required" in _one_line_error(capsys, "piezod calibrate: error:")
-    assert main(["calibrate", "--sim", "--out", "x.yaml", "rec.csv"]) == 2
+    assert main(["calibrate", "--sim", "--out", "x.yaml", "missing.csv"]) == 2
+    assert "missing.csv: No such file" in _one_line_error(capsys, "piezod calibrate: error:")
+    rec = tmp_path / "rec.csv"
+    rec.write_text("t,voltage,position\n")
+    assert main(["calibrate", "--sim", "--out", "x.yaml", str(rec)]) == 2
     assert "not both" in _one_line_error(capsys, "piezod calibrate: error:")
     assert main(["calibrate", "--port", "/dev/ttyUSB0", "--out", "x.yaml"]) == 2
     assert "--config F is required" in _one_line_error(capsys, "piezod calibrate: error:")

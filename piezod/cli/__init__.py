@@ -31,6 +31,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "scan",
     "calibrate",
     "linearity",
+    "image",
     "audit",
     "bench",
     "sim",
@@ -76,7 +77,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a one-line argument error already printed
+        return exc.code if isinstance(exc.code, int) else 2
     try:
         status: int = args.func(args)
     except PiezodError as exc:

@@ -79,6 +79,45 @@ def scanner_config_path(args: argparse.Namespace, *, first_guess: bool = False) 
     raise ConfigError("--config F is required with --port (the scanner's YAML)")
 
 
+def add_microscope_options(parser: argparse.ArgumentParser) -> None:
+    """Add ``--sample NAME`` / ``--no-position-sensor`` (the simulated microscope, with ``--sim``)."""
+    parser.add_argument(
+        "--sample",
+        metavar="NAME",
+        help="with --sim: image this sample in the simulated microscope (line-3um, grating-200nm, "
+        "grating-10um, steps-100nm, flat); records the height channel (z_voltage)",
+    )
+    parser.add_argument(
+        "--no-position-sensor",
+        action="store_true",
+        help="with --sim --sample: the simulated board has no x / y position sensor",
+    )
+
+
+def sim_microscope_args(args: argparse.Namespace) -> tuple[str, ...]:
+    """The simulator's options for ``--sample`` / ``--no-position-sensor``."""
+    out: tuple[str, ...] = ()
+    if getattr(args, "sample", None):
+        out += ("--sample", str(args.sample))
+    if getattr(args, "no_position_sensor", False):
+        out += ("--no-position-sensor",)
+    if getattr(args, "truth_log", None):
+        out += ("--truth-log", str(args.truth_log))
+    return out
+
+
+def with_microscope(args: argparse.Namespace, config: Any) -> Any:
+    """``config`` with a ``microscope`` section when ``--sim --sample`` asks for one."""
+    from piezod.config import MicroscopeSection
+
+    if not getattr(args, "sample", None):
+        return config
+    section = config.microscope or MicroscopeSection()
+    if getattr(args, "no_position_sensor", False):
+        section = section.model_copy(update={"position_sensor": False})
+    return config.model_copy(update={"microscope": section})
+
+
 @contextlib.contextmanager
 def board_url(args: argparse.Namespace, config_path: Path) -> Iterator[str]:
     """The board's URL: ``--port``, or a simulator started for ``--sim`` (stopped afterwards)."""
@@ -88,7 +127,8 @@ def board_url(args: argparse.Namespace, config_path: Path) -> Iterator[str]:
         from piezod.simulator import spawn_sim
 
         effects = tuple(getattr(args, "effect", None) or ())
-        with spawn_sim(config_path, effects=effects) as sim:
+        extra = sim_microscope_args(args)
+        with spawn_sim(config_path, effects=effects, extra_args=extra) as sim:
             yield sim.path
     elif getattr(args, "port", None):
         yield str(args.port)

@@ -88,11 +88,29 @@ def register(sub: Any) -> None:
     stage.add_argument(
         "--effect", action="append", metavar="NAME=VALUE", help="simulator effect (with --sim)"
     )
+    images = p.add_argument_group("without a position sensor (--from-images, docs/images.md)")
+    images.add_argument(
+        "--from-images",
+        action="store_true",
+        help="calibrate from trace/retrace images of a line pattern of known pitch (no position sensor)",
+    )
+    images.add_argument(
+        "--pitch-um", type=positive_float, metavar="P", help="the reference's certified pitch (um)"
+    )
+    images.add_argument(
+        "--sample", metavar="NAME", help="with --sim: the simulated reference (default line-3um)"
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``piezod calibrate``."""
+    if args.from_images:
+        from piezod.cli.calibrate_images import run_from_images
+
+        if not (args.sim or args.port):
+            raise CalibrationError("--from-images runs on the stage: give --sim or --port URL")
+        return run_from_images(args)
     if args.sim or args.port:
         from piezod.cli.calibrate_stage import run_on_stage
 

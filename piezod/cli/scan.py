@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from piezod.cli._common import (
+    add_microscope_options,
     add_port_options,
     board_url,
     finite_float,
@@ -18,6 +19,7 @@ from piezod.cli._common import (
     positive_int,
     recording_label,
     scanner_config_path,
+    with_microscope,
 )
 from piezod.config import load_config, uncalibrated_warning
 from piezod.errors import BoardFaultError, ConfigError, RecordingError
@@ -39,6 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         "--line-rate-hz", type=positive_float, required=True, help="lines per second (trace + retrace)"
     )
     p.add_argument("--lines", type=positive_int, default=8, help="lines per frame (default 8)")
+    p.add_argument("--pixels", type=positive_int, default=None, help="pixels per image line (default 256)")
     p.add_argument(
         "--offset-um", type=finite_float, default=0.0, help="fast-axis offset of the image centre (um)"
     )
@@ -51,6 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         choices=("thesis", "dynamic", "family"),
         help="override the scanner config's model on every axis",
     )
+    add_microscope_options(p)
     p.add_argument("--out", required=True, metavar="REC.csv", help="the recording to write")
     p.set_defaults(func=run)
 
@@ -59,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the scan."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     config_path = scanner_config_path(args)
-    config = load_config(config_path)
+    config = with_microscope(args, load_config(config_path))
     slow = args.range_um if args.slow_range_um is None else args.slow_range_um
     warning = uncalibrated_warning(config, config_path, ("x", "y") if slow > 0 and args.lines > 1 else ("x",))
     if warning and not args.no_correction:
@@ -85,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
         range_um=args.range_um,
         line_rate_hz=args.line_rate_hz,
         lines=args.lines,
+        pixels=args.pixels or (config.microscope.pixels if config.microscope is not None else 256),
         slow_range_um=args.slow_range_um,
         offset_x_um=args.offset_um,
         correction=not args.no_correction,
@@ -121,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
         file=say,
     )
     print(f"recording: {out}  (underruns {status.underruns}, faults {len(status.faults)})", file=say)
-    if status.last_line is not None:
+    sensorless = config.microscope is not None and not config.microscope.position_sensor
+    if status.last_line is not None and not sensorless:
         ll = status.last_line
         print(
             f"last line ({ll.direction}): nonlinearity {ll.nonlinearity_pct:.3f} %, "

@@ -92,6 +92,9 @@ class LinkSettings:
     def from_config(cls, config: ScannerConfig, **overrides: Any) -> LinkSettings:
         """Settings taken from the scanner config's ``service`` section, then ``overrides``."""
         base: dict[str, Any] = {"heartbeat_timeout_ms": int(config.service.heartbeat_timeout_ms)}
+        if config.microscope is not None and "z" in config.axes:
+            # the z channel's ADC reads the z-piezo voltage monitor (the height signal), not a sensor
+            base["sensor_full_scale_um_by_axis"] = {"z": float(config.microscope.z_monitor_full_scale)}
         base.update(overrides)
         return cls(**base)
 

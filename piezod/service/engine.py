@@ -19,11 +19,18 @@ Safety: every voltage is clamped to the axis limits and slew-limited before it l
 by the driver and again by :meth:`~piezod.link.board.Board.limit` for any board (clamping is
 reported as a fault); ``stop()`` holds; a fault, a lost link and shutdown ramp the
 outputs to the safe values (the board also ramps by itself when the host's heartbeat stops).
+
+The jobs live in :mod:`piezod.service.jobs`, the recorder in :mod:`piezod.service.recorder`.
+This module is still a little over 800 lines: the engine's public control surface (scan,
+change, move, stop, programs, status, recordings, faults) shares one lock and one job state;
+the shadow engine that checks a scan before it starts stays next to it.
 """
 
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
 import logging
 import math
 import stat
@@ -95,6 +102,8 @@ FaultSource = Literal["board", "host", "link"]
 SLOW_BLOCK_S = 0.05
 #: Faults of one (source, code) closer together than this (s) are counted, not listed again.
 FAULT_REPEAT_S = 1.0
+
+
 class _ShadowEngine:
     """What a job needs of the engine, on copies of its axis drivers: to try a job without effect."""
 
@@ -136,7 +145,6 @@ class _ShadowEngine:
             np.zeros(n, dtype=np.int8),
             np.zeros(n, dtype=bool),
         )
-
 
 
 class Engine:
@@ -712,8 +720,24 @@ class Engine:
             "rotation_deg": request.rotation_deg,
             "overscan": request.overscan,
             "sample_rate_hz": self.rate_hz,
+            "pixels": request.pixels,
+            "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "config_sha256": hashlib.sha256(self.config.model_dump_json().encode()).hexdigest(),
         }
+        fast = self.config.axes["x"]
+        if request.correction:
+            section = fast.dynamic if fast.model == "dynamic" and fast.dynamic is not None else fast.thesis
+            meta["model"] = fast.model
+            meta["model_params"] = json.dumps(section.model_dump(mode="json"), sort_keys=True)
+        else:
+            meta["model"] = "none"
+        mic = self.config.microscope
+        if mic is not None:
+            meta["position_sensor"] = "yes" if mic.position_sensor else "no"
+            meta["z_monitor_ratio"] = mic.z_monitor_ratio
+        z_ratio = None if mic is None else mic.z_monitor_ratio
         axes = tuple(a for a, plan in plans.items() if plan is not None) or ("x",)
+        axes = tuple(a for a in axes if mic is None or a != "z")
         meta["correction"] = self.correction_label(axes) if request.correction else "none"
         uncal = [a for a in axes if a not in calibrated_axes(self.config)]
         meta["calibrated"] = "no (axes " + ", ".join(uncal) + ")" if uncal else "yes"
@@ -721,14 +745,14 @@ class Engine:
             if path is None:
                 name = request.name or ""
                 path = self.recording_dir / (name if name.endswith(".csv") else name + ".csv")
-            self._recorder.open(ident, path, meta, axes)
+            self._recorder.open(ident, path, meta, axes, z_monitor_ratio=z_ratio)
         else:
             # unnamed: scan-<time>, then -2, -3 ... for scans started within the same second
             stem = time.strftime("scan-%Y%m%d-%H%M%S")
             for n in range(1, 1000):
                 path = self.recording_dir / (f"{stem}.csv" if n == 1 else f"{stem}-{n}.csv")
                 try:
-                    self._recorder.open(ident, path, meta, axes)
+                    self._recorder.open(ident, path, meta, axes, z_monitor_ratio=z_ratio)
                     break
                 except RecordingError as exc:
                     if not isinstance(exc.__cause__, FileExistsError):

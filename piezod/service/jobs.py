@@ -32,6 +32,7 @@ log = logging.getLogger("piezod.service.engine")
 
 FloatArray = NDArray[np.float64]
 
+
 #: Speed of the moves to the start of a scan, as a multiple of the scan's own speed (at most).
 MOVE_SPEED_FACTOR = 1.0
 #: Longest move a request may ask for (s): a slower one is refused with the speed it needs.

@@ -90,6 +90,7 @@ class _OpenRecording:
     last_t: float = 0.0
     done: bool = False
     labels_seen: set[int] = field(default_factory=set)
+    z_monitor_ratio: float | None = None
 
 
 @dataclass
@@ -122,15 +123,21 @@ class Recorder(threading.Thread):
         axes: tuple[str, ...],
         *,
         targets: bool = True,
+        z_monitor_ratio: float | None = None,
     ) -> None:
         """Create the recording ``path`` (exclusively: an existing file is never reused or truncated).
+
+        With ``z_monitor_ratio`` (a microscope) every row also carries ``z_voltage``: the z channel's
+        reading (the z-piezo voltage monitor) times the ratio.
 
         Raises
         ------
         RecordingError
             If ``path`` exists or cannot be created (a full disk): nothing is left behind.
         """
-        columns = ("t", "voltage", "position", *(("target",) if targets else ()), "axis", "experiment")
+        height = ("z_voltage",) if z_monitor_ratio is not None else ()
+        target = ("target",) if targets else ()
+        columns = ("t", "voltage", "position", *target, *height, "axis", "experiment")
         try:
             writer = RecordingWriter(path, columns, metadata=metadata, exclusive=True)
         except FileExistsError as exc:
@@ -140,7 +147,9 @@ class Recorder(threading.Thread):
         except OSError as exc:
             raise RecordingError(f"cannot create the recording: {exc.strerror or exc}", str(path)) from exc
         with self.lock:
-            self.recordings[ident] = _OpenRecording(ident, path, writer, axes, targets)
+            self.recordings[ident] = _OpenRecording(
+                ident, path, writer, axes, targets, z_monitor_ratio=z_monitor_ratio
+            )
 
     def discard(self, ident: int) -> None:
         """Close and delete a recording that never started (its scan was refused)."""
@@ -237,6 +246,9 @@ class Recorder(threading.Thread):
         targets: FloatArray,
         label: NDArray[np.int64],
     ) -> None:
+        z_all = None
+        if rec.z_monitor_ratio is not None and "z" in block.axes:
+            z_all = block.position_um[block.axes.index("z")] * rec.z_monitor_ratio
         # one run per experiment, so that a change's note precedes its experiment's rows
         for run in np.split(rows, np.flatnonzero(np.diff(label[rows])) + 1):
             lab = int(label[run[0]])
@@ -246,6 +258,9 @@ class Recorder(threading.Thread):
                 if note is not None:
                     rec.writer.comment(note)
             names = self.engine.label_names(label[run])
+            z_voltage = None
+            if rec.z_monitor_ratio is not None:
+                z_voltage = z_all[run] if z_all is not None else np.full(run.size, np.nan)
             for i, axis in enumerate(block.axes):
                 if axis not in rec.axes:
                     continue
@@ -256,6 +271,7 @@ class Recorder(threading.Thread):
                     target_um=targets[i, run] if rec.targets else None,
                     axis=axis,
                     experiment=names,
+                    z_voltage_v=z_voltage,
                 )
                 rec.rows += int(run.size)
                 rec.last_t = float(t[run][-1])

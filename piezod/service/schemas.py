@@ -31,6 +31,7 @@ class ScanRequest(_Body):
     range_um: float = Field(gt=0, le=10_000, description="fast-axis scan range (um)")
     line_rate_hz: float = Field(gt=0, le=1_000, description="lines per second (trace + retrace)")
     lines: int = Field(default=64, ge=1, le=16_384, description="lines per frame")
+    pixels: int = Field(default=256, ge=2, le=16_384, description="pixels per image line (piezod image)")
     slow_range_um: float | None = Field(default=None, ge=0, le=10_000, description="slow-axis range (um)")
     offset_x_um: float = Field(default=0.0, ge=-10_000, le=10_000)
     offset_y_um: float = Field(default=0.0, ge=-10_000, le=10_000)

@@ -1,0 +1,263 @@
+"""``piezod calibrate (--sim | --port URL) --from-images --pitch-um P``: calibration without a sensor.
+
+Records a frame of uncorrected trace / retrace images of a line pattern of pitch ``P`` (several
+ranges, line rates, offsets), fits the thesis model (3.8) and the dynamic model to the flanks
+(:mod:`piezod.imagecal`), writes the YAML, and verifies corrected images inside and outside the
+frame by the image metrics - on the simulator also by the hidden truth (the board's truth log),
+side by side.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import multiprocessing
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from piezod.calibrate import calibrated_config as thesis_config
+from piezod.calibrate_dynamic import calibrated_config as dynamic_config
+from piezod.cli._common import board_url, human_stream, scanner_config_path, with_microscope, write_json
+from piezod.config import MicroscopeSection, ScannerConfig, dump_config, load_config
+from piezod.errors import CalibrationError, PiezodError
+from piezod.image import images
+from piezod.image_linearity import image_linearity
+from piezod.imagecal import (
+    default_image_frame,
+    fit_dynamic_from_flanks,
+    fit_thesis_from_flanks,
+    flank_events,
+    read_truth_log,
+    run_image_scans,
+    verification_scans,
+    with_truth,
+)
+from piezod.linearity import experiment_linearity
+from piezod.recording import read_recording, split_experiments
+
+
+def _image_metrics(path: Path, pitch_um: float) -> dict[str, float]:
+    rec = read_recording(path)
+    pair = next(p for p in images(rec) if p.grid == "commanded" and p.channel == "z_voltage")
+    tr = image_linearity(pair.trace, pair.geometry, pitch_um, 1)
+    rt = image_linearity(pair.retrace, pair.geometry, pitch_um, -1)
+    worse_nl = max(tr.nonlinearity_pct, rt.nonlinearity_pct)
+    worse_le = max((tr.length_error_pct, rt.length_error_pct), key=abs)
+    return {"nonlinearity_pct": worse_nl, "length_error_pct": worse_le}
+
+
+def _truth_metrics(path: Path, truth_log: Path, rate_hz: float) -> dict[str, float]:
+    rec = with_truth(read_recording(path), read_truth_log(truth_log), rate_hz)
+    exp = next(e for e in split_experiments(rec) if e.axis in (None, "x"))
+    lin = experiment_linearity(exp)
+    return {"nonlinearity_pct": lin.nonlinearity_pct, "length_error_pct": lin.length_error_pct}
+
+
+def _fit_here(
+    paths: list[Path], pitch_um: float, base: ScannerConfig
+) -> tuple[ScannerConfig, dict[str, Any]]:
+    """Flanks, both fits and the calibrated config (in the worker process: results are plain data)."""
+    recs = [read_recording(p) for p in paths]
+    events = [flank_events(r, pitch_um, label=p.stem) for r, p in zip(recs, paths, strict=True)]
+    ax = base.axes["x"]
+    th = fit_thesis_from_flanks(recs, events, start=ax.thesis.params())
+    dyn = fit_dynamic_from_flanks(
+        recs,
+        events,
+        th.line_width_um,
+        slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
+        rest_voltage_v=ax.safe_voltage_v,
+    )
+    inputs = [str(p) for p in paths]
+    thesis_cfg = thesis_config(th.result, axis="x", base=base, inputs=inputs)
+    calibrated = dynamic_config(dyn, axis="x", base=thesis_cfg, inputs=inputs)
+    calibrated = calibrated.model_copy(update={"microscope": base.microscope})
+    summary = {
+        "flanks": sum(len(e) for e in events),
+        "line_width_um": th.line_width_um,
+        "thesis": {"params": dataclasses.asdict(th.result.params), "fit_error_pct": th.result.fit_error_pct},
+        "dynamic": {"params": dataclasses.asdict(dyn.params), "fit_error_pct": dyn.fit_error_pct},
+    }
+    return calibrated, summary
+
+
+def _verify_here(path: Path, pitch_um: float, truth: Path | None, rate_hz: float) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    try:
+        out["image"] = _image_metrics(path, pitch_um)
+    except PiezodError as exc:
+        out["image_error"] = str(exc)
+    if truth is not None:
+        out["truth"] = _truth_metrics(path, truth, rate_hz)
+    return out
+
+
+def _scan_with_retry(engine: Any, scans: list[Any], out_dir: Path, say: Any, **kw: Any) -> list[Path]:
+    """Scan each image; one ended by a fault (an underrun or a lost link on a loaded machine: the
+    board ramped to safe) is repeated, at most twice, after clearing the fault. The repeat is a new
+    measurement under a new name (the faulted recording is kept, never overwritten)."""
+    paths = []
+    for sc in scans:
+        for attempt in range(3):
+            if engine.status().state in ("fault", "disconnected"):
+                print("  clearing a latched fault", file=say)
+                engine.wait_healthy(timeout_s=15.0)
+                engine.stop()
+            try:
+                paths += run_image_scans(engine, [sc], out_dir, **kw)
+                break
+            except PiezodError as exc:
+                if attempt == 2:
+                    raise
+                print(f"  {exc}; repeating the scan", file=say)
+    return paths
+
+
+def run_from_images(args: argparse.Namespace) -> int:
+    """Run the sensorless calibration on the stage."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if not args.out:
+        raise CalibrationError("--out F.yaml is required: where the calibrated scanner config goes")
+    if args.pitch_um is None or not args.pitch_um > 0:
+        raise CalibrationError("--from-images needs --pitch-um P > 0 (the reference's certified pitch)")
+    if args.recordings:
+        raise CalibrationError("--from-images records its own frame: give no recordings")
+    config_path = scanner_config_path(args)
+    out = Path(args.out)
+    recdir = Path(args.recordings_dir) if args.recordings_dir else out.parent / f"{out.stem}-recordings"
+    recdir.mkdir(parents=True, exist_ok=True)
+    truth: Path | None = None
+    if args.sim:
+        args.sample = args.sample or "line-3um"
+        args.no_position_sensor = True
+        truth = recdir / "truth.f64"
+        truth.unlink(missing_ok=True)
+        args.truth_log = str(truth)
+    base = with_microscope(args, load_config(config_path))
+    if base.microscope is None:
+        base = base.model_copy(update={"microscope": MicroscopeSection(position_sensor=False)})
+    reduced = args.frame == "reduced"
+    frame = default_image_frame(reduced=reduced)
+    say = human_stream(args)
+    print(
+        f"image calibration frame: {len(frame)} uncorrected scans of the {args.pitch_um:g} um reference, "
+        f"ranges {sorted({s.range_um for s in frame})} um, "
+        f"rates {sorted({s.line_rate_hz for s in frame})} Hz, "
+        f"offsets {sorted({s.offset_um for s in frame})} um",
+        file=say,
+    )
+    t0 = time.monotonic()
+    report: dict[str, Any] = {"pitch_um": args.pitch_um}
+    ctx = multiprocessing.get_context("spawn")
+    with board_url(args, config_path) as url, ProcessPoolExecutor(max_workers=1, mp_context=ctx) as worker:
+        from piezod.link.session import LinkSettings
+        from piezod.service.engine import Engine
+
+        # the simulator is a Python process on a possibly busy machine: allow it longer silences
+        settings = LinkSettings.from_config(base, silence_timeout_s=5.0) if args.sim else None
+        engine = Engine(base, url, recording_dir=recdir, settings=settings)
+        engine.open()
+        try:
+            paths = _scan_with_retry(
+                engine, frame, recdir / "frame", say, progress=lambda n: print(f"  scan {n}", file=say)
+            )
+            calibrated, summary = worker.submit(_fit_here, paths, args.pitch_um, base).result()
+            n_flanks = int(summary["flanks"])
+            print(f"flanks: {n_flanks} in {len(paths)} scans", file=say)
+            print(
+                f"thesis model (3.8) from images: worst fit error {summary['thesis']['fit_error_pct']:.3f} %",
+                file=say,
+            )
+            print(
+                f"dynamic model from images: worst fit error {summary['dynamic']['fit_error_pct']:.3f} %",
+                file=say,
+            )
+            dump_config(
+                calibrated,
+                out,
+                header=(
+                    f"calibrated without a position sensor by piezod calibrate --from-images "
+                    f"(pitch {args.pitch_um:g} um, {len(frame)} image pairs, {n_flanks} flanks)"
+                ),
+            )
+            print(f"-> {out}", file=say)
+            report.update(summary)
+            rows: list[dict[str, Any]] = []
+            if not args.no_verify:
+                scans = verification_scans(reduced=reduced)
+                for model in ("thesis", "dynamic"):
+                    engine.set_axis_model("x", calibrated.axes["x"].model_copy(update={"model": model}))
+                    _scan_with_retry(engine, scans[:1], recdir / f"warmup-{model}", say, correction=True)
+                    vpaths: list[Path | None] = []
+                    for sc in scans:
+                        try:
+                            vpaths += _scan_with_retry(
+                                engine,
+                                [sc],
+                                recdir / f"verify-{model}",
+                                say,
+                                correction=True,
+                                progress=lambda n, m=model: print(f"  verify {m}: {n}", file=say),
+                            )
+                        except PiezodError as exc:
+                            print(f"  verification scan {sc.name()} failed: {exc}", file=say)
+                            vpaths.append(None)
+                    engine.wait_recorded()
+                    for sc, vp in zip(scans, vpaths, strict=True):
+                        row: dict[str, Any] = {
+                            "model": model,
+                            "range_um": sc.range_um,
+                            "line_rate_hz": sc.line_rate_hz,
+                            "offset_um": sc.offset_um,
+                            "frame": "inside" if sc.where == "inside" else "outside",
+                            "what": sc.where,
+                            "recording": str(vp) if vp is not None else None,
+                        }
+                        if vp is None:
+                            row["error"] = "the scan failed"
+                        else:
+                            row.update(
+                                worker.submit(
+                                    _verify_here, vp, args.pitch_um, truth, base.sample_rate_hz
+                                ).result()
+                            )
+                        rows.append(row)
+                print(format_rows(rows), file=say)
+                report["verification"] = rows
+        finally:
+            engine.close()
+    report["seconds"] = time.monotonic() - t0
+    write_json(args.json, report)
+    return 0
+
+
+def format_rows(rows: list[dict[str, Any]]) -> str:
+    """The verification table: image metrics beside the hidden truth."""
+    head = (
+        f"{'model':<8} {'range um':>8} {'f Hz':>6} {'off um':>6} {'frame':>7}  "
+        f"{'image nonlin %':>14} {'image len %':>11}  {'truth nonlin %':>14} {'truth len %':>11}  what"
+    )
+    lines = [head]
+    for r in rows:
+        im = r.get("image", {})
+        tr = r.get("truth", {})
+
+        def f(d: dict[str, float], k: str, fmt: str) -> str:
+            v = d.get(k)
+            return format(v, fmt) if v is not None and np.isfinite(v) else "-"
+
+        lines.append(
+            f"{r['model']:<8} {r['range_um']:8.4g} {r['line_rate_hz']:6.3g} {r['offset_um']:6.3g} "
+            f"{r['frame']:>7}  "
+            f"{f(im, 'nonlinearity_pct', '14.3f')} {f(im, 'length_error_pct', '+11.3f')}  "
+            f"{f(tr, 'nonlinearity_pct', '14.3f')} {f(tr, 'length_error_pct', '+11.3f')}  {r['what']}"
+        )
+    return "\n".join(lines)
+
+
+__all__ = ["format_rows", "run_from_images"]

@@ -1,0 +1,132 @@
+"""Heights from the z voltage: the forward model against the linear conversion (thesis chapter 5).
+
+SPM controllers record the height as the z-piezo voltage of the z feedback and convert it with
+one sensitivity. The z piezo has its own hysteresis and creep: after every step the voltage
+overshoots and relaxes while the piezo (and the tip) stay on the terrace - the overshoots of
+thesis figs 5.3-5.4 that a capacitive z sensor does not show. The forward model
+(:func:`piezod.image.forward_heights`) runs the recorded z-voltage waveform, exact for any
+waveform, with its state, and removes them.
+
+:func:`compare_heights` measures both conversions against the true heights (the simulator's truth
+log, or a z sensor), after levelling each image line by its median difference (the reference
+height of a line is arbitrary in an image).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from piezod.image import F64, RasterSamples, linear_sensitivity
+
+_SETTLE_LINES = 1
+
+
+@dataclass(frozen=True, slots=True)
+class HeightComparison:
+    """Worst deviation of each conversion from the true heights, in % of the step height.
+
+    Attributes
+    ----------
+    step_um
+        The step height (um), from the truth (its 1st-99th percentile span).
+    model_max_pct, linear_max_pct
+        Largest |converted - true| over the compared samples (after per-line levelling), % of the step.
+    model_rms_pct, linear_rms_pct
+        RMS of the same.
+    sensitivity_um_per_v
+        The linear conversion's sensitivity (best fit to the true heights: the most favourable one).
+    samples
+        Compared samples.
+    """
+
+    step_um: float
+    model_max_pct: float
+    linear_max_pct: float
+    model_rms_pct: float
+    linear_rms_pct: float
+    sensitivity_um_per_v: float
+    samples: int
+
+
+def _level_per_line(err: F64, line: NDArray[np.int64]) -> F64:
+    out = err.copy()
+    for ln in np.unique(line):
+        s = line == ln
+        out[s] -= np.median(err[s])
+    return out
+
+
+def compare_heights(
+    rs: RasterSamples, model_um: F64, true_um: F64, *, settle_lines: int = _SETTLE_LINES
+) -> tuple[HeightComparison, F64, F64]:
+    """Both conversions against the true heights, per sample (NaN where there is no truth).
+
+    Returns
+    -------
+    comparison, model_error_um, linear_error_um
+        The figures and the per-sample errors (NaN outside the compared samples).
+    """
+    if rs.z_voltage_v is None:
+        raise ValueError("no z_voltage")
+    z = rs.z_voltage_v
+    ok = np.isfinite(true_um) & (rs.line >= settle_lines)
+    s = linear_sensitivity(z[ok], true_um[ok])
+    lin = s * z
+    e_m = np.full(z.size, np.nan)
+    e_l = np.full(z.size, np.nan)
+    e_m[ok] = _level_per_line(model_um[ok] - true_um[ok], rs.line[ok])
+    e_l[ok] = _level_per_line(lin[ok] - true_um[ok], rs.line[ok])
+    lo, hi = np.percentile(true_um[ok], [1, 99])
+    step = float(hi - lo)
+    pct = 100.0 / step
+    return (
+        HeightComparison(
+            step_um=step,
+            model_max_pct=float(np.nanmax(np.abs(e_m))) * pct,
+            linear_max_pct=float(np.nanmax(np.abs(e_l))) * pct,
+            model_rms_pct=float(np.sqrt(np.nanmean(e_m**2))) * pct,
+            linear_rms_pct=float(np.sqrt(np.nanmean(e_l**2))) * pct,
+            sensitivity_um_per_v=s,
+            samples=int(ok.sum()),
+        ),
+        e_m,
+        e_l,
+    )
+
+
+def plot_height_profiles(
+    rs: RasterSamples, true_um: F64, model_err_um: F64, linear_err_um: F64, path: Path, title: str
+) -> Path:
+    """One trace line: true height, and the error of both conversions along it (as thesis fig. 5.4)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    line = int(np.max(rs.line))
+    s = (rs.line == line) & (rs.direction > 0) & np.isfinite(true_um)
+    x = rs.target_um[s]
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 5.2), sharex=True)
+    a1.plot(x, (true_um[s] - np.median(true_um[s])) * 1e3, "k-", lw=1)
+    a1.set_ylabel("true height (nm)")
+    a1.set_title("true surface under the tip (trace)", fontsize=9)
+    a2.plot(x, linear_err_um[s] * 1e3, "-", lw=1, label="linear conversion (one sensitivity)")
+    a2.plot(x, model_err_um[s] * 1e3, "-", lw=1, label="forward model (hysteresis + creep)")
+    a2.axhline(0.0, color="k", lw=0.5)
+    a2.set_xlabel("commanded fast-axis position (um)")
+    a2.set_ylabel("height error (nm)")
+    a2.set_title("converted minus true height", fontsize=9)
+    a2.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+__all__ = ["HeightComparison", "compare_heights", "plot_height_profiles"]

@@ -1,0 +1,483 @@
+"""Calibration without a position sensor: the scanner model fitted from images of a reference.
+
+The thesis calibrated its sensorless tube scanners from trace / retrace images of length
+standards recorded while the voltage range and line rate changed (chapter 2, section 3.2). This
+module does that, through the model helper's public fitters (:mod:`piezod.calibrate`,
+:mod:`piezod.calibrate_dynamic`), with the flanks of a line pattern of known pitch ``P`` in place
+of the sensor:
+
+1. **Frame** (:func:`default_image_frame`, :func:`run_image_frame`): uncorrected raster scans of
+   the reference (plain voltage triangles) at several ranges, line rates and offsets, one
+   recording each, in one session; the first ``skip_lines`` lines of every scan settle.
+2. **Flanks** (:func:`flank_events`): in the trace and retrace images on the commanded grid, the
+   flanks (:func:`piezod.image_linearity.find_flanks`); each flank's commanded coordinate gives
+   its time in its line and so the voltage at which the tip crossed it. Its true position is
+   ``k P`` plus unknowns: the sample's position (one per scan) and the line width (the falling
+   flanks sit ``w`` after the rising ones). The period numbers ``k`` are made consistent across
+   the half lines of a scan by continuity at every turning point: both half lines' flank
+   positions, extrapolated linearly in time to the turn, must meet (to within ``P / 2``).
+3. **Thesis model (3.8)** (:func:`fit_thesis_from_flanks`): the flanks of each scan and family are
+   one experiment of :class:`piezod.calibrate.CalibrationData` (the steady loop is a function of
+   ``V``, so sparse points fit it as dense ones do); the per-experiment offsets absorb the unknowns
+   and give the line width ``w``.
+4. **Dynamic model** (:func:`fit_dynamic_from_flanks`): the session is laid out by
+   :func:`piezod.calibrate_dynamic.prepare_dynamic` from the recorded voltages; the compared
+   samples are replaced by the grid samples nearest to the flanks, their positions the flank
+   positions (falling flanks moved by ``w``) shifted by the local velocity times the time
+   difference (a fraction of a grid step).
+
+The position column of the recordings is never read. On the simulator the hidden truth (the
+board's ``--truth-log``) checks the result: :func:`with_truth` puts the true positions into a
+recording, whose sensor-path linearity (:mod:`piezod.linearity`) stands beside the image metrics.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from piezod.calibrate import CalibrationData, CalibrationResult, fit, model_positions
+from piezod.calibrate_dynamic import DynamicCalibrationResult, fit_dynamic, prepare_dynamic
+from piezod.errors import CalibrationError, RecordingError
+from piezod.image import F64, assemble, geometry, raster_samples
+from piezod.image_linearity import find_flanks
+from piezod.model.params import ThesisParams
+from piezod.recording import Experiment, Recording, infer_scan
+
+_CONTINUITY_FLANKS = 4
+
+
+@dataclass(frozen=True, slots=True)
+class FlankEvents:
+    """The flanks of one raster scan of a line pattern, as (time, voltage, position) events.
+
+    Attributes
+    ----------
+    label
+        The scan (recording) label.
+    t_s, voltage_v
+        When the tip crossed the flank and the fast-axis voltage then.
+    direction
+        +1 trace, -1 retrace.
+    position_um
+        ``k P``: the flank's position on the sample up to the scan's offset (and ``w`` for the
+        falling family).
+    velocity_um_per_s
+        Local scan velocity (from the neighbouring flanks of the family in the half line).
+    family
+        +1 rising, -1 falling flank.
+    line
+        Image line.
+    """
+
+    label: str
+    t_s: F64
+    voltage_v: F64
+    direction: NDArray[np.int8]
+    position_um: F64
+    velocity_um_per_s: F64
+    family: NDArray[np.int8]
+    line: NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return int(self.t_s.size)
+
+    def select(self, keep: NDArray[np.bool_]) -> FlankEvents:
+        """The events where ``keep``."""
+        return FlankEvents(
+            self.label,
+            self.t_s[keep],
+            self.voltage_v[keep],
+            self.direction[keep],
+            self.position_um[keep],
+            self.velocity_um_per_s[keep],
+            self.family[keep],
+            self.line[keep],
+        )
+
+
+def _extrapolate(t: F64, x: F64, t0: float) -> float:
+    """Position at ``t0`` from the flanks nearest to it: a parabola in time (a line for fewer)."""
+    if t.size == 1:
+        return float(x[0])
+    deg = 2 if t.size >= 4 else 1
+    c = np.polyfit(t - t0, x, deg)
+    return float(c[-1])
+
+
+def flank_events(
+    rec: Recording, pitch_um: float, *, skip_lines: int = 2, label: str | None = None
+) -> FlankEvents:
+    """The flank events of one raster recording of a line pattern (see the module docstring).
+
+    Raises
+    ------
+    RecordingError
+        Not a raster recording with a height channel, or too few flanks.
+    """
+    geo = geometry(rec)
+    rs = raster_samples(rec)
+    if rs.z_voltage_v is None:
+        raise RecordingError("no 'z_voltage' column: the recording carries no height channel", rec.path)
+    tr, re = assemble(rs.target_um, rs.z_voltage_v, rs.line, rs.direction, rs.lines, geo)
+    # (half-line order, direction) -> flanks; half lines in time order: trace 0, retrace 0, trace 1, ...
+    groups: list[tuple[int, int, F64, NDArray[np.int64], NDArray[np.int8], F64, F64]] = []
+    for d, img in ((1, tr), (-1, re)):
+        fl = find_flanks(img, geo)
+        for ln in np.unique(fl.line):
+            s = (rs.line == ln) & (rs.direction == d)
+            if s.sum() < 4:
+                continue
+            t_l, x_l, v_l = rs.t_s[s], rs.target_um[s], rs.voltage_v[s]
+            order = np.argsort(x_l, kind="stable")
+            sel = fl.line == ln
+            xi = fl.xi_um[sel]
+            t_f = np.interp(xi, x_l[order], t_l[order])
+            v_f = np.interp(t_f, t_l, v_l)
+            groups.append((int(ln), d, t_f, fl.k[sel], fl.family[sel], v_f, t_l))
+    if not groups:
+        raise RecordingError(f"no flanks of a line pattern of pitch {pitch_um:g} um found", rec.path)
+    groups.sort(key=lambda g: (g[0], -g[1]))
+    out_t, out_v, out_d, out_x, out_vel, out_f, out_l = [], [], [], [], [], [], []
+    for fam in (1, -1):
+        shift = 0
+        prev: tuple[F64, F64, float] | None = None  # (t, x) of the previous half line, its end time
+        prev_key: tuple[int, int] | None = None
+        for ln, d, t_f, k, f, v_f, t_l in groups:
+            s = f == fam
+            if s.sum() < 2:
+                prev = None
+                continue
+            ts, ks = t_f[s], k[s].astype(np.float64)
+            order = np.argsort(ts)
+            ts, ks = ts[order], ks[order]
+            x = pitch_um * ks
+            expected_next = (
+                None if prev_key is None else ((prev_key[0], -1) if prev_key[1] > 0 else (prev_key[0] + 1, 1))
+            )
+            if prev is not None and expected_next == (ln, d):
+                tp, xp, t_turn = prev
+                x_end = _extrapolate(tp[-_CONTINUITY_FLANKS:], xp[-_CONTINUITY_FLANKS:], t_turn)
+                x_start = _extrapolate(ts[:_CONTINUITY_FLANKS], x[:_CONTINUITY_FLANKS], t_turn)
+                shift = round((x_end - x_start) / pitch_um)
+            elif prev is not None:
+                shift = round((float(np.mean(prev[1])) - float(np.mean(x))) / pitch_um)
+            x = x + pitch_um * shift
+            vel = np.gradient(x, ts) if ts.size > 1 else np.zeros(1)
+            prev = (ts, x, float(t_l[-1]))
+            prev_key = (ln, d)
+            if ln < skip_lines:
+                continue
+            out_t.append(ts)
+            out_v.append(v_f[s][order])
+            out_d.append(np.full(ts.size, d, dtype=np.int8))
+            out_x.append(x)
+            out_vel.append(vel)
+            out_f.append(np.full(ts.size, fam, dtype=np.int8))
+            out_l.append(np.full(ts.size, ln, dtype=np.int64))
+    if not out_t:
+        raise RecordingError(
+            f"no flanks after the {skip_lines} settling line(s): record more lines", rec.path
+        )
+    return FlankEvents(
+        label=label or (Path(rec.path).stem if rec.path else "scan"),
+        t_s=np.concatenate(out_t),
+        voltage_v=np.concatenate(out_v),
+        direction=np.concatenate(out_d),
+        position_um=np.concatenate(out_x),
+        velocity_um_per_s=np.concatenate(out_vel),
+        family=np.concatenate(out_f),
+        line=np.concatenate(out_l),
+    )
+
+
+def _x_rows(rec: Recording) -> NDArray[np.bool_]:
+    return np.ones(len(rec), dtype=bool) if rec.axis is None else rec.axis == "x"
+
+
+def thesis_data(recs: Sequence[Recording], events: Sequence[FlankEvents]) -> CalibrationData:
+    """:class:`piezod.calibrate.CalibrationData` of the flanks: one experiment per scan and family."""
+    vs, ds, xs, starts, vmin, vmax, freq, labels, paths, loops = [], [], [], [], [], [], [], [], [], []
+    n = 0
+    for rec, ev in zip(recs, events, strict=True):
+        sel = _x_rows(rec)
+        info = infer_scan(rec.t_s[sel], rec.voltage_v[sel])
+        if not info.is_scan:
+            raise RecordingError(f"the voltage is not a periodic triangular scan ({info.reason})", rec.path)
+        for fam in (1, -1):
+            s = ev.family == fam
+            if s.sum() < 8:
+                continue
+            starts.append(n)
+            vs.append(ev.voltage_v[s])
+            ds.append(ev.direction[s].astype(np.float64))
+            xs.append(ev.position_um[s])
+            n += int(s.sum())
+            vmin.append(info.v_min)
+            vmax.append(info.v_max)
+            freq.append(info.frequency_hz)
+            labels.append(f"{ev.label}:{'rising' if fam > 0 else 'falling'}")
+            paths.append(rec.path)
+            loops.append(int(info.n_loops))
+    if not starts:
+        raise CalibrationError("too few flanks in the calibration frame")
+    return CalibrationData(
+        voltage_v=np.concatenate(vs),
+        direction=np.concatenate(ds),
+        position_um=np.concatenate(xs),
+        starts=np.asarray(starts, dtype=np.intp),
+        v_min=np.asarray(vmin),
+        v_max=np.asarray(vmax),
+        frequency_hz=np.asarray(freq),
+        labels=tuple(labels),
+        axes=tuple("x" for _ in labels),
+        paths=tuple(paths),
+        n_loops=tuple(loops),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class ThesisFromFlanks:
+    """The thesis model fitted to the flanks, and the line width it implies per scan (um)."""
+
+    result: CalibrationResult
+    line_width_um: dict[str, float]
+
+
+def fit_thesis_from_flanks(
+    recs: Sequence[Recording], events: Sequence[FlankEvents], *, start: ThesisParams | None = None
+) -> ThesisFromFlanks:
+    """Fit (3.8) to the flanks of the frame (one offset per scan and flank family)."""
+    data = thesis_data(recs, events)
+    result = fit(data, start=start)
+    model = model_positions(data, result.params)
+    widths: dict[str, float] = {}
+    offsets: dict[str, float] = {}
+    for i, label in enumerate(data.labels):
+        a = int(data.starts[i])
+        b = int(data.starts[i + 1]) if i + 1 < data.n_experiments else data.voltage_v.size
+        offsets[label] = float(np.mean(data.position_um[a:b] - model[a:b]))
+    for ev in events:
+        r, f = offsets.get(f"{ev.label}:rising"), offsets.get(f"{ev.label}:falling")
+        if r is not None and f is not None:
+            widths[ev.label] = r - f
+    return ThesisFromFlanks(result, widths)
+
+
+def merged_positions(ev: FlankEvents, line_width_um: float) -> F64:
+    """Flank positions with the falling family moved onto the rising family's offset."""
+    out: F64 = np.where(ev.family < 0, ev.position_um + line_width_um, ev.position_um)
+    return out
+
+
+def fit_dynamic_from_flanks(
+    recs: Sequence[Recording],
+    events: Sequence[FlankEvents],
+    line_width_um: dict[str, float],
+    *,
+    slew_rate_v_per_s: float = 2000.0,
+    rest_voltage_v: float = 0.0,
+    max_samples_per_loop: int = 2048,
+    **fit_kwargs: object,
+) -> DynamicCalibrationResult:
+    """Fit the dynamic model to the flanks of a frame recorded in one session (module docstring, 4)."""
+    exps = []
+    for rec, ev in zip(recs, events, strict=True):
+        sel = _x_rows(rec)
+        t = rec.t_s[sel]
+        exps.append(
+            Experiment(label=ev.label, axis="x", t_s=t, voltage_v=rec.voltage_v[sel], position_um=t.copy())
+        )
+    data = prepare_dynamic(
+        exps,
+        max_samples_per_loop=max_samples_per_loop,
+        max_samples_per_experiment=1 << 16,
+        slew_rate_v_per_s=slew_rate_v_per_s,
+        rest_voltage_v=rest_voltage_v,
+    )
+    by_label = {ev.label: ev for ev in events}
+    compared, positions, starts, counts = [], [], [], []
+    n = 0
+    for i, layout in enumerate(data.experiments):
+        ev = by_label[layout.label]
+        a, c = int(data.starts[i]), int(data.counts[i])
+        t_cmp = data.position_um[a : a + c]  # the placeholder: each compared sample's recorded time
+        j = np.clip(np.searchsorted(t_cmp, ev.t_s), 1, c - 1)
+        j = np.where(np.abs(t_cmp[j - 1] - ev.t_s) < np.abs(t_cmp[j] - ev.t_s), j - 1, j)
+        x = merged_positions(ev, line_width_um.get(ev.label, 0.0))
+        x = x + ev.velocity_um_per_s * (t_cmp[j] - ev.t_s)
+        j, first = np.unique(j, return_index=True)
+        compared.append(data.compared[a + j])
+        positions.append(x[first])
+        starts.append(n)
+        counts.append(int(j.size))
+        n += int(j.size)
+    flank_data = dataclasses.replace(
+        data,
+        compared=np.concatenate(compared),
+        position_um=np.concatenate(positions),
+        starts=np.asarray(starts, dtype=np.intp),
+        counts=np.asarray(counts, dtype=np.intp),
+    )
+    return fit_dynamic(flank_data, **fit_kwargs)  # type: ignore[arg-type]
+
+
+# ------------------------------------------------------------------------------------ hidden truth
+
+
+TRUTH_COLUMNS = ("index", "x_um", "y_um", "z_voltage_v", "z_um")
+"""Columns of the simulator's truth log (``hil_sim.board.BoardConfig.truth_log``)."""
+
+
+def read_truth_rows(path: str | Path) -> F64:
+    """All rows of the simulator's truth log, ``(n, 5)`` in :data:`TRUTH_COLUMNS` order, by index."""
+    raw = np.fromfile(str(path), dtype=np.float64)
+    if raw.size % 5:
+        raw = raw[: raw.size - raw.size % 5]
+    rows = raw.reshape(-1, 5)
+    out: F64 = rows[np.argsort(rows[:, 0], kind="stable")]
+    return out
+
+
+def read_truth_log(path: str | Path, column: str = "x_um") -> tuple[NDArray[np.int64], F64]:
+    """The simulator's truth log: sample indices and one column (default the true x position, um)."""
+    rows = read_truth_rows(path)
+    return rows[:, 0].astype(np.int64), rows[:, TRUTH_COLUMNS.index(column)]
+
+
+def with_truth(rec: Recording, truth: tuple[NDArray[np.int64], F64], sample_rate_hz: float) -> Recording:
+    """The recording with its position column replaced by the hidden true position (x rows)."""
+    idx, x = truth
+    pos = rec.position_um.copy()
+    sel = _x_rows(rec)
+    k = rec.t_s[sel] * sample_rate_hz
+    if idx.size < 2 or k.min() < idx[0] or k.max() > idx[-1]:
+        raise CalibrationError("the truth log does not cover the recording")
+    pos[sel] = np.interp(k, idx.astype(np.float64), x)
+    return dataclasses.replace(rec, position_um=pos)
+
+
+# --------------------------------------------------------------------------------------- the frame
+
+
+@dataclass(frozen=True, slots=True)
+class ImageScan:
+    """One scan of the image calibration frame (or of its verification)."""
+
+    range_um: float
+    line_rate_hz: float
+    offset_um: float = 0.0
+    lines: int = 6
+    label: str = ""
+    where: str = "inside"
+
+    def name(self) -> str:
+        """A recording name."""
+        return self.label or f"r{self.range_um:g}_f{self.line_rate_hz:g}_o{self.offset_um:g}"
+
+
+def default_image_frame(*, reduced: bool = False) -> list[ImageScan]:
+    """The calibration frame: ranges x line rates on the reference, plus two offsets.
+
+    Ranges are nominal (um of the uncorrected triangle); the thesis used 15-35 um at 0.1-1.4 Hz.
+    """
+    ranges = (14.0, 24.0, 32.0) if not reduced else (14.0, 30.0)
+    rates = (0.5, 1.0, 2.0) if not reduced else (0.5, 2.0)
+    scans = [ImageScan(r, f, lines=6) for r in ranges for f in rates]
+    scans += [ImageScan(18.0, 1.0, o, lines=6) for o in (-6.0, 6.0)]
+    return scans
+
+
+def verification_scans(*, reduced: bool = False) -> list[ImageScan]:
+    """Corrected scans inside and outside the frame (10x slower / faster, offset beyond it).
+
+    ``reduced``: one scan inside, the offset beyond the frame and 5x faster (no slow scan).
+    """
+    if reduced:
+        return [
+            ImageScan(20.0, 1.0, 0.0, 5, "in-20um-1Hz", "inside"),
+            ImageScan(20.0, 10.0, 0.0, 20, "out-20um-10Hz", "outside: 5x faster"),
+            ImageScan(12.0, 1.0, 12.0, 5, "out-12um-off12", "outside: offset beyond the frame"),
+        ]
+    return [
+        ImageScan(20.0, 1.0, 0.0, 6, "in-20um-1Hz", "inside"),
+        ImageScan(30.0, 2.0, 0.0, 6, "in-30um-2Hz", "inside"),
+        ImageScan(15.0, 0.5, 3.0, 5, "in-15um-0.5Hz-off3", "inside"),
+        ImageScan(20.0, 0.05, 0.0, 2, "out-20um-0.05Hz", "outside: 10x slower"),
+        ImageScan(20.0, 10.0, 0.0, 30, "out-20um-10Hz", "outside: 5x faster"),
+        ImageScan(12.0, 1.0, 12.0, 6, "out-12um-off12", "outside: offset beyond the frame"),
+    ]
+
+
+def run_image_scans(
+    engine: object,
+    scans: Sequence[ImageScan],
+    out_dir: Path,
+    *,
+    pixels: int = 512,
+    correction: bool = False,
+    progress: Callable[[str], None] | None = None,
+) -> list[Path]:
+    """Scan each image on the stage (one recording each, one session) through the engine."""
+    from piezod.service.engine import Engine
+    from piezod.service.schemas import ScanRequest
+
+    assert isinstance(engine, Engine)
+    paths = []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for sc in scans:
+        path = out_dir / f"{sc.name()}.csv"
+        n = 2
+        while path.exists():  # recordings are never overwritten: a repeated scan gets a new name
+            path = out_dir / f"{sc.name()}-r{n}.csv"
+            n += 1
+        # at least two samples per pixel (fast lines at a low sample rate get fewer pixels)
+        per_half_line = engine.rate_hz / (2.0 * sc.line_rate_hz)
+        request = ScanRequest(
+            range_um=sc.range_um,
+            line_rate_hz=sc.line_rate_hz,
+            lines=sc.lines,
+            offset_x_um=sc.offset_um,
+            pixels=max(64, min(pixels, int(per_half_line // 2))),
+            correction=correction,
+            name=path.stem,
+        )
+        if progress is not None:
+            progress(sc.name())
+        engine.check_scan(request)
+        engine.start_scan(request, path=path)
+        limit = time.monotonic() + 60.0 + 4.0 * (sc.lines + 2) / sc.line_rate_hz
+        while engine.status().state == "scanning":
+            if time.monotonic() > limit:
+                raise CalibrationError(f"scan {sc.name()} did not finish in time")
+            time.sleep(0.1)
+        state = engine.wait_idle(timeout_s=10.0)
+        engine.wait_recorded()
+        if state != "idle":
+            faults = "; ".join(f"{f.code}: {f.message}" for f in engine.status().faults[-3:])
+            raise CalibrationError(f"scan {sc.name()} ended in state {state}: {faults}")
+        paths.append(path)
+    return paths
+
+
+__all__ = [
+    "FlankEvents",
+    "ImageScan",
+    "ThesisFromFlanks",
+    "default_image_frame",
+    "fit_dynamic_from_flanks",
+    "fit_thesis_from_flanks",
+    "flank_events",
+    "merged_positions",
+    "read_truth_log",
+    "run_image_scans",
+    "thesis_data",
+    "verification_scans",
+    "with_truth",
+]

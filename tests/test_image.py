@@ -1,0 +1,226 @@
+"""The simulated microscope, images from recordings, .gwy files and image-based linearity."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil_sim.microscope import Microscope, MicroscopeConfig
+from hil_sim.sample import SAMPLES, get_sample
+from hil_sim.stage import StageConfig
+from piezod.config import config_dir, default_sim_config_path
+from piezod.errors import RecordingError
+from piezod.image import images, raster_samples
+from piezod.image_linearity import find_flanks, image_linearity
+from piezod.linearity import experiment_linearity
+from piezod.recording import Recording, read_recording, split_experiments
+
+# ------------------------------------------------------------------------------------ samples
+
+
+def test_line_pattern_has_its_pitch_a_missing_line_and_a_particle() -> None:
+    s = get_sample("line-3um")
+    x = np.linspace(-15.0, 15.0, 30001)
+    h = s.height(x, 0.0) - s.tilt_x * x
+    up = x[1:][(h[:-1] < 0.05) & (h[1:] >= 0.05)]
+    gaps = np.diff(up)
+    assert np.median(gaps) == pytest.approx(3.0, abs=0.01)
+    assert np.isclose(gaps, 6.0, atol=0.05).sum() == 1  # the missing line
+    d = s.defects[0]
+    assert s.height(d.x_um, d.y_um) - s.height(d.x_um, d.y_um + 2.0) > 0.1
+    with pytest.raises(ValueError, match="known: line-3um"):
+        get_sample("nope")
+
+
+def test_every_sample_is_deterministic_and_bounded() -> None:
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(-20, 20, 500), rng.uniform(-20, 20, 500)
+    for s in SAMPLES.values():
+        a, b = s.height(x, y), s.height(x, y)
+        assert np.array_equal(a, b) and np.isfinite(a).all()
+        assert np.ptp(a) < 0.5
+
+
+def test_z_feedback_follows_the_surface_with_its_bandwidth() -> None:
+    stage = StageConfig.from_file(default_sim_config_path())
+    cfg = MicroscopeConfig(sample="steps-100nm", height_noise_nm_rms=0.0, feedback_bandwidth_hz=200.0)
+    mic = Microscope(cfg, stage)
+    fs = 20000.0
+    x = np.linspace(-5.0, 7.0, 12000)  # 12 um in 0.6 s: steps up at -2 um and down at +2 um
+    vz, ez = [], []
+    for i in range(0, x.size, 200):
+        v, e = mic.step(x[i : i + 200], np.zeros(200), 1.0 / fs)
+        vz.append(v)
+        ez.append(e)
+        assert mic.last_error_nm_rms < 0.5  # the passes find the voltage of the extension
+    v, e = np.concatenate(vz), np.concatenate(ez)
+    h = mic.sample.height(x, 0.0)
+    settled = np.convolve(np.abs(np.diff(h, prepend=h[0])) > 1e-6, np.ones(160), "full")[: h.size] == 0
+    assert settled.sum() > 10000
+    assert np.abs(e - h)[settled].max() < 1e-3  # on the terraces the tip follows within 1 nm
+    assert np.abs(e - h)[~settled].max() > 0.01  # at the steps the loop lags (finite bandwidth)
+    # the z voltage needed for it is not proportional: hysteresis + creep of the z piezo
+    assert np.ptp(v) > 0.1 / 0.024
+
+
+# ---------------------------------------------------------------------- images (synthetic, offline)
+
+
+def _synthetic(nonlinear: float, *, lines: int = 6, pixels: int = 200) -> Recording:
+    """A raster recording of the line pattern with a known fast-axis distortion and a sensor."""
+    fs, f, r = 5000.0, 2.0, 20.0
+    n_half = int(fs / f / 2)
+    ramp = np.linspace(-r / 2, r / 2, n_half, endpoint=False)
+    tgt = np.concatenate([np.concatenate((ramp, -ramp)) for _ in range(lines)] + [np.array([-r / 2])])
+    t = np.arange(tgt.size) / fs
+    u = tgt / (r / 2)
+    pos = tgt * 1.01 + nonlinear * (r / 2) * (1 - u**2)  # +1 % length, a bow
+    line = np.repeat(np.arange(lines), 2 * n_half)
+    y = np.concatenate((-r / 2 + r * line / max(lines - 1, 1), [r / 2]))
+    h = get_sample("line-3um").height(pos, y)
+    meta = {"range_um": "20", "pixels": str(pixels), "line_rate_hz": "2", "sample_rate_hz": str(fs)}
+    return Recording(
+        t_s=t,
+        voltage_v=tgt * 10,
+        position_um=pos,
+        target_um=tgt,
+        z_voltage_v=h / 0.024,
+        axis=np.full(t.size, "x"),
+        metadata=meta,
+    )
+
+
+@pytest.mark.parametrize("bow", [0.0, 0.002])
+def test_image_metrics_reproduce_the_sensor_metrics(bow: float) -> None:
+    rec = _synthetic(bow)
+    pair = next(p for p in images(rec) if p.grid == "commanded")
+    assert pair.trace.shape == (6, 200) and np.isfinite(pair.trace).all()
+    sensor = experiment_linearity(split_experiments(rec)[0])
+    for d, img, br in ((1, pair.trace, sensor.trace), (-1, pair.retrace, sensor.retrace)):
+        im = image_linearity(img, pair.geometry, 3.0, d)
+        assert im.length_error_pct == pytest.approx(br.length_error_pct, abs=0.05)
+        assert im.nonlinearity_pct == pytest.approx(br.nonlinearity_pct, abs=0.05)
+    assert sensor.trace.length_error_pct == pytest.approx(1.0, abs=0.05)
+
+
+def test_flanks_skip_the_particle_and_number_across_the_missing_line() -> None:
+    rec = _synthetic(0.0, lines=12)
+    pair = next(p for p in images(rec) if p.grid == "commanded")
+    fl = find_flanks(pair.trace, pair.geometry)
+    for r in np.unique(fl.line):
+        s = (fl.line == r) & (fl.family > 0)
+        assert np.diff(fl.k[s]).max() <= 2
+    # no flank pair narrower than a line survives (the particle at x = -7.3 um, y = 4.1 um)
+    assert np.abs(fl.xi_um[(fl.line == 8)] + 7.3).min() > 0.3
+
+
+def test_images_refuse_recordings_that_are_not_rasters() -> None:
+    rec = _synthetic(0.0)
+    bare = Recording(t_s=rec.t_s, voltage_v=rec.voltage_v, position_um=rec.position_um, metadata=rec.metadata)
+    with pytest.raises(RecordingError, match="no 'target' column"):
+        raster_samples(bare)
+    no_z = Recording(
+        t_s=rec.t_s,
+        voltage_v=rec.voltage_v,
+        position_um=rec.position_um,
+        target_um=rec.target_um,
+        metadata={},
+    )
+    with pytest.raises(RecordingError, match="range_um"):
+        images(no_z)
+
+
+# ----------------------------------------------------------------- through the real simulated board
+
+
+def _piezod(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "piezod", *args], cwd=cwd, capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("img")
+    # the sensorless calibration's result at 5 kS/s (light enough for a busy machine), with its sensor on
+    text = (config_dir() / "sim-microscope-calibrated.yaml").read_text()
+    with_sensor = d / "with-sensor.yaml"
+    with_sensor.write_text(text.replace("position_sensor: false", "position_sensor: true"))
+    common = ["--sim", "--sample", "line-3um", "--range-um", "20", "--line-rate-hz", "2", "--lines", "6"]
+    out = {}
+    for name, extra in (
+        ("corrected", ["--config", str(with_sensor), "--pixels", "256"]),
+        (
+            "nosensor",
+            ["--config", str(config_dir() / "sim-microscope.yaml"), "--no-correction", "--pixels", "128"],
+        ),
+    ):
+        p = _piezod("scan", *common, *extra, "--out", str(d / f"{name}.csv"), cwd=d)
+        assert p.returncode == 0, p.stderr
+        out[name] = d / f"{name}.csv"
+    return out
+
+
+def test_scan_records_the_height_channel_and_the_metadata(scans: dict[str, Path]) -> None:
+    rec = read_recording(scans["corrected"])
+    assert rec.z_voltage_v is not None and np.ptp(rec.z_voltage_v) > 1.0
+    for key in ("pixels", "started_utc", "config_sha256", "model", "model_params", "position_sensor"):
+        assert key in rec.metadata
+    assert rec.metadata["position_sensor"] == "yes"
+    bare = read_recording(scans["nosensor"])
+    assert bare.metadata["position_sensor"] == "no"
+    assert np.all(bare.position_um[bare.axis == "x"] == 0.0)  # no sensor: the ADC reads nothing
+
+
+def test_piezod_image_writes_gwy_files_that_gwyfile_opens(scans: dict[str, Path], tmp_path: Path) -> None:
+    import gwyfile
+
+    p = _piezod(
+        "image",
+        str(scans["corrected"]),
+        str(scans["nosensor"]),
+        "--config",
+        str(default_sim_config_path()),
+        "--out",
+        str(tmp_path),
+        "--pitch-um",
+        "3",
+        "--json",
+        "-",
+        cwd=tmp_path,
+    )
+    assert p.returncode == 0, p.stderr
+    res = json.loads(p.stdout)["recordings"]
+    obj = gwyfile.load(str(tmp_path / "corrected.gwy"))
+    titles = sorted(str(obj[k]) for k in obj if k.endswith("/data/title"))
+    assert (
+        "height_model trace (commanded grid)" in titles and "height_model retrace (measured grid)" in titles
+    )
+    meta = dict(obj["/0/meta"])
+    assert meta["range_um"] == "20" and meta["pixels"] == "256" and meta["lines"] == "6"
+    assert len(meta["config_sha256"]) == 64 and meta["model"] in ("thesis", "dynamic")
+    assert obj["/0/data"].data.shape == (6, 256)
+    bare = gwyfile.load(str(tmp_path / "nosensor.gwy"))
+    assert not any("measured" in str(bare[k]) for k in bare if k.endswith("/data/title"))
+    assert (tmp_path / "corrected-pitch-error.png").stat().st_size > 1000
+    # where a sensor exists, the image reproduces the sensor's figures of the same scan
+    img, sen = res[0]["image_linearity"], res[0]["sensor_linearity"]
+    for b in ("trace", "retrace"):
+        assert abs(img[b]["length_error_pct"] - sen[b]["length_error_pct"]) <= 0.05
+        assert abs(img[b]["nonlinearity_pct"] - sen[b]["nonlinearity_pct"]) <= 0.05
+    # the uncorrected scan without a sensor: its distortion from the image alone
+    assert res[1]["image_linearity"]["trace"]["length_error_pct"] > 2.0
+    assert "sensor_linearity" not in res[1]
+
+
+def test_piezod_image_names_a_file_that_is_not_a_raster(tmp_path: Path) -> None:
+    f = tmp_path / "plain.csv"
+    f.write_text("t,voltage,position\n0,0,0\n0.1,1,0.1\n")
+    p = _piezod("image", str(f), "--out", str(tmp_path), cwd=tmp_path)
+    assert p.returncode == 2
+    assert "plain.csv" in p.stderr and "range_um" in p.stderr and "Traceback" not in p.stderr
