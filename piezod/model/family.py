@@ -491,6 +491,61 @@ def _plays_at(h: PlayParams, plays0: F64, run: float, u: float) -> tuple[F64, fl
     return p, h.b_um_per_v * (h.rho0 * u + float(h.w @ p))
 
 
+def _linear_stretch(
+    params: FamilyParams,
+    dt_s: float,
+    xc: F64,
+    j: int,
+    window: int,
+    run: float,
+    knots: list[float],
+    fk: list[float],
+    slopes: list[float],
+    g: float,
+    u_prev: float,
+    e: F64,
+    out: F64,
+) -> tuple[int, F64, int]:
+    """Samples ``j, j + 1, ...`` solved at once while the play law stays on one linear piece.
+
+    On a piece of slope ``sigma`` (law ``sigma - g``) the per-sample equation is linear and
+    time invariant: ``(sigma - g) (u + (s / (sigma - g)) (W u + w . e)) = x_c - c``, i.e. exactly
+    position-driven creep with weights ``s w / (sigma - g)`` driven by ``u``, whose modal inverse
+    (:mod:`piezod.model.dynamic`) solves the whole stretch. The samples kept are those before the
+    voltage reverses or reaches the next knot (there the per-sample solve takes over); the
+    result is the same as sample by sample. Returns ``(samples solved, deviations, next window)``.
+    """
+    uu = run * u_prev
+    k = max(0, bisect.bisect_right(knots, uu) - 1)
+    sigma_h = slopes[k] - g
+    s = params.law_slope_um_per_v
+    if sigma_h <= 0.0:
+        return 0, e, window
+    ratio = s / sigma_h
+    w = params.creep.weights
+    try:
+        spec = CreepSpectrum(params.creep.taus, tuple(float(x) for x in ratio * w))
+        disc = discretise(spec, dt_s)
+    except ModelError:
+        return 0, e, window
+    c = run * (fk[k] - slopes[k] * knots[k])
+    stop = min(xc.size, j + window)
+    target = (xc[j:stop] - c) / sigma_h
+    x_prev = (1.0 + disc.total) * u_prev + float(spec.weights @ e)
+    u, _ = _creep_inverse(spec, dt_s, disc, target, x_prev, u_prev, e)  # type: ignore[arg-type]
+    ru = run * u
+    bad = np.diff(ru, prepend=uu) < 0.0
+    if k + 1 < len(knots):
+        bad |= ru >= knots[k + 1]
+    first = int(np.argmax(bad)) if bad.any() else u.size
+    if first == 0:
+        return 0, e, 64
+    out[j : j + first] = u[:first]
+    base = discretise(params.creep, dt_s)
+    _, e_new = _creep_forward(params.creep, dt_s, base, u[:first], u_prev, e)  # type: ignore[arg-type]
+    return first, e_new, (2 * window if first == u.size else max(64, 1 << (2 * first - 1).bit_length()))
+
+
 def _voltage_creep_inverse(
     params: FamilyParams, xc: F64, dt_s: float, state: FamilyState
 ) -> tuple[F64, LawState, F64]:
@@ -517,7 +572,9 @@ def _voltage_creep_inverse(
         fk: list[float] = []
         slopes: list[float] = []
         u = u_prev
-        for j in range(n):
+        j = 0
+        window = 64
+        while j < n:
             y = float(xc[j]) - float(wa @ e) - wb * u_prev
             f_prev = xh0 + g * u_prev if run == 0.0 else _pl_eval(knots, fk, slopes, run * u_prev) * run
             if run == 0.0 or (y - f_prev) * run < 0.0:
@@ -526,6 +583,7 @@ def _voltage_creep_inverse(
                 if y == xh0 + g * u_prev:
                     vc[j] = u_prev
                     e = a * e
+                    j += 1
                     continue
                 run = 1.0 if y > xh0 + g * u_prev else -1.0
                 # rising in run * V: knots where each play engages, the (H + g V) there, slopes after
@@ -540,6 +598,14 @@ def _voltage_creep_inverse(
             u = run * _pl_solve(knots, fk, slopes, run * y)
             e = a * e - ob0 * (u - u_prev)
             vc[j] = u_prev = u
+            j += 1
+            if j < n and s > 0.0:
+                done, e, window = _linear_stretch(
+                    params, dt_s, xc, j, window, run, knots, fk, slopes, g, u_prev, e, vc
+                )
+                if done:
+                    j += done
+                    u_prev = float(vc[j - 1])
         if run != 0.0:
             plays0, xh0 = _plays_at(h, plays0, run, u_prev)
         plays = plays0
