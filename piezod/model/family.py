@@ -27,8 +27,10 @@ With the voltage driver the creep at sample ``n`` is affine in ``V_c[n]``, so th
 per sample ``H_state(V_c) + g V_c = x_c - s sum_i w_i (a_i e_i[n-1] + (1 - b0_i) V_c[n-1])`` with
 ``g = s sum_i w_i b0_i >= 0``: for Prandtl-Ishlinskii a play law with slope ``rho0 + g / b``
 (the play inverse, exact), for Coleman-Hodgdon a monotone scalar equation (bracketed Newton).
-This inverse is sequential (one sample's voltage moves the next sample's creep), so it is a
-per-sample loop of bounded cost, not a vectorised pass.
+This inverse is sequential (one sample's voltage moves the next sample's creep); for
+Prandtl-Ishlinskii each linear piece of the law is solved at once (there the equation is LTI:
+the modal creep inverse with weights ``s w / sigma``), the per-sample solve only where the
+piece changes; Coleman-Hodgdon is a per-sample loop of bounded cost.
 
 The weights are data-driven (:mod:`piezod.calibrate_family` fits them by
 regularised non-negative least squares), so the spectrum is whatever the stage shows: a log
