@@ -114,6 +114,12 @@ def bench_models() -> dict[str, Any]:
         "dynamic": DynamicAxisModel(DynamicParams(3e-3, 0.115, 0.072, 1.5)),
         "family/coleman-hodgdon": FamilyAxisModel(FamilyParams(ch, creep, 2e-4, 0.05)),
         "family/prandtl-ishlinskii": FamilyAxisModel(FamilyParams(pi, creep, 2e-4, 0.05)),
+        "family/coleman-hodgdon/voltage-creep": FamilyAxisModel(
+            FamilyParams(ch, creep, 2e-4, 0.05, "voltage")
+        ),
+        "family/prandtl-ishlinskii/voltage-creep": FamilyAxisModel(
+            FamilyParams(pi, creep, 2e-4, 0.05, "voltage")
+        ),
     }
 
 

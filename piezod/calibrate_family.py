@@ -47,7 +47,7 @@ from piezod.calibrate_dynamic import (
 from piezod.config import FamilyModelConfig
 from piezod.errors import CalibrationError, ModelError
 from piezod.model.dynamic import MAX_TOTAL_CREEP
-from piezod.model.family import CreepSpectrum, FamilyParams
+from piezod.model.family import CREEP_DRIVERS, CreepSpectrum, FamilyParams
 from piezod.model.params import HysteresisParams
 from piezod.model.play import PlayParams, PlayState, play_forward
 
@@ -253,12 +253,25 @@ def settled_rows(data: DynamicCalibrationData, skip_s: float) -> NDArray[np.bool
 
 
 def _alternate(
-    s: _Session, f_grid: F64, f_rest: F64, lam: float, max_iter: int = 15, tol: float = 1e-5
+    s: _Session,
+    f_grid: F64,
+    f_rest: F64,
+    lam: float,
+    max_iter: int = 15,
+    tol: float = 1e-5,
+    *,
+    slope_of_theta: F64 | None = None,
 ) -> tuple[F64, F64, float, float, float, int]:
     """Alternating bounded least squares: ``(theta, w, kappa, tau_lag, rms_train, iterations)``.
 
     The drive lag enters to first order: ``x(V lagged by tau) = x(V) - tau dx/dt``.
+    ``slope_of_theta`` selects voltage-driven creep: the law's rest slope is
+    ``slope_of_theta @ theta`` and column 0 of ``f_grid`` is the drive voltage; the creep
+    regressors are then the filtered voltages ``s (V + E[V])`` (else the filtered hysteretic
+    positions).
     """
+    voltage = slope_of_theta is not None
+    sv: F64 = np.zeros(f_grid.shape[1]) if slope_of_theta is None else slope_of_theta
     data = s.data
     f = f_grid[data.compared]
     e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(f_grid.shape[1])]
@@ -286,7 +299,11 @@ def _alternate(
     while it < max_iter:
         it += 1
         total = float(w.sum())
-        a = np.column_stack([(1.0 + total) * f[:, j] + e_f[j] @ w for j in range(n_f)] + [xc * xc])
+        if voltage:
+            cv = total * f[:, 0] + e_f[0] @ w
+            a = np.column_stack([f[:, j] + sv[j] * cv for j in range(n_f)] + [xc * xc])
+        else:
+            a = np.column_stack([(1.0 + total) * f[:, j] + e_f[j] @ w for j in range(n_f)] + [xc * xc])
         ac = _centre(data, a)[tr]
         lower = np.concatenate([np.full(n_f, 0.0), [-np.inf]])
         upper = np.full(n_f + 1, np.inf)
@@ -299,11 +316,18 @@ def _alternate(
         coef, _ = solve_linear(ac, yc + _centre(data, tau * rate)[tr], lower=lower, upper=upper)
         theta, kappa = coef[:n_f], float(coef[-1])
         xh = f @ theta
-        e_x = sum(theta[j] * e_f[j] for j in range(n_f))
-        assert isinstance(e_x, np.ndarray)
-        xc_new = (1.0 + total) * xh + e_x @ w
-        b_cols = xh[:, None] + e_x
-        rate = (1.0 + total) * _rate(data, f_grid @ theta)
+        if voltage:
+            slope = float(sv @ theta)
+            e_x = slope * e_f[0]
+            xc_new = xh + slope * (total * f[:, 0] + e_f[0] @ w)
+            b_cols = slope * (f[:, 0][:, None] + e_f[0])
+            rate = _rate(data, f_grid @ theta) + slope * total * _rate(data, f_grid[:, 0])
+        else:
+            e_x = sum(theta[j] * e_f[j] for j in range(n_f))
+            assert isinstance(e_x, np.ndarray)
+            xc_new = (1.0 + total) * xh + e_x @ w
+            b_cols = xh[:, None] + e_x
+            rate = (1.0 + total) * _rate(data, f_grid @ theta)
         target = s.yc - _centre(data, xh + kappa * xc_new * xc_new - tau * rate)
         bc = _centre(data, b_cols)
         scale = float(np.linalg.norm(bc[tr])) / math.sqrt(m)
@@ -314,7 +338,7 @@ def _alternate(
             upper=np.full(m, MAX_TOTAL_CREEP / m),
             ridge=math.sqrt(lam) * scale * s.creep_reg,
         )
-        xc = (1.0 + float(w.sum())) * xh + e_x @ w
+        xc = b_cols @ w + xh if voltage else (1.0 + float(w.sum())) * xh + e_x @ w
         # the lag to first order, x(V lagged by tau) = x(V) - tau dx/dt: a 1-D least squares
         without = _centre(data, xc + kappa * xc * xc) - s.yc
         rate_c = _centre(data, rate)
@@ -370,11 +394,17 @@ def session_positions(
         )
     xh_grid = xh_all[data.grid_index]
     total = params.creep.total_creep
-    rest_xh = float(xh_grid[0]) if False else _rest_position(h, data.rest_voltage_v)
-    e = dev(xh_grid, rest_xh)
-    xc = (1.0 + total) * xh_grid[data.compared] + e @ params.creep.weights
     kappa = params.stiffness_pct_per_um / 200.0
-    rate = (1.0 + total) * _rate(data, xh_grid)
+    if params.creep_driver == "voltage":
+        v_grid = v[data.grid_index] if isinstance(h, PlayParams) else data.grid_voltage_v
+        slope = params.law_slope_um_per_v
+        e = dev(v_grid, data.rest_voltage_v)
+        xc = xh_grid[data.compared] + slope * (total * v_grid[data.compared] + e @ params.creep.weights)
+        rate = _rate(data, xh_grid) + slope * total * _rate(data, v_grid)
+    else:
+        e = dev(xh_grid, _rest_position(h, data.rest_voltage_v))
+        xc = (1.0 + total) * xh_grid[data.compared] + e @ params.creep.weights
+        rate = (1.0 + total) * _rate(data, xh_grid)
     out: F64 = xc + kappa * xc * xc - params.lag_time_constant_s * rate
     return out
 
@@ -395,6 +425,7 @@ def fit_family(
     taus: F64 | None = None,
     regularisation: float = 1e-4,
     skip_s: float = 0.0,
+    creep_driver: str = "position",
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -417,6 +448,8 @@ def fit_family(
     skip_s
         Leave the first ``skip_s`` seconds of every experiment out of the fit and the scores
         (start-up transients the session reconstruction cannot know).
+    creep_driver
+        ``position`` or ``voltage``: what the fitted creep spectrum follows.
 
     Raises
     ------
@@ -425,6 +458,9 @@ def fit_family(
     """
     if law not in LAWS:
         raise CalibrationError(f"unknown hysteresis law {law!r} (one of {', '.join(LAWS)})")
+    if creep_driver not in CREEP_DRIVERS:
+        raise CalibrationError(f"unknown creep driver {creep_driver!r} (one of {', '.join(CREEP_DRIVERS)})")
+    voltage = creep_driver == "voltage"
     taus = default_taus(data) if taus is None else np.asarray(taus, dtype=np.float64)
     mask = np.ones(data.n_experiments, dtype=bool) if train is None else np.asarray(train, dtype=bool)
     if not mask.any():
@@ -435,18 +471,27 @@ def fit_family(
         if law == "prandtl-ishlinskii":
             r = default_thresholds(data, plays)
             f_grid = _play_features(data, r)
-            theta, w, kappa, tau, rms, it = _alternate(s, f_grid, np.full(plays + 1, rest_v), regularisation)
+            theta, w, kappa, tau, rms, it = _alternate(
+                s,
+                f_grid,
+                np.full(plays + 1, rest_v),
+                regularisation,
+                slope_of_theta=np.ones(plays + 1) if voltage else None,
+            )
             b = float(theta.sum())
             hyst: HysteresisParams | PlayParams = PlayParams(
                 b, float(theta[0] / b), tuple(map(float, r)), tuple(float(t / b) for t in theta[1:])
             )
         else:
+            ch_slope = np.array([1.0, 0.0]) if voltage else None
 
             def run(log_alpha: float) -> tuple[float, F64, F64, float, int]:
                 alpha = math.exp(log_alpha)
                 y = _hysteresis_unit(data, alpha)
                 f_grid = np.column_stack([data.grid_voltage_v, y])
-                res = _alternate(s, f_grid, np.array([rest_v, 0.0]), regularisation, max_iter=4)
+                res = _alternate(
+                    s, f_grid, np.array([rest_v, 0.0]), regularisation, max_iter=4, slope_of_theta=ch_slope
+                )
                 return res[4], res[0], res[1], res[2], res[5]
 
             if alpha_per_v is None:
@@ -461,12 +506,18 @@ def fit_family(
                 alpha = float(alpha_per_v)
             y = _hysteresis_unit(data, alpha)
             f_grid = np.column_stack([data.grid_voltage_v, y])
-            theta, w, kappa, tau, rms, it = _alternate(s, f_grid, np.array([rest_v, 0.0]), regularisation)
+            theta, w, kappa, tau, rms, it = _alternate(
+                s, f_grid, np.array([rest_v, 0.0]), regularisation, slope_of_theta=ch_slope
+            )
             b, delta = float(theta[0]), float(theta[1])
             u = max(b - alpha * delta, 1e-6 * b)
             hyst = HysteresisParams(alpha, b, u)
         params = FamilyParams(
-            hyst, CreepSpectrum(tuple(map(float, taus)), tuple(map(float, w))), tau, 200.0 * kappa
+            hyst,
+            CreepSpectrum(tuple(map(float, taus)), tuple(map(float, w))),
+            tau,
+            200.0 * kappa,
+            creep_driver,
         )
     except ModelError as exc:
         raise CalibrationError(f"family fit ({law}): {exc}") from exc
@@ -501,11 +552,11 @@ class ModelChoice:
 
     def table(self) -> str:
         """One line per candidate: training and held-out RMS, the chosen one marked."""
-        lines = [f"{'model':<26} {'train RMS (nm)':>15} {'held-out RMS (nm)':>18}"]
+        lines = [f"{'model':<40} {'train RMS (nm)':>15} {'held-out RMS (nm)':>18}"]
         for name in self.heldout_rms_um:
             mark = "  <- chosen" if name == self.chosen else ""
             train, held = 1e3 * self.train_rms_um[name], 1e3 * self.heldout_rms_um[name]
-            lines.append(f"{name:<26} {train:>15.2f} {held:>18.2f}{mark}")
+            lines.append(f"{name:<40} {train:>15.2f} {held:>18.2f}{mark}")
         return "\n".join(lines)
 
 
@@ -527,6 +578,7 @@ def choose_model(
     others: dict[str, FamilyParams] | None = None,
     plays: int = 16,
     alpha_per_v: float | None = None,
+    creep_drivers: Sequence[str] = CREEP_DRIVERS,
 ) -> ModelChoice:
     """Fit every law on the training experiments, compare held-out prediction RMS, refit the best.
 
@@ -545,17 +597,23 @@ def choose_model(
         Play operators of the Prandtl-Ishlinskii law.
     alpha_per_v
         Coleman-Hodgdon's ``alpha`` (searched when None).
+    creep_drivers
+        Creep drivers to try for every law (``position``, ``voltage``): candidates are named
+        ``family/<law>`` (position-driven creep) and ``family/<law>/voltage-creep``.
     """
     train = holdout_mask(data.n_experiments, holdout_every)
     heldout: dict[str, float] = {}
     train_rms: dict[str, float] = {}
     fits: dict[str, FamilyFit] = {}
     for law in laws:
-        fit = fit_family(data, law, train=train, plays=plays, alpha_per_v=alpha_per_v)
-        name = f"family/{law}"
-        fits[name] = fit
-        heldout[name] = fit.heldout_rms_um
-        train_rms[name] = fit.rms_um
+        for driver in creep_drivers:
+            fit = fit_family(
+                data, law, train=train, plays=plays, alpha_per_v=alpha_per_v, creep_driver=driver
+            )
+            name = f"family/{law}" + ("/voltage-creep" if driver == "voltage" else "")
+            fits[name] = fit
+            heldout[name] = fit.heldout_rms_um
+            train_rms[name] = fit.rms_um
     for name, params in (others or {}).items():
         s = _Session(data, np.asarray(params.creep.taus_s), train)
         x = session_positions(data, params, s.dev)
@@ -566,7 +624,13 @@ def choose_model(
     chosen = min(scores, key=lambda k: scores[k])
     final = None
     if chosen in fits:
-        final = fit_family(data, fits[chosen].law, plays=plays, alpha_per_v=alpha_per_v)
+        final = fit_family(
+            data,
+            fits[chosen].law,
+            plays=plays,
+            alpha_per_v=alpha_per_v,
+            creep_driver=fits[chosen].params.creep_driver,
+        )
     holdout = tuple(int(i) for i in np.flatnonzero(~train))
     return ModelChoice(chosen, final, heldout, train_rms, holdout, fits)
 
@@ -587,6 +651,7 @@ def family_model_config(params: FamilyParams) -> FamilyModelConfig:
         "creep_weights": [float(f"{w:.6g}") for w in params.creep.w],
         "lag_time_constant_s": params.lag_time_constant_s,
         "stiffness_pct_per_um": params.stiffness_pct_per_um,
+        "creep_driver": params.creep_driver,
     }
     if isinstance(h, PlayParams):
         fields.update(
@@ -603,6 +668,7 @@ def family_model_config(params: FamilyParams) -> FamilyModelConfig:
 
 
 __all__ = [
+    "CREEP_DRIVERS",
     "LAWS",
     "FamilyFit",
     "ModelChoice",

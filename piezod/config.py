@@ -113,6 +113,9 @@ class FamilyModelConfig(StrictModel):
     stiffness_pct_per_um: float = Field(
         default=0.0, ge=-5, le=5, description="static map x + k x^2/200 (%/um)"
     )
+    creep_driver: Literal["position", "voltage"] = Field(
+        default="position", description="what the creep follows: the hysteretic position or the drive voltage"
+    )
 
     @model_validator(mode="after")
     def _check_model(self) -> FamilyModelConfig:
@@ -142,6 +145,7 @@ class FamilyModelConfig(StrictModel):
             CreepSpectrum(tuple(self.creep_taus_s), tuple(self.creep_weights)),
             self.lag_time_constant_s,
             self.stiffness_pct_per_um,
+            self.creep_driver,
         )
 
 
@@ -355,9 +359,7 @@ class _StrictLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
-_StrictLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float", _SCI_FLOAT, list("-+0123456789")
-)
+_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _SCI_FLOAT, list("-+0123456789"))
 
 
 @dataclass

@@ -13,6 +13,7 @@ from piezod.model.axis_model import FamilyAxisModel, ThesisAxisModel
 from piezod.model.family import (
     CreepSpectrum,
     FamilyParams,
+    family_adopt_state,
     family_forward,
     family_hold,
     family_inverse,
@@ -39,10 +40,13 @@ def _smooth_targets(n: int, dt: float, seed: int) -> np.ndarray:
     return tri * ramp_in + 0.01 * np.cumsum(rng.normal(0, 0.02, n))
 
 
+@pytest.mark.parametrize("driver", ["position", "voltage"])
 @pytest.mark.parametrize("law", [PI, CH], ids=["prandtl-ishlinskii", "coleman-hodgdon"])
 @pytest.mark.parametrize("lag", [0.0, 2e-4])
-def test_inverse_is_exact_and_block_invariant(law: PlayParams | HysteresisParams, lag: float) -> None:
-    p = FamilyParams(law, SPEC, lag, 0.05)
+def test_inverse_is_exact_and_block_invariant(
+    law: PlayParams | HysteresisParams, lag: float, driver: str
+) -> None:
+    p = FamilyParams(law, SPEC, lag, 0.05, creep_driver=driver)
     dt = 5e-5
     x = _smooth_targets(8000, dt, 1)
     s0 = family_rest_state(p, 3.0)
@@ -68,6 +72,62 @@ def test_play_inverse_reaches_any_targets(seed: int, scale: float) -> None:
     vi, end_i = play_inverse(PI, x, play_rest_state(PI))
     np.testing.assert_allclose(vi, v, atol=1e-8 * max(1.0, float(np.max(np.abs(v)))))
     np.testing.assert_allclose(end_i.plays_v, end.plays_v, atol=1e-8 * max(1.0, float(np.max(np.abs(v)))))
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    scale=st.floats(0.05, 40.0),
+    ch=st.booleans(),
+    creep=st.floats(0.0, 0.08),
+    cut=st.integers(1, 399),
+)
+def test_voltage_creep_inverse_round_trips_any_voltages(
+    seed: int, scale: float, ch: bool, creep: float, cut: int
+) -> None:
+    """Random walks (reversals anywhere, holds, jumps) through forward then inverse, split anywhere."""
+    rng = np.random.default_rng(seed)
+    v = 20.0 + np.cumsum(rng.normal(0, scale, 400) * (rng.random(400) < 0.8))
+    p = FamilyParams(
+        CH if ch else PI, CreepSpectrum.log_spaced(1e-4, 1e2, 2, creep / 13), 1e-4, -0.1, "voltage"
+    )
+    dt = 1e-4
+    s0 = family_rest_state(p, -5.0)
+    x, end = family_forward(p, v, dt, s0)
+    va, s1 = family_inverse(p, x[:cut], dt, s0)
+    vb, s2 = family_inverse(p, x[cut:], dt, s1)
+    span = max(1.0, float(np.ptp(v)))
+    np.testing.assert_allclose(np.concatenate([va, vb]), v, atol=1e-9 * span)
+    assert s2.position_um == pytest.approx(end.position_um, abs=1e-9 * max(1.0, float(np.ptp(x))))
+    np.testing.assert_allclose(s2.creep_um, end.creep_um, atol=1e-9 * span)
+
+
+def test_voltage_and_position_creep_differ_by_the_loop_share() -> None:
+    """At rest both drivers agree; on a loop the voltage-driven creep ignores the loop's lag."""
+    pos = FamilyParams(PI, SPEC, 0.0, 0.0, "position")
+    vol = FamilyParams(PI, SPEC, 0.0, 0.0, "voltage")
+    for v in (-40.0, 0.0, 75.0):
+        assert family_rest_state(pos, v).position_um == pytest.approx(family_rest_state(vol, v).position_um)
+    dt = 1e-3
+    volts = 100.0 * np.sin(2 * np.pi * np.arange(4000) * dt)
+    xp, _ = family_forward(pos, volts, dt, family_rest_state(pos))
+    xv, _ = family_forward(vol, volts, dt, family_rest_state(vol))
+    assert 0.0 < float(np.max(np.abs(xp - xv))) < 0.2 * float(np.ptp(xp))
+
+
+@pytest.mark.parametrize("driver", ["position", "voltage"])
+def test_hold_and_adopt_with_either_creep_driver(driver: str) -> None:
+    p = FamilyParams(PI, SPEC, 1e-3, 0.0, creep_driver=driver)
+    dt = 1e-4
+    s0 = family_rest_state(p)
+    _, s = family_forward(p, np.linspace(0, 100, 500), dt, s0)
+    held = family_hold(p, 50_000, dt, s)
+    _, step = family_forward(p, np.full(50_000, s.voltage_v), dt, s)
+    assert held.position_um == pytest.approx(step.position_um, abs=1e-6)
+    adopted = family_adopt_state(p, 50.0, 5.0)
+    assert adopted.position_um == pytest.approx(5.0, abs=1e-9)
+    v, _ = family_inverse(p, np.full(10, 5.0), dt, adopted)
+    np.testing.assert_allclose(v, 50.0, atol=1e-9)
 
 
 def test_hold_relaxes_creep_and_settles_the_lag() -> None:

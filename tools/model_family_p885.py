@@ -26,7 +26,7 @@ import numpy as np
 
 from piezod.audit.residuals import noise_floor
 from piezod.calibrate_dynamic import _centre, prepare_dynamic
-from piezod.calibrate_family import LAWS, fit_family, session_positions, settled_rows
+from piezod.calibrate_family import CREEP_DRIVERS, LAWS, fit_family, session_positions, settled_rows
 from piezod.recording import read_experiments
 
 DATA = Path(__file__).resolve().parent.parent / "piezod" / "data" / "real" / "pi-p885"
@@ -51,9 +51,9 @@ def main() -> int:
     floor_id = float(np.sqrt(np.mean([noise_floor(np.asarray(e.position_um)) ** 2 for e in ident_exps])))
     floor_va = float(np.sqrt(np.mean([noise_floor(np.asarray(e.position_um)) ** 2 for e in valid_exps])))
     rows = []
-    for law in LAWS:
+    for law, driver in [(law, d) for law in LAWS for d in CREEP_DRIVERS]:
         t0 = time.perf_counter()
-        fit = fit_family(ident, law, plays=args.plays, skip_s=args.skip_s)
+        fit = fit_family(ident, law, plays=args.plays, skip_s=args.skip_s, creep_driver=driver)
         x = session_positions(valid, fit.params)
         keep = settled_rows(valid, args.skip_s)
         xc = _centre(valid, x)[keep]
@@ -64,6 +64,7 @@ def main() -> int:
         rows.append(
             {
                 "law": law,
+                "creep_driver": driver,
                 "identification_rms_um": fit.rms_um,
                 "validation_rms_um": rms_valid,
                 "validation_gain": gain,
@@ -76,12 +77,13 @@ def main() -> int:
         )
     print(f"noise floor: identification {floor_id:.4f} um, validation {floor_va:.4f} um")
     print(
-        f"{'law':<20} {'ident RMS um':>13} {'valid RMS um':>13} {'valid/floor':>12}"
+        f"{'law':<20} {'creep driver':<13} {'ident RMS um':>13} {'valid RMS um':>13} {'valid/floor':>12}"
         f" {'lag ms':>7} {'k %/um':>8}"
     )
     for r in rows:
         print(
-            f"{r['law']:<20} {r['identification_rms_um']:>13.4f} {r['validation_rms_um']:>13.4f}"
+            f"{r['law']:<20} {r['creep_driver']:<13}"
+            f" {r['identification_rms_um']:>13.4f} {r['validation_rms_um']:>13.4f}"
             f" {r['ratio_to_noise_floor']:>12.2f} {r['lag_ms']:>7.2f} {r['stiffness_pct_per_um']:>8.3f}"
         )
     if args.json:

@@ -5,8 +5,10 @@ Per sample ``n`` (interval ``dt``)::
     V_c[n] = a V_c[n-1] + (1 - a) V[n],  a = exp(-dt / tau_lag)     amplifier pole (tau_lag = 0: none)
     x_h    = H(V_c)                                               Coleman-Hodgdon ODE (2.21) or
                                                                   Prandtl-Ishlinskii (piezod.model.play)
-    x_c    = (1 + W) x_h + sum_i w_i e_i                          creep spectrum: free non-negative
-                                                                  weights on log-spaced tau_i
+    x_c    = (1 + W) x_h + sum_i w_i e_i                          creep spectrum (driver: position):
+                                                                  free non-negative weights on tau_i
+    x_c    = x_h + s (W V_c + sum_i w_i e_i)                      or (driver: voltage) the creep of the
+                                                                  drive voltage, s = the law's slope
     x      = x_c + k x_c^2 / 200                                  static stiffness map (k in %/um)
 
 The inverse runs the chain backwards, each part exact per sample and vectorised over a block:
@@ -17,13 +19,27 @@ the static map by the quadratic formula, the creep by the modal filters of
 ``V[n] = (V_c[n] - a V_c[n-1]) / (1 - a)`` (an FIR: stable for any ``tau_lag``).
 
 The creep is driven by the hysteretic position (the cascade "hysteresis, then linear
-viscoelastic creep"). The weights are data-driven (:mod:`piezod.calibrate_family` fits them by
+viscoelastic creep") or by the drive voltage (``creep_driver="voltage"``: the ceramic's
+polarisation creeps under the applied field; ``e_i`` are then deviations of the filtered voltage
+from ``V_c``, in V, and ``s`` is the law's static slope ``b (rho0 + sum w)`` or ``b``). Both use
+the same first-order-hold discretisation ``e_i[n] = a_i e_i[n-1] - (1 - b0_i) (d[n] - d[n-1])``.
+With the voltage driver the creep at sample ``n`` is affine in ``V_c[n]``, so the inverse solves
+per sample ``H_state(V_c) + g V_c = x_c - s sum_i w_i (a_i e_i[n-1] + (1 - b0_i) V_c[n-1])`` with
+``g = s sum_i w_i b0_i >= 0``: for Prandtl-Ishlinskii a play law with slope ``rho0 + g / b``
+(the play inverse, exact), for Coleman-Hodgdon a monotone scalar equation (bracketed Newton).
+This inverse is sequential (one sample's voltage moves the next sample's creep); for
+Prandtl-Ishlinskii each linear piece of the law is solved at once (there the equation is LTI:
+the modal creep inverse with weights ``s w / sigma``), the per-sample solve only where the
+piece changes; Coleman-Hodgdon is a per-sample loop of bounded cost.
+
+The weights are data-driven (:mod:`piezod.calibrate_family` fits them by
 regularised non-negative least squares), so the spectrum is whatever the stage shows: a log
 law, a power law, or a few dominant times.
 """
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 from functools import cached_property
@@ -47,6 +63,7 @@ from piezod.model.play import (
 
 F64 = NDArray[np.float64]
 HysteresisLaw = HysteresisParams | PlayParams
+CREEP_DRIVERS = ("position", "voltage")
 LawState = HysteresisState | PlayState
 
 
@@ -137,15 +154,22 @@ class FamilyParams:
         Drive pole (s), >= 0.
     stiffness_pct_per_um
         Static map ``x + k x^2 / 200`` (%/um).
+    creep_driver
+        ``position`` (the creep of the hysteretic position) or ``voltage`` (of the drive voltage).
     """
 
     hysteresis: HysteresisLaw
     creep: CreepSpectrum
     lag_time_constant_s: float = 0.0
     stiffness_pct_per_um: float = 0.0
+    creep_driver: str = "position"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "creep", self.creep.pruned())
+        if self.creep_driver not in CREEP_DRIVERS:
+            raise ModelError(
+                f"creep_driver must be one of {', '.join(CREEP_DRIVERS)}, got {self.creep_driver!r}"
+            )
         if not (math.isfinite(self.lag_time_constant_s) and 0.0 <= self.lag_time_constant_s <= 1.0):
             raise ModelError(f"lag_time_constant_s must lie in [0, 1] s, got {self.lag_time_constant_s!r}")
         if not (math.isfinite(self.stiffness_pct_per_um) and abs(self.stiffness_pct_per_um) <= 5.0):
@@ -155,6 +179,12 @@ class FamilyParams:
     def law(self) -> str:
         """``coleman-hodgdon`` or ``prandtl-ishlinskii``."""
         return "prandtl-ishlinskii" if isinstance(self.hysteresis, PlayParams) else "coleman-hodgdon"
+
+    @property
+    def law_slope_um_per_v(self) -> float:
+        """``s``: the law's rest slope (um/V), the scale of voltage-driven creep."""
+        h = self.hysteresis
+        return h.b_um_per_v * (h.total_weight if isinstance(h, PlayParams) else 1.0)
 
     @property
     def b_um_per_v(self) -> float:
@@ -182,7 +212,7 @@ class FamilyState:
     law
         State of the hysteresis law (at ``drive_v``).
     creep_um
-        Creep element deviations ``e_i`` (um).
+        Creep element deviations ``e_i`` (um for the position driver, V for the voltage driver).
     creep_position_um
         ``x_c``: position before the static map (um).
     position_um
@@ -224,9 +254,17 @@ def family_rest_state(params: FamilyParams, voltage_v: float = 0.0) -> FamilySta
     if not math.isfinite(v):
         raise ModelError(f"rest voltage must be finite, got {voltage_v!r}")
     law = _law_rest(params.hysteresis, v)
-    xc = (1.0 + params.creep.total_creep) * law.position_um
+    xc = _relaxed_creep_position(params, law.position_um, v)
     x = float(_static(params, np.array([xc]))[0])
     return FamilyState(v, v, law, np.zeros(len(params.creep.taus)), xc, x)
+
+
+def _relaxed_creep_position(params: FamilyParams, xh: float, drive_v: float) -> float:
+    """``x_c`` with every creep element relaxed."""
+    total = params.creep.total_creep
+    if params.creep_driver == "voltage":
+        return xh + params.law_slope_um_per_v * total * drive_v
+    return (1.0 + total) * xh
 
 
 def family_adopt_state(params: FamilyParams, voltage_v: float, position_um: float) -> FamilyState:
@@ -234,7 +272,10 @@ def family_adopt_state(params: FamilyParams, voltage_v: float, position_um: floa
     hysteresis can hold it there (else the nearest position the loop allows)."""
     v = float(voltage_v)
     xc = float(_static_inverse(params, np.array([float(position_um)]))[0])
-    xh = xc / (1.0 + params.creep.total_creep)
+    if params.creep_driver == "voltage":
+        xh = xc - params.law_slope_um_per_v * params.creep.total_creep * v
+    else:
+        xh = xc / (1.0 + params.creep.total_creep)
     h = params.hysteresis
     law: LawState
     if isinstance(h, PlayParams):
@@ -243,7 +284,7 @@ def family_adopt_state(params: FamilyParams, voltage_v: float, position_um: floa
         law = play_state_at(h, v, v + float(np.clip(c, -1.0, 1.0)) * h.r)
     else:
         law = HysteresisState(v, xh)
-    xc = (1.0 + params.creep.total_creep) * law.position_um
+    xc = _relaxed_creep_position(params, law.position_um, v)
     return FamilyState(
         v, v, law, np.zeros(len(params.creep.taus)), xc, float(_static(params, np.array([xc]))[0])
     )
@@ -297,8 +338,12 @@ def family_forward(
         assert isinstance(state.law, HysteresisState)
         xh, law = hysteresis_step(h, vc, state.law)
     disc = discretise(params.creep, dt_s)
-    creep, e_end = _creep_forward(params.creep, dt_s, disc, xh, state.law.position_um, state.creep_um)  # type: ignore[arg-type]
-    xc = (1.0 + disc.total) * xh + creep
+    if params.creep_driver == "voltage":
+        creep, e_end = _creep_forward(params.creep, dt_s, disc, vc, state.drive_v, state.creep_um)  # type: ignore[arg-type]
+        xc = xh + params.law_slope_um_per_v * (disc.total * vc + creep)
+    else:
+        creep, e_end = _creep_forward(params.creep, dt_s, disc, xh, state.law.position_um, state.creep_um)  # type: ignore[arg-type]
+        xc = (1.0 + disc.total) * xh + creep
     x = _static(params, xc)
     return x, FamilyState(float(v[-1]), float(vc[-1]), law, e_end, float(xc[-1]), float(x[-1]))
 
@@ -323,6 +368,9 @@ def family_inverse(
     if x.size == 0:
         return np.empty(0), state
     xc = _static_inverse(params, x)
+    if params.creep_driver == "voltage":
+        vc_v, law_v, e_v = _voltage_creep_inverse(params, xc, dt_s, state)
+        return _lag_inverse(params, vc_v, xc, x, dt_s, state, law_v, e_v)
     disc = discretise(params.creep, dt_s)
     xh, e_end = _creep_inverse(
         params.creep,  # type: ignore[arg-type]
@@ -342,6 +390,12 @@ def family_inverse(
     else:
         assert isinstance(state.law, HysteresisState)
         vc, law = hysteresis_inverse_step(h, xh, state.law)
+    return _lag_inverse(params, vc, xc, x, dt_s, state, law, e_end)
+
+
+def _lag_inverse(
+    params: FamilyParams, vc: F64, xc: F64, x: F64, dt_s: float, state: FamilyState, law: LawState, e_end: F64
+) -> tuple[F64, FamilyState]:
     a = _lag_coefficient(params, dt_s)
     if a == 0.0:
         v = vc
@@ -369,12 +423,213 @@ def family_hold(params: FamilyParams, samples: int, dt_s: float, state: FamilySt
     if rest == 0:
         return state
     e = state.creep_um * np.exp(-(rest * dt_s) / params.creep.taus_s)
-    xc = (1.0 + params.creep.total_creep) * state.law.position_um + float(params.creep.weights @ e)
+    scale = params.law_slope_um_per_v if params.creep_driver == "voltage" else 1.0
+    xc = _relaxed_creep_position(params, state.law.position_um, state.drive_v) + scale * float(
+        params.creep.weights @ e
+    )
     x = float(_static(params, np.array([xc]))[0])
     return FamilyState(state.voltage_v, state.drive_v, state.law, e, xc, x)
 
 
+def _ch_solve(h: HysteresisParams, g: float, target: float, u0: float, y0: float) -> float:
+    """The voltage ``u`` with ``(b + g) u + y(u) = target``, ``y`` the exact ODE step from ``(u0, y0)``.
+
+    The left side is increasing in ``u``; Newton steps kept inside a bracket (bisection when a
+    step leaves it) reach rounding in a few steps.
+    """
+    b, alpha, delta = h.b_um_per_v, h.alpha_per_v, h.delta_um
+    slope = b + g
+    f0 = slope * u0 + y0 - target
+    if f0 == 0.0:
+        return u0
+    sgn = -1.0 if f0 > 0.0 else 1.0
+
+    def f(u: float) -> tuple[float, float]:
+        d = abs(u - u0)
+        ex = math.exp(-alpha * d)
+        val = slope * u + ex * y0 + sgn * delta * (ex - 1.0) - target
+        der = slope - alpha * ex * (sgn * y0 + delta)
+        return val, der
+
+    # bracket: step outwards from u0 until the sign changes
+    step = abs(f0) / slope
+    lo = u0
+    hi = u0 + sgn * step
+    for _ in range(200):
+        if f(hi)[0] * sgn >= 0.0:
+            break
+        lo, hi = hi, u0 + sgn * 2.0 * abs(hi - u0)
+    u = hi
+    for _ in range(60):
+        val, der = f(u)
+        if val == 0.0:
+            return u
+        if (val > 0.0) == (sgn > 0.0):
+            hi = u
+        else:
+            lo = u
+        nxt = u - val / der if der > 0.0 else 0.5 * (lo + hi)
+        if not (min(lo, hi) < nxt < max(lo, hi)):
+            nxt = 0.5 * (lo + hi)
+        if abs(nxt - u) <= 1e-15 * max(1.0, abs(u)):
+            return nxt
+        u = nxt
+    return u
+
+
+def _pl_eval(knots: list[float], fk: list[float], slopes: list[float], u: float) -> float:
+    k = max(0, bisect.bisect_right(knots, u) - 1)
+    return fk[k] + slopes[k] * (u - knots[k])
+
+
+def _pl_solve(knots: list[float], fk: list[float], slopes: list[float], y: float) -> float:
+    k = max(0, bisect.bisect_right(fk, y) - 1)
+    return knots[k] + (y - fk[k]) / slopes[k]
+
+
+def _plays_at(h: PlayParams, plays0: F64, run: float, u: float) -> tuple[F64, float]:
+    """Plays and hysteretic position after a monotone run (direction ``run``) ending at ``u``."""
+    p = np.maximum(plays0, u - h.r) if run > 0.0 else np.minimum(plays0, u + h.r)
+    return p, h.b_um_per_v * (h.rho0 * u + float(h.w @ p))
+
+
+def _linear_stretch(
+    params: FamilyParams,
+    dt_s: float,
+    xc: F64,
+    j: int,
+    window: int,
+    run: float,
+    knots: list[float],
+    fk: list[float],
+    slopes: list[float],
+    g: float,
+    u_prev: float,
+    e: F64,
+    out: F64,
+) -> tuple[int, F64, int]:
+    """Samples ``j, j + 1, ...`` solved at once while the play law stays on one linear piece.
+
+    On a piece of slope ``sigma`` (law ``sigma - g``) the per-sample equation is linear and
+    time invariant: ``(sigma - g) (u + (s / (sigma - g)) (W u + w . e)) = x_c - c``, i.e. exactly
+    position-driven creep with weights ``s w / (sigma - g)`` driven by ``u``, whose modal inverse
+    (:mod:`piezod.model.dynamic`) solves the whole stretch. The samples kept are those before the
+    voltage reverses or reaches the next knot (there the per-sample solve takes over); the
+    result is the same as sample by sample. Returns ``(samples solved, deviations, next window)``.
+    """
+    uu = run * u_prev
+    k = max(0, bisect.bisect_right(knots, uu) - 1)
+    sigma_h = slopes[k] - g
+    s = params.law_slope_um_per_v
+    if sigma_h <= 0.0:
+        return 0, e, window
+    ratio = s / sigma_h
+    w = params.creep.weights
+    try:
+        spec = CreepSpectrum(params.creep.taus, tuple(float(x) for x in ratio * w))
+        disc = discretise(spec, dt_s)
+    except ModelError:
+        return 0, e, window
+    c = run * (fk[k] - slopes[k] * knots[k])
+    stop = min(xc.size, j + window)
+    target = (xc[j:stop] - c) / sigma_h
+    x_prev = (1.0 + disc.total) * u_prev + float(spec.weights @ e)
+    u, _ = _creep_inverse(spec, dt_s, disc, target, x_prev, u_prev, e)  # type: ignore[arg-type]
+    ru = run * u
+    bad = np.diff(ru, prepend=uu) < 0.0
+    if k + 1 < len(knots):
+        bad |= ru >= knots[k + 1]
+    first = int(np.argmax(bad)) if bad.any() else u.size
+    if first == 0:
+        return 0, e, 64
+    out[j : j + first] = u[:first]
+    base = discretise(params.creep, dt_s)
+    _, e_new = _creep_forward(params.creep, dt_s, base, u[:first], u_prev, e)  # type: ignore[arg-type]
+    return first, e_new, (2 * window if first == u.size else max(64, 1 << (2 * first - 1).bit_length()))
+
+
+def _voltage_creep_inverse(
+    params: FamilyParams, xc: F64, dt_s: float, state: FamilyState
+) -> tuple[F64, LawState, F64]:
+    """Drive voltages ``V_c`` giving ``x_c`` with voltage-driven creep: the per-sample solve."""
+    disc = discretise(params.creep, dt_s)
+    w = params.creep.weights
+    s = params.law_slope_um_per_v
+    a = disc.a
+    ob0 = disc.one_minus_b0
+    g = s * float(w @ (1.0 - ob0))
+    wa, wb = s * (w * a), s * float(w @ ob0)
+    e = state.creep_um.copy()
+    u_prev = state.drive_v
+    h = params.hysteresis
+    n = xc.size
+    vc = np.empty(n)
+    if isinstance(h, PlayParams):
+        assert isinstance(state.law, PlayState)
+        b, rho, r, pw = h.b_um_per_v, h.rho0, h.r, h.w
+        plays0 = state.law.plays_v
+        xh0 = state.law.position_um
+        run = 0.0
+        knots: list[float] = []
+        fk: list[float] = []
+        slopes: list[float] = []
+        u = u_prev
+        j = 0
+        window = 64
+        while j < n:
+            y = float(xc[j]) - float(wa @ e) - wb * u_prev
+            f_prev = xh0 + g * u_prev if run == 0.0 else _pl_eval(knots, fk, slopes, run * u_prev) * run
+            if run == 0.0 or (y - f_prev) * run < 0.0:
+                if run != 0.0:
+                    plays0, xh0 = _plays_at(h, plays0, run, u_prev)
+                if y == xh0 + g * u_prev:
+                    vc[j] = u_prev
+                    e = a * e
+                    j += 1
+                    continue
+                run = 1.0 if y > xh0 + g * u_prev else -1.0
+                # rising in run * V: knots where each play engages, the (H + g V) there, slopes after
+                order = np.argsort(run * plays0 + r)
+                kn = (run * plays0 + r)[order]
+                k_all = np.concatenate(([run * u_prev], np.maximum(kn, run * u_prev)))
+                sl = b * (rho + np.concatenate(([0.0], np.cumsum(pw[order])))) + g
+                fvals = run * (xh0 + g * u_prev) + np.concatenate(
+                    ([0.0], np.cumsum(sl[:-1] * np.diff(k_all)))
+                )
+                knots, fk, slopes = k_all.tolist(), fvals.tolist(), sl.tolist()
+            u = run * _pl_solve(knots, fk, slopes, run * y)
+            e = a * e - ob0 * (u - u_prev)
+            vc[j] = u_prev = u
+            j += 1
+            if j < n and s > 0.0:
+                done, e, window = _linear_stretch(
+                    params, dt_s, xc, j, window, run, knots, fk, slopes, g, u_prev, e, vc
+                )
+                if done:
+                    j += done
+                    u_prev = float(vc[j - 1])
+        if run != 0.0:
+            plays0, xh0 = _plays_at(h, plays0, run, u_prev)
+        plays = plays0
+        xh = xh0
+        law: LawState = PlayState(u_prev, plays, xh)
+    else:
+        assert isinstance(state.law, HysteresisState)
+        y0 = state.law.position_um - h.b_um_per_v * u_prev
+        xh = state.law.position_um
+        for j in range(n):
+            y = float(xc[j]) - float(wa @ e) - wb * u_prev
+            u = _ch_solve(h, g, y, u_prev, y0)
+            xh = y - g * u
+            y0 = xh - h.b_um_per_v * u
+            e = a * e - ob0 * (u - u_prev)
+            vc[j] = u_prev = u
+        law = HysteresisState(u_prev, xh)
+    return vc, law, e
+
+
 __all__ = [
+    "CREEP_DRIVERS",
     "CreepSpectrum",
     "FamilyParams",
     "FamilyState",
