@@ -549,12 +549,15 @@ class ModelChoice:
     train_rms_um: dict[str, float]
     holdout: tuple[int, ...]
     fits: dict[str, FamilyFit] = field(default_factory=dict)
+    not_adoptable: tuple[str, ...] = ()
 
     def table(self) -> str:
         """One line per candidate: training and held-out RMS, the chosen one marked."""
         lines = [f"{'model':<40} {'train RMS (nm)':>15} {'held-out RMS (nm)':>18}"]
         for name in self.heldout_rms_um:
             mark = "  <- chosen" if name == self.chosen else ""
+            if name in self.not_adoptable:
+                mark = "  (not adopted: its inverse is too slow for streaming)"
             train, held = 1e3 * self.train_rms_um[name], 1e3 * self.heldout_rms_um[name]
             lines.append(f"{name:<40} {train:>15.2f} {held:>18.2f}{mark}")
         return "\n".join(lines)
@@ -579,6 +582,7 @@ def choose_model(
     plays: int = 16,
     alpha_per_v: float | None = None,
     creep_drivers: Sequence[str] = CREEP_DRIVERS,
+    adoptable_drivers: Sequence[str] = CREEP_DRIVERS,
 ) -> ModelChoice:
     """Fit every law on the training experiments, compare held-out prediction RMS, refit the best.
 
@@ -600,6 +604,9 @@ def choose_model(
     creep_drivers
         Creep drivers to try for every law (``position``, ``voltage``): candidates are named
         ``family/<law>`` (position-driven creep) and ``family/<law>/voltage-creep``.
+    adoptable_drivers
+        Creep drivers the choice may adopt; the others are fitted and scored but never chosen
+        (the daemon passes :data:`piezod.model.family.REALTIME_CREEP_DRIVERS`).
     """
     train = holdout_mask(data.n_experiments, holdout_every)
     heldout: dict[str, float] = {}
@@ -620,7 +627,8 @@ def choose_model(
         resid = _centre(data, x) - s.yc
         train_rms[name] = float(np.sqrt(np.mean(resid[s.train_rows] ** 2)))
         heldout[name] = float(np.sqrt(np.mean(resid[s.test_rows] ** 2))) if s.test_rows.any() else math.nan
-    scores = {k: (v if math.isfinite(v) else train_rms[k]) for k, v in heldout.items()}
+    blocked = tuple(k for k, f in fits.items() if f.params.creep_driver not in adoptable_drivers)
+    scores = {k: (v if math.isfinite(v) else train_rms[k]) for k, v in heldout.items() if k not in blocked}
     chosen = min(scores, key=lambda k: scores[k])
     final = None
     if chosen in fits:
@@ -632,7 +640,7 @@ def choose_model(
             creep_driver=fits[chosen].params.creep_driver,
         )
     holdout = tuple(int(i) for i in np.flatnonzero(~train))
-    return ModelChoice(chosen, final, heldout, train_rms, holdout, fits)
+    return ModelChoice(chosen, final, heldout, train_rms, holdout, fits, blocked)
 
 
 def family_model_config(params: FamilyParams) -> FamilyModelConfig:

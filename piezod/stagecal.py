@@ -390,7 +390,7 @@ def choose_for_experiments(
     """
     from piezod import calibrate_dynamic as cd
     from piezod import calibrate_family as cf
-    from piezod.model.family import CreepSpectrum, FamilyParams
+    from piezod.model.family import REALTIME_CREEP_DRIVERS, CreepSpectrum, FamilyParams
 
     data = cd.prepare_dynamic(
         experiments,
@@ -406,7 +406,9 @@ def choose_for_experiments(
         alpha = dyn.alpha_per_v
         spectrum = CreepSpectrum(tuple(map(float, dyn.taus_s)), tuple(map(float, dyn.weights)))
         others["dynamic"] = FamilyParams(dyn.hysteresis, spectrum)
-    choice = cf.choose_model(data, others=others, alpha_per_v=alpha)
+    choice = cf.choose_model(
+        data, others=others, alpha_per_v=alpha, adoptable_drivers=REALTIME_CREEP_DRIVERS
+    )
     report: dict[str, Any] = {
         "chosen": choice.chosen,
         "held_out_experiments": list(choice.holdout),

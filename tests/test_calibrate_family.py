@@ -69,3 +69,15 @@ def test_solve_linear_bounds_fixed_columns_and_ridge() -> None:
 def test_holdout_mask_spreads_the_held_out_experiments() -> None:
     assert holdout_mask(8, 4).tolist() == [True, True, True, False, True, True, True, False]
     assert holdout_mask(1, 4).tolist() == [True]
+
+
+def test_the_streaming_choice_never_adopts_a_member_whose_inverse_is_too_slow() -> None:
+    """The daemon's calibration scores voltage-driven creep but adopts only real-time members."""
+    from piezod.model.family import REALTIME_CREEP_DRIVERS
+
+    data = _pi_session()
+    choice = choose_model(data, alpha_per_v=3e-3, holdout_every=3, adoptable_drivers=REALTIME_CREEP_DRIVERS)
+    assert "family/prandtl-ishlinskii/voltage-creep" in choice.heldout_rms_um
+    assert "voltage-creep" not in choice.chosen, choice.table()
+    assert choice.fit is None or choice.fit.params.creep_driver in REALTIME_CREEP_DRIVERS
+    assert "not adopted" in choice.table()
