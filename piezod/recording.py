@@ -298,12 +298,12 @@ def decode_text(raw: bytes, encoding: str | None, path: str | None = None) -> tu
                 return raw.decode(enc), enc
             except UnicodeDecodeError as exc:
                 raise RecordingError(f"not {enc} text despite its byte-order mark", path) from exc
-    for enc in ("utf-8", "cp1252", "latin-1"):
+    for enc in ("utf-8", "cp1252"):
         try:
             return raw.decode(enc), enc
         except UnicodeDecodeError:
             continue
-    raise RecordingError("cannot decode the file", path)  # pragma: no cover - latin-1 decodes anything
+    return raw.decode("latin-1"), "latin-1"  # maps every byte: the last resort cannot fail
 
 
 def read_recording(
