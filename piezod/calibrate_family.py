@@ -155,12 +155,26 @@ def _play_features(data: DynamicCalibrationData, thresholds: F64) -> F64:
     return out
 
 
-def default_thresholds(data: DynamicCalibrationData, count: int) -> F64:
-    """Play half-widths spread evenly up to half the recorded voltage span."""
+def default_thresholds(data: DynamicCalibrationData, count: int, spacing: str = "mixed") -> F64:
+    """Play half-widths up to half the recorded voltage span.
+
+    ``uniform``: evenly spaced; ``geometric``: log-spaced from 1/200 of the span, dense near zero;
+    ``mixed`` (default): a quarter log-spaced from 1/200 of the span up to the first even step
+    (the shape of loops smaller than any in the frame), the rest evenly spaced.
+    """
     v = data.grid_voltage_v[data.compared]
     span = float(np.max(v) - np.min(v))
     if not span > 0.0:
         raise CalibrationError("the recordings span no voltage: nothing to fit a hysteresis law to")
+    top = 0.5 * span * count / (count + 1)
+    if spacing == "geometric":
+        return np.geomspace(span / 200.0, top, count)
+    if spacing == "mixed":
+        n_even = count - count // 4
+        small = np.geomspace(span / 200.0, top / n_even, count // 4, endpoint=False)
+        return np.concatenate([small, top * np.arange(1, n_even + 1) / n_even])
+    if spacing != "uniform":
+        raise CalibrationError(f"unknown threshold spacing {spacing!r} (uniform, geometric, mixed)")
     return 0.5 * span * np.arange(1, count + 1) / (count + 1)
 
 
@@ -421,11 +435,12 @@ def fit_family(
     *,
     alpha_per_v: float | None = None,
     train: NDArray[np.bool_] | None = None,
-    plays: int = 16,
+    plays: int = 32,
     taus: F64 | None = None,
     regularisation: float = 1e-4,
     skip_s: float = 0.0,
     creep_driver: str = "position",
+    thresholds: F64 | None = None,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -450,6 +465,9 @@ def fit_family(
         (start-up transients the session reconstruction cannot know).
     creep_driver
         ``position`` or ``voltage``: what the fitted creep spectrum follows.
+    thresholds
+        Play half-widths (V) of the Prandtl-Ishlinskii law (default :func:`default_thresholds`
+        with ``plays`` plays).
 
     Raises
     ------
@@ -469,7 +487,8 @@ def fit_family(
     rest_v = data.rest_voltage_v
     try:
         if law == "prandtl-ishlinskii":
-            r = default_thresholds(data, plays)
+            r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
+            plays = r.size
             f_grid = _play_features(data, r)
             theta, w, kappa, tau, rms, it = _alternate(
                 s,
@@ -479,8 +498,12 @@ def fit_family(
                 slope_of_theta=np.ones(plays + 1) if voltage else None,
             )
             b = float(theta.sum())
+            # plays the fit left at zero weight only cost inverse time: dropped (one kept)
+            used = np.flatnonzero(theta[1:] > 0.0)
+            used = used if used.size else np.array([0])
+            weights = theta[1:][used] / b
             hyst: HysteresisParams | PlayParams = PlayParams(
-                b, float(theta[0] / b), tuple(map(float, r)), tuple(float(t / b) for t in theta[1:])
+                b, float(theta[0] / b), tuple(map(float, r[used])), tuple(map(float, weights))
             )
         else:
             ch_slope = np.array([1.0, 0.0]) if voltage else None
@@ -579,7 +602,7 @@ def choose_model(
     laws: Sequence[str] = LAWS,
     holdout_every: int = 4,
     others: dict[str, FamilyParams] | None = None,
-    plays: int = 16,
+    plays: int = 32,
     alpha_per_v: float | None = None,
     creep_drivers: Sequence[str] = CREEP_DRIVERS,
     adoptable_drivers: Sequence[str] = CREEP_DRIVERS,

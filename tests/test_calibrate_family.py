@@ -81,3 +81,22 @@ def test_the_streaming_choice_never_adopts_a_member_whose_inverse_is_too_slow() 
     assert "voltage-creep" not in choice.chosen, choice.table()
     assert choice.fit is None or choice.fit.params.creep_driver in REALTIME_CREEP_DRIVERS
     assert "not adopted" in choice.table()
+
+
+def test_held_out_preisach_stage_picks_a_law_with_closing_loops() -> None:
+    """The held-out stage (Preisach, never tuned on): the play law still predicts best by held-out data."""
+    path = resolve_stage("preisach-stage")
+    assert path is not None
+    stage = StageConfig.from_file(path)
+    plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
+    sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-230.0, 230.0))
+    data = prepare_dynamic(sess.recorded_experiments(), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
+    choice = choose_model(data, alpha_per_v=3e-3, holdout_every=3, creep_drivers=("position",))
+    assert choice.chosen == "family/prandtl-ishlinskii", choice.table()
+    fit = choice.fit
+    assert fit is not None and isinstance(fit.params.hysteresis, PlayParams)
+    # unused plays are dropped; the small, log-spaced thresholds exist for loops below the frame's
+    h = fit.params.hysteresis
+    assert 0 < len(h.thresholds_v) <= 32 and all(w > 0 for w in h.weights)
+    held = choice.heldout_rms_um
+    assert held["family/prandtl-ishlinskii"] < 0.5 * held["family/coleman-hodgdon"]
