@@ -275,8 +275,13 @@ def _alternate(
     tol: float = 1e-5,
     *,
     slope_of_theta: F64 | None = None,
+    refine: bool = True,
 ) -> tuple[F64, F64, float, float, float, int]:
     """Alternating bounded least squares: ``(theta, w, kappa, tau_lag, rms_train, iterations)``.
+
+    The alternation finds the basin; it converges slowly along the valley where the hysteresis
+    coefficients and the creep weights trade off (their product is what the data pin), so
+    ``refine`` continues with joint Gauss-Newton steps (:func:`_joint_refine`).
 
     The drive lag enters to first order: ``x(V lagged by tau) = x(V) - tau dx/dt``.
     ``slope_of_theta`` selects voltage-driven creep: the law's rest slope is
@@ -367,7 +372,114 @@ def _alternate(
             stall += 1
             if stall >= 2:
                 break
+    if refine:
+        return _joint_refine(s, f_grid, f_rest, lam, best, slope_of_theta=slope_of_theta)
     return best
+
+
+def _joint_refine(
+    s: _Session,
+    f_grid: F64,
+    f_rest: F64,
+    lam: float,
+    start: tuple[F64, F64, float, float, float, int],
+    *,
+    slope_of_theta: F64 | None = None,
+    max_iter: int = 40,
+    tol: float = 1e-6,
+) -> tuple[F64, F64, float, float, float, int]:
+    """Joint Gauss-Newton refinement of ``(theta, w, kappa, tau)`` from the alternation's result.
+
+    The position is bilinear in ``theta`` and ``w``, ``x_c = A(w) theta = x_h + B(theta) w``, so
+    its linearisation at ``(theta0, w0)`` is ``A(w0) theta + B(theta0) (w - w0)``; with the
+    stiffness and the lag (chain rule through ``x_c + kappa x_c^2 - tau dx/dt``) every step is one
+    bounded, regularised linear least-squares problem in all coefficients at once
+    (:func:`solve_linear`), accepted with step halving only when the regularised training cost
+    falls.
+    """
+    data = s.data
+    voltage = slope_of_theta is not None
+    sv: F64 = np.zeros(f_grid.shape[1]) if slope_of_theta is None else slope_of_theta
+    f = f_grid[data.compared]
+    n_f, m = f.shape[1], s.taus.size
+    e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(n_f)]
+    rates = np.column_stack([_rate(data, f_grid[:, j]) for j in range(n_f)])
+    tr = s.train_rows
+    reg = s.creep_reg
+
+    def parts(theta: F64, w: F64, kappa: float, tau: float) -> tuple[F64, F64, F64, F64, F64, F64]:
+        total = float(w.sum())
+        xh = f @ theta
+        if voltage:
+            slope = float(sv @ theta)
+            cv = total * f[:, 0] + e_f[0] @ w
+            xc = xh + slope * cv
+            a = f + np.outer(cv, sv)
+            b = slope * (f[:, 0][:, None] + e_f[0])
+            rate_cols = rates + total * np.outer(rates[:, 0], sv)
+        else:
+            e_x = np.tensordot(theta, np.stack(e_f), axes=1)
+            xc = (1.0 + total) * xh + e_x @ w
+            a = (1.0 + total) * f + np.column_stack([e_f[j] @ w for j in range(n_f)])
+            b = xh[:, None] + e_x
+            rate_cols = (1.0 + total) * rates
+        rate = rate_cols @ theta
+        x = xc + kappa * xc * xc - tau * rate
+        return x, xc, a, b, rate, rate_cols
+
+    def cost(theta: F64, w: F64, kappa: float, tau: float, ridge_scale: float) -> tuple[float, float]:
+        x = parts(theta, w, kappa, tau)[0]
+        resid = (_centre(data, x) - s.yc)[tr]
+        fit = float(resid @ resid)
+        return fit + lam * ridge_scale**2 * float(np.sum((reg @ w) ** 2)), math.sqrt(fit / max(1, resid.size))
+
+    theta, w, kappa, tau, rms, it = start
+    theta, w = theta.copy(), w.copy()
+    if not math.isfinite(rms):
+        return start
+    lower = np.concatenate([np.zeros(n_f), np.zeros(m), [-np.inf, 0.0]])
+    upper = np.concatenate([np.full(n_f, np.inf), np.full(m, MAX_TOTAL_CREEP / m), [np.inf, _MAX_LAG_S]])
+    lower[0] = 1e-9
+    b = parts(theta, w, kappa, tau)[3]
+    ridge_scale = float(np.linalg.norm(_centre(data, b)[tr])) / math.sqrt(m)
+    current, rms = cost(theta, w, kappa, tau, ridge_scale)
+    norms = np.linalg.norm(_centre(data, f)[tr], axis=0)
+    dead = norms <= 1e-9 * float(np.max(norms))
+    lower[:n_f][dead] = 0.0
+    upper[:n_f][dead] = 0.0
+    for _ in range(max_iter):
+        x, xc, a, b, rate, rate_cols = parts(theta, w, kappa, tau)
+        chain = 1.0 + 2.0 * kappa * xc
+        # d rate / d w_i: the creep's instantaneous share scales the rate of its driver
+        rate_w = float(sv @ theta) * rates[:, 0] if voltage else rates @ theta
+        jac = np.column_stack(
+            [chain[:, None] * a - tau * rate_cols, chain[:, None] * b - tau * rate_w[:, None], xc * xc, -rate]
+        )
+        p0 = np.concatenate([theta, w, [kappa, tau]])
+        jc = _centre(data, jac)[tr]
+        target = (s.yc - _centre(data, x))[tr] + jc @ p0
+        ridge = np.zeros((reg.shape[0], p0.size))
+        ridge[:, n_f : n_f + m] = math.sqrt(lam) * ridge_scale * reg
+        p, _ = solve_linear(jc, target, lower=lower, upper=upper, ridge=ridge)
+        step = 1.0
+        accepted = False
+        while step >= 1.0 / 16.0:
+            q = p0 + step * (p - p0)
+            th, wq, kq, tq = q[:n_f], q[n_f : n_f + m], float(q[-2]), float(q[-1])
+            if float(wq.sum()) < MAX_TOTAL_CREEP:
+                new, new_rms = cost(th, wq, kq, tq, ridge_scale)
+                if new < current:
+                    accepted = True
+                    break
+            step *= 0.5
+        if not accepted:
+            break
+        gain = (current - new) / current
+        theta, w, kappa, tau, current, rms = th.copy(), wq.copy(), kq, tq, new, new_rms
+        it += 1
+        if gain < tol:
+            break
+    return theta, w, kappa, tau, rms, it
 
 
 def _heldout(s: _Session, params: FamilyParams) -> float:
@@ -513,7 +625,13 @@ def fit_family(
                 y = _hysteresis_unit(data, alpha)
                 f_grid = np.column_stack([data.grid_voltage_v, y])
                 res = _alternate(
-                    s, f_grid, np.array([rest_v, 0.0]), regularisation, max_iter=4, slope_of_theta=ch_slope
+                    s,
+                    f_grid,
+                    np.array([rest_v, 0.0]),
+                    regularisation,
+                    max_iter=4,
+                    slope_of_theta=ch_slope,
+                    refine=False,
                 )
                 return res[4], res[0], res[1], res[2], res[5]
 
