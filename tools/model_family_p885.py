@@ -2,7 +2,7 @@
 
 Usage::
 
-    python tools/model_family_p885.py [--plays 16] [--json out.json]
+    python tools/model_family_p885.py [--plays 32] [--json out.json]
 
 Fits every law of the family (:func:`piezod.calibrate_family.fit_family`: hysteresis law, creep
 spectrum, stiffness, first-order drive lag) to ``piezod/data/real/pi-p885/identification.csv``
@@ -42,7 +42,7 @@ def _prepare(name: str):  # type: ignore[no-untyped-def]
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[1])
-    ap.add_argument("--plays", type=int, default=16)
+    ap.add_argument("--plays", type=int, default=32)
     ap.add_argument("--json", default=None)
     ap.add_argument("--skip-s", type=float, default=1.0, help="start-up transient left out (s)")
     args = ap.parse_args()
