@@ -176,6 +176,7 @@ class Engine:
         on_fault: Callable[[FaultInfo], None] | None = None,
     ) -> None:
         self.config = config
+        self._uncalibrated: list[str] = sorted(set(config.axes) - calibrated_axes(config))
         self.url = url
         self.rate_hz = float(config.sample_rate_hz)
         self.recording_dir = Path(
@@ -474,6 +475,8 @@ class Engine:
             voltage_v={n: d.voltage_v for n, d in self.drivers.items()} if known else {},
             recording=self._recording_name,
             sensitivity_scale={a: t.scale for a, t in self._trackers.items()},
+            calibrated=not self._uncalibrated,
+            uncalibrated_axes=self._uncalibrated,
         )
 
     def check_scan(self, request: ScanRequest) -> None:
