@@ -63,9 +63,8 @@ import datetime as _dt
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
-from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -75,7 +74,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from piezod import __version__
 from piezod.config import AxisConfig, ScannerConfig, ThesisModelConfig, calibrated_notes
 from piezod.errors import CalibrationError, ModelError
-from piezod.fitstats import at_bounds, fit_warnings, jacobian_covariance
+from piezod.fitstats import FitResult, fit_warnings, parameter_statistics
 from piezod.model.params import ThesisParams
 from piezod.recording import Experiment
 
@@ -475,61 +474,25 @@ class ExperimentFit:
         return 0.5 * (self.v_max + self.v_min)
 
 
-@dataclass(frozen=True, eq=False)
-class CalibrationResult:
-    """Result of :func:`fit` (all values in the units of the parameter names).
+@dataclass(frozen=True, eq=False, kw_only=True)
+class CalibrationResult(FitResult):
+    """Result of :func:`fit`: the shared :class:`~piezod.fitstats.FitResult` (standard errors,
+    covariance, correlations, residuals, condition, bounds, ``n``, ``dof``, solver status) and
+    the thesis model's parameters.
 
     Attributes
     ----------
     params
         Fitted parameters.
-    stderr
-        Standard error per parameter name (0 for fixed ones; inf when undetermined).
-    correlations
-        Correlation matrix of the free parameters (order of ``free``).
-    free, fixed
-        Names of the fitted and of the held parameters.
-    at_bounds
-        Free parameters that ended on a bound (their standard errors are not meaningful).
-    condition_number
-        Condition number of the column-normalised Jacobian of the free parameters.
     experiments
         Per-experiment summaries.
-    residuals_um
-        Measured minus fitted position, per sample, experiments concatenated.
-    cost
-        ``0.5 * sum(rho(r^2))`` at the solution (the solver's cost).
-    n
-        Number of samples.
     loss
         Loss function used.
-    nfev
-        Model evaluations.
-    success, message
-        Solver status.
-    seconds
-        Wall time of the fit, including the automatic start.
-    warnings
-        Things the user should know (undetermined or bounded parameters, ...).
     """
 
     params: ThesisParams
-    stderr: Mapping[str, float]
-    correlations: F64
-    free: tuple[str, ...]
-    fixed: tuple[str, ...]
-    at_bounds: tuple[str, ...]
-    condition_number: float
     experiments: tuple[ExperimentFit, ...]
-    residuals_um: F64
-    cost: float
-    n: int
     loss: str
-    nfev: int
-    success: bool
-    message: str
-    seconds: float
-    warnings: tuple[str, ...] = field(default=())
 
     @property
     def values(self) -> dict[str, float]:
@@ -743,18 +706,21 @@ def fit(
     # Covariance from the (projected) Jacobian and the residual variance.
     p_free = int(mask.sum())
     dof = max(np.size(resid_for_dof) - p_free - n_exp, 1)
-    fitcov = jacobian_covariance(jac_for_cov, float(np.sum(np.asarray(resid_for_dof) ** 2)), dof)
-    cond = fitcov.condition_number
-    sd_z = fitcov.sd[:p_free]
-    corr = fitcov.corr[:p_free, :p_free]
     vals = np.array([getattr(params, k) for k in PARAM_NAMES])
     dz = np.where(_LOG, vals, 1.0)
     dz[5] = 1.0 / a2_scale
-    stderr = dict.fromkeys(PARAM_NAMES, 0.0)
-    for j, k in enumerate(free):
-        stderr[k] = float(abs(dz[PARAM_NAMES.index(k)]) * sd_z[j])
-
-    bounded = at_bounds(PARAM_NAMES, free, z_sol, lo, hi)
+    stats = parameter_statistics(
+        jac_for_cov,
+        float(np.sum(np.asarray(resid_for_dof) ** 2)),
+        dof,
+        names=PARAM_NAMES,
+        free=free,
+        z=z_sol,
+        lo=lo,
+        hi=hi,
+        dvalue_dz=dz,
+    )
+    cond, bounded = stats.condition_number, stats.at_bounds
     warnings = list(notes) + fit_warnings(bounded, cond, params.u_um_per_v, params.b_um_per_v)
     vh = 0.5 * (data.v_max - data.v_min)
     kk = (1.0 - params.a1 * np.exp(-1.0 / (data.frequency_hz * params.tau_s))) * (
@@ -786,8 +752,9 @@ def fit(
     resid_um.setflags(write=False)
     return CalibrationResult(
         params=params,
-        stderr=MappingProxyType(stderr),
-        correlations=corr,
+        stderr=stats.stderr,
+        covariance=stats.covariance,
+        correlations=stats.correlations,
         free=free,
         fixed=fixed,
         at_bounds=bounded,
@@ -796,6 +763,7 @@ def fit(
         residuals_um=resid_um,
         cost=cost,
         n=int(resid_um.size),
+        dof=stats.dof,
         loss=loss,
         nfev=nfev[0],
         success=success,

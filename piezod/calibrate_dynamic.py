@@ -51,9 +51,8 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
-from types import MappingProxyType
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -70,7 +69,7 @@ from piezod.config import (
     calibrated_notes,
 )
 from piezod.errors import CalibrationError, ModelError
-from piezod.fitstats import at_bounds, fit_warnings, jacobian_covariance
+from piezod.fitstats import FitResult, fit_warnings, parameter_statistics
 from piezod.model.dynamic import (
     MAX_TOTAL_CREEP,
     DynamicParams,
@@ -667,51 +666,25 @@ class DynamicExperimentFit:
         return self.layout.label
 
 
-@dataclass(frozen=True, eq=False)
-class DynamicCalibrationResult:
-    """Result of :func:`fit_dynamic` (values in the units of the parameter names).
+@dataclass(frozen=True, eq=False, kw_only=True)
+class DynamicCalibrationResult(FitResult):
+    """Result of :func:`fit_dynamic`: the shared :class:`~piezod.fitstats.FitResult` (standard
+    errors, covariance, correlations, residuals, condition, bounds, ``n``, ``dof``, solver
+    status) and the dynamic model's parameters.
 
     Attributes
     ----------
     params
         The fitted model (with the creep structure used).
-    stderr
-        Standard error per fitted parameter name (0 for held ones).
-    correlations
-        Correlation matrix of the free parameters (order of ``free``).
-    free, fixed
-        Names of the fitted and of the held parameters.
-    at_bounds
-        Free parameters that ended on a bound.
-    condition_number
-        Of the column-normalised, offset-projected Jacobian.
     experiments
         Per-experiment summaries, in time order.
-    residuals_um
-        Measured minus fitted position at the compared samples.
-    cost, n, nfev, simulations, success, message, seconds
-        Solver summary (``simulations``: runs of the session's ODE + creep for new ``alpha``).
-    warnings
-        Things the user should know.
+    simulations
+        Runs of the session's ODE + creep for new ``alpha``.
     """
 
     params: DynamicParams
-    stderr: Mapping[str, float]
-    correlations: F64
-    free: tuple[str, ...]
-    fixed: tuple[str, ...]
-    at_bounds: tuple[str, ...]
-    condition_number: float
     experiments: tuple[DynamicExperimentFit, ...]
-    residuals_um: F64
-    cost: float
-    n: int
-    nfev: int
     simulations: int
-    success: bool
-    message: str
-    seconds: float
-    warnings: tuple[str, ...] = field(default=())
 
     @property
     def values(self) -> dict[str, float]:
@@ -891,13 +864,18 @@ def fit_dynamic(
 
     n_exp = data.n_experiments
     dof = max(resid_um.size - p_free - n_exp, 1)
-    fitcov = jacobian_covariance(res.jac, float(resid_um @ resid_um), dof)
-    cond, sd_z, corr = fitcov.condition_number, fitcov.sd, fitcov.corr
-    scale = np.array([alpha, b, u, 1.0, 1.0])  # d value / d z
-    stderr = dict.fromkeys(PARAM_NAMES, 0.0)
-    for j, k in enumerate(free):
-        stderr[k] = float(scale[PARAM_NAMES.index(k)] * sd_z[j])
-    bounded = at_bounds(PARAM_NAMES, free, z_sol, lo, hi)
+    stats = parameter_statistics(
+        res.jac,
+        float(resid_um @ resid_um),
+        dof,
+        names=PARAM_NAMES,
+        free=free,
+        z=z_sol,
+        lo=lo,
+        hi=hi,
+        dvalue_dz=np.array([alpha, b, u, 1.0, 1.0]),  # d value / d z
+    )
+    cond, bounded = stats.condition_number, stats.at_bounds
     warnings += fit_warnings(bounded, cond, u, b)
     if not res.success:
         warnings.append(f"solver did not converge: {res.message}")
@@ -916,8 +894,9 @@ def fit_dynamic(
     resid_um.setflags(write=False)
     return DynamicCalibrationResult(
         params=params,
-        stderr=MappingProxyType(stderr),
-        correlations=corr,
+        stderr=stats.stderr,
+        covariance=stats.covariance,
+        correlations=stats.correlations,
         free=free,
         fixed=tuple(k for k in PARAM_NAMES if k in fixed),
         at_bounds=bounded,
@@ -926,6 +905,7 @@ def fit_dynamic(
         residuals_um=resid_um,
         cost=float(res.cost),
         n=int(resid_um.size),
+        dof=stats.dof,
         nfev=nfev[0],
         simulations=model.simulations,
         success=bool(res.success),
