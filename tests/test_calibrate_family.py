@@ -18,6 +18,7 @@ from piezod.calibrate_family import (
     solve_linear,
 )
 from piezod.model.play import PlayParams
+from piezod.simulator import session_experiments
 
 
 @cache
@@ -27,7 +28,7 @@ def _pi_session() -> DynamicCalibrationData:
     stage = StageConfig.from_file(path)
     plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
     sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-230.0, 230.0))
-    return prepare_dynamic(sess.recorded_experiments(), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
+    return prepare_dynamic(session_experiments(sess), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
 
 
 def test_prandtl_ishlinskii_is_chosen_on_a_prandtl_ishlinskii_stage_by_held_out_data() -> None:
