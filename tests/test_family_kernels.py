@@ -30,8 +30,6 @@ def _args(p: FamilyParams, dt: float) -> tuple[float, np.ndarray, float, np.ndar
 @given(seed=st.integers(0, 10_000), scale=st.floats(0.05, 30.0), ch=st.booleans())
 def test_the_compiled_loops_equal_the_python_reference(seed: int, scale: float, ch: bool) -> None:
     """Same targets (a random walk's forward positions) through both: identical voltages and states."""
-    if kernels.NO_JIT:
-        pytest.skip("PIEZOD_NO_JIT=1: the loops run as Python")
     rng = np.random.default_rng(seed)
     p = FamilyParams(CH if ch else PI, SPEC, 0.0, 0.0, "voltage")
     dt = 1e-5

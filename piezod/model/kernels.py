@@ -7,8 +7,8 @@ sample's creep, so the inverse is a sequential loop: per sample the creep's memo
 that loop costs microseconds per sample; compiled it costs tens of nanoseconds, inside the
 streaming budget (150 ns per sample and axis, ``piezod bench inverse``).
 
-The loops are written as plain typed Python (``_pi_loop``, ``_ch_loop``: the reference, and
-what runs when ``PIEZOD_NO_JIT=1``) and compiled by numba with ``cache=True`` (the machine
+The loops are written as plain typed Python (``_pi_loop``, ``_ch_loop``: the reference; numba's
+own ``NUMBA_DISABLE_JIT=1`` runs them uncompiled) and compiled by numba with ``cache=True`` (the machine
 code is stored next to the module and reloaded by later processes). :func:`warm_up` compiles
 or loads them; :class:`piezod.model.axis_model.FamilyAxisModel` calls it when a model with
 voltage-driven creep is built, so the compilation never falls into the real-time path.
@@ -23,17 +23,14 @@ realistic sample rates) and at most 60 Newton steps.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable
 from typing import Any, cast
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
-
-#: Set ``PIEZOD_NO_JIT=1`` to run the loops as plain Python (debugging; microseconds per sample).
-NO_JIT = os.environ.get("PIEZOD_NO_JIT", "") == "1"
 
 
 def _pi_loop(
@@ -211,18 +208,11 @@ def _ch_loop(
 
 Loop = Callable[..., tuple[float, float]]
 
-if NO_JIT:
-    ch_solve: Callable[..., float] = _ch_solve_py
-    pi_loop: Loop = _pi_loop
-    ch_loop: Loop = _ch_loop
-else:
-    import numba
-
-    _jit: Any = numba.njit(cache=True, nogil=True)
-    # _ch_loop calls ch_solve by its global name, resolved when _ch_loop compiles
-    ch_solve = cast(Callable[..., float], _jit(_ch_solve_py))
-    pi_loop = cast(Loop, _jit(_pi_loop))
-    ch_loop = cast(Loop, _jit(_ch_loop))
+_jit: Any = numba.njit(cache=True, nogil=True)
+# _ch_loop calls ch_solve by its global name, resolved when _ch_loop compiles
+ch_solve = cast(Callable[..., float], _jit(_ch_solve_py))
+pi_loop = cast(Loop, _jit(_pi_loop))
+ch_loop = cast(Loop, _jit(_ch_loop))
 
 _warm = False
 
@@ -238,4 +228,4 @@ def warm_up() -> None:
     _warm = True
 
 
-__all__ = ["NO_JIT", "ch_loop", "ch_solve", "pi_loop", "warm_up"]
+__all__ = ["ch_loop", "ch_solve", "pi_loop", "warm_up"]
