@@ -52,6 +52,13 @@ def register(sub: Any) -> None:
         "build) instead of a fresh hil_sim",
     )
     stream.add_argument(
+        "--model",
+        default=None,
+        metavar="NAME",
+        help="run this axis model's inverse on every axis in the streaming path (triangle targets), "
+        "e.g. family/prandtl-ishlinskii/voltage-creep (the richest; names as in 'bench inverse')",
+    )
+    stream.add_argument(
         "--api-load", action="store_true", help="stream with the daemon while its API is polled"
     )
     stream.add_argument(
@@ -126,7 +133,10 @@ def _run_link_stream(args: argparse.Namespace) -> dict[str, Any]:
             ) from exc
         raise
     result: dict[str, Any] = module.run_stream_bench(args)
-    keys = ("axes", "rate_hz", "seconds", "samples_sent", "samples_read", "underruns", "crc_errors")
+    keys = (
+        "axes", "rate_hz", "seconds", "samples_sent", "samples_read", "underruns", "crc_errors",
+        "model", "model_ns_per_sample", "host_clamped_samples",
+    )
     print(", ".join(f"{k} {result[k]}" for k in keys if k in result), file=human_stream(args))
     return result
 
