@@ -92,11 +92,18 @@ def _run_inverse(args: argparse.Namespace) -> dict[str, Any]:
     )
     for name, m in result["models"].items():
         print(
-            f"axis model {name:<26} {m['ns_per_sample']:7.1f} ns/sample/axis "
+            f"axis model {name:<45} {m['ns_per_sample']:7.1f} ns/sample/axis "
             f"(x{m['ns_per_sample'] / result['scipy_ns_per_sample']:.2f} of the scipy-based inverse), "
             f"round trip {m['max_roundtrip_error_rel']:.1e} of range",
             file=out,
         )
+    print(
+        f"richest runtime model ({result['richest_model']}): {result['richest_ns_per_sample']:.1f} "
+        f"ns/sample/axis, x{result['richest_ratio']:.2f} of the scipy-based inverse (target <= "
+        f"{result['target_model_ns_per_sample']:.0f} ns): "
+        f"{'met' if result['richest_meets_target'] else 'NOT met'}",
+        file=out,
+    )
     print(
         f"{result['samples']} samples in blocks of {result['block_samples']}, best of {result['repeats']}; "
         f"targets {'met' if result['meets_targets'] else 'NOT met'}",
