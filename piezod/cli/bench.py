@@ -28,7 +28,7 @@ def register(sub: Any) -> None:
             "findings outside physical bounds and the time per audit."
         ),
     )
-    p.add_argument("which", choices=("inverse", "stream", "audit"), help="what to benchmark")
+    p.add_argument("which", choices=("inverse", "stream", "audit", "effects"), help="what to benchmark")
     add_json_option(p)
     inv = p.add_argument_group("inverse")
     inv.add_argument(
@@ -69,6 +69,17 @@ def register(sub: Any) -> None:
     aud.add_argument(
         "--sessions", type=int, default=2, metavar="N", help="hidden-effect sessions per effect (audit)"
     )
+    eff = p.add_argument_group("effects")
+    eff.add_argument(
+        "--effects",
+        nargs="+",
+        default=None,
+        metavar="ID",
+        help="effects (default: every effect hil_sim can inject): online correction with the baseline "
+        "and the audit's extended model on the built-in stage + the effect",
+    )
+    eff.add_argument("--plot", metavar="F.png", help="bar chart of what each model leaves (effects)")
+    eff.add_argument("--full-frame", action="store_true", help="the full calibration frame (effects)")
     p.set_defaults(func=run)
 
 
@@ -164,9 +175,31 @@ def _run_audit(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def _run_effects(args: argparse.Namespace) -> dict[str, Any]:
+    from piezod.effects_bench import format_table, plot_effects, run_effects_bench
+    from piezod.progress import progress_bar
+    from piezod.simulator import sim_effect_names
+
+    known = sim_effect_names()
+    names = args.effects or list(known)
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise PiezodError(f"--effects: unknown effect {unknown[0]!r} (one of {', '.join(known)})")
+    with progress_bar(desc="effects", total=None, unit="step") as bar:
+
+        def tick(_step: str) -> None:
+            bar.update(1)
+
+        result = run_effects_bench(names, reduced=not args.full_frame, on_step=tick)
+    print(format_table(result), file=human_stream(args))
+    if args.plot:
+        print(f"plot: {plot_effects(result, args.plot)}", file=human_stream(args))
+    return result
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``piezod bench``."""
-    runners = {"inverse": _run_inverse, "stream": _run_stream, "audit": _run_audit}
+    runners = {"inverse": _run_inverse, "stream": _run_stream, "audit": _run_audit, "effects": _run_effects}
     result = runners[args.which](args)
     write_json(args.json, result)
     return 0
