@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from piezod import calibrate_dynamic as cd
 from piezod.config import AxisName, ScannerConfig, default_sim_config_path, load_config
-from piezod.extensions import Adoption, adopt_findings, extended_config
+from piezod.extensions import Adoption, adopt_findings, experiments_through_parts, extended_config
 from piezod.linearity import experiment_linearity
 from piezod.model.parts import Parts
 from piezod.model.registry import REGISTRY
@@ -114,18 +114,6 @@ def _dynamic(exps: Sequence[Experiment], base: ScannerConfig, axis: AxisName) ->
     axes = dict(cfg.axes)
     axes[axis] = axes[axis].model_copy(update={"model": "dynamic"})
     return cfg.model_copy(update={"axes": axes})
-
-
-def _through_parts(exps: Sequence[Experiment], parts: Parts) -> list[Experiment]:
-    """The experiments as the wrapped model sees them: voltages and positions through the parts' inverse."""
-    return [
-        dataclasses.replace(
-            e,
-            voltage_v=parts.voltage_in(np.asarray(e.voltage_v)),
-            position_um=parts.position_in(np.asarray(e.position_um), np.asarray(e.t_s)),
-        )
-        for e in exps
-    ]
 
 
 def _verify(
@@ -227,7 +215,7 @@ def run_case(
         out["adoption"] = {"adopted": list(adoption.adopted), "skipped": list(adoption.skipped)}
         if adoption.effects:
             parts = Parts.from_effects(adoption.effects)
-            refit = _dynamic(_through_parts(exps, parts), base, axis)
+            refit = _dynamic(experiments_through_parts(exps, parts), base, axis)
             extended = extended_config(refit, axis, adoption)
             out["extended"] = {"rows": _verify(bench, extended, axis, points, loops)}
         else:

@@ -9,15 +9,19 @@ the reason. The written YAML says in a comment which finding became which parame
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from piezod.config import ScannerConfig, dump_config, load_config
 from piezod.errors import ConfigError, ModelError
 from piezod.model.parts import PART_EFFECTS, Parts
+from piezod.recording import Experiment
 
 #: Why a registry effect has no runtime part.
 NO_PART_REASON: dict[str, str] = {
@@ -103,6 +107,19 @@ def extended_config(config: ScannerConfig, axis: str, adoption: Adoption) -> Sca
     return config.model_copy(update={"axes": axes})
 
 
+def experiments_through_parts(experiments: Sequence[Experiment], parts: Parts) -> list[Experiment]:
+    """The experiments as the model inside the parts sees them: voltages and positions through the
+    parts' exact inverse (times from the recording: the stage's clock)."""
+    return [
+        dataclasses.replace(
+            e,
+            voltage_v=parts.voltage_in(np.asarray(e.voltage_v, dtype=np.float64)),
+            position_um=parts.position_in(np.asarray(e.position_um, dtype=np.float64), np.asarray(e.t_s)),
+        )
+        for e in experiments
+    ]
+
+
 def write_extended_config(
     base: str | Path, axis: str, findings: Sequence[Mapping[str, Any]], out: str | Path, source: str
 ) -> Adoption:
@@ -137,4 +154,11 @@ def write_extended_config(
     return adoption
 
 
-__all__ = ["NO_PART_REASON", "Adoption", "adopt_findings", "extended_config", "write_extended_config"]
+__all__ = [
+    "NO_PART_REASON",
+    "Adoption",
+    "adopt_findings",
+    "experiments_through_parts",
+    "extended_config",
+    "write_extended_config",
+]
