@@ -140,7 +140,10 @@ def _ch_solve_py(
     if f0 == 0.0:
         return u0
     sgn = -1.0 if f0 > 0.0 else 1.0
-    step = abs(f0) / slope
+    # the tangent at u0 (slope after the reversal, the smallest on the branch) overshoots the root,
+    # so it brackets it at once on an ODE branch; the loop below widens the bracket otherwise
+    der0 = slope - alpha * (sgn * y0 + delta)
+    step = abs(f0) / (der0 if der0 > 0.0 else slope)
     lo = u0
     hi = u0 + sgn * step
     for _ in range(200):
