@@ -17,7 +17,7 @@ from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.model.parts import PART_EFFECTS, Parts, PartsAxisModel, with_parts
 from piezod.model.play import PlayParams
 from piezod.model.registry import REGISTRY
-from piezod.service.axes import axis_model
+from piezod.service.axes import AxisDriver, axis_model
 
 W = np.exp(-np.arange(16) / 6.0)
 PI = PlayParams.uniform(0.11, 0.45, 320.0, 16, 0.55 * W / W.sum())
@@ -135,6 +135,17 @@ def test_the_axis_config_wraps_its_model_in_the_parts() -> None:
     assert isinstance(axis_model(AxisConfig(**base)), FamilyAxisModel)
     with pytest.raises(ValueError, match=r"extensions: .*saturation\.x_sat_um"):
         AxisConfig(**base, extensions={"saturation": {"x_sat_um": 1.0}})
+    # the engine's axis driver streams it without knowing (blocks, hold, adopt into another model)
+    full = AxisConfig(**{**base, "slew_rate_v_per_s": 1e6}, extensions=ALL.effects())
+    d = AxisDriver("x", full, 100_000.0)
+    targets = _targets(3000, 1e-5) + d.position_um - _targets(1, 1e-5)[0]
+    volts = np.concatenate([d.corrected(b).voltage_v for b in np.array_split(targets, 4)])
+    x, _ = d.model.forward(volts, 1e-5, d.model.rest(full.safe_voltage_v))
+    np.testing.assert_allclose(x, targets, rtol=0, atol=1e-9)
+    d.hold(500)
+    plain = AxisDriver("x", AxisConfig(**base), 100_000.0)
+    plain.adopt_state(d)
+    assert plain.voltage_v == pytest.approx(d.voltage_v)
 
 
 def test_the_parts_apply_the_same_laws_as_the_simulated_stage() -> None:
