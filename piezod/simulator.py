@@ -53,6 +53,27 @@ def spawn_sim(
         raise LinkError(str(exc)) from exc
 
 
+def sim_effect_names() -> tuple[str, ...]:
+    """The effect ids the simulated stage can inject (``hil_sim.effects.EFFECT_NAMES``)."""
+    from hil_sim.effects import EFFECT_NAMES
+
+    return tuple(EFFECT_NAMES)
+
+
+def load_stage(config_path: str | Path, effects: Sequence[str], axis: str, seed: int) -> Any:
+    """The simulated stage of ``config_path`` (its ``simulation:`` section) with ``effects``
+    (``NAME=VALUE`` / ``NAME.FIELD=VALUE``), one axis, stepped in this process (``hil_sim.stage.Stage``:
+    ``step(volts, dt)``, ``sense(positions)``)."""
+    from hil_sim.errors import SimError
+    from hil_sim.stage import Stage, StageConfig
+
+    try:
+        config = StageConfig.from_file(config_path).with_effects(*effects)
+        return Stage(config, axes=(axis,), seed=seed)  # type: ignore[arg-type]
+    except SimError as exc:
+        raise ConfigError(str(exc)) from exc
+
+
 def usb_sim_backend(socket_path: str) -> Any:
     """The pyusb backend forwarding to the simulator's USB socket (``hil_sim.usb_backend``)."""
     from hil_sim.usb_backend import SimSocketBackend
