@@ -235,10 +235,25 @@ class Engine:
 
     # -- lifecycle ------------------------------------------------------------------------------
 
+    @property
+    def position_sensor(self) -> bool:
+        """Whether positions are measured: the scanner config's ``microscope.position_sensor``
+        and the board's CAPABILITIES (a board may report that it has no sensor) both say so."""
+        mic = self.config.microscope
+        if mic is not None and not mic.position_sensor:
+            return False
+        session = getattr(self._board, "session", None)
+        caps = getattr(session, "capabilities", None)
+        return bool(getattr(caps, "position_sensor", True))
+
     def open(self, timeout_s: float = 10.0) -> None:
         """Connect to the board, configure it, start streaming (hold), start the recorder."""
         self._recorder.start()
         self._board.open(timeout_s)
+        if not self.position_sensor and self._trackers:
+            # the sensitivity tracker follows measured positions: without a sensor it stays off
+            log.info("no position sensor: sensitivity tracking off")
+            self._trackers = {}
         order = list(self._board.axes)
         if order != list(self.drivers):
             self.drivers = {name: self.drivers[name] for name in order}
@@ -741,8 +756,9 @@ class Engine:
         else:
             meta["model"] = "none"
         mic = self.config.microscope
+        if mic is not None or not self.position_sensor:
+            meta["position_sensor"] = "yes" if self.position_sensor else "no"
         if mic is not None:
-            meta["position_sensor"] = "yes" if mic.position_sensor else "no"
             meta["z_monitor_ratio"] = mic.z_monitor_ratio
         z_ratio = None if mic is None else mic.z_monitor_ratio
         axes = tuple(a for a, plan in plans.items() if plan is not None) or ("x",)
@@ -846,6 +862,8 @@ class Engine:
 
     def set_line_linearity(self, value: LineLinearity, corrected: bool) -> None:
         """Called by the recorder when a line of the fast axis completes (feeds the tracker)."""
+        if not self.position_sensor:
+            return
         self._last_line = value
         tracker = self._trackers.get("x")
         if corrected and tracker is not None:
