@@ -52,7 +52,7 @@ class MicroscopeConfig:
         Noise of the tip height (nm rms).
     feedback_passes
         Most secant passes per block that find the z voltage; the passes stop once the block's
-        residual (target - true extension) is below ``feedback_tolerance_nm`` rms (a block on a
+        residual (target - true extension) is below ``feedback_tolerance_nm`` rms (1 nm) (a block on a
         plateau needs two, one with an edge of a z piezo whose slope changes at every reversal -
         Prandtl-Ishlinskii plays - up to eight).
     feedback_tolerance_nm
@@ -68,7 +68,7 @@ class MicroscopeConfig:
     feedback_bandwidth_hz: float = 2000.0
     height_noise_nm_rms: float = 0.2
     feedback_passes: int = 8
-    feedback_tolerance_nm: float = 0.3
+    feedback_tolerance_nm: float = 1.0
     monitor_ratio: float = MONITOR_RATIO
     seed: int = 0
 
