@@ -125,6 +125,17 @@ class ImageLinearity:
         }
 
 
+def _step(profile: F64) -> float:
+    """The 10-90 percentile spread of a line-levelled profile (0 for too few values)."""
+    ok = np.isfinite(profile)
+    if ok.sum() < 8:
+        return 0.0
+    xs = np.arange(profile.size, dtype=np.float64)
+    d = profile[ok] - np.polyval(np.polyfit(xs[ok], profile[ok], 1), xs[ok])
+    lo, hi = np.percentile(d, [10, 90])
+    return float(hi - lo)
+
+
 def _crossings(profile: F64, xs: F64) -> tuple[F64, F64]:
     """Rising and falling crossings of the mid level of a levelled profile (sub-pixel)."""
     ok = np.isfinite(profile)
@@ -234,7 +245,12 @@ def find_flanks(image: F64, geo: Geometry) -> Flanks:
     xs = geo.pixel_centres_um()
     lo_um, hi_um = float(xs[0]), float(xs[-1])
     pairs: list[tuple[int, F64, F64]] = []
+    # profiles that miss the pattern (between the posts of a 2D grating) are flat: no flanks
+    steps = np.array([_step(image[r]) for r in range(image.shape[0])])
+    floor = 0.3 * float(np.percentile(steps, 90)) if steps.size else 0.0
     for r in range(image.shape[0]):
+        if not steps[r] > floor:
+            continue
         up, dn = _crossings(image[r], xs)
         if up.size == 0 or dn.size == 0:
             continue
@@ -334,7 +350,7 @@ def image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) 
         raise RecordingError(
             f"{name} image: the flanks do not follow a line pattern of pitch {pitch_um:g} um "
             f"(slope {g:.3g}): "
-            "a wrong --pitch-um, or not a 1D line pattern across the fast axis"
+            "a wrong --pitch-um, or not a pattern of lines across this axis"
         )
     return ImageLinearity(
         direction=direction,
@@ -349,6 +365,62 @@ def image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) 
         nonlinearity_pct=100.0 * sigma / measured,
         length_error_pct=100.0 * (measured - geo.range_um) / geo.range_um,
     )
+
+
+def slow_geometry(geo: Geometry, lines: int) -> Geometry:
+    """The geometry of the transposed image: the slow axis as the "fast" coordinate, one pixel per line.
+
+    A line's slow coordinate at a given column is the commanded slow position when the tip passed
+    it: ``lines`` steps of ``slow_range / lines`` plus a constant per column (the slow axis moves
+    on during the line), which the regression's intercept per column absorbs.
+    """
+    return Geometry(
+        range_um=geo.slow_range_um,
+        offset_um=geo.offset_slow_um,
+        slow_range_um=geo.range_um,
+        offset_slow_um=geo.offset_um,
+        pixels=lines,
+        rotation_deg=geo.rotation_deg,
+        line_rate_hz=geo.line_rate_hz,
+    )
+
+
+def slow_image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) -> ImageLinearity:
+    """(4.14)-(4.16) of the slow axis from the columns of an image of a 2D grating of pitch ``pitch_um``.
+
+    The columns of the image are analysed as lines (:func:`image_linearity` of the transposed
+    image, :func:`slow_geometry`); a 1D line pattern along the slow axis has no flanks there.
+
+    Raises
+    ------
+    RecordingError
+        No 2D pattern across the slow axis (too few flanks).
+    """
+    return image_linearity(
+        np.ascontiguousarray(image.T), slow_geometry(geo, image.shape[0]), pitch_um, direction
+    )
+
+
+def sensor_slow_linearity(
+    t_s: F64, target_um: F64, position_um: F64, start_s: float, stop_s: float
+) -> tuple[float, float]:
+    """(nonlinearity %, length error %) of the slow axis from its sensor, as the images see it.
+
+    The slow-axis samples between ``start_s`` and ``stop_s`` (the image lines): the measured
+    position regressed on the commanded one, (4.14)-(4.16) over the commanded span.
+    """
+    s = (t_s >= start_s) & (t_s <= stop_s) & np.isfinite(position_um)
+    if s.sum() < 8:
+        raise RecordingError("too few slow-axis sensor samples during the image")
+    x, y = target_um[s], position_um[s]
+    nominal = float(np.ptp(x))
+    if not nominal > 0:
+        raise RecordingError("the slow axis did not move during the image")
+    g, c = np.polyfit(x, y, 1)
+    resid = y - (g * x + c)
+    measured = float(g) * nominal
+    sigma = float(np.sqrt(float(resid @ resid) / max(1, resid.size - 2)))
+    return 100.0 * sigma / measured, 100.0 * (measured - nominal) / nominal
 
 
 def pitch_error(image: F64, geo: Geometry, pitch_um: float) -> tuple[F64, F64]:
@@ -401,4 +473,14 @@ def plot_pitch_error(
     return path
 
 
-__all__ = ["Flanks", "ImageLinearity", "find_flanks", "image_linearity", "pitch_error", "plot_pitch_error"]
+__all__ = [
+    "Flanks",
+    "ImageLinearity",
+    "find_flanks",
+    "image_linearity",
+    "pitch_error",
+    "plot_pitch_error",
+    "sensor_slow_linearity",
+    "slow_geometry",
+    "slow_image_linearity",
+]
