@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod.errors import RecordingError
-from piezod.image import F64, Geometry
+from piezod.image import F64, Geometry, level
 
 _WIDTH_TOLERANCE = 0.35
 _OUTLIER_SIGMAS = 5.0
@@ -247,7 +247,10 @@ def find_flanks(image: F64, geo: Geometry) -> Flanks:
     pairs: list[tuple[int, F64, F64]] = []
     # profiles that miss the pattern (between the posts of a 2D grating) are flat: no flanks
     steps = np.array([_step(image[r]) for r in range(image.shape[0])])
-    floor = 0.3 * float(np.percentile(steps, 90)) if steps.size else 0.0
+    levelled = level(image)
+    finite = levelled[np.isfinite(levelled)]
+    spread = float(np.ptp(np.percentile(finite, [5, 95]))) if finite.size else 0.0
+    floor = 0.3 * max(float(np.percentile(steps, 90)) if steps.size else 0.0, spread)
     for r in range(image.shape[0]):
         if not steps[r] > floor:
             continue
@@ -335,9 +338,10 @@ def image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) 
     x = fl.k.astype(np.float64) * pitch_um
     g, r, ng = _regress(x, fl.xi_um, group)
     keep = np.ones(x.size, dtype=bool)
-    mad = float(np.median(np.abs(r - np.median(r)))) * 1.4826
+    # flank positions are quantised to a fraction of a pixel: no tighter outlier band than that
+    mad = max(float(np.median(np.abs(r - np.median(r)))) * 1.4826, 0.2 * geo.pixel_um)
     if mad > 0:
-        keep = np.abs(r) <= _OUTLIER_SIGMAS * max(mad, 1e-6)
+        keep = np.abs(r - np.median(r)) <= _OUTLIER_SIGMAS * mad
         if keep.sum() >= 6 and not keep.all():
             g, r, ng = _regress(x[keep], fl.xi_um[keep], group[keep])
     n = int(keep.sum())
@@ -367,16 +371,23 @@ def image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) 
     )
 
 
-def slow_geometry(geo: Geometry, lines: int) -> Geometry:
+def slow_geometry(geo: Geometry, lines: int, row_slow_um: F64 | None = None) -> Geometry:
     """The geometry of the transposed image: the slow axis as the "fast" coordinate, one pixel per line.
 
     A line's slow coordinate at a given column is the commanded slow position when the tip passed
-    it: ``lines`` steps of ``slow_range / lines`` plus a constant per column (the slow axis moves
-    on during the line), which the regression's intercept per column absorbs.
+    it: a step per line plus a constant per column (the slow axis moves on during the line), which
+    the regression's intercept per column absorbs. The step is that of ``row_slow_um`` (the
+    commanded slow position of every line, e.g. its mean over the line) when given - a raster
+    that spans the slow range in ``lines - 1`` steps differs from ``slow_range / lines`` by
+    ``1 / lines`` - else ``slow_range / lines``.
     """
+    span, centre = geo.slow_range_um, geo.offset_slow_um
+    if row_slow_um is not None and row_slow_um.size == lines and lines > 2:
+        step, first = np.polyfit(np.arange(lines, dtype=np.float64), row_slow_um, 1)
+        span, centre = float(abs(step)) * lines, float(first + step * (lines - 1) / 2)
     return Geometry(
-        range_um=geo.slow_range_um,
-        offset_um=geo.offset_slow_um,
+        range_um=span,
+        offset_um=centre,
         slow_range_um=geo.range_um,
         offset_slow_um=geo.offset_um,
         pixels=lines,
@@ -385,11 +396,14 @@ def slow_geometry(geo: Geometry, lines: int) -> Geometry:
     )
 
 
-def slow_image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) -> ImageLinearity:
+def slow_image_linearity(
+    image: F64, geo: Geometry, pitch_um: float, direction: int, row_slow_um: F64 | None = None
+) -> ImageLinearity:
     """(4.14)-(4.16) of the slow axis from the columns of an image of a 2D grating of pitch ``pitch_um``.
 
     The columns of the image are analysed as lines (:func:`image_linearity` of the transposed
-    image, :func:`slow_geometry`); a 1D line pattern along the slow axis has no flanks there.
+    image, :func:`slow_geometry` with the lines' commanded slow positions ``row_slow_um``); a 1D
+    line pattern along the slow axis has no flanks there.
 
     Raises
     ------
@@ -397,7 +411,7 @@ def slow_image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: 
         No 2D pattern across the slow axis (too few flanks).
     """
     return image_linearity(
-        np.ascontiguousarray(image.T), slow_geometry(geo, image.shape[0]), pitch_um, direction
+        np.ascontiguousarray(image.T), slow_geometry(geo, image.shape[0], row_slow_um), pitch_um, direction
     )
 
 

@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from piezod.cli._common import (
     add_json_option,
     finite_float,
@@ -77,9 +79,26 @@ def _headline(pairs: list[ImagePair]) -> ImagePair:
 
 def _slow_axis(entry: dict[str, Any], rec: Any, head: ImagePair, pitch_um: float, say: Any) -> None:
     """The slow axis's (4.14)-(4.16) from the columns of a 2D grating image (and its sensor's)."""
+    rows: dict[int, Any] = {1: None, -1: None}
+    y = None if rec.axis is None or rec.target_um is None else rec.axis == "y"
+    rs = raster_samples(rec)
+    if y is not None and y.any():
+        for d in (1, -1):  # the commanded slow position of every line: its mean over the line
+            rows[d] = np.array(
+                [
+                    float(
+                        np.mean(
+                            np.interp(
+                                rs.t_s[(rs.line == k) & (rs.direction == d)], rec.t_s[y], rec.target_um[y]
+                            )
+                        )
+                    )
+                    for k in range(rs.lines)
+                ]
+            )
     try:
         slow = {
-            name: slow_image_linearity(img, head.geometry, pitch_um, d)
+            name: slow_image_linearity(img, head.geometry, pitch_um, d, rows[d])
             for name, img, d in (("trace", head.trace, 1), ("retrace", head.retrace, -1))
         }
     except RecordingError:
@@ -93,16 +112,13 @@ def _slow_axis(entry: dict[str, Any], rec: Any, head: ImagePair, pitch_um: float
         ),
         file=say,
     )
-    if entry["position_sensor"] and rec.axis is not None and rec.target_um is not None:
-        rs = raster_samples(rec)
+    if entry["position_sensor"] and y is not None and y.any():
         t_img = rs.t_s[rs.line >= 0]
-        y = rec.axis == "y"
-        if y.any():
-            nl, le = sensor_slow_linearity(
-                rec.t_s[y], rec.target_um[y], rec.position_um[y], float(t_img.min()), float(t_img.max())
-            )
-            entry["slow_sensor_linearity"] = {"nonlinearity_pct": nl, "length_error_pct": le}
-            print(f"  slow axis, sensor (samples): nonlin {nl:.4f} % length {le:+.4f} %", file=say)
+        nl, le = sensor_slow_linearity(
+            rec.t_s[y], rec.target_um[y], rec.position_um[y], float(t_img.min()), float(t_img.max())
+        )
+        entry["slow_sensor_linearity"] = {"nonlinearity_pct": nl, "length_error_pct": le}
+        print(f"  slow axis, sensor (samples): nonlin {nl:.4f} % length {le:+.4f} %", file=say)
 
 
 def run(args: argparse.Namespace) -> int:
