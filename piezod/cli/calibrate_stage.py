@@ -52,6 +52,11 @@ def run_on_stage(args: argparse.Namespace) -> int:
         engine = Engine(base, url, recording_dir=recdir)
         engine.open()
         try:
+            if not engine.position_sensor:
+                raise CalibrationError(
+                    "the board (or the scanner config's microscope section) has no position sensor: "
+                    "calibrate from images of a reference instead (--from-images --pitch-um P)"
+                )
             with progress_bar(desc="calibration frame", total=round(frame.duration_s, 1), unit="s") as bar:
                 shown = [0.0]
 
