@@ -105,7 +105,7 @@ def test_held_out_preisach_stage_picks_a_law_with_closing_loops() -> None:
     assert choice.chosen == "family/prandtl-ishlinskii", choice.table()
     fit = choice.fit
     assert fit is not None and isinstance(fit.params.hysteresis, PlayParams)
-    # unused plays are dropped; the small, log-spaced thresholds exist for loops below the frame's
+    # plays the fit leaves at zero weight are dropped
     h = fit.params.hysteresis
     assert 0 < len(h.thresholds_v) <= 32 and all(w > 0 for w in h.weights)
     held = choice.heldout_rms_um
