@@ -94,6 +94,7 @@ def main() -> int:
     ap.add_argument("--stage", default="pi-stage", help="preset name or scanner YAML with simulation:")
     ap.add_argument("--json", default=None)
     ap.add_argument("--loops", type=int, default=4)
+    ap.add_argument("--skip-dynamic", action="store_true", help="verify the chosen model only")
     ap.add_argument(
         "--markdown", default=None, metavar="F.json", help="print the tables of a saved --json run"
     )
@@ -129,7 +130,7 @@ def main() -> int:
     chosen_kind = calibrated.axes[axis].model
     rows: list[dict[str, Any]] = []
     points = verification_points(calibrated, frame, axis=axis)
-    kinds = [chosen_kind] + (["dynamic"] if chosen_kind != "dynamic" else [])
+    kinds = [chosen_kind] + (["dynamic"] if chosen_kind != "dynamic" and not args.skip_dynamic else [])
     for kind in kinds:
         cfg = calibrated.axes[axis].model_copy(update={"model": kind, "slew_rate_v_per_s": 1e6})
         driver = AxisDriver(axis, cfg, rate)
