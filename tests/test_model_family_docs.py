@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import re
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = (ROOT / "docs" / "model-family.md").read_text(encoding="utf-8")
@@ -59,3 +64,20 @@ def test_verification_tables_have_the_tool_format_and_the_held_out_stage_is_labe
             _section(title),
         )
     assert "Held-out physics" in _section("### 6.2")
+
+
+@pytest.mark.slow
+def test_full_frame_calibrate_and_verify_on_pi_stage_meets_the_targets(tmp_path: Path) -> None:
+    """The #9 targets on the other-physics stage, full frame, in process (~5-20 min)."""
+    out = tmp_path / "verify.json"
+    tool = str(ROOT / "tools" / "model_family_verify.py")
+    subprocess.run(
+        [sys.executable, tool, "--stage", "pi-stage", "--skip-dynamic", "--json", str(out)],
+        check=True,
+        cwd=ROOT,
+    )
+    summary = json.loads(out.read_text())["summary"]
+    inside, outside = summary["family/inside"], summary["family/outside"]
+    assert inside["max_nonlinearity_pct"] <= 0.05
+    assert inside["max_abs_length_error_pct"] <= 0.1
+    assert outside["max_abs_length_error_pct"] <= 1.0
