@@ -20,7 +20,11 @@ coarse grid. Events inside one :meth:`advance` span (stop index reached, underru
 ramp end) are processed in time order.
 
 Fault injection (:class:`BoardConfig`): bit flips in outgoing and incoming bytes and dropped
-outgoing frames, from a generator seeded by ``BoardConfig.seed``.
+outgoing frames, from a generator seeded by ``BoardConfig.seed``; a board of another protocol
+version; an ADC wired to the DAC (``adc_loopback``: the sensor reads back the applied code).
+At run time (:attr:`Board.faults`, :class:`FaultHooks`): the next replies to a request type
+lost on the way, a request type refused with a forced NAK. :mod:`hil_sim.wire` runs a board
+on the wall clock over a socket pair (the link tests' board).
 
 Over 800 lines because it is the firmware's whole state machine (PROTOCOL.md sections 2-7) in
 one class, as the C firmware under ``firmware_proto/c`` is one core; splitting it would put the
@@ -34,7 +38,7 @@ import logging
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -167,6 +171,16 @@ class BoardConfig:
         calibrations (``piezod.imagecal.read_truth_log``).
     sync_outputs
         Digital sync outputs driven from SYNC frames (0..8; CAPABILITIES ``sync_outputs``).
+    protocol_version
+        The protocol version this board speaks (another one: a board the host must refuse).
+    caps_protocol_version
+        The version CAPABILITIES reports (None: ``protocol_version``).
+    adc_loopback
+        The ADC reads the DAC code it is given (ADC code = quantised DAC code, the ADC scale
+        ignored): a bench with each DAC output wired to its ADC input and no stage, for link
+        tests (the stage is not simulated while it is set).
+    record_played
+        Keep every played row of codes (:attr:`Board.played`), for tests.
     """
 
     amplifier_ranges_v: tuple[tuple[float, float], ...] | None = None
@@ -189,6 +203,10 @@ class BoardConfig:
     microscope: MicroscopeConfig | None = None
     truth_log: str | None = None
     sync_outputs: int = 3
+    protocol_version: int = PROTOCOL_VERSION
+    caps_protocol_version: int | None = None
+    adc_loopback: bool = False
+    record_played: bool = False
 
     def __post_init__(self) -> None:
         for name in ("corrupt_rate", "corrupt_in_rate", "drop_rate"):
@@ -205,6 +223,24 @@ class BoardConfig:
             raise ConfigError(f"board: idle_block_s must be > 0, got {self.idle_block_s!r}")
         if self.seed < 0:
             raise ConfigError(f"board: seed must be >= 0, got {self.seed}")
+
+
+@dataclass(slots=True)
+class FaultHooks:
+    """Faults injected at run time (mutable: a test changes them while the board runs).
+
+    Attributes
+    ----------
+    drop_replies
+        Per request type, how many of the next replies are lost on the way to the host (the reply
+        stays in the board's duplicate cache: a retransmission is answered from there).
+    force_nak
+        Per request type, ``(reason, detail)`` of the NAK every such request gets instead of
+        being applied (a refused CONFIGURE also latches ``CONFIG_REJECTED``).
+    """
+
+    drop_replies: dict[MessageType, int] = field(default_factory=dict)
+    force_nak: dict[MessageType, tuple[NakReason, int]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)
@@ -297,7 +333,11 @@ class Board:
             raise ConfigError(f"board: max_samples_per_frame {mspf} outside [1, {limit}] for {C} channels")
         self._caps = Capabilities(
             reply_to_seq=0,
-            protocol_version=PROTOCOL_VERSION,
+            protocol_version=(
+                self._cfg.protocol_version
+                if self._cfg.caps_protocol_version is None
+                else self._cfg.caps_protocol_version
+            ),
             firmware_version=self._cfg.firmware_version,
             dac_bits=self._cfg.dac_bits,
             adc_bits=self._cfg.adc_bits,
@@ -312,6 +352,20 @@ class Board:
         )
         self._ep = Endpoint()
         self._fx_rng = np.random.default_rng(self._cfg.seed)
+        #: Faults injected at run time.
+        self.faults = FaultHooks()
+        #: Every HELLO received (the host's session ids).
+        self.hellos: list[Hello] = []
+        #: Control requests applied (retransmissions answered from the cache not counted), by type name.
+        self.requests: dict[str, int] = {}
+        #: With ``record_played``: ``(first index, codes)`` of every block played.
+        self.played: list[tuple[int, NDArray[np.int16]]] = []
+        #: Injected faults so far: frames dropped, bytes damaged (out / in), replies lost.
+        self.injected = {"frames_dropped": 0, "bytes_out": 0, "bytes_in": 0, "replies_dropped": 0}
+        #: Most samples the FIFO held, samples it accepted.
+        self.max_fifo_level = 0
+        self.samples_accepted = 0
+        self._held_out: list[bytes] = []
         self._t = float(now)
         self._t_power_up = float(now)
 
@@ -538,12 +592,17 @@ class Board:
         now = self._t
         raw = bytes(data)
         if self._cfg.corrupt_in_rate > 0.0:
-            raw = self._corrupt(raw, self._cfg.corrupt_in_rate)
+            raw = self._corrupt(raw, self._cfg.corrupt_in_rate, "bytes_in")
         ok_before = self._ep.decoder_stats.frames_ok
         dup_before = self._ep.stats.duplicate_requests
         for event in self._ep.receive(raw, now):
             if isinstance(event, DecodeError):
                 self._on_decode_error(event, now)
+            elif isinstance(event, Frame) and event.ack_requested and self._reply_dropped(event):
+                self._held_out.append(self._ep.data_to_send())
+                self._on_frame(event, now)
+                self._ep.data_to_send()  # the reply (and what it triggered) is lost on the way
+                self.injected["replies_dropped"] += 1
             elif isinstance(event, Frame):
                 self._on_frame(event, now)
             # Acked / Nacked / TimedOut cannot happen: the board sends no requests
@@ -578,15 +637,26 @@ class Board:
     def data_to_send(self) -> bytes:
         """The bytes the board wrote since the last call (after the fault injection)."""
         out = self._ep.data_to_send()
+        if self._held_out:
+            out = b"".join(self._held_out) + out
+            self._held_out.clear()
         if not out:
             return b""
         if self._cfg.drop_rate > 0.0:
             frames = out.split(b"\x00")[:-1]
             keep = self._fx_rng.random(len(frames)) >= self._cfg.drop_rate
+            self.injected["frames_dropped"] += int(np.count_nonzero(~keep))
             out = b"".join(f + b"\x00" for f, k in zip(frames, keep, strict=True) if k)
         if self._cfg.corrupt_rate > 0.0:
-            out = self._corrupt(out, self._cfg.corrupt_rate)
+            out = self._corrupt(out, self._cfg.corrupt_rate, "bytes_out")
         return out
+
+    def _reply_dropped(self, frame: Frame) -> bool:
+        left = self.faults.drop_replies.get(frame.msg.TYPE, 0)
+        if left <= 0:
+            return False
+        self.faults.drop_replies[frame.msg.TYPE] = left - 1
+        return True
 
     def next_deadline(self) -> float:
         """Earliest time at which :meth:`advance` has scheduled work (may be in the past)."""
@@ -596,11 +666,12 @@ class Board:
             t = min(t, self._tick_time(self._play_index))
         return t
 
-    def _corrupt(self, data: bytes, rate: float) -> bytes:
+    def _corrupt(self, data: bytes, rate: float, what: str) -> bytes:
         n = len(data)
         k = int(self._fx_rng.binomial(n, rate))
         if k == 0:
             return data
+        self.injected[what] += k
         arr = np.frombuffer(data, dtype=np.uint8).copy()
         pos = self._fx_rng.integers(0, n, size=k)
         bits = self._fx_rng.integers(0, 8, size=k).astype(np.uint8)
@@ -767,6 +838,8 @@ class Board:
         else:
             codes = np.concatenate((self._fifo[start:], self._fifo[: end - depth]))
         c64 = _quantise_top_bits(codes.astype(np.int64), self._cfg.dac_bits)
+        if self._cfg.record_played or self._cfg.adc_loopback:
+            self.played.append((self._play_index, c64.astype(np.int16)))
         volts = self._dac_offset[:, None] + self._dac_scale[:, None] * c64.T
         dt = 1.0 / self._conf.sample_rate_hz
         volts = slew_limit(volts, self._v_amp, self._cfg.amp_slew_v_per_s * dt)
@@ -812,8 +885,11 @@ class Board:
         self._pending = []
         self._pending_n = 0
         dt = 1.0 / self._conf.sample_rate_hz
-        x = self._stage.step(v, dt)
         self._stage_t = self._tick_time(first + v.shape[1] - 1)
+        if self._cfg.adc_loopback:
+            self._send_sensor(first, self._played_codes(first, v.shape[1]).T.astype(np.float64))
+            return
+        x = self._stage.step(v, dt)
         z_monitor: F64 | None = None
         mic = self._microscope
         if mic is not None:
@@ -838,6 +914,18 @@ class Board:
                         sensed[axes.index(a)] = 0.0
         step = float(1 << (16 - self._cfg.adc_bits))
         codes = np.rint((sensed - self._adc_offset[:, None]) / (self._adc_scale[:, None] * step)) * step
+        self._send_sensor(first, codes, offset)
+
+    def _send_sensor(self, first: int, codes: F64, offset: int | None = None) -> None:
+        """SENSOR frames of ADC ``codes`` (channels x ticks, decimated from ``first + offset``)."""
+        assert self._conf is not None
+        dec = self._conf.sensor_decimation
+        if offset is None:
+            offset = (self._start_index - first) % dec
+            codes = codes[:, offset::dec]
+        if codes.shape[1] == 0:
+            return
+        step = float(1 << (16 - self._cfg.adc_bits))
         codes = np.clip(codes, -32768.0, 32768.0 - step)
         table = np.ascontiguousarray(codes.T, dtype=np.int16)
         mspf = self._caps.max_samples_per_frame
@@ -846,6 +934,16 @@ class Board:
         for lo in range(0, table.shape[0], mspf):
             self._ep.send(Sensor(first_row + lo * dec, dec, table[lo : lo + mspf]), now)
         self._sensor_rows_sent += table.shape[0]
+
+    def _played_codes(self, first: int, n: int) -> NDArray[np.int16]:
+        """The codes played at indices ``[first, first + n)`` (``adc_loopback``), rows."""
+        parts = [(f, c) for f, c in self.played if f < first + n and f + c.shape[0] > first]
+        rows = np.concatenate([c for _, c in parts]) if parts else np.zeros((0, self._C), np.int16)
+        lo = first - (parts[0][0] if parts else first)
+        out: NDArray[np.int16] = rows[lo : lo + n]
+        if not self._cfg.record_played:  # keep only what a later block may still need
+            self.played = [(f, c) for f, c in self.played if f + c.shape[0] > first + n]
+        return out
 
     def _record_truth(self, first: int, rows: F64) -> None:
         if self._truth_fh is None:
@@ -948,6 +1046,14 @@ class Board:
             self._on_hello(frame, msg, now)
             return
         reply = frame.ack_requested
+        self.requests[msg.TYPE.name] = self.requests.get(msg.TYPE.name, 0) + 1
+        forced = self.faults.force_nak.get(msg.TYPE)
+        if forced is not None and self._hello_seen:
+            if reply:
+                self._ep.nak(frame, forced[0], forced[1])
+            if isinstance(msg, Configure):
+                self._fault(FaultCode.CONFIG_REJECTED, now, detail=forced[1])
+            return
         if not self._hello_seen or (
             self._state is BoardState.UNCONFIGURED and not isinstance(msg, Configure)
         ):
@@ -967,13 +1073,14 @@ class Board:
             self._leave_for_ramp(now)
 
     def _on_hello(self, frame: Frame, msg: Hello, now: float) -> None:
-        if msg.protocol_version != PROTOCOL_VERSION:
+        self.hellos.append(msg)
+        if msg.protocol_version != self._cfg.protocol_version:
             log.warning(
                 "HELLO in protocol version %d refused (this board speaks %d)",
                 msg.protocol_version,
-                PROTOCOL_VERSION,
+                self._cfg.protocol_version,
             )
-            self._ep.nak(frame, NakReason.VERSION_MISMATCH, PROTOCOL_VERSION)
+            self._ep.nak(frame, NakReason.VERSION_MISMATCH, self._cfg.protocol_version)
             return
         self._hello_seen = True
         self._session_id = msg.session_id
@@ -1130,7 +1237,9 @@ class Board:
         self._fifo[start : start + first_part] = rows[:first_part]
         if first_part < n:
             self._fifo[: n - first_part] = rows[first_part:]
+        self.samples_accepted += F + N - max(W, F)
         self._write_index = F + N
+        self.max_fifo_level = max(self.max_fifo_level, self._write_index - self._play_index)
         if self._state is BoardState.ARMED and self._write_index - self._play_index >= self._prefill:
             assert self._conf is not None
             self._sync_idle(now)
