@@ -345,7 +345,7 @@ class BoardSession:
         sample_rate_hz
             Overrides ``config.sample_rate_hz``.
         transport_factory
-            Instead of ``url``: a callable opening the transport (tests, in-memory boards).
+            Instead of ``url``: a callable opening the transport (tests: hil_sim.wire on a socket pair).
         on_event
             Subscribed before the handshake (sees :class:`LinkUp`).
         session_id
