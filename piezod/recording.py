@@ -373,7 +373,7 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
         raise RecordingError("no header line (only comments)", path, len(lines))
     header_line = i + 1
     names = [c.strip() for c in lines[i].split(",")]
-    _check_header(names, path, header_line)
+    _check_header(names, path, header_line, sensorless=not metadata_position_sensor(metadata))
 
     body = lines[i + 1 :]
     first = header_line + 1
@@ -458,7 +458,7 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
     rec = Recording(
         t_s=t,
         voltage_v=cols["voltage"],
-        position_um=cols["position"],
+        position_um=cols["position"] if "position" in cols else np.full(t.size, np.nan),
         target_um=cols.get("target"),
         z_voltage_v=cols.get("z_voltage"),
         axis=axis,
@@ -471,6 +471,29 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
     )
     split_experiments(rec)  # validates contiguity
     return rec
+
+
+def metadata_position_sensor(metadata: Mapping[str, str]) -> bool:
+    """False when the metadata say the board had no position sensor (``# position_sensor: no``)."""
+    return metadata.get("position_sensor", "yes").strip().lower() not in ("no", "false", "0")
+
+
+def require_position_sensor(rec: Recording | Experiment, what: str = "this analysis") -> None:
+    """Refuse a recording made without a position sensor for an analysis that needs positions.
+
+    Raises
+    ------
+    RecordingError
+        The recording says ``# position_sensor: no`` (a board without a sensor), or it has no
+        measured positions.
+    """
+    if not metadata_position_sensor(rec.metadata) or not np.isfinite(rec.position_um).all():
+        raise RecordingError(
+            f"recorded without a position sensor ('# position_sensor: no'): {what} needs measured "
+            "positions; images of a reference work without one (piezod image --pitch-um P, "
+            "piezod calibrate --from-images)",
+            rec.path,
+        )
 
 
 def _is_float(cell: str) -> bool:
@@ -588,21 +611,27 @@ def read_experiments(
     axis: str | None = None,
     allow_truncated_tail: bool = False,
     encoding: str | None = None,
+    require_sensor: bool = True,
 ) -> list[Experiment]:
     """Read recordings and split them into experiments.
 
     With several files, labels are prefixed by the file name (``name.csv:label``) so
     that they stay unique. ``axis`` keeps only that axis (rows of files without an
-    axis column are taken to belong to it).
+    axis column are taken to belong to it). Every analysis of experiments compares positions:
+    a recording made without a position sensor is refused (:func:`require_position_sensor`)
+    unless ``require_sensor`` is false.
 
     Raises
     ------
     RecordingError
-        For a malformed file, or when no experiment is left.
+        For a malformed file, a recording without a position sensor, or when no experiment is
+        left.
     """
     out: list[Experiment] = []
     for p in paths:
         rec = read_recording(p, allow_truncated_tail=allow_truncated_tail, encoding=encoding)
+        if require_sensor:
+            require_position_sensor(rec, "an analysis of measured positions")
         for e in split_experiments(rec):
             if axis is not None and e.axis not in (None, axis):
                 continue

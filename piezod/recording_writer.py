@@ -37,7 +37,7 @@ _FORMATS = {"t": "%.15g", "voltage": "%.10g", "position": "%.10g", "target": "%.
 _BAD_LABEL_CHARS = re.compile(r"[,\"\r\n]")
 
 
-def _check_header(names: list[str], path: str | None, line: int | None) -> None:
+def _check_header(names: list[str], path: str | None, line: int | None, *, sensorless: bool = False) -> None:
     seen: set[str] = set()
     for c in names:
         if not c:
@@ -46,7 +46,7 @@ def _check_header(names: list[str], path: str | None, line: int | None) -> None:
             raise RecordingError(f"header: duplicate column {c!r}", path, line)
         seen.add(c)
     for c in REQUIRED_COLUMNS:
-        if c not in seen:
+        if c not in seen and not (sensorless and c == "position"):
             raise RecordingError(
                 f"header: missing required column {c!r} (header has: {', '.join(names)})", path, line
             )

@@ -53,6 +53,27 @@ def spawn_sim(
         raise LinkError(str(exc)) from exc
 
 
+def sim_effect_names() -> tuple[str, ...]:
+    """The effect ids the simulated stage can inject (``hil_sim.effects.EFFECT_NAMES``)."""
+    from hil_sim.effects import EFFECT_NAMES
+
+    return tuple(EFFECT_NAMES)
+
+
+def load_stage(config_path: str | Path, effects: Sequence[str], axis: str, seed: int) -> Any:
+    """The simulated stage of ``config_path`` (its ``simulation:`` section) with ``effects``
+    (``NAME=VALUE`` / ``NAME.FIELD=VALUE``), one axis, stepped in this process (``hil_sim.stage.Stage``:
+    ``step(volts, dt)``, ``sense(positions)``)."""
+    from hil_sim.errors import SimError
+    from hil_sim.stage import Stage, StageConfig
+
+    try:
+        config = StageConfig.from_file(config_path).with_effects(*effects)
+        return Stage(config, axes=(axis,), seed=seed)  # type: ignore[arg-type]
+    except SimError as exc:
+        raise ConfigError(str(exc)) from exc
+
+
 def usb_sim_backend(socket_path: str) -> Any:
     """The pyusb backend forwarding to the simulator's USB socket (``hil_sim.usb_backend``)."""
     from hil_sim.usb_backend import SimSocketBackend
@@ -185,3 +206,59 @@ class SimBoard(SerialBoard):
             super().close(ramp_to_safe=ramp_to_safe)
         finally:
             self._stop_sim()
+
+
+def simulated_session(
+    stage: str | Path,
+    plan: Sequence[tuple[Any, ...]],
+    *,
+    effects: Sequence[str] = (),
+    sample_rate_hz: float = 1000.0,
+    seed: int = 0,
+    axis: str = "x",
+) -> list[tuple[str, Any, Any, Any]]:
+    """Run ``plan`` on a preset (or scanner YAML) stage of the simulator, in process, without a board.
+
+    Parameters
+    ----------
+    stage
+        Preset name (``pi-stage``, ``p885-stage``, ...: ``configs/sim-NAME.yaml``) or a scanner
+        YAML with a ``simulation:`` section.
+    plan
+        Experiments in order: ``("triangle", range_v, frequency_hz, offset_v, cycles, settle_cycles)``,
+        ``("sine", range_v, frequency_hz, offset_v, cycles, settle_cycles)`` or
+        ``("hold", voltage_v, duration_s)``.
+    effects
+        ``NAME=VALUE`` effects added to the stage (``piezod sim --effect``).
+    sample_rate_hz, seed, axis
+        Sampling, sensor-noise seed and the driven axis.
+
+    Returns
+    -------
+    list
+        Per recorded experiment ``(label, t_s, voltage_v, position_um)`` (numpy arrays).
+    """
+    from hil_sim.errors import SimError
+    from hil_sim.session import Hold, PlanItem, Sine, Triangle, run_session
+    from hil_sim.stage import StageConfig, resolve_stage
+
+    items: list[PlanItem] = []
+    for p in plan:
+        kind, *args = p
+        if kind in ("triangle", "sine"):
+            r, f, o, cycles, settle = args
+            cls = Triangle if kind == "triangle" else Sine
+            items.append(cls(float(r), float(f), float(o), cycles=int(cycles), settle_cycles=int(settle)))
+        elif kind == "hold":
+            items.append(Hold(float(args[0]), float(args[1])))
+        else:
+            raise ConfigError(f"unknown plan item {kind!r} (triangle, sine or hold)")
+    try:
+        path = resolve_stage(stage)
+        if path is None:
+            raise ConfigError(f"no stage {stage!r}")
+        cfg = StageConfig.from_file(path).with_effects(*effects)
+        res = run_session(cfg, items, sample_rate_hz=sample_rate_hz, seed=seed, axis=axis)  # type: ignore[arg-type]
+    except SimError as exc:
+        raise ConfigError(str(exc)) from exc
+    return [(e.label, e.t_s, e.voltage_v, e.position_um) for e in res.experiments]

@@ -9,7 +9,8 @@ Endpoints (all JSON unless noted)::
     POST  /v1/move                move, then hold (MoveRequest)         202, 409 busy/fault, 422 refused
     GET   /v1/recordings          the recordings (RecordingInfo[])
     GET   /v1/recordings/{name}   one recording as CSV (text/csv)       404 unknown
-    GET   /v1/events              server-sent events: ``status`` snapshots at a rate, ``fault`` at once
+    GET   /v1/events              server-sent events: ``status`` snapshots at a rate, ``fault`` at once;
+                                  with ``scans=true`` also ``line`` / ``frame`` (ScanEvent)
     GET   /openapi.json, /docs    the API description
 
 Engine calls run in the threadpool, so a briefly blocking engine never stalls
@@ -61,6 +62,7 @@ from piezod.service.schemas import (
     MoveRequest,
     RecordingInfo,
     ScanChange,
+    ScanEvent,
     ScanRequest,
     Status,
 )
@@ -139,18 +141,23 @@ def _engine_call(what: str, fn: Callable[..., T], *args: Any) -> T:
 @dataclass(eq=False)
 class _Subscriber:
     loop: asyncio.AbstractEventLoop
-    queue: asyncio.Queue[FaultInfo | None] = field(default_factory=lambda: asyncio.Queue(maxsize=256))
+    queue: asyncio.Queue[FaultInfo | ScanEvent | None] = field(
+        default_factory=lambda: asyncio.Queue(maxsize=256)
+    )
     dropped: int = 0
+    scans: bool = False
 
-    def offer(self, item: FaultInfo | None) -> None:
+    def offer(self, item: FaultInfo | ScanEvent | None) -> None:
         """Runs in the subscriber's loop."""
+        if isinstance(item, ScanEvent) and not self.scans:
+            return
         if item is None:
             while self.queue.full():  # the end marker must get through
                 self.queue.get_nowait()
         if self.queue.full():
             self.dropped += 1
             if self.dropped == 1:
-                log.warning("event stream too slow: dropping fault events")
+                log.warning("event stream too slow: dropping events")
             return
         self.queue.put_nowait(item)
 
@@ -193,13 +200,17 @@ class EventHub:
         """Send a fault event to every open stream now (thread-safe, never blocks)."""
         self._broadcast(fault)
 
+    def publish_scan(self, event: ScanEvent) -> None:
+        """Send a line / frame event to every stream that asked for them (thread-safe, never blocks)."""
+        self._broadcast(event)
+
     def close(self) -> None:
         """End every stream and refuse new ones (thread-safe, idempotent)."""
         with self._lock:
             self._closed = True
         self._broadcast(None)
 
-    def _broadcast(self, item: FaultInfo | None) -> None:
+    def _broadcast(self, item: FaultInfo | ScanEvent | None) -> None:
         with self._lock:
             subscribers = list(self._subscribers)
         for sub in subscribers:
@@ -208,8 +219,8 @@ class EventHub:
             except RuntimeError:  # its loop is closed: the server is gone
                 self._unsubscribe(sub)
 
-    def _subscribe(self) -> _Subscriber:
-        sub = _Subscriber(asyncio.get_running_loop())
+    def _subscribe(self, scans: bool = False) -> _Subscriber:
+        sub = _Subscriber(asyncio.get_running_loop(), scans=scans)
         with self._lock:
             if self._closed:
                 raise _RefusedError(503, "the daemon is shutting down", "ShuttingDown")
@@ -232,7 +243,7 @@ def _sse(event: str, data: str, event_id: int) -> bytes:
 
 
 async def _event_stream(
-    engine: EngineControl, hub: EventHub, rate_hz: float, limit: int | None
+    engine: EngineControl, hub: EventHub, rate_hz: float, limit: int | None, scans: bool = False
 ) -> AsyncIterator[bytes]:
     """Status snapshots every ``1/rate_hz`` s, faults as they come, until the limit, close or disconnect.
 
@@ -246,7 +257,7 @@ async def _event_stream(
     event_id = 0
     next_tick = loop.time()
     try:
-        sub = hub._subscribe()
+        sub = hub._subscribe(scans)
     except _RefusedError:
         return
     try:
@@ -287,6 +298,10 @@ async def _event_stream(
                 continue
             if item is None:
                 return
+            if isinstance(item, ScanEvent):
+                event_id += 1
+                yield _sse(item.kind, item.model_dump_json(), event_id)
+                continue
             key = _fault_key(item)
             if key not in seen:
                 seen[key] = None
@@ -586,7 +601,9 @@ def create_app(
             200: {
                 "content": {"text/event-stream": {}},
                 "description": "`event: status` (a Status, at the rate) and `event: fault` (a FaultInfo, "
-                "as it happens); `event: error` ends the stream after an engine failure",
+                "as it happens); with `scans=true` also `event: line` and `event: frame` (a ScanEvent: a "
+                "trace or retrace, a frame finished; a frame's images written); `event: error` ends the "
+                "stream after an engine failure",
             },
             503: {"model": ErrorBody, "description": "the daemon is shutting down"},
         },
@@ -598,6 +615,7 @@ def create_app(
         limit: Annotated[
             int | None, Query(ge=1, description="end the stream after this many status events")
         ] = None,
+        scans: Annotated[bool, Query(description="also line and frame events of scans")] = False,
     ) -> StreamingResponse:
         """Server-sent events: status snapshots at ``rate_hz`` (default 5 Hz), faults at once."""
         if hub.closed:
@@ -607,7 +625,7 @@ def create_app(
                 503, f"{MAX_EVENT_STREAMS} event streams are open already; retry later", "Busy"
             )
         return StreamingResponse(
-            _event_stream(engine, hub, rate_hz or hub.rate_hz, limit),
+            _event_stream(engine, hub, rate_hz or hub.rate_hz, limit, scans),
             media_type="text/event-stream",
             headers={"cache-control": "no-cache", "x-accel-buffering": "no"},
         )
