@@ -28,6 +28,7 @@ from firmware_proto import (
 from piezod.cli import main
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
 from piezod.errors import ConfigError, LinkTimeoutError, SafetyError, VersionMismatchError
+from piezod.link.seqwatch import SeqWatch
 from piezod.link.session import (
     BoardCounter,
     BoardRefusedError,
@@ -42,7 +43,6 @@ from piezod.link.session import (
     Reconnected,
     SensorBlock,
     SensorGap,
-    _SeqWatch,
     describe_configure_offset,
     plan_channels,
 )
@@ -363,7 +363,7 @@ def test_a_reply_resent_from_the_board_cache_is_not_a_loss() -> None:
     # byte-identical, i.e. with the reply's old seq. It must not rewind the expected seq: the next
     # frame would otherwise count every frame sent since the first reply as lost (the over-count
     # this test's sibling below used to show in about every second run).
-    dec = _SeqWatch()
+    dec = SeqWatch()
     wire = b"".join(encode(Heartbeat(time_us=i), seq=i) for i in range(10, 30))
     wire += encode(Ack(12, int(MessageType.START)), seq=12)  # the cached reply, sent again
     wire += encode(Heartbeat(time_us=30), seq=30) + encode(Heartbeat(time_us=32), seq=32)
