@@ -63,11 +63,30 @@ def test_stiffness_is_found_adopted_and_corrected_online() -> None:
     assert s["met"], s
 
 
+_KNOWN = {
+    "polarity": "the dynamic model refitted through the polarity map leaves 0.055 % length error "
+    "(b 0.4 % low), the same with the injected value (docs/model-family.md, section 8)",
+    "saturation": "the audit does not name saturation on this frame (the saturation part removes it "
+    "with the injected value)",
+    "delay": "no runtime part for a pure delay, and the audit does not name it on this frame",
+}
+
+
 @pytest.mark.slow
-def test_every_effect_with_a_runtime_part_is_corrected() -> None:
-    """The full table (docs/model-family.md, section 8): ``piezod bench effects``."""
-    result = run_effects_bench()
+@pytest.mark.parametrize(
+    "effect",
+    [
+        pytest.param(e, marks=pytest.mark.xfail(strict=True, reason=_KNOWN[e])) if e in _KNOWN else e
+        for e in ("drift", "thermal", "stiffness", "polarity", "resonance", "delay", "saturation")
+    ],
+)
+def test_the_extended_model_removes_what_the_effect_causes(effect: str) -> None:
+    """The table of docs/model-family.md, section 8 (``piezod bench effects``), one effect per test."""
+    result = run_effects_bench([effect])
     print(format_table(result))
-    for row in result["rows"]:
-        if row["effect"] in PART_EFFECTS:
-            assert row["met"] or row["below_resolution"], row["effect"]
+    (row,) = result["rows"]
+    assert row["met"] or row["below_resolution"], row["left"]
+    if effect in PART_EFFECTS and not row["below_resolution"]:
+        # the runtime part with the injected value removes it too
+        for m in ("nonlinearity_pct", "length_error_pct"):
+            assert row["left"][m]["injected"] <= TARGET_FRACTION * row["left"][m]["baseline"] + 0.005
