@@ -91,4 +91,4 @@ def test_calibration_adopts_an_audit_finding_that_predicts_better() -> None:
     assert "polarity" in audited.report["findings"]
     assert any(a.startswith("polarity:") for a in audited.report["adopted"]), audited.report["text"]
     assert audited.fit_error_pct < chosen.fit_error_pct
-    assert "polarity" in audited.config.axes["x"].extensions
+    assert "polarity" in (audited.config.axes["x"].extensions or {})
