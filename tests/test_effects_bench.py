@@ -95,3 +95,10 @@ def test_the_extended_model_removes_what_the_effect_causes(effect: str) -> None:
         # the runtime part with the injected value removes it too
         for m in ("nonlinearity_pct", "length_error_pct"):
             assert row["left"][m]["injected"] <= TARGET_FRACTION * row["left"][m]["baseline"] + 0.005
+
+
+def test_bench_effects_refuses_an_unknown_effect(capsys: pytest.CaptureFixture[str]) -> None:
+    from piezod.cli import main
+
+    assert main(["bench", "effects", "--effects", "nope"]) == 2
+    assert "--effects: unknown effect 'nope'" in capsys.readouterr().err
