@@ -239,13 +239,15 @@ def holds(e: Experiment) -> list[tuple[int, int]]:
     if v.size < HOLD_MIN_SAMPLES:
         return []
     span = float(np.ptp(v))
-    # A noisy voltage monitor: look at the voltage averaged over a few samples.
+    # White noise of the recorded voltage (MAD of second differences of the raw samples): a noisy
+    # monitor still holds. The smoothed voltage below steps by sqrt(2) noise / w per sample; the
+    # monitor's resolution (1e-4 of the level) bounds the tolerance from below, so that a
+    # recording that is one hold (its span all noise or quantisation) is a hold.
+    d2 = np.diff(v, 2)
+    noise = float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0)) if d2.size else 0.0
     w = 9
     v = np.convolve(np.pad(v, w // 2, mode="edge"), np.ones(w) / w, mode="valid")
-    d2 = np.diff(v, 2)
-    # White noise of the recorded voltage (MAD of second differences): a noisy monitor still holds.
-    noise = float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0)) if d2.size else 0.0
-    tol = max(2e-3 * span, 4.0 * noise, 1e-6 * max(float(np.max(np.abs(v))), 1.0))
+    tol = max(2e-3 * span, 6.0 * math.sqrt(2.0) * noise / w, 1e-4 * max(float(np.max(np.abs(v))), 1.0))
     still = np.abs(np.diff(v)) <= tol
     out: list[tuple[int, int]] = []
     edges = np.flatnonzero(np.diff(np.concatenate(([0], still.astype(np.int8), [0]))))
