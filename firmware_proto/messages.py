@@ -9,6 +9,10 @@ Construction validates ranges and raises :class:`~firmware_proto.errors.Protocol
 constructors round them to the nearest float32 so that an object equals what the peer decodes.
 Semantic checks that depend on the board (limits inside the amplifier range, rate supported...)
 are in :meth:`Configure.check`.
+
+Over 800 lines because it is the protocol's message table: one small class per message type of
+PROTOCOL.md section 4, each with its payload layout, validation and pack/unpack side by side,
+like the table it implements; a split by message would only scatter that table.
 """
 
 from __future__ import annotations
@@ -300,6 +304,11 @@ class Capabilities(Message):
     sync_outputs
         Number of digital sync outputs the board drives from SYNC frames (0..8; revision 1 of the
         protocol, PROTOCOL.md 4.14). 0: none (a revision-0 board sends 0 here, a reserved byte).
+    position_sensor
+        False: the board's ADC channels carry no position sensor (revision 2, PROTOCOL.md 4.2:
+        bit 7 of the ``sync_outputs`` byte). They may carry other signals (e.g. a z-voltage
+        monitor); the host must not read them as positions. Boards of revisions 0 and 1 send the
+        bit clear: a position sensor.
     """
 
     TYPE: ClassVar[MessageType] = MessageType.CAPABILITIES
@@ -319,10 +328,13 @@ class Capabilities(Message):
     board_serial: int
     amplifier_ranges_v: tuple[tuple[float, float], ...]
     sync_outputs: int = 0
+    position_sensor: bool = True
 
     def __post_init__(self) -> None:
         o = "Capabilities"
         set_ = object.__setattr__
+        if not isinstance(self.position_sensor, bool):
+            raise ProtocolError(f"{o}.position_sensor: expected a bool, got {self.position_sensor!r}")
         set_(self, "sync_outputs", _uint(o, "sync_outputs", self.sync_outputs, _U8))
         if self.sync_outputs > MAX_SYNC_OUTPUTS:
             raise ProtocolError(f"{o}.sync_outputs: {self.sync_outputs} outside [0, {MAX_SYNC_OUTPUTS}]")
@@ -391,7 +403,7 @@ class Capabilities(Message):
             self.n_channels,
             self.dac_bits,
             self.adc_bits,
-            self.sync_outputs,
+            self.sync_outputs | (0 if self.position_sensor else NO_POSITION_SENSOR_BIT),
             self.max_samples_per_frame,
             self.sample_rate_min_hz,
             self.sample_rate_max_hz,
@@ -414,7 +426,7 @@ class Capabilities(Message):
             n_ch,
             dac_bits,
             adc_bits,
-            sync_outputs,
+            sync_byte,
             mspf,
             rmin,
             rmax,
@@ -437,7 +449,8 @@ class Capabilities(Message):
             fifo,
             serial,
             ranges,
-            sync_outputs,
+            sync_byte & SYNC_OUTPUTS_MASK,
+            not sync_byte & NO_POSITION_SENSOR_BIT,
         )
 
 
@@ -1105,6 +1118,10 @@ class Status(Message):
 
 
 MAX_SYNC_OUTPUTS = 8
+#: CAPABILITIES byte 21: bits 0-3 ``sync_outputs`` (revision 1), bits 4-6 reserved,
+#: bit 7 set = the board has no position sensor (revision 2).
+SYNC_OUTPUTS_MASK = 0x0F
+NO_POSITION_SENSOR_BIT = 0x80
 """Most digital sync outputs a board may advertise (one bit each in a SYNC event)."""
 SYNC_EVENT_SIZE = 8
 MAX_SYNC_EVENTS = (MAX_FRAME_SIZE - HEADER_SIZE - 12 - CRC_SIZE) // SYNC_EVENT_SIZE

@@ -78,6 +78,7 @@ def capabilities(draw: st.DrawFn) -> Capabilities:
         board_serial=draw(u32),
         amplifier_ranges_v=tuple(ranges),
         sync_outputs=draw(st.integers(0, 8)),
+        position_sensor=draw(st.booleans()),
     )
 
 

@@ -225,6 +225,13 @@ def canonical_vectors() -> list[Vector]:
             "revision 1: the board of the CAPABILITIES vector with 3 sync outputs (pixel, line, frame)",
         ),
         Vector(
+            "CAPABILITIES_NO_SENSOR",
+            dataclasses.replace(caps, position_sensor=False),
+            0,
+            "revision 2: the board of the CAPABILITIES vector without a position sensor "
+            "(its ADC channels carry other signals, e.g. a z-voltage monitor)",
+        ),
+        Vector(
             "SYNC",
             Sync(
                 first_index=20_000,

@@ -159,7 +159,8 @@ class BoardConfig:
         The simulated microscope (:mod:`hil_sim.microscope`), or None (a bare stage). With it the
         z channel's ADC reads the z-piezo voltage through the amplifier's monitor
         (``V_z / monitor_ratio``) while the z feedback drives the z piezo, and without its
-        position sensor the x / y ADC channels read 0.
+        position sensor the x / y ADC channels read 0 and CAPABILITIES says so
+        (``position_sensor`` false, protocol revision 2).
     truth_log
         With a microscope: append the hidden truth to this file, every 10th played sample, as
         float64 rows ``(sample_index, x_um, y_um, z_voltage_v, z_um)`` (raw, native byte order):
@@ -309,6 +310,7 @@ class Board:
             board_serial=self._cfg.board_serial,
             amplifier_ranges_v=ranges,
             sync_outputs=self._cfg.sync_outputs,
+            position_sensor=self._cfg.microscope is None or self._cfg.microscope.position_sensor,
         )
         self._ep = Endpoint()
         self._fx_rng = np.random.default_rng(self._cfg.seed)

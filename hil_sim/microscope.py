@@ -51,7 +51,12 @@ class MicroscopeConfig:
     height_noise_nm_rms
         Noise of the tip height (nm rms).
     feedback_passes
-        Secant passes per block that find the z voltage (fixed cost per sample).
+        Most secant passes per block that find the z voltage; the passes stop once the block's
+        residual (target - true extension) is below ``feedback_tolerance_nm`` rms (1 nm) (a block on a
+        plateau needs two, one with an edge of a z piezo whose slope changes at every reversal -
+        Prandtl-Ishlinskii plays - up to eight).
+    feedback_tolerance_nm
+        RMS residual per block at which the passes stop (nm).
     monitor_ratio
         The z channel's ADC reads ``V_z / monitor_ratio``.
     seed
@@ -62,7 +67,8 @@ class MicroscopeConfig:
     position_sensor: bool = True
     feedback_bandwidth_hz: float = 2000.0
     height_noise_nm_rms: float = 0.2
-    feedback_passes: int = 2
+    feedback_passes: int = 8
+    feedback_tolerance_nm: float = 1.0
     monitor_ratio: float = MONITOR_RATIO
     seed: int = 0
 
@@ -158,6 +164,8 @@ class Microscope:
                 self._z.restore(snap)
             e = self._z.step(v, dt_s)
             if k == self._cfg.feedback_passes - 1:
+                break
+            if k and float(np.sqrt(np.mean((target - e) ** 2))) * 1e3 < self._cfg.feedback_tolerance_nm:
                 break
             slope = np.full(n, self._slope)
             if v_prev is not None and e_prev is not None:

@@ -38,6 +38,7 @@ from piezod.service.schemas import (
     MoveRequest,
     RecordingInfo,
     ScanChange,
+    ScanEvent,
     ScanRequest,
     Status,
 )
@@ -292,14 +293,15 @@ class PiezodClient:
         return target
 
     def events(
-        self, *, rate_hz: float | None = None, limit: int | None = None
-    ) -> Generator[Status | FaultInfo, None, None]:
+        self, *, rate_hz: float | None = None, limit: int | None = None, scans: bool = False
+    ) -> Generator[Status | FaultInfo | ScanEvent, None, None]:
         """Follow the daemon live (``GET /v1/events``, server-sent events).
 
         Yields a :class:`Status` per snapshot (at ``rate_hz``, default the
         daemon's 5 Hz) and a :class:`FaultInfo` as soon as a fault happens. Ends
         after ``limit`` snapshots, when the daemon shuts down, or when the
-        caller stops iterating (the connection is then closed).
+        caller stops iterating (the connection is then closed). With ``scans`` also a
+        :class:`ScanEvent` per finished line and frame of a scan.
 
         Raises
         ------
@@ -311,6 +313,8 @@ class PiezodClient:
             params["rate_hz"] = rate_hz
         if limit is not None:
             params["limit"] = limit
+        if scans:
+            params["scans"] = "true"
         period = 1.0 / rate_hz if rate_hz else 1.0
         with self._stream("/v1/events", params, read_timeout=max(self.timeout, 5 * period)) as response:
             event = "message"
@@ -331,9 +335,11 @@ class PiezodClient:
                         data.append(value)
 
 
-def _parse_event(event: str, data: str) -> Status | FaultInfo:
+def _parse_event(event: str, data: str) -> Status | FaultInfo | ScanEvent:
     if event == "status":
         return Status.model_validate_json(data)
+    if event in ("line", "frame"):
+        return ScanEvent.model_validate_json(data)
     if event == "fault":
         return FaultInfo.model_validate_json(data)
     if event == "error":

@@ -43,7 +43,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod.calibrate import CalibrationData, CalibrationResult, fit, model_positions
-from piezod.calibrate_dynamic import DynamicCalibrationResult, fit_dynamic, prepare_dynamic
+from piezod.calibrate_dynamic import (
+    DynamicCalibrationData,
+    DynamicCalibrationResult,
+    fit_dynamic,
+    prepare_dynamic,
+)
 from piezod.errors import CalibrationError, RecordingError
 from piezod.image import F64, assemble, geometry, raster_samples
 from piezod.image_linearity import find_flanks
@@ -111,6 +116,83 @@ def _extrapolate(t: F64, x: F64, t0: float) -> float:
     return float(c[-1])
 
 
+_Half = tuple[F64, NDArray[np.int64], F64, F64, F64]
+
+
+def _align_lines(halves: dict[tuple[int, int], _Half]) -> dict[tuple[int, int], _Half]:
+    """Period numbers made consistent across the lines of one scan direction.
+
+    Every line of a direction scans alike, so a flank of the sample lies at nearly the same
+    commanded position in every line: each line's numbers are shifted onto those of the line with
+    most flanks (the median of the matched differences); flanks matching no flank of that line
+    (a particle, a misread edge) are dropped.
+    """
+    out: dict[tuple[int, int], _Half] = {}
+    for d in (1, -1):
+        keys = [key for key in halves if key[1] == d]
+        if not keys:
+            continue
+        ref_key = max(keys, key=lambda key: (halves[key][0].size, key[0]))
+        r_xi, r_k = halves[ref_key][3], halves[ref_key][1]
+        order = np.argsort(r_xi)
+        r_xi, r_k = r_xi[order], r_k[order]
+        tol = 0.3 * float(np.median(np.abs(np.diff(r_xi)))) if r_xi.size > 1 else np.inf
+        for key in keys:
+            ts, ks, vs, xi, t_l = halves[key]
+            j = np.clip(np.searchsorted(r_xi, xi), 1, max(1, r_xi.size - 1))
+            j = np.where(
+                (j - 1 >= 0) & (np.abs(r_xi[j - 1] - xi) < np.abs(r_xi[np.minimum(j, r_xi.size - 1)] - xi)),
+                j - 1,
+                np.minimum(j, r_xi.size - 1),
+            )
+            match = np.abs(r_xi[j] - xi) < tol
+            if match.sum() < 2:
+                continue
+            diff = r_k[j[match]] - ks[match]
+            shift = int(np.round(np.median(diff)))
+            keep = match & (ks + shift == r_k[j])
+            if keep.sum() < 2:
+                continue
+            out[key] = (ts[keep], ks[keep] + shift, vs[keep], xi[keep], t_l)
+    return out
+
+
+def _turn_shift(aligned: dict[tuple[int, int], _Half], pitch_um: float) -> int:
+    """The retraces' period-number shift onto the traces: continuity at every turning point.
+
+    At each turn both half lines' flank positions, extrapolated in time to the turn, must meet;
+    every turn votes and the most common shift wins.
+    """
+    votes: list[int] = []
+    for (ln, d), (ts, ks, _v, _xi, t_l) in aligned.items():
+        if d > 0 and (ln, -1) in aligned:  # trace ln -> retrace ln
+            nxt = aligned[(ln, -1)]
+            t_turn = float(t_l[-1])
+            first, second = (ts, ks), (nxt[0], nxt[1])
+            sign = 1
+        elif d < 0 and (ln + 1, 1) in aligned:  # retrace ln -> trace ln + 1
+            nxt = aligned[(ln + 1, 1)]
+            t_turn = float(t_l[-1])
+            first, second = (nxt[0], nxt[1]), (ts, ks)
+            sign = -1
+        else:
+            continue
+        trace_t, trace_k = first
+        re_t, re_k = second
+        n = _CONTINUITY_FLANKS
+        if sign > 0:
+            x_tr = _extrapolate(trace_t[-n:], pitch_um * trace_k[-n:].astype(np.float64), t_turn)
+            x_re = _extrapolate(re_t[:n], pitch_um * re_k[:n].astype(np.float64), t_turn)
+        else:
+            x_tr = _extrapolate(trace_t[:n], pitch_um * trace_k[:n].astype(np.float64), t_turn)
+            x_re = _extrapolate(re_t[-n:], pitch_um * re_k[-n:].astype(np.float64), t_turn)
+        votes.append(round((x_tr - x_re) / pitch_um))
+    if not votes:
+        return 0
+    values, counts = np.unique(votes, return_counts=True)
+    return int(values[np.argmax(counts)])
+
+
 def flank_events(
     rec: Recording, pitch_um: float, *, skip_lines: int = 2, label: str | None = None
 ) -> FlankEvents:
@@ -127,7 +209,7 @@ def flank_events(
         raise RecordingError("no 'z_voltage' column: the recording carries no height channel", rec.path)
     tr, re = assemble(rs.target_um, rs.z_voltage_v, rs.line, rs.direction, rs.lines, geo)
     # (half-line order, direction) -> flanks; half lines in time order: trace 0, retrace 0, trace 1, ...
-    groups: list[tuple[int, int, F64, NDArray[np.int64], NDArray[np.int8], F64, F64]] = []
+    groups: list[tuple[int, int, F64, NDArray[np.int64], NDArray[np.int8], F64, F64, F64]] = []
     for d, img in ((1, tr), (-1, re)):
         fl = find_flanks(img, geo)
         for ln in np.unique(fl.line):
@@ -140,45 +222,31 @@ def flank_events(
             xi = fl.xi_um[sel]
             t_f = np.interp(xi, x_l[order], t_l[order])
             v_f = np.interp(t_f, t_l, v_l)
-            groups.append((int(ln), d, t_f, fl.k[sel], fl.family[sel], v_f, t_l))
+            groups.append((int(ln), d, t_f, fl.k[sel], fl.family[sel], v_f, t_l, xi))
     if not groups:
         raise RecordingError(f"no flanks of a line pattern of pitch {pitch_um:g} um found", rec.path)
     groups.sort(key=lambda g: (g[0], -g[1]))
     out_t, out_v, out_d, out_x, out_vel, out_f, out_l = [], [], [], [], [], [], []
     for fam in (1, -1):
-        shift = 0
-        prev: tuple[F64, F64, float] | None = None  # (t, x) of the previous half line, its end time
-        prev_key: tuple[int, int] | None = None
-        for ln, d, t_f, k, f, v_f, t_l in groups:
+        # (line, direction) -> (t, k, v, xi, t_line) of this family, time-ordered
+        halves: dict[tuple[int, int], tuple[F64, NDArray[np.int64], F64, F64, F64]] = {}
+        for ln, d, t_f, k, f, v_f, t_l, xi in groups:
             s = f == fam
             if s.sum() < 2:
-                prev = None
                 continue
-            ts, ks = t_f[s], k[s].astype(np.float64)
-            order = np.argsort(ts)
-            ts, ks = ts[order], ks[order]
-            x = pitch_um * ks
-            expected_next = (
-                None if prev_key is None else ((prev_key[0], -1) if prev_key[1] > 0 else (prev_key[0] + 1, 1))
-            )
-            if prev is not None and expected_next == (ln, d):
-                tp, xp, t_turn = prev
-                x_end = _extrapolate(tp[-_CONTINUITY_FLANKS:], xp[-_CONTINUITY_FLANKS:], t_turn)
-                x_start = _extrapolate(ts[:_CONTINUITY_FLANKS], x[:_CONTINUITY_FLANKS], t_turn)
-                shift = round((x_end - x_start) / pitch_um)
-            elif prev is not None:
-                shift = round((float(np.mean(prev[1])) - float(np.mean(x))) / pitch_um)
-            x = x + pitch_um * shift
-            vel = np.gradient(x, ts) if ts.size > 1 else np.zeros(1)
-            prev = (ts, x, float(t_l[-1]))
-            prev_key = (ln, d)
-            if ln < skip_lines:
+            order = np.argsort(t_f[s])
+            halves[(ln, d)] = (t_f[s][order], k[s][order], v_f[s][order], xi[s][order], t_l)
+        aligned = _align_lines(halves)
+        shift = _turn_shift(aligned, pitch_um)
+        for (ln, d), (ts, ks, vs, _xi, _t_l) in sorted(aligned.items(), key=lambda kv: (kv[0][0], -kv[0][1])):
+            if ln < skip_lines or ts.size < 2:
                 continue
+            x = pitch_um * (ks + (shift if d < 0 else 0)).astype(np.float64)
             out_t.append(ts)
-            out_v.append(v_f[s][order])
+            out_v.append(vs)
             out_d.append(np.full(ts.size, d, dtype=np.int8))
             out_x.append(x)
-            out_vel.append(vel)
+            out_vel.append(np.gradient(x, ts))
             out_f.append(np.full(ts.size, fam, dtype=np.int8))
             out_l.append(np.full(ts.size, ln, dtype=np.int64))
     if not out_t:
@@ -276,7 +344,7 @@ def merged_positions(ev: FlankEvents, line_width_um: float) -> F64:
     return out
 
 
-def fit_dynamic_from_flanks(
+def flank_session(
     recs: Sequence[Recording],
     events: Sequence[FlankEvents],
     line_width_um: dict[str, float],
@@ -284,9 +352,14 @@ def fit_dynamic_from_flanks(
     slew_rate_v_per_s: float = 2000.0,
     rest_voltage_v: float = 0.0,
     max_samples_per_loop: int = 2048,
-    **fit_kwargs: object,
-) -> DynamicCalibrationResult:
-    """Fit the dynamic model to the flanks of a frame recorded in one session (module docstring, 4)."""
+) -> DynamicCalibrationData:
+    """The session of a frame recorded in one session, compared at the flanks (module docstring, 4).
+
+    The layout is :func:`piezod.calibrate_dynamic.prepare_dynamic`'s (so every fitter of the
+    session works on it: the dynamic model, the model family of :mod:`piezod.calibrate_family`);
+    the compared samples are the grid samples nearest the flanks, their positions the flank
+    positions.
+    """
     exps = []
     for rec, ev in zip(recs, events, strict=True):
         sel = _x_rows(rec)
@@ -318,14 +391,62 @@ def fit_dynamic_from_flanks(
         starts.append(n)
         counts.append(int(j.size))
         n += int(j.size)
-    flank_data = dataclasses.replace(
+    return dataclasses.replace(
         data,
         compared=np.concatenate(compared),
         position_um=np.concatenate(positions),
         starts=np.asarray(starts, dtype=np.intp),
         counts=np.asarray(counts, dtype=np.intp),
     )
-    return fit_dynamic(flank_data, **fit_kwargs)  # type: ignore[arg-type]
+
+
+def drop_outlier_flanks(
+    data: DynamicCalibrationData, model_um: F64, *, sigmas: float = 5.0
+) -> tuple[DynamicCalibrationData, int]:
+    """The session without the flanks a first model misses by more than ``sigmas`` robust
+    standard deviations (dust, a misread edge), and how many were dropped.
+
+    ``model_um`` are a model's positions at the compared samples; the residuals are taken with
+    one offset per experiment removed (the sample's unknown position).
+    """
+    from piezod.calibrate_dynamic import _centre
+
+    resid = _centre(data, model_um) - _centre(data, data.position_um)
+    mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+    keep = np.abs(resid) <= sigmas * max(mad, 1e-6)
+    if keep.all():
+        return data, 0
+    exp_of_row = np.repeat(np.arange(data.n_experiments), data.counts)
+    counts = np.bincount(exp_of_row[keep], minlength=data.n_experiments).astype(np.intp)
+    if (counts < 2).any():
+        return data, 0
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1])).astype(np.intp)
+    out = dataclasses.replace(
+        data, compared=data.compared[keep], position_um=data.position_um[keep], starts=starts, counts=counts
+    )
+    return out, int((~keep).sum())
+
+
+def fit_dynamic_from_flanks(
+    recs: Sequence[Recording],
+    events: Sequence[FlankEvents],
+    line_width_um: dict[str, float],
+    *,
+    slew_rate_v_per_s: float = 2000.0,
+    rest_voltage_v: float = 0.0,
+    max_samples_per_loop: int = 2048,
+    **fit_kwargs: object,
+) -> DynamicCalibrationResult:
+    """Fit the dynamic model to the flanks of a frame recorded in one session (:func:`flank_session`)."""
+    data = flank_session(
+        recs,
+        events,
+        line_width_um,
+        slew_rate_v_per_s=slew_rate_v_per_s,
+        rest_voltage_v=rest_voltage_v,
+        max_samples_per_loop=max_samples_per_loop,
+    )
+    return fit_dynamic(data, **fit_kwargs)  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------------------ hidden truth
@@ -471,9 +592,11 @@ __all__ = [
     "ImageScan",
     "ThesisFromFlanks",
     "default_image_frame",
+    "drop_outlier_flanks",
     "fit_dynamic_from_flanks",
     "fit_thesis_from_flanks",
     "flank_events",
+    "flank_session",
     "merged_positions",
     "read_truth_log",
     "run_image_scans",

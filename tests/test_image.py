@@ -224,3 +224,56 @@ def test_piezod_image_names_a_file_that_is_not_a_raster(tmp_path: Path) -> None:
     p = _piezod("image", str(f), "--out", str(tmp_path), cwd=tmp_path)
     assert p.returncode == 2
     assert "plain.csv" in p.stderr and "range_um" in p.stderr and "Traceback" not in p.stderr
+
+
+def _posts(x: np.ndarray, y: np.ndarray, pitch: float, rows: bool = True) -> np.ndarray:
+    """Square posts (half the pitch) averaged over each pixel (8 x 8 sub-samples) and blurred, as a scan
+    sees them."""
+    sub = (np.arange(8) + 0.5) / 8 - 0.5
+
+    def fine(c: np.ndarray) -> np.ndarray:
+        step = np.gradient(c)
+        return (c[:, None] + sub[None, :] * step[:, None]).ravel()
+
+    xf, yf = fine(x), fine(y)
+    on_x = (np.mod(xf + 0.3, pitch) < 0.5).astype(float)
+    on_y = (np.mod(yf + 0.2, pitch) < 0.5).astype(float) if rows else np.ones(yf.size)
+    img = np.outer(on_y, on_x).reshape(y.size, 8, x.size, 8).mean(axis=(1, 3))
+    from scipy.ndimage import gaussian_filter
+
+    out: np.ndarray = gaussian_filter(img, 1.0)  # the tip and the z loop blur edges over ~a pixel
+    return out
+
+
+def test_slow_axis_linearity_from_the_columns_of_a_2d_grating() -> None:
+    from piezod.image import Geometry
+    from piezod.image_linearity import slow_image_linearity
+
+    pitch, rng = 1.0, np.random.default_rng(4)
+    geo = Geometry(
+        range_um=12.0,
+        offset_um=0.0,
+        slow_range_um=12.0,
+        offset_slow_um=0.0,
+        pixels=240,
+        rotation_deg=0.0,
+        line_rate_hz=1.0,
+    )
+    lines = 240
+    xc = geo.pixel_centres_um()
+    yc = -6.0 + (np.arange(lines) + 0.5) * 12.0 / lines
+    for gain in (1.0, 1.012):
+        x_true = 0.995 * xc
+        y_true = gain * yc + 0.002 * yc**2  # the slow axis stretched, slightly bowed
+        img = _posts(x_true, y_true, pitch) + 0.01 * rng.standard_normal((lines, geo.pixels))
+        slow = slow_image_linearity(img, geo, pitch, 1)
+        # the sensor's view of the same slow axis: true vs commanded over the frame
+        g = np.polyfit(yc, y_true, 1)[0]
+        assert slow.length_error_pct == pytest.approx(100.0 * (g - 1.0), abs=0.05)
+        assert slow.nonlinearity_pct < 0.3
+        fast = image_linearity(img, geo, pitch, 1)
+        assert fast.length_error_pct == pytest.approx(-0.5, abs=0.05)
+    # a 1D line pattern along the slow axis has no flanks across it
+    lines_only = _posts(xc, yc, pitch, rows=False) + 0.01 * rng.standard_normal(img.shape)
+    with pytest.raises(RecordingError):
+        slow_image_linearity(lines_only, geo, pitch, 1)

@@ -15,7 +15,10 @@ import numpy as np
 import pytest
 
 from hil_sim.sample import get_sample
-from piezod.imagecal import fit_dynamic_from_flanks, fit_thesis_from_flanks, flank_events
+from hil_sim.stage import Stage, StageConfig
+from piezod import calibrate_family as cf
+from piezod.config import config_dir
+from piezod.imagecal import fit_dynamic_from_flanks, fit_thesis_from_flanks, flank_events, flank_session
 from piezod.model.dynamic import DynamicParams, dynamic_forward, dynamic_rest_state
 from piezod.recording import Recording
 
@@ -26,9 +29,12 @@ FS = 2000.0
 SLEW = 200.0
 
 
-def _frame() -> tuple[list[Recording], list[np.ndarray]]:
-    """Uncorrected raster recordings of the 3 um pattern on a stage of known dynamic model, one session."""
-    plan = [(160.0, 0.5), (160.0, 2.0), (300.0, 0.5), (300.0, 2.0)]
+def _frame(
+    stage: str | None = None,
+    plan: tuple[tuple[float, float], ...] = ((160.0, 0.5), (160.0, 2.0), (300.0, 0.5), (300.0, 2.0)),
+) -> tuple[list[Recording], list[np.ndarray]]:
+    """Uncorrected raster recordings of the 3 um pattern on a stage of known dynamic model (or on the
+    x axis of a hil_sim preset of other physics), one session."""
     sample = get_sample("line-3um")
     volts: list[np.ndarray] = []
     spans: list[tuple[int, int, float, float]] = []
@@ -47,7 +53,11 @@ def _frame() -> tuple[list[Recording], list[np.ndarray]]:
         n += tri.size
         v_last = float(tri[-1])
     v = np.concatenate(volts)
-    x, _ = dynamic_forward(TRUE, v, 1.0 / FS, dynamic_rest_state(TRUE, 0.0))
+    if stage is None:
+        x, _ = dynamic_forward(TRUE, v, 1.0 / FS, dynamic_rest_state(TRUE, 0.0))
+    else:
+        sim = Stage(StageConfig.from_file(config_dir() / stage), axes=("x",))
+        x = np.concatenate([sim.step(v[i : i + 4000], 1.0 / FS) for i in range(0, v.size, 4000)])
     recs, truths = [], []
     nominal = 0.11  # um/V: the uncorrected triangle's nominal scale
     for a, b, vpp, f in spans:
@@ -109,6 +119,35 @@ def test_models_fitted_from_flanks_alone_recover_the_stage(frame: list[Recording
     assert dyn.fit_error_pct < 0.1
 
 
+def test_flanks_on_a_stage_of_other_physics_choose_its_law() -> None:
+    """Prandtl-Ishlinskii hysteresis, voltage-driven creep, an amplifier pole (sim-pi-microscope.yaml):
+    the flanks still carry the true positions, and the choice by held-out scans finds the law.
+
+    Ranges of at least ~8 periods: at 3 periods per half line (160 V here) the continuity at the
+    turning points miscounts by one period on this stage (docs/images.md, "Not yet")."""
+    recs, truths = _frame(
+        "sim-pi-microscope.yaml", ((260.0, 0.5), (260.0, 2.0), (330.0, 1.0), (400.0, 0.5), (400.0, 2.0))
+    )
+    events = []
+    for rec, x in zip(recs, truths, strict=True):
+        ev = flank_events(rec, 3.0)
+        xt = np.interp(ev.t_s, rec.t_s, x)
+        for fam in (1, -1):
+            d = xt[ev.family == fam] - ev.position_um[ev.family == fam]
+            assert np.ptp(d) < 0.15 and np.std(d) < 0.03, rec.path
+        events.append(ev)
+    th = fit_thesis_from_flanks(recs, events)
+    data = flank_session(recs, events, th.line_width_um, slew_rate_v_per_s=SLEW)
+    choice = cf.choose_model(
+        data, laws=("prandtl-ishlinskii", "coleman-hodgdon"), creep_drivers=("position",)
+    )
+    assert choice.chosen == "family/prandtl-ishlinskii", choice.table()
+    assert (
+        choice.heldout_rms_um["family/prandtl-ishlinskii"]
+        < 0.5 * choice.heldout_rms_um["family/coleman-hodgdon"]
+    )
+
+
 @pytest.mark.slow
 def test_sensorless_calibration_on_the_simulated_stage(tmp_path: Path) -> None:
     p = subprocess.run(
@@ -133,7 +172,7 @@ def test_sensorless_calibration_on_the_simulated_stage(tmp_path: Path) -> None:
     )
     assert p.returncode == 0, p.stderr
     rep = json.loads(p.stdout)
-    rows = [r for r in rep["verification"] if r["model"] == "dynamic"]
+    rows = [r for r in rep["verification"] if r["model"] == rep["choice"]["model"]]
     for r in rows:
         im, tr = r["image"], r["truth"]
         if r["frame"] == "inside":

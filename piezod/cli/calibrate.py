@@ -102,6 +102,12 @@ def register(sub: Any) -> None:
     )
     stage.add_argument("--no-verify", action="store_true", help="skip the verification scans")
     stage.add_argument(
+        "--no-audit",
+        action="store_true",
+        help="do not audit the frame (by default its material findings with a runtime part are adopted "
+        "when they predict the held-out experiments better)",
+    )
+    stage.add_argument(
         "--recordings-dir", metavar="DIR", help="where the frame and verification recordings go"
     )
     stage.add_argument("--plot", metavar="F.png", help="plot of the verification (matplotlib)")

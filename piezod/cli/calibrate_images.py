@@ -22,6 +22,7 @@ import numpy as np
 
 from piezod.calibrate import calibrated_config as thesis_config
 from piezod.calibrate_dynamic import calibrated_config as dynamic_config
+from piezod.calibrate_dynamic import fit_dynamic
 from piezod.cli._common import board_url, human_stream, scanner_config_path, with_microscope, write_json
 from piezod.config import MicroscopeSection, ScannerConfig, dump_config, load_config
 from piezod.errors import CalibrationError, PiezodError
@@ -29,9 +30,10 @@ from piezod.image import images
 from piezod.image_linearity import image_linearity
 from piezod.imagecal import (
     default_image_frame,
-    fit_dynamic_from_flanks,
+    drop_outlier_flanks,
     fit_thesis_from_flanks,
     flank_events,
+    flank_session,
     read_truth_log,
     run_image_scans,
     verification_scans,
@@ -61,27 +63,73 @@ def _truth_metrics(path: Path, truth_log: Path, rate_hz: float) -> dict[str, flo
 def _fit_here(
     paths: list[Path], pitch_um: float, base: ScannerConfig
 ) -> tuple[ScannerConfig, dict[str, Any]]:
-    """Flanks, both fits and the calibrated config (in the worker process: results are plain data)."""
+    """Flanks, the fits, the choice of model by held-out images and the calibrated config (in the
+    worker process: results are plain data)."""
+    from piezod import calibrate_family as cf
+    from piezod.model.family import REALTIME_CREEP_DRIVERS, CreepSpectrum, FamilyParams
+
     recs = [read_recording(p) for p in paths]
     events = [flank_events(r, pitch_um, label=p.stem) for r, p in zip(recs, paths, strict=True)]
     ax = base.axes["x"]
     th = fit_thesis_from_flanks(recs, events, start=ax.thesis.params())
-    dyn = fit_dynamic_from_flanks(
+    session = flank_session(
         recs,
         events,
         th.line_width_um,
         slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
         rest_voltage_v=ax.safe_voltage_v,
     )
+    dyn = fit_dynamic(session)
+    # flanks the first fit misses by far (dust, a misread edge) are dropped, then everything refitted
+    dp = dyn.params
+    spectrum = CreepSpectrum(tuple(map(float, dp.taus_s)), tuple(map(float, dp.weights)))
+    dropped = 0
+    for _ in range(2):
+        session, n = drop_outlier_flanks(
+            session, cf.session_positions(session, FamilyParams(dp.hysteresis, spectrum)), sigmas=4.0
+        )
+        if not n:
+            break
+        dropped += n
+        dyn = fit_dynamic(session)
+        dp = dyn.params
+        spectrum = CreepSpectrum(tuple(map(float, dp.taus_s)), tuple(map(float, dp.weights)))
     inputs = [str(p) for p in paths]
     thesis_cfg = thesis_config(th.result, axis="x", base=base, inputs=inputs)
     calibrated = dynamic_config(dyn, axis="x", base=thesis_cfg, inputs=inputs)
-    calibrated = calibrated.model_copy(update={"microscope": base.microscope})
+    # the model family (piezod.calibrate_family), the dynamic model beside it: the one that predicts
+    # the held-out scans' images best is adopted
+    dp = dyn.params
+    spectrum = CreepSpectrum(tuple(map(float, dp.taus_s)), tuple(map(float, dp.weights)))
+    choice = cf.choose_model(
+        session,
+        others={"dynamic": FamilyParams(dp.hysteresis, spectrum)},
+        alpha_per_v=dp.alpha_per_v,
+        adoptable_drivers=REALTIME_CREEP_DRIVERS,
+    )
+    cal_ax = calibrated.axes["x"]
+    if choice.fit is not None:
+        section = cf.family_model_config(choice.fit.params)
+        cal_ax = cal_ax.model_copy(update={"model": "family", "family": section})
+    else:
+        cal_ax = cal_ax.model_copy(update={"model": "dynamic"})
+    calibrated = calibrated.model_copy(
+        update={"microscope": base.microscope, "axes": {**calibrated.axes, "x": cal_ax}}
+    )
     summary = {
         "flanks": sum(len(e) for e in events),
+        "flanks_dropped": dropped,
         "line_width_um": th.line_width_um,
         "thesis": {"params": dataclasses.asdict(th.result.params), "fit_error_pct": th.result.fit_error_pct},
         "dynamic": {"params": dataclasses.asdict(dyn.params), "fit_error_pct": dyn.fit_error_pct},
+        "choice": {
+            "chosen": choice.chosen,
+            "model": cal_ax.model,
+            "held_out_scans": [session.experiments[i].label for i in choice.holdout],
+            "heldout_rms_um": choice.heldout_rms_um,
+            "train_rms_um": choice.train_rms_um,
+            "table": choice.table(),
+        },
     }
     return calibrated, summary
 
@@ -177,6 +225,8 @@ def run_from_images(args: argparse.Namespace) -> int:
                 f"dynamic model from images: worst fit error {summary['dynamic']['fit_error_pct']:.3f} %",
                 file=say,
             )
+            print("model chosen by held-out images (flank positions):", file=say)
+            print(summary["choice"]["table"], file=say)
             dump_config(
                 calibrated,
                 out,
@@ -190,7 +240,8 @@ def run_from_images(args: argparse.Namespace) -> int:
             rows: list[dict[str, Any]] = []
             if not args.no_verify:
                 scans = verification_scans(reduced=reduced)
-                for model in ("thesis", "dynamic"):
+                chosen_model = calibrated.axes["x"].model
+                for model in dict.fromkeys(("thesis", chosen_model)):
                     engine.set_axis_model("x", calibrated.axes["x"].model_copy(update={"model": model}))
                     _scan_with_retry(engine, scans[:1], recdir / f"warmup-{model}", say, correction=True)
                     vpaths: list[Path | None] = []

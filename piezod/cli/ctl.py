@@ -33,7 +33,15 @@ from pydantic import BaseModel
 
 from piezod.cli._common import finite_float, human_stream, positive_float, positive_int, write_json
 from piezod.client import API_ENV, PiezodClient, default_api_spec
-from piezod.service.schemas import FaultInfo, MoveRequest, RecordingInfo, ScanChange, ScanRequest, Status
+from piezod.service.schemas import (
+    FaultInfo,
+    MoveRequest,
+    RecordingInfo,
+    ScanChange,
+    ScanEvent,
+    ScanRequest,
+    Status,
+)
 from piezod.service.server import read_token
 
 
@@ -161,6 +169,11 @@ def status_text(status: Status) -> str:
         lines.append(f"scan: {_scan_text(status.scan)}{where}")
     if status.recording:
         lines.append(f"recording: {status.recording}")
+    if not status.calibrated:
+        lines.append(
+            f"warning: uncalibrated model on axes {', '.join(status.uncalibrated_axes)} (a first guess): "
+            "corrected scans will not be linear; run piezod calibrate"
+        )
     lines.append(
         f"fifo: {status.fifo_level_ms:.1f} ms (target {status.lead_target_ms:.0f} ms); "
         f"underruns {status.underruns}, crc errors {status.crc_errors}, "
@@ -180,11 +193,17 @@ def status_text(status: Status) -> str:
     return "\n".join(lines)
 
 
-def watch_line(event: Status | FaultInfo) -> str:
+def watch_line(event: Status | FaultInfo | ScanEvent) -> str:
     """One human line per live event."""
     stamp = time.strftime("%H:%M:%S")
     if isinstance(event, FaultInfo):
         return f"{stamp} FAULT {_fault_text(event)}"
+    if isinstance(event, ScanEvent):
+        where = f"{event.recording} frame {event.frame}"
+        if event.kind == "line":
+            return f"{stamp} LINE  {where} line {event.line}/{event.lines} {event.direction}"
+        files = f" images {', '.join(event.images)}" if event.images else ""
+        return f"{stamp} FRAME {where} done{files}" + (f" ({event.image_error})" if event.image_error else "")
     s = event
     text = f"{stamp} {s.state:<12}"
     if s.scan is not None and s.line is not None:
@@ -223,7 +242,13 @@ def _watch(client: PiezodClient, args: argparse.Namespace, human: TextIO) -> int
     try:
         for event in client.events(rate_hz=args.rate_hz, limit=args.count):
             if out is not None:
-                kind = "fault" if isinstance(event, FaultInfo) else "status"
+                kind = (
+                    "fault"
+                    if isinstance(event, FaultInfo)
+                    else event.kind
+                    if isinstance(event, ScanEvent)
+                    else "status"
+                )
                 out.write(json.dumps({"event": kind, "data": event.model_dump(mode="json")}) + "\n")
                 out.flush()
             if target != "-":

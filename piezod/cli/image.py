@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from piezod.cli._common import (
     add_json_option,
     finite_float,
@@ -16,9 +18,15 @@ from piezod.cli._common import (
 )
 from piezod.config import load_config
 from piezod.errors import RecordingError
-from piezod.image import ImagePair, has_position_sensor, images
+from piezod.image import ImagePair, has_position_sensor, images, raster_samples
 from piezod.image_io import write_gwy, write_pair_png, write_png
-from piezod.image_linearity import image_linearity, pitch_error, plot_pitch_error
+from piezod.image_linearity import (
+    image_linearity,
+    pitch_error,
+    plot_pitch_error,
+    sensor_slow_linearity,
+    slow_image_linearity,
+)
 from piezod.linearity import linearity
 from piezod.recording import read_experiments, read_recording
 
@@ -67,6 +75,50 @@ def _headline(pairs: list[ImagePair]) -> ImagePair:
     order = ("height_model", "height_linear", "z_voltage")
     cmd = [q for q in pairs if q.grid == "commanded"]
     return sorted(cmd, key=lambda q: order.index(q.channel) if q.channel in order else 9)[0]
+
+
+def _slow_axis(entry: dict[str, Any], rec: Any, head: ImagePair, pitch_um: float, say: Any) -> None:
+    """The slow axis's (4.14)-(4.16) from the columns of a 2D grating image (and its sensor's)."""
+    rows: dict[int, Any] = {1: None, -1: None}
+    y = None if rec.axis is None or rec.target_um is None else rec.axis == "y"
+    rs = raster_samples(rec)
+    if y is not None and y.any():
+        for d in (1, -1):  # the commanded slow position of every line: its mean over the line
+            rows[d] = np.array(
+                [
+                    float(
+                        np.mean(
+                            np.interp(
+                                rs.t_s[(rs.line == k) & (rs.direction == d)], rec.t_s[y], rec.target_um[y]
+                            )
+                        )
+                    )
+                    for k in range(rs.lines)
+                ]
+            )
+    try:
+        slow = {
+            name: slow_image_linearity(img, head.geometry, pitch_um, d, rows[d])
+            for name, img, d in (("trace", head.trace, 1), ("retrace", head.retrace, -1))
+        }
+    except RecordingError:
+        return  # a 1D pattern along the slow axis: no flanks across it
+    entry["slow_image_linearity"] = {k: v.as_dict() for k, v in slow.items()}
+    print(
+        "  slow axis, image (flanks):  "
+        + "  ".join(
+            f"{k} nonlin {v.nonlinearity_pct:.4f} % length {v.length_error_pct:+.4f} %"
+            for k, v in slow.items()
+        ),
+        file=say,
+    )
+    if entry["position_sensor"] and y is not None and y.any():
+        t_img = rs.t_s[rs.line >= 0]
+        nl, le = sensor_slow_linearity(
+            rec.t_s[y], rec.target_um[y], rec.position_um[y], float(t_img.min()), float(t_img.max())
+        )
+        entry["slow_sensor_linearity"] = {"nonlinearity_pct": nl, "length_error_pct": le}
+        print(f"  slow axis, sensor (samples): nonlin {nl:.4f} % length {le:+.4f} %", file=say)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -137,6 +189,7 @@ def run(args: argparse.Namespace) -> int:
                     f"length {rt.length_error_pct:+.4f} %",
                     file=say,
                 )
+            _slow_axis(entry, rec, head, args.pitch_um, say)
             if not args.no_png:
                 xt, et = pitch_error(head.trace, head.geometry, args.pitch_um)
                 xr, er = pitch_error(head.retrace, head.geometry, args.pitch_um)

@@ -96,7 +96,15 @@ def running_daemon(
     """Start engine and API; yield the daemon; shut it down (ramping to safe) on exit."""
     notifier = notifier or SystemdNotifier.from_env()
     hub = EventHub()
-    engine = Engine(config, url, recording_dir=recording_dir, on_fault=hub.publish_fault)
+    # line / frame events on the API; a scanner with a height channel gets its images per frame
+    engine = Engine(
+        config,
+        url,
+        recording_dir=recording_dir,
+        on_fault=hub.publish_fault,
+        on_scan_event=hub.publish_scan,
+        write_images=config.microscope is not None,
+    )
     # the API settings are checked before the board is touched: a bad --api changes nothing
     spec = api_spec or default_api_spec(config.name)
     server = ApiServer(create_app(engine, events=hub), spec, config.api)

@@ -28,16 +28,19 @@ the shadow engine that checks a scan before it starts stays next to it.
 
 from __future__ import annotations
 
+import concurrent.futures
 import copy
 import hashlib
 import json
 import logging
 import math
+import multiprocessing
 import stat
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, cast
 
@@ -54,7 +57,7 @@ from piezod.errors import (
     RecordingError,
     SafetyError,
 )
-from piezod.link.board import Board, SerialBoard
+from piezod.link.board import Board, open_board
 from piezod.link.session import (
     BoardFault,
     HostLimitFault,
@@ -87,6 +90,7 @@ from piezod.service.schemas import (
     MoveRequest,
     RecordingInfo,
     ScanChange,
+    ScanEvent,
     ScanRequest,
     Status,
 )
@@ -174,8 +178,11 @@ class Engine:
         recording_dir: Path | None = None,
         settings: LinkSettings | None = None,
         on_fault: Callable[[FaultInfo], None] | None = None,
+        on_scan_event: Callable[[ScanEvent], None] | None = None,
+        write_images: bool = False,
     ) -> None:
         self.config = config
+        self._uncalibrated: list[str] = sorted(set(config.axes) - calibrated_axes(config))
         self.url = url
         self.rate_hz = float(config.sample_rate_hz)
         self.recording_dir = Path(
@@ -184,6 +191,12 @@ class Engine:
         self.recording_dir.mkdir(parents=True, exist_ok=True)
         self.settings = settings or LinkSettings.from_config(config)
         self.on_fault = on_fault
+        #: Called with every line / frame event of a scan (the API's event hub).
+        self.on_scan_event = on_scan_event
+        #: Write the trace / retrace images beside every finished recording with a height channel.
+        self.write_images = write_images
+        self._scans: dict[int, _RecordingScan] = {}
+        self._image_pool: concurrent.futures.ProcessPoolExecutor | None = None
         self.drivers: dict[str, AxisDriver] = {
             name: AxisDriver(name, axis, self.rate_hz) for name, axis in config.axes.items()
         }
@@ -205,7 +218,7 @@ class Engine:
         self._recording_name: str | None = None
         self._next_recording = 0
         self._last_line: LineLinearity | None = None
-        self._board: Board = SerialBoard(url, config, self._on_link_event, self.settings)
+        self._board: Board = open_board(url, config, self._on_link_event, self.settings)
         self._clamped = 0
         self._closing = threading.Event()
         self._supervisor: threading.Thread | None = None
@@ -235,10 +248,25 @@ class Engine:
 
     # -- lifecycle ------------------------------------------------------------------------------
 
+    @property
+    def position_sensor(self) -> bool:
+        """Whether positions are measured: the scanner config's ``microscope.position_sensor``
+        and the board's CAPABILITIES (a board may report that it has no sensor) both say so."""
+        mic = self.config.microscope
+        if mic is not None and not mic.position_sensor:
+            return False
+        session = getattr(self._board, "session", None)
+        caps = getattr(session, "capabilities", None)
+        return bool(getattr(caps, "position_sensor", True))
+
     def open(self, timeout_s: float = 10.0) -> None:
         """Connect to the board, configure it, start streaming (hold), start the recorder."""
         self._recorder.start()
         self._board.open(timeout_s)
+        if not self.position_sensor and self._trackers:
+            # the sensitivity tracker follows measured positions: without a sensor it stays off
+            log.info("no position sensor: sensitivity tracking off")
+            self._trackers = {}
         order = list(self._board.axes)
         if order != list(self.drivers):
             self.drivers = {name: self.drivers[name] for name in order}
@@ -249,11 +277,10 @@ class Engine:
 
     def _start_stream(self) -> None:
         lead = self.config.service.lead_ms / 1000.0
-        if isinstance(self._board, SerialBoard):
-            capped = self._board.capped_lead_s(lead)
-            if capped < lead:
-                log.info("lead %.0f ms capped at %.0f ms by the board FIFO", 1e3 * lead, 1e3 * capped)
-            lead = capped
+        capped = self._board.capped_lead_s(lead)
+        if capped < lead:
+            log.info("lead %.0f ms capped at %.0f ms by the board FIFO", 1e3 * lead, 1e3 * capped)
+        lead = capped
         block = max(1, round(self.rate_hz * self.config.service.block_ms / 1000.0))
         with self._lock:
             self._job = HoldJob("idle")
@@ -318,6 +345,8 @@ class Engine:
             self._recorder.queue.put(None)
             self._recorder.join(timeout=10.0)
             board.close(ramp_to_safe=True)
+            if self._image_pool is not None:  # images being written are finished
+                self._image_pool.shutdown(wait=True)
 
     # -- the block source (streamer thread) ------------------------------------------------------
 
@@ -474,6 +503,8 @@ class Engine:
             voltage_v={n: d.voltage_v for n, d in self.drivers.items()} if known else {},
             recording=self._recording_name,
             sensitivity_scale={a: t.scale for a, t in self._trackers.items()},
+            calibrated=not self._uncalibrated,
+            uncalibrated_axes=self._uncalibrated,
         )
 
     def check_scan(self, request: ScanRequest) -> None:
@@ -741,8 +772,9 @@ class Engine:
         else:
             meta["model"] = "none"
         mic = self.config.microscope
+        if mic is not None or not self.position_sensor:
+            meta["position_sensor"] = "yes" if self.position_sensor else "no"
         if mic is not None:
-            meta["position_sensor"] = "yes" if mic.position_sensor else "no"
             meta["z_monitor_ratio"] = mic.z_monitor_ratio
         z_ratio = None if mic is None else mic.z_monitor_ratio
         axes = tuple(a for a, plan in plans.items() if plan is not None) or ("x",)
@@ -771,6 +803,8 @@ class Engine:
         assert path is not None
         self._recording_id = ident
         self._recording_name = path.name
+        with self._lock:
+            self._scans[ident] = _RecordingScan(path, request.lines, request.frames, z_ratio is not None)
 
     def _discard_recording(self) -> None:
         if self._recording_id >= 0:
@@ -844,8 +878,80 @@ class Engine:
             names = np.array([*self._labels, ""], dtype=str)
         return names[np.where(ids >= 0, ids, len(names) - 1)]
 
+    # -- line / frame events and per-frame images (recorder thread) --------------------------------
+
+    def _publish(self, event: ScanEvent) -> None:
+        if self.on_scan_event is not None:
+            try:
+                self.on_scan_event(event)
+            except Exception:  # a listener must not stop the recorder
+                log.exception("scan event listener failed")
+
+    def scan_line_done(self, ident: int, line: int, direction: int) -> None:
+        """The recorder finished trace (``direction`` +1) or retrace (-1) ``line`` of recording ``ident``."""
+        with self._lock:
+            scan = self._scans.get(ident)
+        if scan is None or line < 0:
+            return
+        frame, in_frame = divmod(line, scan.lines)
+        scan.last_line = line
+        name = scan.path.name
+        self._publish(
+            ScanEvent(
+                kind="line",
+                recording=name,
+                frame=frame,
+                lines=scan.lines,
+                line=in_frame,
+                direction="trace" if direction > 0 else "retrace",
+            )
+        )
+        last_frame = scan.frames > 0 and frame == scan.frames - 1
+        if direction < 0 and in_frame == scan.lines - 1 and not last_frame:
+            self._publish(ScanEvent(kind="frame", recording=name, frame=frame, lines=scan.lines))
+
+    def recording_closed(self, ident: int) -> None:
+        """The recorder closed recording ``ident``: its last frame is done; its images are written
+        (in a worker process: image assembly must not hold the GIL of the streaming threads)."""
+        with self._lock:
+            scan = self._scans.pop(ident, None)
+        if scan is None or scan.last_line < 0:
+            return
+        frame = scan.last_line // scan.lines
+        if not (self.write_images and scan.height):
+            self._publish(ScanEvent(kind="frame", recording=scan.path.name, frame=frame, lines=scan.lines))
+            return
+        with self._lock:
+            if self._image_pool is None:
+                ctx = multiprocessing.get_context("spawn")
+                self._image_pool = concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+            pool = self._image_pool
+        future = pool.submit(_write_images_here, scan.path, self.config.axes.get("z"))
+
+        def done(f: concurrent.futures.Future[tuple[list[str], str | None]]) -> None:
+            try:
+                files, error = f.result()
+            except Exception as exc:  # the worker died: say so on the event
+                files, error = [], f"image worker failed: {exc}"
+            if error is not None:
+                log.warning("images of %s: %s", scan.path.name, error)
+            self._publish(
+                ScanEvent(
+                    kind="frame",
+                    recording=scan.path.name,
+                    frame=frame,
+                    lines=scan.lines,
+                    images=files,
+                    image_error=error,
+                )
+            )
+
+        future.add_done_callback(done)
+
     def set_line_linearity(self, value: LineLinearity, corrected: bool) -> None:
         """Called by the recorder when a line of the fast axis completes (feeds the tracker)."""
+        if not self.position_sensor:
+            return
         self._last_line = value
         tracker = self._trackers.get("x")
         if corrected and tracker is not None:
@@ -900,6 +1006,27 @@ class Engine:
                 f"{ev.missing_rows} sensor rows missing at {ev.expected_index}",
                 ev.expected_index,
             )
+
+
+@dataclass(eq=False)
+class _RecordingScan:
+    """What the line / frame events of one recording need."""
+
+    path: Path
+    lines: int
+    frames: int
+    height: bool
+    last_line: int = -1
+
+
+def _write_images_here(path: Path, z_axis: AxisConfig | None) -> tuple[list[str], str | None]:
+    """In the image worker: the recording's images beside it; (file names, error or None)."""
+    from piezod.image_io import write_recording_images
+
+    try:
+        return [f.name for f in write_recording_images(path, z_axis=z_axis)], None
+    except (PiezodError, OSError, ValueError) as exc:
+        return [], str(exc)
 
 
 __all__ = ["Engine", "FaultSource", "Segment"]

@@ -98,6 +98,7 @@ class _LineAccumulator:
     line: int = -1
     direction: int = 0
     corrected: bool = False
+    recording: int = -1
     target: list[FloatArray] = field(default_factory=list)
     position: list[FloatArray] = field(default_factory=list)
 
@@ -218,12 +219,15 @@ class Recorder(threading.Thread):
         if rec is not None:
             rec.writer.close()
             log.info("recording %s closed (%d rows)", rec.path, rec.rows)
+            self._finish_line()  # the last retrace ends with the recording
+            self._acc.line = -1
+            self.engine.recording_closed(ident)
 
     def _write(self, block: MatchedBlock, meta: tuple[Any, ...]) -> None:
         targets, line, direction, record, rec_id, label, corrected = meta
         rate = self.engine.rate_hz
         t = block.indices / rate
-        self._line_stats(block, targets, line, direction, corrected)
+        self._line_stats(block, targets, line, direction, corrected, np.where(record, rec_id, -1))
         if not record.any():
             return
         for ident in np.unique(rec_id[record]):
@@ -283,6 +287,7 @@ class Recorder(threading.Thread):
         line: NDArray[np.int64],
         direction: NDArray[np.int8],
         corrected: NDArray[np.bool_],
+        recording: NDArray[np.int64],
     ) -> None:
         if "x" not in block.axes:
             return
@@ -300,6 +305,7 @@ class Recorder(threading.Thread):
                 acc.line, acc.direction = ln, dr
                 acc.target, acc.position = [], []
                 acc.corrected = bool(corrected[seg[0]])
+                acc.recording = int(recording[seg[0]])
             if ln >= 0:
                 acc.target.append(targets[ix, seg])
                 acc.position.append(block.position_um[ix, seg])
@@ -308,6 +314,8 @@ class Recorder(threading.Thread):
         acc = self._acc
         if acc.line < 0 or not acc.target:
             return
+        if acc.recording >= 0:
+            self.engine.scan_line_done(acc.recording, acc.line, acc.direction)
         tgt = np.concatenate(acc.target)
         pos = np.concatenate(acc.position)
         ok = np.isfinite(tgt) & np.isfinite(pos)

@@ -111,6 +111,27 @@ class Status(_Body):
     position_um: dict[str, float] = Field(default_factory=dict)
     voltage_v: dict[str, float] = Field(default_factory=dict)
     recording: str | None = None
+    calibrated: bool = True
+    uncalibrated_axes: list[str] = Field(default_factory=list)
+
+
+class ScanEvent(_Body):
+    """A line or a frame of a scan finished (``GET /v1/events?scans=true``).
+
+    ``line`` events come per finished trace and retrace; a ``frame`` event when a frame's last
+    retrace is recorded, and - for the frame that ends the recording - once the daemon has
+    written its trace / retrace images (``.gwy`` + PNG, when the scanner has a height channel)
+    beside the recording (``images``: file names in the recording directory).
+    """
+
+    kind: Literal["line", "frame"]
+    recording: str | None = None
+    frame: int
+    lines: int
+    line: int | None = None
+    direction: Literal["trace", "retrace"] | None = None
+    images: list[str] = Field(default_factory=list)
+    image_error: str | None = None
 
 
 class RecordingInfo(_Body):

@@ -148,7 +148,7 @@ static void send_capabilities(fw_board *b, uint32_t reply_to) {
     p[10] = c->n_channels;
     p[11] = c->dac_bits;
     p[12] = c->adc_bits;
-    p[13] = c->sync_outputs;
+    p[13] = (uint8_t)(c->sync_outputs | (c->no_position_sensor ? 0x80u : 0u));
     fw_put_u16(p + 14, c->max_samples_per_frame);
     fw_put_u32(p + 16, c->sample_rate_min_hz);
     fw_put_u32(p + 20, c->sample_rate_max_hz);

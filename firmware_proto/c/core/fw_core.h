@@ -38,6 +38,7 @@ typedef struct fw_caps {
     uint16_t fw_patch;
     uint8_t n_channels, dac_bits, adc_bits;
     uint8_t sync_outputs; /* digital sync outputs driven from SYNC frames (0: none) */
+    uint8_t no_position_sensor; /* 1: the ADC channels carry no position sensor (revision 2) */
     uint16_t max_samples_per_frame;
     uint32_t sample_rate_min_hz, sample_rate_max_hz, sample_clock_hz;
     uint32_t board_serial;

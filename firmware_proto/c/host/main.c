@@ -359,6 +359,7 @@ int main(int argc, char **argv) {
     const char *stage_cmd = NULL;
     double unplug_s = 2.0;
     uint32_t serial = 0x51A0C001u, rate_max = 200000u;
+    uint8_t no_sensor = 0;
     H.master = -1;
     H.C = 3;
     for (unsigned c = 0; c < FW_MAX_CHANNELS; c++) H.amp_lo[c] = -250.0f, H.amp_hi[c] = 250.0f;
@@ -371,10 +372,11 @@ int main(int argc, char **argv) {
         else if (!strcmp(a, "--serial") && v) serial = (uint32_t)strtoul(v, NULL, 0), i++;
         else if (!strcmp(a, "--rate-max") && v) rate_max = (uint32_t)strtoul(v, NULL, 0), i++;
         else if (!strcmp(a, "--channels") && v) H.C = (unsigned)atoi(v), i++;
+        else if (!strcmp(a, "--no-position-sensor")) no_sensor = 1;
         else {
             fprintf(stderr,
                     "usage: piezod-fw-host [--link PATH] [--stage-cmd CMD] [--unplug-s S] [--serial N] "
-                    "[--rate-max HZ] [--channels C]\n");
+                    "[--rate-max HZ] [--channels C] [--no-position-sensor]\n");
             return 2;
         }
     }
@@ -391,7 +393,7 @@ int main(int argc, char **argv) {
     fw_caps caps = {.fw_major = 1, .fw_minor = 0, .fw_patch = 0, .n_channels = (uint8_t)H.C,
                     .dac_bits = 16, .adc_bits = 16, .sync_outputs = 3, .max_samples_per_frame = fw_max_rows(H.C),
                     .sample_rate_min_hz = 1, .sample_rate_max_hz = rate_max, .sample_clock_hz = 0,
-                    .board_serial = serial};
+                    .board_serial = serial, .no_position_sensor = no_sensor};
     for (unsigned c = 0; c < H.C; c++) caps.amp_v_min[c] = H.amp_lo[c], caps.amp_v_max[c] = H.amp_hi[c];
     fw_hal hal = {.ctx = &H, .tx = hal_tx, .dac_write = hal_dac, .adc_read = hal_adc, .timer = hal_timer,
                   .sync_out = hal_sync, .log = hal_log};

@@ -163,6 +163,9 @@ int main(void) {
     board.caps.sync_outputs = 3;
     reply_check("HELLO", "CAPABILITIES_SYNC", 0);
     sync_check();
+    new_board(-150.0f);
+    board.caps.no_position_sensor = 1;
+    reply_check("HELLO", "CAPABILITIES_NO_SENSOR", 0);
     new_board(-100.0f); /* channel 1's amplifier starts above the vector's code_min: refused at 64 */
     const vec *hello = find("HELLO");
     if (hello) fw_rx(&board, hello->wire, hello->wire_len, 500);
