@@ -9,6 +9,10 @@ Construction validates ranges and raises :class:`~firmware_proto.errors.Protocol
 constructors round them to the nearest float32 so that an object equals what the peer decodes.
 Semantic checks that depend on the board (limits inside the amplifier range, rate supported...)
 are in :meth:`Configure.check`.
+
+Over 800 lines because it is the protocol's message table: one small class per message type of
+PROTOCOL.md section 4, each with its payload layout, validation and pack/unpack side by side,
+like the table it implements; a split by message would only scatter that table.
 """
 
 from __future__ import annotations

@@ -9,6 +9,7 @@ best describes it, so callers may catch either (``except ValueError`` catches
     SimError
     ├── SimConfigError(ValueError)   invalid ``simulation:`` section, preset or effect string
     ├── SimModelError(ValueError)    stage evaluation outside its domain (shapes, non-finite input)
+    ├── SimSafetyError(ValueError)   an offline session plan leaves the voltage limits it was given
     └── SimLinkError(OSError)        the simulator's pty / socket / process cannot be served or reached
         ├── SimLinkClosedError(ConnectionError)   the peer is gone (unplugged, refused)
         └── SimLinkTimeoutError(TimeoutError)     nothing answered in time
@@ -31,6 +32,10 @@ class SimModelError(SimError, ValueError):
     """The stage was asked to evaluate something outside its domain."""
 
 
+class SimSafetyError(SimError, ValueError):
+    """An offline session plan (:mod:`hil_sim.session`) leaves the voltage limits it was given."""
+
+
 class SimLinkError(SimError, OSError):
     """The simulator's pty, USB socket or process cannot be served or reached."""
 
@@ -50,4 +55,5 @@ __all__ = [
     "SimLinkError",
     "SimLinkTimeoutError",
     "SimModelError",
+    "SimSafetyError",
 ]

@@ -9,7 +9,9 @@ quantisation) and the label: the data the pty simulator would deliver, minus the
 The stage starts at rest; between experiments the voltage moves to the next start voltage at
 the slew rate (these moves, and the settle cycles of a scan unless ``record_settle``, are
 simulated but not recorded). Time is continuous over the session (``t = k / sample_rate``).
-:meth:`SessionResult.recording` gives the session as a :class:`piezod.recording.Recording`.
+:func:`piezod.simulator.session_recording` gives the session as the host's recording (this
+package imports nothing of the host: its errors are :mod:`hil_sim.errors`, a scanner config is
+read through the :class:`ScannerAxesLike` protocol).
 """
 
 from __future__ import annotations
@@ -18,20 +20,40 @@ import itertools
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hil_sim.stage import Stage, StageConfig
-from piezod.config import AxisName, ScannerConfig
-from piezod.errors import ConfigError, SafetyError
-
-if TYPE_CHECKING:
-    from piezod.recording import Experiment as RecordedExperiment
-    from piezod.recording import Recording
+from hil_sim.errors import SimConfigError as ConfigError
+from hil_sim.errors import SimSafetyError as SafetyError
+from hil_sim.stage import ScannerLike, Stage, StageConfig
 
 F64 = NDArray[np.float64]
+AxisName = Literal["x", "y", "z"]
+
+
+class AxisLimitsLike(Protocol):
+    """What :func:`run_scanner_session` reads of one axis of a scanner config."""
+
+    @property
+    def voltage_min_v(self) -> float: ...
+
+    @property
+    def voltage_max_v(self) -> float: ...
+
+    @property
+    def slew_rate_v_per_s(self) -> float: ...
+
+    @property
+    def safe_voltage_v(self) -> float: ...
+
+
+class ScannerAxesLike(ScannerLike, Protocol):
+    """What :func:`run_scanner_session` reads of a scanner config (``piezod.config.ScannerConfig``)."""
+
+    @property
+    def sample_rate_hz(self) -> float: ...
 
 
 def _num(value: float) -> str:
@@ -508,35 +530,6 @@ class SessionResult:
         """Labels in order."""
         return [rec.label for rec in self.experiments]
 
-    def recording(self, metadata: Mapping[str, str] | None = None) -> Recording:
-        """All experiments as one :class:`piezod.recording.Recording`.
-
-        Columns t, voltage, position, axis, experiment; metadata names the source and the effects.
-        """
-        from piezod.recording import Recording
-
-        recs = self.experiments
-        meta = {
-            "source": "hil_sim offline session (simulated)",
-            "sample_rate_hz": _num(self.sample_rate_hz),
-            "effects": ",".join(self.config.effects.enabled()) or "none",
-            **(metadata or {}),
-        }
-        return Recording(
-            t_s=np.concatenate([r.t_s for r in recs]),
-            voltage_v=np.concatenate([r.voltage_v for r in recs]),
-            position_um=np.concatenate([r.position_um for r in recs]),
-            axis=np.concatenate([np.full(len(r), r.axis) for r in recs]),
-            experiment=np.concatenate([np.full(len(r), r.label) for r in recs]),
-            metadata=meta,
-        )
-
-    def recorded_experiments(self) -> list[RecordedExperiment]:
-        """The experiments as :class:`piezod.recording.Experiment` objects (what calibrate / audit read)."""
-        from piezod.recording import split_experiments
-
-        return split_experiments(self.recording())
-
 
 def _run(stage: Stage, v: F64, dt_s: float, block: int) -> F64:
     parts = [stage.step(v[i : i + block], dt_s) for i in range(0, v.size, block)]
@@ -575,7 +568,7 @@ def run_session(
     slew_rate_v_per_s
         Rate of the unrecorded moves between experiments (V/s).
     voltage_limits_v
-        ``(min, max)``: a plan leaving them raises :class:`~piezod.errors.SafetyError`.
+        ``(min, max)``: a plan leaving them raises :class:`~hil_sim.errors.SimSafetyError`.
     rest_voltage_v
         Voltage the stage rested at before the session.
     pause_s
@@ -654,7 +647,7 @@ def run_session(
 
 
 def run_scanner_session(
-    scanner: ScannerConfig,
+    scanner: ScannerAxesLike,
     plan: Sequence[PlanItem],
     *,
     sample_rate_hz: float | None = None,
@@ -681,7 +674,7 @@ def run_scanner_session(
     """
     if axis not in scanner.axes:
         raise ConfigError(f"scanner {scanner.name!r} has no axis {axis!r}")
-    ax = scanner.axes[axis]
+    ax: AxisLimitsLike = scanner.axes[axis]
     stage = StageConfig.from_scanner(scanner).with_effects(*effects)
     kwargs.setdefault("voltage_limits_v", (ax.voltage_min_v, ax.voltage_max_v))
     kwargs.setdefault("slew_rate_v_per_s", ax.slew_rate_v_per_s)

@@ -34,6 +34,11 @@ The true hysteresis parameters satisfy ``b / 2 < u < b``: with the ODE, ``b > 2 
 start of every branch after a reversal at large ranges run backwards (``dx/dV = 2u - b < 0``),
 which a real piezo does not do; the thesis's own medium-tube fit (``b = 0.081``,
 ``u = 0.016``) violates it, so the simulated stage uses different, monotone parameters.
+
+A little over 800 lines because the stage's per-block pipeline (drive effects, hysteresis,
+creep, output effects, sensor) and its configuration (validated from the scanner YAML's
+``simulation:`` section, with line numbers) change together; the laws themselves live in
+:mod:`hil_sim.hysteresis`, :mod:`hil_sim.creep` and :mod:`hil_sim.effects`.
 """
 
 from __future__ import annotations

@@ -55,6 +55,11 @@ Per experiment (2.26)-(2.27): ``sigma_i = sqrt(LSF_i / (n_i - nu))`` with ``nu``
 number of fitted model parameters (the per-experiment offset is not counted; it
 changes sigma by ~1/(2 n_i)), relative to the distance ``Delta x_i`` covered by the
 fitted loop (``max - min`` of the model), in %.
+
+The recordings -> arrays step (:func:`prepare`, :class:`CalibrationData`) lives in
+:mod:`piezod.calibrate_data` (re-exported here); the model, its start, the fit and its outputs
+stay together here (a little over 800 lines: one model's calibration, end to end); the
+statistics every fit returns are :class:`piezod.fitstats.FitResult`.
 """
 
 from __future__ import annotations
@@ -63,9 +68,7 @@ import datetime as _dt
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
-from functools import cached_property
-from types import MappingProxyType
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -73,9 +76,10 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares, minimize_scalar
 
 from piezod import __version__
+from piezod.calibrate_data import CalibrationData, prepare
 from piezod.config import AxisConfig, ScannerConfig, ThesisModelConfig, calibrated_notes
 from piezod.errors import CalibrationError, ModelError
-from piezod.fitstats import at_bounds, fit_warnings, jacobian_covariance
+from piezod.fitstats import FitResult, fit_warnings, parameter_statistics
 from piezod.model.params import ThesisParams
 from piezod.recording import Experiment
 
@@ -89,131 +93,6 @@ _LOG = np.array([True, True, True, True, False, False, False])
 _LOWER = np.array([1e-6, 1e-6, 1e-6, 1e-3, 0.0, -0.999, -99.0])
 _UPPER = np.array([0.999, 99.0, 99.0, 1e5, 0.999, 0.999, 99.0])
 _DEFAULT_TAU_S = 1.0
-
-
-@dataclass(frozen=True, eq=False)
-class CalibrationData:
-    """The experiments of a calibration frame, concatenated for the fit.
-
-    Attributes
-    ----------
-    voltage_v, direction, position_um
-        Per sample (direction +1 trace / -1 retrace, as float).
-    starts
-        Index of the first sample of every experiment (experiments are contiguous).
-    v_min, v_max, frequency_hz
-        Per experiment, inferred from the voltage waveform.
-    labels, axes, paths, n_loops
-        Per experiment, for reports.
-    """
-
-    voltage_v: F64
-    direction: F64
-    position_um: F64
-    starts: NDArray[np.intp]
-    v_min: F64
-    v_max: F64
-    frequency_hz: F64
-    labels: tuple[str, ...]
-    axes: tuple[str | None, ...]
-    paths: tuple[str | None, ...]
-    n_loops: tuple[int, ...]
-
-    @property
-    def n_experiments(self) -> int:
-        """Number of experiments."""
-        return len(self.labels)
-
-    @cached_property
-    def counts(self) -> NDArray[np.intp]:
-        """Samples per experiment."""
-        return np.diff(np.append(self.starts, self.voltage_v.size))
-
-    @cached_property
-    def index(self) -> NDArray[np.intp]:
-        """Experiment index of every sample."""
-        return np.repeat(np.arange(self.n_experiments), self.counts)
-
-    @cached_property
-    def distance_from_start_v(self) -> F64:
-        """``s (V - V_start)`` >= 0: voltage travelled since the branch's turning point."""
-        v_start = np.where(self.direction > 0, self.v_min[self.index], self.v_max[self.index])
-        out: F64 = self.direction * (self.voltage_v - v_start)
-        return out
-
-    @cached_property
-    def from_centre_v(self) -> F64:
-        """``V - V_C`` with ``V_C`` the centre of the experiment's scan."""
-        out: F64 = self.voltage_v - (0.5 * (self.v_max + self.v_min))[self.index]
-        return out
-
-
-def prepare(
-    experiments: Sequence[Experiment], *, skip_loops: int = 0, max_samples_per_loop: int | None = 2048
-) -> CalibrationData:
-    """Infer every experiment's scan and concatenate the frame.
-
-    Parameters
-    ----------
-    experiments
-        The experiments (one axis).
-    skip_loops
-        Complete loops to drop at the start of every experiment (settling).
-    max_samples_per_loop
-        Keep every k-th sample so that a loop has at most this many (None: all). The
-        steady loop is smooth, so a few thousand samples determine it; plain striding
-        (no averaging) keeps the per-sample noise and hence the fit errors (2.26)
-        comparable with the undecimated data.
-
-    Raises
-    ------
-    RecordingError
-        An experiment's voltage is not a periodic triangular scan (file:line).
-    CalibrationError
-        Too little data left.
-    """
-    if not experiments:
-        raise CalibrationError("no experiments to calibrate")
-    if max_samples_per_loop is not None and max_samples_per_loop < 16:
-        raise CalibrationError(f"max_samples_per_loop must be >= 16, got {max_samples_per_loop}")
-    vs, ds, xs, starts = [], [], [], []
-    v_min, v_max, freq, n_loops = [], [], [], []
-    n = 0
-    for e in experiments:
-        info = e.require_scan()
-        lo = 0
-        if skip_loops:
-            if info.n_loops <= skip_loops:
-                raise CalibrationError(
-                    f"experiment {e.describe()} has {info.n_loops} complete loop(s), cannot skip {skip_loops}"
-                )
-            lo = int(info.turning_indices[2 * skip_loops])
-        step = 1
-        if max_samples_per_loop is not None:
-            per_loop = 1.0 / (info.frequency_hz * float(np.median(np.diff(e.t_s))))
-            step = max(1, math.ceil(per_loop / max_samples_per_loop - 1e-6))
-        starts.append(n)
-        vs.append(e.voltage_v[lo::step])
-        ds.append(info.direction[lo::step].astype(np.float64))
-        xs.append(e.position_um[lo::step])
-        n += vs[-1].size
-        v_min.append(info.v_min)
-        v_max.append(info.v_max)
-        freq.append(info.frequency_hz)
-        n_loops.append(info.n_loops - skip_loops)
-    return CalibrationData(
-        voltage_v=np.concatenate(vs),
-        direction=np.concatenate(ds),
-        position_um=np.concatenate(xs),
-        starts=np.asarray(starts, dtype=np.intp),
-        v_min=np.asarray(v_min),
-        v_max=np.asarray(v_max),
-        frequency_hz=np.asarray(freq),
-        labels=tuple(e.label for e in experiments),
-        axes=tuple(e.axis for e in experiments),
-        paths=tuple(e.path for e in experiments),
-        n_loops=tuple(n_loops),
-    )
 
 
 # ------------------------------------------------------------------------------------------------ model
@@ -475,61 +354,25 @@ class ExperimentFit:
         return 0.5 * (self.v_max + self.v_min)
 
 
-@dataclass(frozen=True, eq=False)
-class CalibrationResult:
-    """Result of :func:`fit` (all values in the units of the parameter names).
+@dataclass(frozen=True, eq=False, kw_only=True)
+class CalibrationResult(FitResult):
+    """Result of :func:`fit`: the shared :class:`~piezod.fitstats.FitResult` (standard errors,
+    covariance, correlations, residuals, condition, bounds, ``n``, ``dof``, solver status) and
+    the thesis model's parameters.
 
     Attributes
     ----------
     params
         Fitted parameters.
-    stderr
-        Standard error per parameter name (0 for fixed ones; inf when undetermined).
-    correlations
-        Correlation matrix of the free parameters (order of ``free``).
-    free, fixed
-        Names of the fitted and of the held parameters.
-    at_bounds
-        Free parameters that ended on a bound (their standard errors are not meaningful).
-    condition_number
-        Condition number of the column-normalised Jacobian of the free parameters.
     experiments
         Per-experiment summaries.
-    residuals_um
-        Measured minus fitted position, per sample, experiments concatenated.
-    cost
-        ``0.5 * sum(rho(r^2))`` at the solution (the solver's cost).
-    n
-        Number of samples.
     loss
         Loss function used.
-    nfev
-        Model evaluations.
-    success, message
-        Solver status.
-    seconds
-        Wall time of the fit, including the automatic start.
-    warnings
-        Things the user should know (undetermined or bounded parameters, ...).
     """
 
     params: ThesisParams
-    stderr: Mapping[str, float]
-    correlations: F64
-    free: tuple[str, ...]
-    fixed: tuple[str, ...]
-    at_bounds: tuple[str, ...]
-    condition_number: float
     experiments: tuple[ExperimentFit, ...]
-    residuals_um: F64
-    cost: float
-    n: int
     loss: str
-    nfev: int
-    success: bool
-    message: str
-    seconds: float
-    warnings: tuple[str, ...] = field(default=())
 
     @property
     def values(self) -> dict[str, float]:
@@ -743,18 +586,21 @@ def fit(
     # Covariance from the (projected) Jacobian and the residual variance.
     p_free = int(mask.sum())
     dof = max(np.size(resid_for_dof) - p_free - n_exp, 1)
-    fitcov = jacobian_covariance(jac_for_cov, float(np.sum(np.asarray(resid_for_dof) ** 2)), dof)
-    cond = fitcov.condition_number
-    sd_z = fitcov.sd[:p_free]
-    corr = fitcov.corr[:p_free, :p_free]
     vals = np.array([getattr(params, k) for k in PARAM_NAMES])
     dz = np.where(_LOG, vals, 1.0)
     dz[5] = 1.0 / a2_scale
-    stderr = dict.fromkeys(PARAM_NAMES, 0.0)
-    for j, k in enumerate(free):
-        stderr[k] = float(abs(dz[PARAM_NAMES.index(k)]) * sd_z[j])
-
-    bounded = at_bounds(PARAM_NAMES, free, z_sol, lo, hi)
+    stats = parameter_statistics(
+        jac_for_cov,
+        float(np.sum(np.asarray(resid_for_dof) ** 2)),
+        dof,
+        names=PARAM_NAMES,
+        free=free,
+        z=z_sol,
+        lo=lo,
+        hi=hi,
+        dvalue_dz=dz,
+    )
+    cond, bounded = stats.condition_number, stats.at_bounds
     warnings = list(notes) + fit_warnings(bounded, cond, params.u_um_per_v, params.b_um_per_v)
     vh = 0.5 * (data.v_max - data.v_min)
     kk = (1.0 - params.a1 * np.exp(-1.0 / (data.frequency_hz * params.tau_s))) * (
@@ -786,8 +632,9 @@ def fit(
     resid_um.setflags(write=False)
     return CalibrationResult(
         params=params,
-        stderr=MappingProxyType(stderr),
-        correlations=corr,
+        stderr=stats.stderr,
+        covariance=stats.covariance,
+        correlations=stats.correlations,
         free=free,
         fixed=fixed,
         at_bounds=bounded,
@@ -796,6 +643,7 @@ def fit(
         residuals_um=resid_um,
         cost=cost,
         n=int(resid_um.size),
+        dof=stats.dof,
         loss=loss,
         nfev=nfev[0],
         success=success,
@@ -970,3 +818,20 @@ def calibrated_config(
         )
     except ValueError as exc:
         raise CalibrationError(f"cannot build the calibrated config: {exc}") from exc
+
+
+__all__ = [
+    "LOSSES",
+    "PARAM_NAMES",
+    "CalibrationData",
+    "CalibrationResult",
+    "ExperimentFit",
+    "auto_start",
+    "calibrate",
+    "calibrated_config",
+    "fit",
+    "fit_errors",
+    "model_positions",
+    "prepare",
+    "result_json",
+]

@@ -44,6 +44,11 @@ are linear in the drive, so ``x = (1 + W)(b V + delta Y) + (b E[V] + delta E[Y])
 
 Fit error per experiment (2.26)-(2.27): ``sigma_e = sqrt(LSF_e / (n_e - nu))`` relative to the
 distance ``Delta x_e`` covered by the fitted positions, in %.
+
+The session layout (:func:`prepare_dynamic`, :class:`DynamicCalibrationData`) lives in
+:mod:`piezod.calibrate_data` (re-exported here); the model, its start, the fit and its outputs
+stay together here (a little over 800 lines: one model's calibration, end to end); the
+statistics every fit returns are :class:`piezod.fitstats.FitResult`.
 """
 
 from __future__ import annotations
@@ -51,9 +56,8 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
-from types import MappingProxyType
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -62,6 +66,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from scipy.special import digamma
 
 from piezod import __version__
+from piezod.calibrate_data import DynamicCalibrationData, ExperimentLayout, prepare_dynamic
 from piezod.config import (
     AxisConfig,
     DynamicModelConfig,
@@ -70,7 +75,7 @@ from piezod.config import (
     calibrated_notes,
 )
 from piezod.errors import CalibrationError, ModelError
-from piezod.fitstats import at_bounds, fit_warnings, jacobian_covariance
+from piezod.fitstats import FitResult, fit_warnings, parameter_statistics
 from piezod.model.dynamic import (
     MAX_TOTAL_CREEP,
     DynamicParams,
@@ -95,317 +100,6 @@ PARAM_NAMES: tuple[str, ...] = (
 )
 _LOWER = np.array([math.log(1e-6), math.log(1e-6), math.log(1e-6), 0.0, -0.5])
 _UPPER = np.array([math.log(0.5), math.log(99.0), math.log(99.0), 20.0, 0.5])
-_MOVE_STEPS = 32
-
-
-# ------------------------------------------------------------------------------------- session layout
-
-
-@dataclass(frozen=True, slots=True)
-class ExperimentLayout:
-    """How one experiment enters the session simulation.
-
-    Attributes
-    ----------
-    label, axis, path, kind
-        Identification; ``kind`` from :func:`piezod.scan_inference.infer_scan`.
-    t_start_s, duration_s
-        Time of the first recorded sample and the recorded duration (s).
-    frequency_hz, v_min, v_max
-        Loop frequency (nan when not periodic) and the voltage span.
-    stride
-        Recorded samples per grid step.
-    gap_s
-        Unrecorded time before the experiment (s).
-    move_s, hold_s, preroll_loops
-        The gap's reconstruction: move at the slew rate, hold, settling loops.
-    """
-
-    label: str
-    axis: str | None
-    path: str | None
-    kind: str
-    t_start_s: float
-    duration_s: float
-    frequency_hz: float
-    v_min: float
-    v_max: float
-    stride: int
-    gap_s: float
-    move_s: float
-    hold_s: float
-    preroll_loops: int
-
-
-@dataclass(frozen=True, eq=False)
-class DynamicCalibrationData:
-    """A session prepared for the dynamic fit (:func:`prepare_dynamic`).
-
-    Attributes
-    ----------
-    hysteresis_voltage_v
-        The voltage subsequence the ODE runs on (grid samples and every turning point).
-    grid_index
-        Positions of the creep-grid samples in ``hysteresis_voltage_v``.
-    pieces
-        ``(dt_s, start, stop)`` over the grid: stretches of uniform sample interval.
-    compared
-        Grid positions of the compared (recorded) samples, experiments contiguous.
-    position_um
-        Measured positions there.
-    starts, counts
-        First compared sample and number of compared samples per experiment.
-    rest_voltage_v
-        Voltage the stage rested at before ``t = 0``.
-    experiments
-        Per-experiment layout.
-    """
-
-    hysteresis_voltage_v: F64
-    grid_index: NDArray[np.intp]
-    pieces: tuple[tuple[float, int, int], ...]
-    compared: NDArray[np.intp]
-    position_um: F64
-    starts: NDArray[np.intp]
-    counts: NDArray[np.intp]
-    rest_voltage_v: float
-    experiments: tuple[ExperimentLayout, ...]
-
-    @property
-    def n_experiments(self) -> int:
-        """Number of experiments."""
-        return len(self.experiments)
-
-    @property
-    def grid_voltage_v(self) -> F64:
-        """Voltage at the grid samples."""
-        out: F64 = self.hysteresis_voltage_v[self.grid_index]
-        return out
-
-    def time_scales_s(self) -> tuple[float, float]:
-        """Shortest and longest time scale the frame shows: a quarter loop / a ramp; the session."""
-        short = [
-            0.25 / e.frequency_hz if math.isfinite(e.frequency_hz) else e.duration_s for e in self.experiments
-        ]
-        last = self.experiments[-1]
-        return min(short), last.t_start_s + last.duration_s
-
-
-class _Builder:
-    def __init__(self, rest_v: float) -> None:
-        self.v: list[F64] = []
-        self.grid: list[NDArray[np.intp]] = []
-        self.n_v = 0
-        self.n_grid = 0
-        self.pieces: list[tuple[float, int, int]] = []
-        self.compared: list[NDArray[np.intp]] = []
-        self.positions: list[F64] = []
-        self.v_last = rest_v
-
-    def piece(
-        self,
-        v: F64,
-        grid_local: NDArray[np.intp],
-        dt_s: float,
-        compare_local: NDArray[np.intp] | None = None,
-        positions: F64 | None = None,
-    ) -> None:
-        """Append ODE samples ``v``, of which ``grid_local`` are on a uniform grid of ``dt_s``."""
-        if grid_local.size == 0:
-            return
-        self.v.append(v)
-        self.grid.append(self.n_v + grid_local)
-        self.pieces.append((dt_s, self.n_grid, self.n_grid + grid_local.size))
-        if compare_local is not None and positions is not None:
-            self.compared.append(self.n_grid + compare_local)
-            self.positions.append(positions)
-        self.n_v += v.size
-        self.n_grid += grid_local.size
-        self.v_last = float(v[-1])
-
-
-def _turning_points(v: F64) -> NDArray[np.intp]:
-    """Samples where the direction of ``v`` changes (held samples belong to their run)."""
-    s = np.sign(np.diff(v))
-    moving = np.flatnonzero(s)
-    if moving.size < 2:
-        return np.empty(0, dtype=np.intp)
-    flips: NDArray[np.intp] = moving[1:][s[moving[1:]] != s[moving[:-1]]].astype(np.intp)
-    return flips
-
-
-def _sample_interval(e: Experiment) -> float:
-    if len(e) < 2:
-        raise CalibrationError(f"experiment {e.describe()}: needs at least 2 samples, has {len(e)}")
-    steps = np.diff(e.t_s)
-    dt = float(np.median(steps))
-    bad = np.flatnonzero(np.abs(steps - dt) > 0.01 * dt)
-    if bad.size:
-        j = int(bad[0])
-        line = None if e.line_numbers is None else int(e.line_numbers[j + 1])
-        where = f" (line {line})" if line is not None else ""
-        raise CalibrationError(
-            f"experiment {e.describe()}: sample times are not uniform: step {steps[j]:.6g} s at "
-            f"t = {e.t_s[j + 1]:.6g} s{where}, median {dt:.6g} s"
-        )
-    return dt
-
-
-def prepare_dynamic(
-    experiments: Sequence[Experiment],
-    *,
-    max_samples_per_loop: int = 512,
-    max_samples_per_experiment: int = 8192,
-    slew_rate_v_per_s: float = 2000.0,
-    rest_voltage_v: float = 0.0,
-    max_preroll_loops: int = 8,
-) -> DynamicCalibrationData:
-    """Lay out a session of experiments (any waveforms, one axis) for the dynamic fit.
-
-    Parameters
-    ----------
-    experiments
-        The recorded experiments; sorted by time here, they must not overlap in ``t``.
-    max_samples_per_loop
-        Grid density of periodic experiments (samples per loop, at most).
-    max_samples_per_experiment
-        Grid samples of a non-periodic experiment, at most.
-    slew_rate_v_per_s
-        Rate of the unrecorded moves between experiments (the axis's slew rate).
-    rest_voltage_v
-        Voltage the stage rested at before ``t = 0`` (the safe voltage).
-    max_preroll_loops
-        Most settling loops assumed before a periodic experiment.
-
-    Raises
-    ------
-    CalibrationError
-        No experiments, several axes, overlapping or non-uniform sample times, or too few samples.
-    """
-    if not experiments:
-        raise CalibrationError("no experiments to calibrate")
-    if max_samples_per_loop < 16 or max_samples_per_experiment < 16:
-        raise CalibrationError("max_samples_per_loop and max_samples_per_experiment must be >= 16")
-    if not (math.isfinite(slew_rate_v_per_s) and slew_rate_v_per_s > 0):
-        raise CalibrationError(f"slew_rate_v_per_s must be > 0, got {slew_rate_v_per_s!r}")
-    axes = {e.axis for e in experiments if e.axis is not None}
-    if len(axes) > 1:
-        raise CalibrationError(f"experiments of several axes ({', '.join(sorted(axes))}): calibrate one axis")
-    order = sorted(experiments, key=lambda e: float(e.t_s[0]))
-    builder = _Builder(float(rest_voltage_v))
-    layouts: list[ExperimentLayout] = []
-    starts: list[int] = []
-    counts: list[int] = []
-    t_prev = 0.0
-    prev: Experiment | None = None
-    n_compared = 0
-    for e in order:
-        dt = _sample_interval(e)
-        t0 = float(e.t_s[0])
-        if prev is not None and t0 <= t_prev:
-            raise CalibrationError(
-                f"experiments {prev.describe()} and {e.describe()} overlap in time "
-                f"(t = {t0:.6g} s <= {t_prev:.6g} s): one session, continuous t, is needed"
-            )
-        v = np.asarray(e.voltage_v, dtype=np.float64)
-        n = v.size
-        info = e.scan()
-        periodic = bool(info.is_periodic)
-        freq = float(info.frequency_hz) if periodic else math.nan
-        if periodic:
-            per_loop = 1.0 / (freq * dt)
-            stride = max(1, math.floor(per_loop / max_samples_per_loop))
-            loop = round(per_loop)
-        else:
-            per_loop = math.nan
-            stride = max(1, math.ceil(n / max_samples_per_experiment))
-            loop = 0
-        gap = max(0, round((t0 - t_prev) / dt) - 1) if prev is not None or t0 > 0.0 else 0
-        v_from = builder.v_last
-        # where the experiment started: one sample before its first, on the same slope
-        v_start = 2.0 * float(v[0]) - float(v[1])
-        move = math.ceil(abs(v_start - v_from) / slew_rate_v_per_s / dt - 1e-6)
-        n_pre = 0
-        pre = 0
-        if periodic and 0 < loop <= n:
-            # whole loops that fit after the move (a sample or two of the move may be short)
-            n_pre = max(0, min(max_preroll_loops, math.floor((gap - move) / per_loop + 0.05)))
-            pre = min(gap, round(n_pre * per_loop))
-            v_start = float(v[(-pre - 1) % loop])
-        move = min(move, gap - pre)
-        hold = gap - pre - move
-        if move + hold == 0:
-            v_start = v_from  # no room: the first sample follows the previous one directly
-        # the move (monotone: exact for the ODE) and the hold (one step): before the first
-        # experiment the stage rests at the rest voltage until it moves (the daemon idles, then
-        # ramps to a program's start); between experiments it holds at the next start voltage
-        # (hil_sim.session's pause)
-        steps = min(move, _MOVE_STEPS)
-        frac = np.arange(1, steps + 1) / max(steps, 1)
-        v_hold = v_from if prev is None else v_start
-        if hold > 0 and prev is None:
-            builder.piece(np.array([v_hold]), np.zeros(1, dtype=np.intp), hold * dt)
-        if move > 0:
-            mv = v_from + (v_start - v_from) * frac
-            builder.piece(mv, np.arange(steps, dtype=np.intp), move * dt / steps)
-        if hold > 0 and prev is not None:
-            builder.piece(np.array([v_hold]), np.zeros(1, dtype=np.intp), hold * dt)
-        # settling loops (the periodic extension of the first recorded loop backwards in time),
-        # then the recorded samples: grid every `stride` samples, ending on the last one
-        full = np.concatenate([v[np.arange(-pre, 0) % loop], v]) if pre else v
-        offset = pre
-        length = full.size
-        grid = np.arange((length - 1) % stride, length, stride, dtype=np.intp)
-        keep = np.union1d(grid, _turning_points(np.concatenate(([builder.v_last], full)))[:] - 1)
-        keep = keep[keep >= 0]
-        first = int(grid[0])
-        pos = np.asarray(e.position_um, dtype=np.float64)
-        for lo_i, hi_i, dt_piece in ((-1, first, (first + 1) * dt), (first, length - 1, stride * dt)):
-            sel = keep[(keep > lo_i) & (keep <= hi_i)]
-            gl = np.flatnonzero(np.isin(sel, grid)).astype(np.intp)
-            on_grid = sel[gl]
-            rec = on_grid >= offset
-            builder.piece(
-                full[sel], gl, dt_piece, np.flatnonzero(rec).astype(np.intp), pos[on_grid[rec] - offset]
-            )
-        m = int(sum(c.size for c in builder.compared)) - n_compared
-        starts.append(n_compared)
-        counts.append(m)
-        n_compared += m
-        layouts.append(
-            ExperimentLayout(
-                label=e.label,
-                axis=e.axis,
-                path=e.path,
-                kind=str(info.kind),
-                t_start_s=t0,
-                duration_s=float(e.t_s[-1] - t0),
-                frequency_hz=freq,
-                v_min=float(v.min()),
-                v_max=float(v.max()),
-                stride=stride,
-                gap_s=gap * dt,
-                move_s=move * dt,
-                hold_s=hold * dt,
-                preroll_loops=n_pre,
-            )
-        )
-        t_prev = float(e.t_s[-1])
-        prev = e
-    if min(counts) < 8:
-        bad = layouts[int(np.argmin(counts))]
-        raise CalibrationError(f"experiment {bad.label!r}: too few samples for the fit ({min(counts)})")
-    return DynamicCalibrationData(
-        hysteresis_voltage_v=np.concatenate(builder.v),
-        grid_index=np.concatenate(builder.grid),
-        pieces=tuple(builder.pieces),
-        compared=np.concatenate(builder.compared),
-        position_um=np.concatenate(builder.positions),
-        starts=np.asarray(starts, dtype=np.intp),
-        counts=np.asarray(counts, dtype=np.intp),
-        rest_voltage_v=float(rest_voltage_v),
-        experiments=tuple(layouts),
-    )
 
 
 # ------------------------------------------------------------------------------------------- the model
@@ -667,51 +361,25 @@ class DynamicExperimentFit:
         return self.layout.label
 
 
-@dataclass(frozen=True, eq=False)
-class DynamicCalibrationResult:
-    """Result of :func:`fit_dynamic` (values in the units of the parameter names).
+@dataclass(frozen=True, eq=False, kw_only=True)
+class DynamicCalibrationResult(FitResult):
+    """Result of :func:`fit_dynamic`: the shared :class:`~piezod.fitstats.FitResult` (standard
+    errors, covariance, correlations, residuals, condition, bounds, ``n``, ``dof``, solver
+    status) and the dynamic model's parameters.
 
     Attributes
     ----------
     params
         The fitted model (with the creep structure used).
-    stderr
-        Standard error per fitted parameter name (0 for held ones).
-    correlations
-        Correlation matrix of the free parameters (order of ``free``).
-    free, fixed
-        Names of the fitted and of the held parameters.
-    at_bounds
-        Free parameters that ended on a bound.
-    condition_number
-        Of the column-normalised, offset-projected Jacobian.
     experiments
         Per-experiment summaries, in time order.
-    residuals_um
-        Measured minus fitted position at the compared samples.
-    cost, n, nfev, simulations, success, message, seconds
-        Solver summary (``simulations``: runs of the session's ODE + creep for new ``alpha``).
-    warnings
-        Things the user should know.
+    simulations
+        Runs of the session's ODE + creep for new ``alpha``.
     """
 
     params: DynamicParams
-    stderr: Mapping[str, float]
-    correlations: F64
-    free: tuple[str, ...]
-    fixed: tuple[str, ...]
-    at_bounds: tuple[str, ...]
-    condition_number: float
     experiments: tuple[DynamicExperimentFit, ...]
-    residuals_um: F64
-    cost: float
-    n: int
-    nfev: int
     simulations: int
-    success: bool
-    message: str
-    seconds: float
-    warnings: tuple[str, ...] = field(default=())
 
     @property
     def values(self) -> dict[str, float]:
@@ -891,13 +559,18 @@ def fit_dynamic(
 
     n_exp = data.n_experiments
     dof = max(resid_um.size - p_free - n_exp, 1)
-    fitcov = jacobian_covariance(res.jac, float(resid_um @ resid_um), dof)
-    cond, sd_z, corr = fitcov.condition_number, fitcov.sd, fitcov.corr
-    scale = np.array([alpha, b, u, 1.0, 1.0])  # d value / d z
-    stderr = dict.fromkeys(PARAM_NAMES, 0.0)
-    for j, k in enumerate(free):
-        stderr[k] = float(scale[PARAM_NAMES.index(k)] * sd_z[j])
-    bounded = at_bounds(PARAM_NAMES, free, z_sol, lo, hi)
+    stats = parameter_statistics(
+        res.jac,
+        float(resid_um @ resid_um),
+        dof,
+        names=PARAM_NAMES,
+        free=free,
+        z=z_sol,
+        lo=lo,
+        hi=hi,
+        dvalue_dz=np.array([alpha, b, u, 1.0, 1.0]),  # d value / d z
+    )
+    cond, bounded = stats.condition_number, stats.at_bounds
     warnings += fit_warnings(bounded, cond, u, b)
     if not res.success:
         warnings.append(f"solver did not converge: {res.message}")
@@ -916,8 +589,9 @@ def fit_dynamic(
     resid_um.setflags(write=False)
     return DynamicCalibrationResult(
         params=params,
-        stderr=MappingProxyType(stderr),
-        correlations=corr,
+        stderr=stats.stderr,
+        covariance=stats.covariance,
+        correlations=stats.correlations,
         free=free,
         fixed=tuple(k for k in PARAM_NAMES if k in fixed),
         at_bounds=bounded,
@@ -926,6 +600,7 @@ def fit_dynamic(
         residuals_um=resid_um,
         cost=float(res.cost),
         n=int(resid_um.size),
+        dof=stats.dof,
         nfev=nfev[0],
         simulations=model.simulations,
         success=bool(res.success),

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import lsq_linear, minimize_scalar
+from scipy.optimize import minimize_scalar
 
 from piezod.calibrate_dynamic import (
     DynamicCalibrationData,
@@ -46,6 +46,7 @@ from piezod.calibrate_dynamic import (
 )
 from piezod.config import FamilyModelConfig
 from piezod.errors import CalibrationError, ModelError
+from piezod.fitstats import solve_linear
 from piezod.model.dynamic import MAX_TOTAL_CREEP
 from piezod.model.family import CREEP_DRIVERS, CreepSpectrum, FamilyParams
 from piezod.model.params import HysteresisParams
@@ -61,66 +62,7 @@ _MAX_LAG_S = 0.05
 # ------------------------------------------------------------------------------ the shared linear path
 
 
-def solve_linear(
-    a: F64,
-    y: F64,
-    *,
-    lower: F64 | None = None,
-    upper: F64 | None = None,
-    ridge: F64 | None = None,
-) -> tuple[F64, float]:
-    """Bounded, optionally Tikhonov-regularised linear least squares ``min |A c - y|^2 + |R c|^2``.
-
-    The one linear least-squares path of the calibrations (and of the audit's linear
-    sub-problems): :func:`scipy.optimize.lsq_linear` (trust-region reflective) on the stacked
-    system.
-
-    Parameters
-    ----------
-    a
-        Design matrix, shape ``(n, p)``.
-    y
-        Data, shape ``(n,)``.
-    lower, upper
-        Bounds per coefficient (default unbounded).
-    ridge
-        Regularisation matrix ``R``, shape ``(k, p)`` (default none).
-
-    Returns
-    -------
-    coefficients : ndarray
-        The solution.
-    rms : float
-        RMS of ``A c - y`` (without the regularisation rows).
-    """
-    p = a.shape[1]
-    lo = np.full(p, -np.inf) if lower is None else np.asarray(lower, dtype=np.float64)
-    hi = np.full(p, np.inf) if upper is None else np.asarray(upper, dtype=np.float64)
-    fixed = lo >= hi
-    if fixed.any():
-        c: F64 = np.where(fixed, lo, 0.0)
-        free = ~fixed
-        if not free.any():
-            return c, float(np.sqrt(np.mean((a @ c - y) ** 2)))
-        sub, _ = solve_linear(
-            a[:, free],
-            y - a[:, fixed] @ lo[fixed],
-            lower=lo[free],
-            upper=hi[free],
-            ridge=None if ridge is None else ridge[:, free],
-        )
-        c[free] = sub
-        return c, float(np.sqrt(np.mean((a @ c - y) ** 2)))
-    if ridge is not None:
-        a_full = np.vstack([a, ridge])
-        y_full = np.concatenate([y, np.zeros(ridge.shape[0])])
-    else:
-        a_full, y_full = a, y
-    scale = np.linalg.norm(a_full, axis=0)
-    scale[scale == 0.0] = 1.0
-    res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="trf", lsmr_tol="auto")
-    sol: F64 = res.x / scale
-    return sol, float(np.sqrt(np.mean((a @ sol - y) ** 2)))
+# solve_linear: the one linear least-squares path, in piezod.fitstats beside the fit-result type
 
 
 # ------------------------------------------------------------------------------------------ features

@@ -28,6 +28,7 @@ from piezod.errors import ConfigError, ModelError
 from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.model.params import HysteresisParams, ThesisParams
+from piezod.model.parts import Parts
 from piezod.model.play import PlayParams
 
 AxisName = Literal["x", "y", "z"]
@@ -149,6 +150,9 @@ class FamilyModelConfig(StrictModel):
         )
 
 
+PartEffect = Literal["polarity", "thermal", "stiffness", "saturation", "drift"]
+
+
 class AxisConfig(StrictModel):
     """One scanner axis: its voltage limits, safety settings and model."""
 
@@ -166,9 +170,22 @@ class AxisConfig(StrictModel):
     family: FamilyModelConfig | None = Field(
         default=None, description="model-family parameters (required by model: family)"
     )
+    extensions: dict[PartEffect, dict[str, float]] = Field(
+        default={},
+        description="runtime parts around the model (the audit's findings, piezod.model.parts): "
+        "{effect id: {parameter: value}} with the names of piezod.model.registry",
+    )
+
+    def parts(self) -> Parts:
+        """The runtime parts of :attr:`extensions`."""
+        return Parts.from_effects(dict(self.extensions))
 
     @model_validator(mode="after")
     def _check_limits(self) -> AxisConfig:
+        try:
+            self.parts()
+        except ModelError as exc:
+            raise ValueError(f"extensions: {exc}") from exc
         if not self.voltage_min_v < self.voltage_max_v:
             raise ValueError(
                 f"voltage_min_v ({self.voltage_min_v}) must be below voltage_max_v ({self.voltage_max_v})"

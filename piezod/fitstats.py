@@ -1,13 +1,24 @@
-"""Statistics of a least-squares fit shared by the calibrations: covariance, correlations, bounds."""
+"""The one fit-result type and the statistics every least-squares fit of piezod shares.
+
+:class:`FitResult` is what every calibration fit returns (``piezod.calibrate.CalibrationResult``,
+``piezod.calibrate_dynamic.DynamicCalibrationResult`` are subclasses adding their model's
+parameters and per-experiment summaries): parameter standard errors, covariance and
+correlations, residuals and their RMS, the condition number, the parameters on a bound, ``n``
+and ``dof``. :func:`parameter_statistics` computes that block from the Jacobian at the solution
+(the nonlinear fits, and the audit through :func:`jacobian_covariance`), :func:`solve_linear`
+is the linear least-squares path (bounded, optionally regularised).
+"""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import lsq_linear
 
 F64 = NDArray[np.float64]
 
@@ -84,3 +95,208 @@ def fit_warnings(
     if not u_um_per_v < b_um_per_v:
         warnings.append("u >= b: the loop shape is not that of a piezo (check the data)")
     return warnings
+
+
+@dataclass(frozen=True, slots=True)
+class ParameterStatistics:
+    """Uncertainty of the free parameters of a fit, in their own units (see :func:`parameter_statistics`).
+
+    Attributes
+    ----------
+    stderr
+        Standard error per parameter name (0 for held ones; inf when the data do not determine it).
+    covariance
+        Covariance of the free parameters (order of ``free``).
+    correlations
+        Their correlation matrix.
+    condition_number
+        Of the column-normalised Jacobian.
+    at_bounds
+        Free parameters whose internal value sits on a bound.
+    dof
+        Degrees of freedom of the residual variance.
+    """
+
+    stderr: Mapping[str, float]
+    covariance: F64
+    correlations: F64
+    condition_number: float
+    at_bounds: tuple[str, ...]
+    dof: int
+
+
+def parameter_statistics(
+    jac: ArrayLike,
+    sum_sq: float,
+    dof: int,
+    *,
+    names: Sequence[str],
+    free: Sequence[str],
+    z: ArrayLike,
+    lo: ArrayLike,
+    hi: ArrayLike,
+    dvalue_dz: ArrayLike,
+) -> ParameterStatistics:
+    """Standard errors, covariance and correlations of a fit solved in internal coordinates ``z``.
+
+    Parameters
+    ----------
+    jac
+        Jacobian of the residuals at the solution; its first ``len(free)`` columns are the free
+        parameters (further columns, e.g. per-experiment offsets, take part in the covariance).
+    sum_sq, dof
+        Residual sum of squares and its degrees of freedom.
+    names
+        Every parameter name, in the order of ``z``, ``lo``, ``hi`` and ``dvalue_dz``.
+    free
+        The fitted ones.
+    z, lo, hi
+        The solution and the bounds, internal coordinates (all parameters).
+    dvalue_dz
+        ``d value / d z`` per parameter (e.g. the value itself for a log-parametrised one).
+    """
+    cov = jacobian_covariance(jac, sum_sq, dof)
+    p = len(free)
+    d = np.asarray(dvalue_dz, dtype=np.float64)[[list(names).index(k) for k in free]]
+    stderr = dict.fromkeys(names, 0.0)
+    for j, k in enumerate(free):
+        stderr[k] = float(abs(d[j]) * cov.sd[j])
+    with np.errstate(invalid="ignore"):
+        covariance = cov.cov[:p, :p] * np.outer(d, d)
+    return ParameterStatistics(
+        stderr=MappingProxyType(stderr),
+        covariance=covariance,
+        correlations=cov.corr[:p, :p],
+        condition_number=cov.condition_number,
+        at_bounds=at_bounds(names, free, z, lo, hi),
+        dof=max(dof, 1),
+    )
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class FitResult:
+    """What every least-squares fit returns (values in the units of the parameter names).
+
+    Subclasses add the fitted model (``params``) and their per-experiment summaries.
+
+    Attributes
+    ----------
+    stderr
+        Standard error per parameter name (0 for held ones; inf when undetermined).
+    covariance
+        Covariance matrix of the free parameters (order of ``free``).
+    correlations
+        Correlation matrix of the free parameters (order of ``free``).
+    free, fixed
+        Names of the fitted and of the held parameters.
+    at_bounds
+        Free parameters that ended on a bound (their standard errors are not meaningful).
+    condition_number
+        Condition number of the column-normalised Jacobian of the free parameters.
+    residuals_um
+        Measured minus fitted position per compared sample (um).
+    cost
+        The solver's cost at the solution.
+    n
+        Number of compared samples.
+    dof
+        Degrees of freedom of the residual variance (``n`` minus every fitted coefficient).
+    nfev
+        Model evaluations.
+    success, message
+        Solver status.
+    seconds
+        Wall time of the fit.
+    warnings
+        Things the user should know (undetermined or bounded parameters, ...).
+    """
+
+    stderr: Mapping[str, float]
+    covariance: F64
+    correlations: F64
+    free: tuple[str, ...]
+    fixed: tuple[str, ...]
+    at_bounds: tuple[str, ...]
+    condition_number: float
+    residuals_um: F64
+    cost: float
+    n: int
+    dof: int
+    nfev: int
+    success: bool
+    message: str
+    seconds: float
+    warnings: tuple[str, ...] = field(default=())
+
+    @property
+    def residual_rms_um(self) -> float:
+        """RMS of :attr:`residuals_um` (um)."""
+        r = self.residuals_um
+        return float(np.sqrt(np.mean(r * r))) if r.size else math.nan
+
+    @property
+    def values(self) -> dict[str, float]:
+        """Parameter name -> fitted value (of the subclass's ``params``)."""
+        raise NotImplementedError
+
+
+def solve_linear(
+    a: F64,
+    y: F64,
+    *,
+    lower: F64 | None = None,
+    upper: F64 | None = None,
+    ridge: F64 | None = None,
+) -> tuple[F64, float]:
+    """Bounded, optionally Tikhonov-regularised linear least squares ``min |A c - y|^2 + |R c|^2``.
+
+    The one linear least-squares path of the calibrations (and of the audit's linear
+    sub-problems): :func:`scipy.optimize.lsq_linear` (trust-region reflective) on the stacked
+    system.
+
+    Parameters
+    ----------
+    a
+        Design matrix, shape ``(n, p)``.
+    y
+        Data, shape ``(n,)``.
+    lower, upper
+        Bounds per coefficient (default unbounded).
+    ridge
+        Regularisation matrix ``R``, shape ``(k, p)`` (default none).
+
+    Returns
+    -------
+    coefficients : ndarray
+        The solution.
+    rms : float
+        RMS of ``A c - y`` (without the regularisation rows).
+    """
+    p = a.shape[1]
+    lo = np.full(p, -np.inf) if lower is None else np.asarray(lower, dtype=np.float64)
+    hi = np.full(p, np.inf) if upper is None else np.asarray(upper, dtype=np.float64)
+    fixed = lo >= hi
+    if fixed.any():
+        c: F64 = np.where(fixed, lo, 0.0)
+        free = ~fixed
+        if not free.any():
+            return c, float(np.sqrt(np.mean((a @ c - y) ** 2)))
+        sub, _ = solve_linear(
+            a[:, free],
+            y - a[:, fixed] @ lo[fixed],
+            lower=lo[free],
+            upper=hi[free],
+            ridge=None if ridge is None else ridge[:, free],
+        )
+        c[free] = sub
+        return c, float(np.sqrt(np.mean((a @ c - y) ** 2)))
+    if ridge is not None:
+        a_full = np.vstack([a, ridge])
+        y_full = np.concatenate([y, np.zeros(ridge.shape[0])])
+    else:
+        a_full, y_full = a, y
+    scale = np.linalg.norm(a_full, axis=0)
+    scale[scale == 0.0] = 1.0
+    res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="trf", lsmr_tol="auto")
+    sol: F64 = res.x / scale
+    return sol, float(np.sqrt(np.mean((a @ sol - y) ** 2)))

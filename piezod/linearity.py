@@ -224,27 +224,20 @@ def experiment_linearity(
 
     # Every line runs from one turning sample to the next, both included (the turning samples
     # are the first and the last pixel of the two lines that meet there).
-    idx = info.turning_indices
-    nl = idx.size - 1
-    lengths = np.diff(idx) + 1
-    line = np.repeat(np.arange(nl), lengths)
-    first = np.concatenate(([0], np.cumsum(lengths)[:-1]))
-    rows = idx[:-1][line] + (np.arange(line.size) - first[line])
-    direction = (-info.turning_kinds[:-1])[line].astype(np.int64)
-    t = exp.t_s[rows]
-    t0 = exp.t_s[idx[:-1]]
-    dur = exp.t_s[idx[1:]] - t0
-    phi = (t - t0[line]) / dur[line]
+    rows, line, direction, phi, first = _lines(exp.t_s, info)
     x = exp.position_um[rows]
     m = o / (1.0 + 2.0 * o)
     if exp.target_um is not None:
         xi = exp.target_um[rows]
         tmax = np.maximum.reduceat(xi, first)
         tmin = np.minimum.reduceat(xi, first)
+        if info.wraps:
+            # The end and start pieces share a half period: its turning values are the record's.
+            tmax[-2:], tmin[-2:] = float(xi.max()), float(xi.min())
         centre = 0.5 * (tmax + tmin)
         half = 0.5 * (tmax - tmin) / (1.0 + 2.0 * o)
         keep = np.abs(xi - centre[line]) <= half[line] * (1.0 + 1e-9)
-        span = float(np.median(tmax - tmin)) / (1.0 + 2.0 * o)
+        span = float(np.median((tmax - tmin)[: first.size - 2 if info.wraps else None])) / (1.0 + 2.0 * o)
         reference = "target"
         if nominal is None:
             nominal = span
@@ -279,6 +272,44 @@ def experiment_linearity(
         trace=branches[0],
         retrace=branches[1],
     )
+
+
+def _lines(
+    t_s: F64, info: ScanInfo
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], F64, NDArray[np.int64]]:
+    """Rows, line index, direction, phase in the line and first position of every line.
+
+    A line runs from one turning sample to the next, both included. Of a one-period record
+    (:attr:`ScanInfo.wraps`) the pieces before the first and after the last turning point are
+    lines too (the half period they share, each with its own offset): their phase counts from
+    where the half period starts, the record's end piece continuing into its start piece.
+    """
+    idx = info.turning_indices
+    nl = idx.size - 1
+    lengths = np.diff(idx) + 1
+    line = np.repeat(np.arange(nl), lengths)
+    first = np.concatenate(([0], np.cumsum(lengths)[:-1]))
+    rows = idx[:-1][line] + (np.arange(line.size) - first[line])
+    direction = (-info.turning_kinds[:-1])[line].astype(np.int64)
+    t = t_s[rows]
+    t0 = t_s[idx[:-1]]
+    dur = t_s[idx[1:]] - t0
+    phi = (t - t0[line]) / dur[line]
+    if info.wraps:
+        n = t_s.size
+        a, b = int(idx[0]), int(idx[-1])
+        d_edge = float(t_s[a] - t_s[0] + t_s[-1] - t_s[b])
+        tail = np.arange(b, n)
+        head = np.arange(0, a + 1)
+        rows = np.concatenate((rows, tail, head))
+        line = np.concatenate((line, np.full(tail.size, nl), np.full(head.size, nl + 1)))
+        first = np.concatenate((first, [first[-1] + lengths[-1], first[-1] + lengths[-1] + tail.size]))
+        d = int(-info.turning_kinds[-1])
+        direction = np.concatenate((direction, np.full(tail.size + head.size, d, dtype=np.int64)))
+        phi = np.concatenate(
+            (phi, (t_s[tail] - t_s[b]) / d_edge, (t_s[head] - t_s[0] + t_s[-1] - t_s[b]) / d_edge)
+        )
+    return rows.astype(np.int64), line.astype(np.int64), direction, phi, first.astype(np.int64)
 
 
 def _branch(

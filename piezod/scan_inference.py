@@ -82,6 +82,11 @@ class ScanInfo:
         RMS deviation from the best fitting shape (line or half cosine), in waveform units.
     duty
         Fraction of the period spent rising (0.5 for a symmetric triangle; nan if unknown).
+    wraps
+        The record is one period that starts and ends inside a half period, e.g. a one-period
+        triangle ``0 -> +V -> 0 -> -V -> 0`` as instruments export one loop per block: its
+        first and last pieces together are one half period (``n_loops`` is 1; the record does
+        not start at a turning point, so the first piece may hold the initial curve).
     """
 
     kind: ScanKind
@@ -96,6 +101,7 @@ class ScanInfo:
     shape_error: float
     noise: float
     duty: float
+    wraps: bool = False
 
     @property
     def range_v(self) -> float:
@@ -150,7 +156,9 @@ def infer_scan(t_s: ArrayLike, voltage: ArrayLike) -> ScanInfo:
     lo, span = _robust_span(v, vmin_all, vmax_all)
     idx, kinds = _schmitt_turns(v, lo, span)
     noise_d2 = _noise_d2(v)
-    idx, kinds = _drop_cut_edges(v, idx, kinds, 0.005 * span + 4.0 * noise_d2)
+    idx, kinds = _drop_cut_edges(
+        v, idx, kinds, 0.005 * span + 4.0 * noise_d2, _REGULAR_TOL * span + 6.0 * noise_d2
+    )
 
     if idx.size < 2:
         direction = _direction_from_slope(v)
@@ -174,6 +182,17 @@ def infer_scan(t_s: ArrayLike, voltage: ArrayLike) -> ScanInfo:
 
     problems = _irregularities(t, v, idx, kinds, direction, t_turn, vmaxs, vmins, span, noise_d2, halves)
     kind, reason = _classify(problems, halves, idx.size, n_loops)
+    wraps = False
+    if kind == "triangle" and n_loops == 0 and idx.size == 2:
+        why_not = _one_period(t, v, idx, span, noise_d2)
+        if why_not:
+            reason += f" ({why_not})"
+        else:
+            wraps, n_loops, reason = True, 1, ""
+            frequency = 1.0 / float(t[-1] - t[0])
+            duty = float(t[idx[0]] - t[0] + t[-1] - t[idx[1]]) * frequency
+            if kinds[0] < 0:
+                duty = 1.0 - duty
     return ScanInfo(
         kind=kind,
         reason=reason,
@@ -187,7 +206,37 @@ def infer_scan(t_s: ArrayLike, voltage: ArrayLike) -> ScanInfo:
         shape_error=float(halves.shape_line),
         noise=float(halves.noise),
         duty=duty,
+        wraps=wraps,
     )
+
+
+def _one_period(t: F64, v: F64, idx: I64, span: float, noise_d2: float) -> str:
+    """Empty when a record with two turning points is one whole triangle period, else why not.
+
+    The pieces before the first and after the last turning point must be straight, with the
+    same slope, and join into the missing half period: the record starts and ends at the same
+    level, and the two pieces together cross the whole span.
+    """
+    a, b = int(idx[0]), int(idx[-1])
+    n = v.size
+    if a < 2 or n - b < 3:
+        return "the record starts or ends at a turning point"
+    tol = _REGULAR_TOL * span + 6.0 * noise_d2
+    if abs(v[-1] - v[0]) > tol:
+        return f"it starts at {v[0]:.4g} and ends at {v[-1]:.4g}: not one whole period"
+    travel = abs(v[a] - v[0]) + abs(v[-1] - v[b])
+    if abs(travel - abs(v[b] - v[a])) > tol:
+        return "the first and last pieces do not join into a half period"
+    slopes, sq = [], 0.0
+    for sl in (slice(0, a + 1), slice(b, n)):
+        tt, vv = t[sl], v[sl]
+        coef = np.polyfit(tt - tt[0], vv, 1)
+        slopes.append(float(coef[0]))
+        sq += float(np.sum((vv - np.polyval(coef, tt - tt[0])) ** 2))
+    rms = math.sqrt(max(0.0, sq / (a + 1 + n - b) - noise_d2**2)) / span
+    if rms > _SHAPE_TOL or abs(slopes[0] - slopes[1]) > _REGULAR_TOL * max(abs(slopes[0]), abs(slopes[1])):
+        return "the first and last pieces are not one straight half period"
+    return ""
 
 
 def _robust_span(v: F64, vmin_all: float, vmax_all: float) -> tuple[float, float]:
@@ -233,11 +282,13 @@ def _noise_d2(v: F64) -> float:
     return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
 
 
-def _drop_cut_edges(v: F64, idx: I64, kinds: I8, tol: float) -> tuple[I64, I8]:
+def _drop_cut_edges(v: F64, idx: I64, kinds: I8, tol: float, turn: float) -> tuple[I64, I8]:
     """Drop first / last candidates not at the level of the other turning points of their kind.
 
     The first and last band runs may be cut by the record's start or end and then hold no
-    turning point at all: they count only next to real ones and at their level.
+    turning point at all: they count only next to real ones and at their level, or where the
+    waveform turns back on both sides of them by more than ``turn`` (a record that starts or
+    ends anywhere in the period, e.g. one period from the middle of a branch).
     """
     if not idx.size:
         return idx, kinds
@@ -246,17 +297,19 @@ def _drop_cut_edges(v: F64, idx: I64, kinds: I8, tol: float) -> tuple[I64, I8]:
     keep = interior.copy()
     if not interior.any():
         # One or two candidates (a one-period triangle, a half loop): a candidate is a turning
-        # point when the waveform turns back on both sides of it by a third of the span, i.e.
-        # when its band run is not cut by the record's start or end.
-        span = float(np.ptp(v))
+        # point when the waveform turns back on both sides of it, i.e. when its band run is
+        # not cut by the record's start or end.
         for j, (k, kind) in enumerate(zip(idx.tolist(), kinds.tolist(), strict=True)):
             drop = kind * (v[k] - v)
-            keep[j] = bool(np.any(drop[: k + 1] >= span / 3.0) and np.any(drop[k:] >= span / 3.0))
+            keep[j] = bool(np.any(drop[: k + 1] >= turn) and np.any(drop[k:] >= turn))
         return idx[keep], kinds[keep]
     for edge in np.flatnonzero(~interior):
         same = kinds == kinds[edge]
         ref_pool = v[idx[same & interior]] if np.any(same & interior) else v[idx[same]]
-        keep[edge] = abs(v[idx[edge]] - float(np.median(ref_pool))) <= tol
+        k, kind = int(idx[edge]), int(kinds[edge])
+        back = kind * (v[k] - v)
+        turns = bool(np.any(back[: k + 1] >= turn) and np.any(back[k:] >= turn))
+        keep[edge] = turns or abs(v[k] - float(np.median(ref_pool))) <= tol
     return idx[keep], kinds[keep]
 
 

@@ -431,6 +431,95 @@ def choose_for_experiments(
     return ThesisFit(report, config, float(choice.heldout_rms_um[choice.chosen]))
 
 
+def audit_and_extend(
+    experiments: Sequence[Experiment],
+    axis: AxisName,
+    chosen: ThesisFit,
+    base: ScannerConfig,
+    ramp_v_per_s: float,
+    rest_voltage_v: float,
+    *,
+    folds: int = 4,
+) -> ThesisFit:
+    """Audit the frame, adopt the material findings that have a runtime part if they predict better.
+
+    The audit (:func:`piezod.audit.run_audit`) names the effects; those with a runtime part
+    (:func:`piezod.extensions.adopt_findings`) are fixed and the model choice is redone on the frame
+    seen through their exact inverse (:func:`choose_for_experiments`). The extended model is
+    adopted when its held-out RMS is below the chosen model's, else the findings are reported
+    as not adopted.
+
+    Parameters
+    ----------
+    experiments
+        The frame.
+    axis
+        The calibrated axis.
+    chosen
+        :func:`choose_for_experiments` on the frame (its ``fit_error_pct`` is the held-out RMS).
+    base
+        The config the choice started from (thesis and dynamic sections).
+    ramp_v_per_s, rest_voltage_v
+        As for the choice.
+    folds
+        The audit's held-out folds.
+
+    Returns
+    -------
+    ThesisFit
+        The config to write (``chosen.config`` or the extended one), ``report`` with ``findings``,
+        ``adopted``, ``skipped``, ``heldout_rms_um`` (chosen / extended) and ``text``.
+    """
+    from piezod.audit import AuditOptions, run_audit
+    from piezod.audit import result_json as audit_json
+    from piezod.extensions import adopt_findings, experiments_through_parts, extended_config
+    from piezod.model.parts import PART_EFFECTS, Parts
+
+    # only the effects a runtime part can take: the others could not be adopted (piezod audit tries all)
+    options = AuditOptions(folds=folds, refit_cv=False, effects=tuple(PART_EFFECTS))
+    doc = audit_json(run_audit(experiments, [], options=options))
+    adoption = adopt_findings(doc["findings"])
+    report: dict[str, Any] = {
+        "findings": [f["effect"] for f in doc["findings"]],
+        "cause": doc["cause"],
+        "adopted": [],
+        "skipped": list(adoption.skipped),
+        "heldout_rms_um": {"chosen": chosen.fit_error_pct},
+    }
+    if not adoption.effects:
+        report["text"] = adoption.summary()
+        return ThesisFit(report, chosen.config, chosen.fit_error_pct)
+    parts = Parts.from_effects(adoption.effects)
+    redone = choose_for_experiments(
+        experiments_through_parts(experiments, parts), axis, base, ramp_v_per_s, rest_voltage_v
+    )
+    report["heldout_rms_um"]["extended"] = redone.fit_error_pct
+    if redone.fit_error_pct < chosen.fit_error_pct:
+        report["adopted"] = list(adoption.adopted)
+        report["model_choice"] = redone.report
+        report["text"] = (
+            f"held-out RMS {chosen.fit_error_pct * 1e3:.2f} nm -> {redone.fit_error_pct * 1e3:.2f} nm with "
+            f"the findings as runtime parts\n{adoption.summary()}"
+        )
+        return ThesisFit(report, extended_config(redone.config, axis, adoption), redone.fit_error_pct)
+    worse = f"held-out RMS {redone.fit_error_pct * 1e3:.2f} nm, not below {chosen.fit_error_pct * 1e3:.2f} nm"
+    report["skipped"] = [f"{a} ({worse})" for a in adoption.adopted] + report["skipped"]
+    report["text"] = "\n".join(f"not adopted {s}" for s in report["skipped"])
+    return ThesisFit(report, chosen.config, chosen.fit_error_pct)
+
+
+def _audit_here(
+    frame_path: Path,
+    axis: AxisName,
+    chosen: ThesisFit,
+    base: ScannerConfig,
+    ramp_v_per_s: float,
+    rest_voltage_v: float,
+) -> ThesisFit:
+    exps = read_experiments([frame_path], axis=axis)
+    return audit_and_extend(exps, axis, chosen, base, ramp_v_per_s, rest_voltage_v)
+
+
 def _linearity_here(path: Path, axis: AxisName) -> tuple[float, float]:
     e = linearity(read_experiments([path], axis=axis)).experiments[0]
     return float(e.nonlinearity_pct), float(e.length_error_pct)
@@ -495,6 +584,21 @@ class AnalysisWorker:
         ``fit_error_pct`` of the result holds the chosen model's held-out RMS in um.
         """
         return self._pool.submit(_choose_here, frame_path, axis, base, ramp_v_per_s, rest_voltage_v).result()
+
+    def audit_and_extend(
+        self,
+        frame_path: Path,
+        chosen: ThesisFit,
+        base: ScannerConfig,
+        axis: AxisName,
+        *,
+        ramp_v_per_s: float,
+        rest_voltage_v: float,
+    ) -> ThesisFit:
+        """:func:`audit_and_extend` on the frame recording (in the worker process)."""
+        return self._pool.submit(
+            _audit_here, frame_path, axis, chosen, base, ramp_v_per_s, rest_voltage_v
+        ).result()
 
     def linearity(self, path: Path, axis: AxisName = "x") -> tuple[float, float]:
         """(nonlinearity %, length error %) of the first experiment of ``axis`` in ``path``."""

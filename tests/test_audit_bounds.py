@@ -61,3 +61,23 @@ def test_realistic_magnitudes_are_plausible(effect: str, params: dict[str, float
 def test_impossible_magnitudes_are_implausible(effect: str, params: dict[str, float]) -> None:
     why = implausible(effect, params, SC)
     assert why.startswith("implausible:"), why
+
+
+def test_audit_and_effect_registry_agree_where_they_name_the_same_parameter() -> None:
+    from piezod.audit.bounds import REGISTRY_SHARED
+    from piezod.model.registry import REGISTRY
+
+    # Bounded relative to the data's excursion, where the registry's absolute interval
+    # presupposes a lab stage's stroke (docstring of piezod.audit.bounds).
+    relative = {("stiffness", "sensitivity_pct_per_um"), ("saturation", "x_sat_um")}
+    for effect in EFFECTS:
+        if effect not in REGISTRY:
+            continue
+        names = set(make_candidate(effect, "ode").names) | set(make_candidate(effect, "thesis").names)
+        for p in REGISTRY[effect].params:
+            if p.name not in names or (effect, p.name) in relative:
+                continue
+            assert (effect, p.name) in REGISTRY_SHARED, (effect, p.name)
+            (b,) = [b for b in BOUNDS[effect] if b.param == p.name]
+            assert (b.lo, b.hi) == p.physical
+            assert implausible(effect, {p.name: p.physical[1] * 1.01 + 1e-9}, SC).startswith("implausible")

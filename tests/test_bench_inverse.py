@@ -28,6 +28,10 @@ def test_bench_reports_keys_and_accuracy() -> None:
     assert r["max_roundtrip_error_rel"] <= 1e-9
     assert r["max_voltage_difference_v"] <= 1e-9
     assert r["ode_max_roundtrip_error_rel"] <= 1e-9
+    # the richest runtime model (voltage creep + every part) is timed and exact; its ns are the bench's
+    assert r["richest_model"] in r["models"] and r["richest_ns_per_sample"] > 0
+    assert r["richest_ratio"] == pytest.approx(r["richest_ns_per_sample"] / r["scipy_ns_per_sample"])
+    assert all(m["max_roundtrip_error_rel"] <= 1e-9 for m in r["models"].values())
 
 
 def test_scipy_baseline_is_the_same_inverse() -> None:
@@ -42,7 +46,8 @@ def test_cli_bench_inverse_writes_json(tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["bench", "inverse", "--blocks", "2", "--repeats", "1", "--json", str(out)]) == 0
     data = json.loads(out.read_text())
     assert set(data) >= KEYS
-    assert "ns/sample" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "ns/sample" in text and "richest runtime model" in text
 
 
 def test_cli_bench_stream_not_available_yet(

@@ -65,6 +65,7 @@ from piezod.linearity import experiment_linearity
 from piezod.model.dynamic import DynamicParams
 from piezod.recording import Experiment
 from piezod.service.axes import AxisDriver
+from piezod.simulator import session_experiments
 
 SCANNER = load_config(default_sim_config_path())
 STAGE = StageConfig.from_scanner(SCANNER)
@@ -99,7 +100,7 @@ class Frame:
             self.ranges_v, self.frequencies_hz, self.offsets_v, cycles=self.cycles, settle_cycles=self.settle
         )
         sess = run_session(self.stage, plan, sample_rate_hz=self.fs, axis="x", voltage_limits_v=LIMITS)
-        return sess.recorded_experiments()
+        return session_experiments(sess)
 
 
 @cache
@@ -264,7 +265,7 @@ def test_layout_reconstructs_the_unrecorded_gaps() -> None:
         Sine(120.0, 1.5, 0.0, cycles=2, settle_cycles=1),
     ]
     sess = run_session(STAGE, plan, sample_rate_hz=500.0, axis="x", pause_s=0.4, slew_rate_v_per_s=1000.0)
-    data = prepare_dynamic(sess.recorded_experiments(), slew_rate_v_per_s=1000.0, max_samples_per_loop=64)
+    data = prepare_dynamic(session_experiments(sess), slew_rate_v_per_s=1000.0, max_samples_per_loop=64)
     lay = data.experiments
     assert [e.preroll_loops for e in lay] == [3, 2, 0, 0, 1]
     assert [e.kind for e in lay] == ["triangle", "triangle", "ramp", "constant", "sine"]
@@ -281,7 +282,7 @@ def test_layout_reconstructs_the_unrecorded_gaps() -> None:
 def test_the_true_parameters_explain_the_session_to_the_noise() -> None:
     plan = calibration_plan([150.0, 400.0], [0.4, 1.6], [-25.0, 25.0], cycles=2)
     sess = run_session(STAGE, plan, sample_rate_hz=800.0, axis="x")
-    data = prepare_dynamic(sess.recorded_experiments())
+    data = prepare_dynamic(session_experiments(sess))
     model = _Model(data, CreepStructure())
     z = np.array([math.log(3e-3), math.log(0.115), math.log(0.072), 1.5, 0.0])
     r = data.position_um - model.positions(z)
@@ -308,7 +309,7 @@ def test_fit_recovers_the_stage_from_arbitrary_waveforms() -> None:
         Sine(150.0, 3.0, 40.0, cycles=6, settle_cycles=1),
     ]
     sess = run_session(STAGE, plan, sample_rate_hz=1000.0, axis="x")
-    res = calibrate_dynamic(sess.recorded_experiments())
+    res = calibrate_dynamic(session_experiments(sess))
     p = res.params
     assert p.alpha_per_v == pytest.approx(3.0e-3, rel=3e-3)
     assert p.b_um_per_v == pytest.approx(0.115, rel=3e-3)

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from piezod.cli.ctl import status_text
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
 from piezod.errors import EngineStateError, RangeUnreachableError, SafetyError
 from piezod.recording import read_recording
@@ -42,6 +43,9 @@ def test_scan_is_streamed_recorded_and_measured(engine: Engine, tmp_path: Path) 
     st = engine.status()
     assert st.underruns == 0 and not [f for f in st.faults if f.source != "link"]
     assert st.last_line is not None and st.last_line.line == 3
+    # configs/sim-stage.yaml is the first guess: the status (and the API's) says so
+    assert not st.calibrated and st.uncalibrated_axes == ["x", "y", "z"]
+    assert "warning: uncalibrated model on axes x, y, z" in status_text(st)
     rec = read_recording(tmp_path / "s1.csv")
     assert rec.metadata["range_um"] == "15.0"
     x = rec.axis == "x"

@@ -25,8 +25,9 @@ from real_daemon import RealDaemon
 
 from piezod.config import ApiConfig, default_sim_config_path
 from piezod.errors import ConfigError
-from piezod.service.api import MAX_BODY_BYTES, create_app
+from piezod.service.api import create_app
 from piezod.service.daemon import default_api_spec
+from piezod.service.guards import MAX_BODY_BYTES
 from piezod.service.server import ApiServer, private_dir
 
 

@@ -51,11 +51,6 @@ IO_MODULES = frozenset(
     }
 )
 
-#: hil_sim modules that still import the host, owned by other work in progress (see the report
-#: of issue #14). The test fails if a module not listed here starts importing piezod.
-PENDING_HIL_SIM = frozenset({"hil_sim.session"})
-
-
 def _module_name(path: Path) -> str:
     parts = list(path.relative_to(ROOT).with_suffix("").parts)
     if parts[-1] == "__init__":
@@ -121,8 +116,7 @@ def test_firmware_proto_stands_on_its_own() -> None:
 
 
 def test_hil_sim_imports_nothing_of_the_host() -> None:
-    bad = _violations("hil_sim", ("piezod",))
-    assert set(bad) <= PENDING_HIL_SIM, {k: v for k, v in bad.items() if k not in PENDING_HIL_SIM}
+    assert not _violations("hil_sim", ("piezod",))
 
 
 def test_the_host_reaches_the_simulator_through_one_entry_point() -> None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hil_sim.errors import SimConfigError as ConfigError
+from hil_sim.errors import SimSafetyError as SafetyError
 from hil_sim.session import (
     Hold,
     MinorLoops,
@@ -20,7 +22,7 @@ from hil_sim.session import (
 )
 from hil_sim.stage import StageConfig
 from piezod.config import default_sim_config_path, load_config
-from piezod.errors import ConfigError, SafetyError
+from piezod.simulator import session_experiments, session_recording
 
 FS = 2000.0
 
@@ -135,10 +137,10 @@ def test_session_converts_to_the_recording_format(stage_cfg: StageConfig) -> Non
     recording = pytest.importorskip("piezod.recording")
     plan = [Triangle(300.0, 2.0, cycles=3), Triangle(200.0, 5.0, offset_v=30.0, cycles=3)]
     res = run_session(stage_cfg.with_effects("delay=1e-4"), plan, sample_rate_hz=FS, seed=0)
-    rec = res.recording()
+    rec = session_recording(res)
     assert rec.columns == ("t", "voltage", "position", "axis", "experiment")
     assert rec.metadata["effects"] == "delay"
-    exps = res.recorded_experiments()
+    exps = session_experiments(res)
     assert [e.label for e in exps] == res.labels()
     info = recording.infer_scan(exps[1].t_s, exps[1].voltage_v)
     assert info.frequency_hz == pytest.approx(5.0, rel=1e-3)

@@ -76,3 +76,27 @@ def test_bench_stream_target_3_axes_100k_20s() -> None:
     print(json.dumps(result, indent=2))
     assert result["underruns"] == 0 and result["unexplained_loss"] == 0
     assert result["samples_sent"] == result["samples_read"] >= 19 * 100_000
+
+
+def test_the_richest_model_runs_in_the_streaming_path_without_loss(tmp_path: Path) -> None:
+    """Short version of the soak target below: every axis's voltages come from the model's inverse."""
+    out = tmp_path / "bench.json"
+    model = "family/prandtl-ishlinskii/voltage-creep"
+    args = ["bench", "stream", "--axes", "3", "--rate-hz", "50000", "--seconds", "0.8", "--model", model]
+    assert main([*args, "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["model"] == model and result["model_ns_per_sample"] > 0
+    assert result["underruns"] == 0 and result["unexplained_loss"] == 0
+    assert result["samples_sent"] == result["samples_read"] >= 0.6 * 50_000
+    with pytest.raises(ConfigError, match="--model 'nope'"):
+        run_stream_bench(argparse.Namespace(axes=1, rate_hz=1000.0, seconds=0.5, model="nope"))
+
+
+@pytest.mark.soak
+def test_bench_stream_target_3_axes_100k_20s_with_the_richest_model() -> None:
+    """``piezod bench stream --axes 3 --rate-hz 100000 --seconds 20 --model <richest>`` loses nothing."""
+    model = "family/prandtl-ishlinskii/voltage-creep"
+    result = run_stream_bench(argparse.Namespace(axes=3, rate_hz=100_000.0, seconds=20.0, model=model))
+    print(json.dumps(result, indent=2))
+    assert result["underruns"] == 0 and result["unexplained_loss"] == 0
+    assert result["samples_sent"] == result["samples_read"] >= 19 * 100_000

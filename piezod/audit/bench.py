@@ -11,6 +11,9 @@ The corpus (nothing is read from disk except the shipped P-885 recordings):
 * **stand-ins for real data** (other physics, :mod:`piezod.audit.standins`): a PNZT disc with a
   voltage hold and a known linear drift, a 5 kHz actuator and its 200 Hz decimation, a
   ferroelectric switching above its coercive voltage, loops below it;
+* **stages of other physics** (hil_sim presets ``pi-stage``, ``p885-stage``, run in process): a
+  small frame, its decimation by 2 and its even / odd experiments (the verdict must not change),
+  and the frame with a 600 s voltage hold with and without a hidden linear drift of 1 nm/s;
 * **real recordings**: the P-885 stack (validation file, blocked split in time, decimated by 2).
 
 Printed: the confusion matrix (rows: what is hidden, columns: the cause named), the false-alarm
@@ -32,7 +35,14 @@ import numpy as np
 from piezod.audit import CAUSES, EFFECTS
 from piezod.audit.bounds import implausible
 from piezod.audit.decide import AuditResult, run_audit
-from piezod.audit.standins import actuator_5khz, butterfly_session, decimate, pnzt_hold_session
+from piezod.audit.standins import (
+    actuator_5khz,
+    butterfly_session,
+    decimate,
+    one_period_triangles,
+    pnzt_hold_session,
+    preset_session,
+)
 from piezod.audit.synthetic import frame_plan, hidden_session
 from piezod.recording import Experiment, read_experiments, split_experiments
 from piezod.synth import random_params
@@ -97,10 +107,24 @@ def _outside_bounds(r: AuditResult) -> list[str]:
     ]
 
 
+#: The other-physics presets of the corpus (``configs/sim-NAME.yaml``).
+PRESETS: tuple[str, ...] = ("pi-stage", "p885-stage")
+
+
 def run_corpus(
-    n: int = 2, *, seed: int = 9000, on_audit: Callable[[str], None] | None = None
+    n: int = 2,
+    *,
+    seed: int = 9000,
+    effects: Sequence[str] = EFFECTS,
+    presets: Sequence[str] = PRESETS,
+    with_standins: bool = True,
+    on_audit: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
-    """Audit the corpus; ``n`` sessions per hidden effect (and clean). Returns the numbers."""
+    """Audit the corpus; ``n`` sessions per hidden effect (and clean). Returns the numbers.
+
+    ``effects``, ``presets`` and ``with_standins=False`` select a part (the short test of the default
+    test run); the full corpus is the default.
+    """
     tick = on_audit or (lambda _s: None)
     matrix: dict[str, Counter[str]] = {}
     seconds: list[float] = []
@@ -122,7 +146,7 @@ def run_corpus(
         )
         tick(name)
 
-    for h in ("none", *EFFECTS):
+    for h in ("none", *effects):
         matrix[h] = Counter()
         for k in range(n):
             s_ = seed + 100 * (EFFECTS.index(h) + 1 if h != "none" else 0) + k
@@ -165,25 +189,63 @@ def run_corpus(
         )
         return r.cause
 
-    stand("PNZT hold, drift +0.63 nm/s", "drift", pnzt_hold_session(0.63))
-    act = actuator_5khz(seconds=6.0)
-    c5 = stand("actuator 5 kHz, lag 2 ms", "delay", [act])
-    c2 = stand("same, decimated to 200 Hz", "delay", [decimate(act, 25)])
-    if c5 != c2:
-        invariance.append(f"actuator: 5 kHz {c5} -> 200 Hz {c2}")
-    stand("butterfly above the coercive voltage", "switching", butterfly_session())
-    if P885.is_dir():
-        ident = read_experiments([P885 / "identification.csv"])
-        val = read_experiments([P885 / "validation.csv"])
-        a = stand("P-885, validation file", "delay", ident, val)
-        b = stand("P-885, blocked split", "delay", ident)
-        c = stand("P-885, decimated to 100 Hz", "delay", _decimated(ident, 2))
-        if len({a, b, c}) > 1:
-            invariance.append(f"P-885: validation {a}, blocked {b}, decimated {c}")
+    if with_standins:
+        stand("PNZT hold, drift +0.63 nm/s", "drift", pnzt_hold_session(0.63))
+        stand("one-period triangles 1-0.01 Hz, log creep", "creep", one_period_triangles())
+        act = actuator_5khz(seconds=6.0)
+        c5 = stand("actuator 5 kHz, lag 2 ms", "delay", [act])
+        c2 = stand("same, decimated to 200 Hz", "delay", [decimate(act, 25)])
+        if c5 != c2:
+            invariance.append(f"actuator: 5 kHz {c5} -> 200 Hz {c2}")
+        stand("butterfly above the coercive voltage", "switching", butterfly_session())
+        if P885.is_dir():
+            ident = read_experiments([P885 / "identification.csv"])
+            val = read_experiments([P885 / "validation.csv"])
+            a = stand("P-885, validation file", "delay", ident, val)
+            b = stand("P-885, blocked split", "delay", ident)
+            c = stand("P-885, decimated to 100 Hz", "delay", _decimated(ident, 2))
+            if len({a, b, c}) > 1:
+                invariance.append(f"P-885: validation {a}, blocked {b}, decimated {c}")
+    other: list[dict[str, Any]] = []
+    for name in presets:
+        exps = preset_session(name)
+        r, s = _audit(exps)
+        record(f"{name} frame", r, s)
+        causes = {"frame": r.cause}
+        for vname, vexps in (
+            ("decimated x2", _decimated(exps, 2)),
+            ("even experiments", exps[::2]),
+            ("odd experiments", exps[1::2]),
+        ):
+            rv, sv = _audit(vexps)
+            record(f"{name} {vname}", rv, sv)
+            causes[vname] = rv.cause
+            if rv.cause != r.cause:
+                (lost if rv.cause == "none" else invariance).append(
+                    f"{name}: {r.cause} -> {vname}: {rv.cause}"
+                )
+        other.append({"name": f"{name} frame", "causes": causes, "findings": _findings(r)})
+        for rate in (0.0, 1.0):
+            fx = (f"drift={rate:g}",) if rate else ()
+            rh, sh = _audit(preset_session(name, fx, hold_s=600.0))
+            label = f"{name} + 600 s hold" + (f", drift {rate:g} nm/s" if rate else ", no drift")
+            record(label, rh, sh)
+            found = [f for f in rh.findings if f.effect == "drift"]
+            hold = {
+                "name": label,
+                "causes": {"frame + hold": rh.cause},
+                "findings": _findings(rh),
+                "drift_expected_nm_per_s": rate,
+            }
+            if rate:
+                hold["drift_ok"] = bool(found) and abs(found[0].params["rate_nm_per_s"] - rate) <= 0.3 * rate
+            else:
+                hold["drift_ok"] = not found
+            other.append(hold)
     clean = matrix["none"]
     n_clean = sum(clean.values())
-    right = sum(matrix[h][h] for h in EFFECTS)
-    n_eff = sum(sum(matrix[h].values()) for h in EFFECTS)
+    right = sum(matrix[h][h] for h in effects)
+    n_eff = sum(sum(matrix[h].values()) for h in effects)
     return {
         "matrix": {h: dict(c) for h, c in matrix.items()},
         "hidden_right": right,
@@ -193,11 +255,19 @@ def run_corpus(
         "power_losses": lost,
         "outside_bounds": bounds,
         "standins": standins,
+        "other_physics": other,
         "cpu_s_median": float(np.median(seconds)),
         "cpu_s_max": float(np.max(seconds)),
         "audits": len(seconds),
         "rows": rows,
     }
+
+
+def _findings(r: AuditResult) -> list[str]:
+    return [
+        f.effect + " (" + ", ".join(f"{k} {v:.4g}" for k, v in f.params.items() if math.isfinite(v)) + ")"
+        for f in r.findings
+    ]
 
 
 def _round(v: float) -> float | None:
@@ -224,6 +294,16 @@ def format_report(res: dict[str, Any]) -> str:
         lines.append(
             f"  {s['name']}: {s['cause']} ({'ok' if s['ok'] else 'expected ' + s['expected']}){gain}"
             + (f"; {par}" if par else "")
+        )
+    other = res.get("other_physics", [])
+    if other:
+        lines.append("stages of other physics (hil_sim presets, no hidden effect unless named):")
+    for o in other:
+        named = ", ".join(f"{k}: {v}" for k, v in o["causes"].items())
+        ok = "" if "drift_ok" not in o else f" [drift {'ok' if o['drift_ok'] else 'WRONG'}]"
+        lines.append(
+            f"  {o['name']}: {named}{ok}"
+            + (f"; findings {'; '.join(o['findings'])}" if o["findings"] else "")
         )
     inv = res["invariance_failures"]
     lines.append(

@@ -350,8 +350,9 @@ def run_audit(
     scans = [e.scan() for e in experiments]
     val_scans = [e.scan() for e in validate]
     kind = _choose_base(scans, val_scans, opts.base)
-    # Triangular scans start at a turning point after settling: no prefix to drop.
-    settle = not all(i.is_scan for i in (*scans, *val_scans))
+    # Triangular scans start at a turning point after settling: no prefix to drop (a one-period
+    # record starts inside a half period, maybe on the initial curve: it settles).
+    settle = not all(i.is_scan and not i.wraps for i in (*scans, *val_scans))
     blocks = opts.folds if (len(experiments) == 1 and not validate) else 1
     data = audit_data.build(experiments, blocks=blocks, settle=settle, scans=scans)
     val = audit_data.build(validate, settle=settle, scans=val_scans) if validate else None

@@ -11,7 +11,12 @@ sensor, at the sample rates and durations of the instruments described in issue 
   amplifier lag; :func:`decimate` makes the 200 Hz version;
 * :func:`butterfly_session`: a ferroelectric cycled above its coercive voltage (butterfly);
 * :func:`one_period_triangles`: one-period triangles at 1, 0.1 and 0.01 Hz, one per block
-  (the way many instruments export).
+  (the way many instruments export);
+* :func:`preset_session`: a small calibration frame (and optionally a voltage hold) on a
+  simulated stage of other physics, the presets of ``piezod sim --stage NAME``
+  (``configs/sim-pi-stage.yaml``: Prandtl-Ishlinskii hysteresis, voltage-driven power-law creep,
+  asymmetric curvature, amplifier pole; ``configs/sim-p885-stage.yaml``: the P-885 loop shape
+  and creep rate, sensor lag), run in process through :mod:`piezod.simulator`.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from scipy.signal import lfilter
 from piezod.model.ode import hysteresis_step, relaxed_state
 from piezod.model.params import HysteresisParams
 from piezod.recording import Experiment
+from piezod.simulator import simulated_session
 
 F64 = NDArray[np.float64]
 
@@ -167,3 +173,32 @@ def one_period_triangles(
         out.append(Experiment(f"triangle_{f:g}Hz", None, t + t0, v, x))
         t0 += float(t[-1]) + 1.0
     return out
+
+
+def preset_session(
+    stage: str,
+    effects: tuple[str, ...] = (),
+    *,
+    rate_hz: float = 1000.0,
+    hold_s: float = 0.0,
+    seed: int = 0,
+) -> list[Experiment]:
+    """A small frame on a preset stage: 3 ranges (120-400 V) x 3 line rates (0.1-5 Hz), then a hold.
+
+    The frame is what a user records to calibrate (a settling loop before each scan, one or two
+    recorded loops); ``hold_s > 0`` adds a voltage hold at +100 V (creep and drift). ``effects``
+    are ``piezod sim --effect`` specs (``drift=1.0``, ``resonance=700``, ...).
+    """
+    plan: list[tuple[object, ...]] = [
+        ("triangle", r, f, 0.0, 1 if f < 1.0 else 2, 1)
+        for r in (120.0, 260.0, 400.0)
+        for f in (0.1, 1.0, 5.0)
+    ]
+    if hold_s > 0:
+        plan.append(("hold", 100.0, hold_s))
+    return [
+        Experiment(label, None, t, v, x)
+        for label, t, v, x in simulated_session(
+            stage, plan, effects=effects, sample_rate_hz=rate_hz, seed=seed
+        )
+    ]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from piezod.audit import EFFECTS, AuditOptions, print_summary, result_json, run_audit
@@ -37,6 +38,13 @@ def register(sub: Any) -> None:
     )
     add_json_option(p)
     p.add_argument("--plots", metavar="DIR", help="write PNG plots into DIR (needs matplotlib)")
+    p.add_argument(
+        "--out",
+        metavar="F.yaml",
+        help="write the extended scanner YAML: --config with the material findings as runtime parts "
+        "of the audited axis (piezod serve/scan load it; a comment says which finding became what)",
+    )
+    p.add_argument("--config", metavar="F", help="the scanner YAML the recordings were taken with (--out)")
     p.add_argument("--axis", choices=AXES, help="audit this axis (default: the recordings' only axis)")
     p.add_argument(
         "--folds", type=positive_int, default=5, metavar="K", help="folds of the held-out split (default 5)"
@@ -90,6 +98,8 @@ def run(args: argparse.Namespace) -> int:
     """Run ``piezod audit``."""
     if args.folds < 2:
         raise PiezodError(f"--folds must be >= 2, got {args.folds}")
+    if args.out and not args.config:
+        raise PiezodError("--out needs --config F (the scanner YAML the recordings were taken with)")
     exps, axis = _read(list(args.recordings), args.axis, args.allow_truncated_tail, args.encoding)
     val: list[Experiment] = []
     if args.validate:
@@ -113,5 +123,12 @@ def run(args: argparse.Namespace) -> int:
 
         files = write_plots(result, args.plots)
         print(f"plots: {', '.join(str(f) for f in files)}", file=out)
-    write_json(args.json, result_json(result, inputs=list(args.recordings), validate=list(args.validate)))
+    doc = result_json(result, inputs=list(args.recordings), validate=list(args.validate))
+    write_json(args.json, doc)
+    if args.out:
+        from piezod.extensions import write_extended_config
+
+        source = "piezod audit " + " ".join(Path(r).name for r in args.recordings)
+        adoption = write_extended_config(args.config, axis or "x", doc["findings"], args.out, source)
+        print(f"extended scanner YAML: {args.out}\n{adoption.summary()}", file=out)
     return 0

@@ -28,7 +28,7 @@ def register(sub: Any) -> None:
             "findings outside physical bounds and the time per audit."
         ),
     )
-    p.add_argument("which", choices=("inverse", "stream", "audit"), help="what to benchmark")
+    p.add_argument("which", choices=("inverse", "stream", "audit", "effects"), help="what to benchmark")
     add_json_option(p)
     inv = p.add_argument_group("inverse")
     inv.add_argument(
@@ -52,6 +52,13 @@ def register(sub: Any) -> None:
         "build) instead of a fresh hil_sim",
     )
     stream.add_argument(
+        "--model",
+        default=None,
+        metavar="NAME",
+        help="run this axis model's inverse on every axis in the streaming path (triangle targets), "
+        "e.g. family/prandtl-ishlinskii/voltage-creep (the richest; names as in 'bench inverse')",
+    )
+    stream.add_argument(
         "--api-load", action="store_true", help="stream with the daemon while its API is polled"
     )
     stream.add_argument(
@@ -62,6 +69,17 @@ def register(sub: Any) -> None:
     aud.add_argument(
         "--sessions", type=int, default=2, metavar="N", help="hidden-effect sessions per effect (audit)"
     )
+    eff = p.add_argument_group("effects")
+    eff.add_argument(
+        "--effects",
+        nargs="+",
+        default=None,
+        metavar="ID",
+        help="effects (default: every effect hil_sim can inject): online correction with the baseline "
+        "and the audit's extended model on the built-in stage + the effect",
+    )
+    eff.add_argument("--plot", metavar="F.png", help="bar chart of what each model leaves (effects)")
+    eff.add_argument("--full-frame", action="store_true", help="the full calibration frame (effects)")
     p.set_defaults(func=run)
 
 
@@ -85,11 +103,18 @@ def _run_inverse(args: argparse.Namespace) -> dict[str, Any]:
     )
     for name, m in result["models"].items():
         print(
-            f"axis model {name:<26} {m['ns_per_sample']:7.1f} ns/sample/axis "
+            f"axis model {name:<45} {m['ns_per_sample']:7.1f} ns/sample/axis "
             f"(x{m['ns_per_sample'] / result['scipy_ns_per_sample']:.2f} of the scipy-based inverse), "
             f"round trip {m['max_roundtrip_error_rel']:.1e} of range",
             file=out,
         )
+    print(
+        f"richest runtime model ({result['richest_model']}): {result['richest_ns_per_sample']:.1f} "
+        f"ns/sample/axis, x{result['richest_ratio']:.2f} of the scipy-based inverse (target <= "
+        f"{result['target_model_ns_per_sample']:.0f} ns): "
+        f"{'met' if result['richest_meets_target'] else 'NOT met'}",
+        file=out,
+    )
     print(
         f"{result['samples']} samples in blocks of {result['block_samples']}, best of {result['repeats']}; "
         f"targets {'met' if result['meets_targets'] else 'NOT met'}",
@@ -126,7 +151,10 @@ def _run_link_stream(args: argparse.Namespace) -> dict[str, Any]:
             ) from exc
         raise
     result: dict[str, Any] = module.run_stream_bench(args)
-    keys = ("axes", "rate_hz", "seconds", "samples_sent", "samples_read", "underruns", "crc_errors")
+    keys = (
+        "axes", "rate_hz", "seconds", "samples_sent", "samples_read", "underruns", "crc_errors",
+        "model", "model_ns_per_sample", "host_clamped_samples",
+    )
     print(", ".join(f"{k} {result[k]}" for k in keys if k in result), file=human_stream(args))
     return result
 
@@ -147,9 +175,31 @@ def _run_audit(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def _run_effects(args: argparse.Namespace) -> dict[str, Any]:
+    from piezod.effects_bench import format_table, plot_effects, run_effects_bench
+    from piezod.progress import progress_bar
+    from piezod.simulator import sim_effect_names
+
+    known = sim_effect_names()
+    names = args.effects or list(known)
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise PiezodError(f"--effects: unknown effect {unknown[0]!r} (one of {', '.join(known)})")
+    with progress_bar(desc="effects", total=None, unit="step") as bar:
+
+        def tick(_step: str) -> None:
+            bar.update(1)
+
+        result = run_effects_bench(names, reduced=not args.full_frame, on_step=tick)
+    print(format_table(result), file=human_stream(args))
+    if args.plot:
+        print(f"plot: {plot_effects(result, args.plot)}", file=human_stream(args))
+    return result
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``piezod bench``."""
-    runners = {"inverse": _run_inverse, "stream": _run_stream, "audit": _run_audit}
+    runners = {"inverse": _run_inverse, "stream": _run_stream, "audit": _run_audit, "effects": _run_effects}
     result = runners[args.which](args)
     write_json(args.json, result)
     return 0

@@ -1,4 +1,8 @@
-"""``piezod calibrate``: fit the hysteresis + creep model (3.8) to recorded loops (offline)."""
+"""``piezod calibrate``: fit the hysteresis + creep model to recordings (offline).
+
+The thesis model (3.8) for periodic triangular scans, the dynamic model (ODE (2.21) + log creep)
+for any other waveform (:mod:`piezod.calibrate_any` chooses and says which).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from piezod.calibrate import LOSSES, PARAM_NAMES, CalibrationResult, calibrate, calibrated_config, result_json
+from piezod import calibrate_any
+from piezod.calibrate import LOSSES, PARAM_NAMES, CalibrationResult
+from piezod.calibrate_dynamic import PARAM_NAMES as DYNAMIC_PARAM_NAMES
+from piezod.calibrate_dynamic import DynamicCalibrationResult
 from piezod.cli._common import (
     add_json_option,
     add_port_options,
@@ -27,11 +34,13 @@ def register(sub: Any) -> None:
     """Add the ``calibrate`` subcommand."""
     p: argparse.ArgumentParser = sub.add_parser(
         "calibrate",
-        help="fit the model (3.8) to recorded loops and write the scanner config",
+        help="fit the model to recordings (any waveform) and write the scanner config",
         description=(
-            "Least-squares fit of the 7-parameter hysteresis + creep model (3.8) with one position "
-            "offset per experiment to triangular-scan recordings. Scan range, offset and frequency "
-            "are inferred from the voltage. Writes the scanner YAML (--out) and a JSON report (--json)."
+            "Least-squares fit with one position offset per experiment: the 7-parameter hysteresis + "
+            "creep model (3.8) when every experiment is a periodic triangular scan (one-period "
+            "triangles included; range, offset and frequency inferred from the voltage), else the "
+            "dynamic model (hysteresis ODE (2.21) + log creep), which takes any waveform. The report "
+            "says which model and why. Writes the scanner YAML (--out) and a JSON report (--json)."
         ),
     )
     p.add_argument(
@@ -48,12 +57,23 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--axis", choices=AXES, help="axis to calibrate (default: the recordings' only axis, else x)"
     )
+    p.add_argument(
+        "--model",
+        choices=calibrate_any.MODEL_CHOICES,
+        default="auto",
+        help="auto (default): (3.8) for triangular scans, else dynamic; or force one",
+    )
     p.add_argument("--loss", choices=LOSSES, default="linear", help="loss function (default: linear)")
     p.add_argument(
         "--f-scale", type=positive_float, metavar="UM", help="residual scale of a robust loss (um)"
     )
     p.add_argument(
-        "--fix", nargs="+", default=[], choices=PARAM_NAMES, metavar="NAME", help="hold parameters at start"
+        "--fix",
+        nargs="+",
+        default=[],
+        choices=tuple(dict.fromkeys((*PARAM_NAMES, *DYNAMIC_PARAM_NAMES))),
+        metavar="NAME",
+        help="hold parameters at start",
     )
     p.add_argument(
         "--skip-loops", type=nonneg_int, default=0, metavar="N", help="drop N settling loops per experiment"
@@ -81,6 +101,12 @@ def register(sub: Any) -> None:
         "--frame", choices=("full", "reduced"), default="full", help="calibration frame (default: full)"
     )
     stage.add_argument("--no-verify", action="store_true", help="skip the verification scans")
+    stage.add_argument(
+        "--no-audit",
+        action="store_true",
+        help="do not audit the frame (by default its material findings with a runtime part are adopted "
+        "when they predict the held-out experiments better)",
+    )
     stage.add_argument(
         "--recordings-dir", metavar="DIR", help="where the frame and verification recordings go"
     )
@@ -137,8 +163,9 @@ def run(args: argparse.Namespace) -> int:
         def tick(_n: int) -> None:
             bar.update(1)
 
-        result = calibrate(
+        result = calibrate_any.calibrate_any(
             exps,
+            model=args.model,
             start=start,
             loss=args.loss,
             f_scale=args.f_scale,
@@ -148,25 +175,59 @@ def run(args: argparse.Namespace) -> int:
             on_eval=tick,
         )
     out = human_stream(args)
-    _print_summary(result, axis, out)
+    print(f"model: {result.choice.model} ({result.choice.reason})", file=out)
+    if result.thesis is not None:
+        _print_summary(result.thesis, axis, out)
+    elif result.dynamic is not None:
+        _print_dynamic(result.dynamic, axis, out)
     if args.out:
         span = (
             float(min(np.min(e.voltage_v) for e in exps)),
             float(max(np.max(e.voltage_v) for e in exps)),
         )
-        cfg = calibrated_config(
+        cfg = calibrate_any.calibrated_config(
             result, axis=axis, base=base, inputs=list(args.recordings), voltage_span_v=span
         )
-        header = f"scanner config written by piezod calibrate (axis {axis}) from {', '.join(args.recordings)}"
+        header = (
+            f"scanner config written by piezod calibrate (axis {axis}, {result.choice.model} model) "
+            f"from {', '.join(args.recordings)}"
+        )
         if args.config:
             header += f"\nbase: {args.config} (limits and other axes kept)"
         dump_config(cfg, args.out, header=header)
         print(f"wrote {args.out}", file=out)
-    write_json(args.json, result_json(result, inputs=list(args.recordings)))
+    write_json(args.json, calibrate_any.result_json(result, inputs=list(args.recordings)))
     if not result.success:
         print(f"piezod calibrate: the fit did not converge: {result.message}", file=out)
         return 1
     return 0
+
+
+def _print_dynamic(result: DynamicCalibrationResult, axis: str, out: Any) -> None:
+    print(
+        f"axis {axis}: {len(result.experiments)} experiments, {result.n} samples, "
+        f"{result.nfev} evaluations, {result.seconds:.2f} s",
+        file=out,
+    )
+    for k in DYNAMIC_PARAM_NAMES:
+        tag = "  (fixed)" if k in result.fixed else ""
+        print(f"  {k:<20} = {getattr(result.params, k):<12.6g} +- {result.stderr[k]:.3g}{tag}", file=out)
+    print(f"  {'experiment':<28} {'kind':>9} {'range V':>8} {'range um':>9} {'fit err %':>9}", file=out)
+    for e in result.experiments:
+        lay = e.layout
+        print(
+            f"  {e.label[-28:]:<28} {lay.kind:>9} {lay.v_max - lay.v_min:8.1f} {e.range_um:9.3f} "
+            f"{e.fit_error_pct:9.4f}",
+            file=out,
+        )
+    w = result.worst
+    print(
+        f"worst fit error {w.fit_error_pct:.4f} % ({w.label}); "
+        f"condition number {result.condition_number:.3g}",
+        file=out,
+    )
+    for msg in result.warnings:
+        print(f"note: {msg}", file=out)
 
 
 def _print_summary(result: CalibrationResult, axis: str, out: Any) -> None:

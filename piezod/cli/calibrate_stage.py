@@ -86,6 +86,24 @@ def run_on_stage(args: argparse.Namespace) -> int:
             chosen = str(choice.report["chosen"])
             print(f"model choice by held-out experiments of the frame:\n{choice.report['table']}", file=say)
             calibrated = choice.config
+            audit_report: dict[str, Any] | None = None
+            extra = ""
+            if not getattr(args, "no_audit", False):
+                audited = worker.audit_and_extend(
+                    frame_path,
+                    choice,
+                    dynamic.config,
+                    axis,
+                    ramp_v_per_s=base.service.ramp_rate_v_per_s,
+                    rest_voltage_v=rest_v,
+                )
+                found = ", ".join(audited.report["findings"]) or "none"
+                print(f"audit of the frame: findings {found}\n{audited.report['text']}", file=say)
+                calibrated = audited.config
+                audit_report = audited.report
+                if audited.report["adopted"]:
+                    names = ", ".join(a.split(":")[0] for a in audited.report["adopted"])
+                    extra = f"; the audit's findings adopted as runtime parts: {names}"
             dump_config(
                 calibrated,
                 out,
@@ -93,12 +111,15 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     f"calibrated on the stage by piezod calibrate ({frame_summary(frame)}); "
                     f"model: {calibrated.axes[axis].model} ({chosen}: best held-out prediction), "
                     "the thesis and dynamic parameters kept beside it"
+                    + extra
                 ),
             )
             print(f"-> {out}", file=say)
             report = dict(fitted.report)
             report["dynamic"] = dynamic.report
             report["model_choice"] = choice.report
+            if audit_report is not None:
+                report["audit"] = audit_report
             report["frame"] = {"summary": frame_summary(frame), "recording": str(frame_path)}
             rows: list[dict[str, Any]] = []
             if not args.no_verify:

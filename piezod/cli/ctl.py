@@ -169,6 +169,11 @@ def status_text(status: Status) -> str:
         lines.append(f"scan: {_scan_text(status.scan)}{where}")
     if status.recording:
         lines.append(f"recording: {status.recording}")
+    if not status.calibrated:
+        lines.append(
+            f"warning: uncalibrated model on axes {', '.join(status.uncalibrated_axes)} (a first guess): "
+            "corrected scans will not be linear; run piezod calibrate"
+        )
     lines.append(
         f"fifo: {status.fifo_level_ms:.1f} ms (target {status.lead_target_ms:.0f} ms); "
         f"underruns {status.underruns}, crc errors {status.crc_errors}, "

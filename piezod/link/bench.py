@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
 from piezod.errors import ConfigError
@@ -49,6 +50,53 @@ def triangle_for(config: ScannerConfig, rate_hz: float, fraction: float = 0.8) -
     return TriangleSource(rate_hz, amp, center, freq, phase)
 
 
+class ModelSource:
+    """Triangle *targets* per axis through each axis's model inverse: the model runs in the streaming path.
+
+    The targets span ``fraction`` of what the model's static sensitivity gives for each axis's
+    triangle; the voltages are clipped to the axis limits (counted by the streamer as host
+    clamping). ``ns_per_sample`` is the inverse's cost per sample and axis while streaming.
+    """
+
+    def __init__(self, config: ScannerConfig, rate_hz: float, model_name: str, fraction: float = 0.8) -> None:
+        from piezod.bench import bench_models
+
+        models = bench_models()
+        if model_name not in models:
+            raise ConfigError(f"--model {model_name!r}: one of {', '.join(models)}")
+        self.model = models[model_name]
+        self.name = model_name
+        self.triangle = triangle_for(config, rate_hz, fraction)
+        self.dt_s = 1.0 / float(rate_hz)
+        axes = list(config.axes.values())
+        self.lo = np.array([a.voltage_min_v for a in axes])[:, None]
+        self.hi = np.array([a.voltage_max_v for a in axes])[:, None]
+        start = self.triangle.next_block(1)[:, 0]
+        self.triangle.position = 0
+        self.states = [self.model.rest(float(v)) for v in start]
+        rest = np.array([self.model.position(self.model.rest(float(v))) for v in (0.0, 1.0)])
+        self.um_per_v = float(rest[1] - rest[0])
+        self.inverse_s = 0.0
+        self.samples = 0
+
+    def next_block(self, n: int) -> npt.NDArray[np.float64]:
+        """The next ``n`` samples, ``(axes, n)`` volts."""
+        targets = self.um_per_v * self.triangle.next_block(n)
+        out = np.empty_like(targets)
+        t0 = time.perf_counter()
+        for i, st in enumerate(self.states):
+            out[i], self.states[i] = self.model.inverse(targets[i], self.dt_s, st)
+        self.inverse_s += time.perf_counter() - t0
+        self.samples += targets.size
+        clipped: npt.NDArray[np.float64] = np.clip(out, self.lo, self.hi)
+        return clipped
+
+    @property
+    def ns_per_sample(self) -> float | None:
+        """Mean cost of the inverse per sample and axis (ns), including the machine's load."""
+        return None if not self.samples else 1e9 * self.inverse_s / self.samples
+
+
 def _proc_cpu_s(pid: int) -> float | None:
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -68,6 +116,7 @@ def stream_bench(
     settings: LinkSettings | None = None,
     board_pid: int | None = None,
     auto_restart: bool = True,
+    model: str | None = None,
 ) -> dict[str, Any]:
     """Stream a triangle over ``url`` for ``seconds`` and return the counts (see the module docstring)."""
     lead = lead_s if lead_s is not None else config.service.lead_ms / 1000.0
@@ -76,7 +125,9 @@ def stream_bench(
         plan = session.plan
         caps = session.capabilities
         assert plan is not None and caps is not None
-        source = triangle_for(config, rate_hz)
+        source: TriangleSource | ModelSource = (
+            triangle_for(config, rate_hz) if model is None else ModelSource(config, rate_hz, model)
+        )
         if lead_s is None:
             lead = min(lead, 0.6 * caps.fifo_depth_samples / float(rate_hz))  # the config's lead may not fit
         streamer = Streamer(session, source, lead_s=lead, auto_restart=auto_restart)
@@ -136,6 +187,8 @@ def stream_bench(
         "min_lead_ms": lead_min_ms,
         "mean_lead_ms": lead_mean_ms,
         "lead_target_ms": 1000.0 * lead,
+        "model": None if not isinstance(source, ModelSource) else source.name,
+        "model_ns_per_sample": None if not isinstance(source, ModelSource) else source.ns_per_sample,
         "samples_per_frame": streamer.frame_samples,
         "samples_frames_sent": c.samples_frames_sent,
         "sensor_frames": c.sensor_frames,
@@ -188,9 +241,12 @@ def run_stream_bench(args: argparse.Namespace) -> dict[str, Any]:
     lead_ms = getattr(args, "lead_ms", None)
     extra = tuple(getattr(args, "sim_args", None) or ())
     port = getattr(args, "port", None)
+    model = getattr(args, "model", None)
     if port:
         lead_s = None if lead_ms is None else float(lead_ms) / 1000.0
-        result = stream_bench(str(port), config, rate_hz=rate_hz, seconds=seconds, lead_s=lead_s)
+        result = stream_bench(
+            str(port), config, rate_hz=rate_hz, seconds=seconds, lead_s=lead_s, model=model
+        )
         result["simulator"] = f"the board at {port}"
         return result
     with spawn_sim(config_path, seed=int(getattr(args, "seed", 0) or 0), extra_args=extra) as sim:
@@ -201,9 +257,10 @@ def run_stream_bench(args: argparse.Namespace) -> dict[str, Any]:
             seconds=seconds,
             lead_s=None if lead_ms is None else float(lead_ms) / 1000.0,
             board_pid=sim.pid,
+            model=model,
         )
     result["simulator"] = "hil_sim over a pty"
     return result
 
 
-__all__ = ["bench_config", "run_stream_bench", "stream_bench", "triangle_for"]
+__all__ = ["ModelSource", "bench_config", "run_stream_bench", "stream_bench", "triangle_for"]

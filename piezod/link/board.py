@@ -7,21 +7,36 @@ The public methods of :class:`Board` enforce the safety rules whatever the imple
 (python-microscope style): every block the engine produces passes :meth:`Board.limit`, which
 clamps it to the axes' voltage limits and slew rates and reports what it had to change as a
 :class:`~piezod.link.session.HostLimitFault`, before a ``_do_*`` hook sees it.
+
+Boards are looked up by the URL's scheme (python-can's ``interface=`` style), by
+:func:`open_board`:
+
+``sim://[SCANNER.yaml][?effect=NAME=VALUE&seed=N]``
+    The simulated board (:class:`piezod.simulator.SimBoard`: ``hil_sim`` on a pty of its own).
+any other scheme registered in :data:`BOARDS` or as a ``piezod.boards`` entry point
+    That board class (e.g. ``nidaq://Dev1`` -> an NI-DAQ :class:`Board` subclass in
+    ``piezod/link/daq.py``, registered as ``BOARDS["nidaq"] = "piezod.link.daq:NidaqBoard"``).
+everything else (device paths, ``socket://``, ``loop://``, ``rfc2217://``, ``unix://``, ``usb://``)
+    :class:`SerialBoard`: the framed protocol over the transport the URL names
+    (:func:`piezod.link.transport.open_transport`).
 """
 
 from __future__ import annotations
 
+import importlib
 import logging
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 
 import numpy as np
 from numpy.typing import NDArray
 
 from firmware_proto import NO_INDEX
 from piezod.config import ScannerConfig
+from piezod.errors import ConfigError
 from piezod.link.session import BoardSession, HostLimitFault, LinkEvent, LinkSettings
 from piezod.link.streamer import BlockSource, MatchedBlock, Streamer
 
@@ -89,6 +104,10 @@ class Board(ABC):
                 return sync(first_index, n) if callable(sync) else []
 
         self._do_start(_Limited(), start_index, lead_s=lead_s, block_samples=block_samples, on_block=on_block)
+
+    def capped_lead_s(self, lead_s: float) -> float:
+        """The streaming lead the board can hold (s); default: ``lead_s`` unchanged."""
+        return lead_s
 
     def limit(self, volts: FloatArray, first_index: int) -> FloatArray:
         """``volts`` ``(axes, n)`` clamped to the voltage limits and slew rates (reported if changed)."""
@@ -276,4 +295,66 @@ class SerialBoard(Board):
             self.session.close(ramp_to_safe=ramp_to_safe)
 
 
-__all__ = ["Board", "BoardSnapshot", "SerialBoard"]
+BoardFactory = Callable[[str, ScannerConfig, Callable[[LinkEvent], None], LinkSettings | None], Board]
+"""What a board class is called with: ``(url, config, on_event, settings)``."""
+
+#: Board implementations by URL scheme (``"module:Class"``, imported on first use). Third-party
+#: packages add theirs as entry points of the group ``piezod.boards`` (name: the scheme).
+BOARDS: dict[str, str] = {"sim": "piezod.simulator:SimBoard"}
+BOARD_ENTRY_POINT_GROUP = "piezod.boards"
+
+
+def board_scheme(url: str) -> str | None:
+    """The URL's scheme when a board other than :class:`SerialBoard` is registered for it."""
+    scheme = url.partition("://")[0].lower() if "://" in url else ""
+    if scheme in BOARDS or any(ep.name == scheme for ep in entry_points(group=BOARD_ENTRY_POINT_GROUP)):
+        return scheme
+    return None
+
+
+def board_class(url: str) -> BoardFactory:
+    """The board implementation for ``url`` (see the module docstring): a registered one, else
+    :class:`SerialBoard`.
+
+    Raises
+    ------
+    ConfigError
+        The registered implementation cannot be imported (names the scheme and the module).
+    """
+    scheme = board_scheme(url)
+    if scheme is None:
+        return SerialBoard
+    target = BOARDS.get(scheme)
+    try:
+        if target is None:
+            (ep,) = [e for e in entry_points(group=BOARD_ENTRY_POINT_GROUP) if e.name == scheme]
+            factory: BoardFactory = ep.load()
+            return factory
+        module, _, name = target.partition(":")
+        loaded: BoardFactory = getattr(importlib.import_module(module), name)
+        return loaded
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"board URL {url!r}: the {scheme}:// board cannot be loaded ({exc})") from exc
+
+
+def open_board(
+    url: str,
+    config: ScannerConfig,
+    on_event: Callable[[LinkEvent], None],
+    settings: LinkSettings | None = None,
+) -> Board:
+    """The :class:`Board` for ``url`` (not opened yet: call :meth:`Board.open`)."""
+    return board_class(url)(url, config, on_event, settings)
+
+
+__all__ = [
+    "BOARDS",
+    "BOARD_ENTRY_POINT_GROUP",
+    "Board",
+    "BoardFactory",
+    "BoardSnapshot",
+    "SerialBoard",
+    "board_class",
+    "board_scheme",
+    "open_board",
+]

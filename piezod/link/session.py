@@ -44,6 +44,7 @@ import numpy as np
 from firmware_proto import (
     NO_INDEX,
     PROTOCOL_VERSION,
+    Ack,
     Acked,
     BoardState,
     Capabilities,
@@ -62,6 +63,7 @@ from firmware_proto import (
     Message,
     MessageType,
     Nacked,
+    Nak,
     NakReason,
     RampToSafe,
     Samples,
@@ -173,6 +175,13 @@ class _SeqWatch(FrameDecoder):
 
     Every frame the board sends carries the next ``seq``; a jump reveals frames lost on the way
     (damaged beyond recognition, merged by a damaged delimiter, or dropped), replies included.
+
+    A reply the board answers from its duplicate cache (PROTOCOL.md 5.3: a retransmitted request
+    whose first reply was lost) is re-sent byte-identical, so it carries its *old* ``seq``. It is
+    counted in :attr:`resent_replies` and leaves the expected ``seq`` alone: taking it as the new
+    position would count every frame sent since the first reply as missing once the next frame
+    arrives. Any other frame behind the expected ``seq`` (a board that restarted its counter)
+    re-synchronises the count.
     """
 
     def __init__(self) -> None:
@@ -180,6 +189,7 @@ class _SeqWatch(FrameDecoder):
         self.expected: int | None = None
         self.missing = 0
         self.out_of_order = 0
+        self.resent_replies = 0
         # frames missing right before a frame, by id() of its message: the session places each
         # loss at its position in the stream (a batch of bytes may hold a loss after a SENSOR)
         self.gap_before: dict[int, int] = {}
@@ -193,6 +203,9 @@ class _SeqWatch(FrameDecoder):
                     if gap < 1 << 31:
                         self.missing += gap
                         self.gap_before[id(item.msg)] = gap
+                    elif isinstance(item.msg, Ack | Nak | Capabilities):
+                        self.resent_replies += 1
+                        continue
                     else:
                         self.out_of_order += 1
                 self.expected = (item.seq + 1) & 0xFFFFFFFF

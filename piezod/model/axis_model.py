@@ -36,6 +36,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from piezod.model import kernels
 from piezod.model.dynamic import (
     DynamicParams,
     DynamicState,
@@ -172,6 +173,11 @@ class FamilyAxisModel(AxisModel):
 
     params: FamilyParams
     kind: ClassVar[str] = "family"
+
+    def __post_init__(self) -> None:
+        # a model is loaded before it streams: compile its per-sample loop now, not in the first block
+        if self.params.creep_driver == "voltage":
+            kernels.warm_up()
 
     def rest(self, voltage_v: float = 0.0) -> Any:
         return family_rest_state(self.params, voltage_v)

@@ -27,10 +27,8 @@ With the voltage driver the creep at sample ``n`` is affine in ``V_c[n]``, so th
 per sample ``H_state(V_c) + g V_c = x_c - s sum_i w_i (a_i e_i[n-1] + (1 - b0_i) V_c[n-1])`` with
 ``g = s sum_i w_i b0_i >= 0``: for Prandtl-Ishlinskii a play law with slope ``rho0 + g / b``
 (the play inverse, exact), for Coleman-Hodgdon a monotone scalar equation (bracketed Newton).
-This inverse is sequential (one sample's voltage moves the next sample's creep); for
-Prandtl-Ishlinskii each linear piece of the law is solved at once (there the equation is LTI:
-the modal creep inverse with weights ``s w / sigma``), the per-sample solve only where the
-piece changes; Coleman-Hodgdon is a per-sample loop of bounded cost.
+This inverse is sequential (one sample's voltage moves the next sample's creep): a compiled
+per-sample loop of bounded cost (:mod:`piezod.model.kernels`, tens of ns per sample).
 
 The weights are data-driven (:mod:`piezod.calibrate_family` fits them by
 regularised non-negative least squares), so the spectrum is whatever the stage shows: a log
@@ -39,7 +37,6 @@ law, a power law, or a few dominant times.
 
 from __future__ import annotations
 
-import bisect
 import math
 from dataclasses import dataclass
 from functools import cached_property
@@ -49,6 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.signal import lfilter
 
 from piezod.errors import ModelError
+from piezod.model import kernels
 from piezod.model.dynamic import MAX_TOTAL_CREEP, _creep_forward, _creep_inverse, discretise
 from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
 from piezod.model.params import HysteresisParams
@@ -65,10 +63,8 @@ F64 = NDArray[np.float64]
 HysteresisLaw = HysteresisParams | PlayParams
 CREEP_DRIVERS = ("position", "voltage")
 #: Creep drivers whose per-sample inverse fits the streaming budget (<= 150 ns per sample and axis,
-#: ``piezod bench inverse``). The voltage-driven branch solves each sample on its own where the
-#: hysteresis law changes piece (3.7-17 us per sample today): it is fitted and reported, but a
-#: scanner config for the daemon adopts it only once its inverse is fast enough.
-REALTIME_CREEP_DRIVERS = ("position",)
+#: ``piezod bench inverse``): both, since the voltage-driven loop is compiled (:mod:`piezod.model.kernels`).
+REALTIME_CREEP_DRIVERS = ("position", "voltage")
 LawState = HysteresisState | PlayState
 
 
@@ -436,200 +432,35 @@ def family_hold(params: FamilyParams, samples: int, dt_s: float, state: FamilySt
     return FamilyState(state.voltage_v, state.drive_v, state.law, e, xc, x)
 
 
-def _ch_solve(h: HysteresisParams, g: float, target: float, u0: float, y0: float) -> float:
-    """The voltage ``u`` with ``(b + g) u + y(u) = target``, ``y`` the exact ODE step from ``(u0, y0)``.
-
-    The left side is increasing in ``u``; Newton steps kept inside a bracket (bisection when a
-    step leaves it) reach rounding in a few steps.
-    """
-    b, alpha, delta = h.b_um_per_v, h.alpha_per_v, h.delta_um
-    slope = b + g
-    f0 = slope * u0 + y0 - target
-    if f0 == 0.0:
-        return u0
-    sgn = -1.0 if f0 > 0.0 else 1.0
-
-    def f(u: float) -> tuple[float, float]:
-        d = abs(u - u0)
-        ex = math.exp(-alpha * d)
-        val = slope * u + ex * y0 + sgn * delta * (ex - 1.0) - target
-        der = slope - alpha * ex * (sgn * y0 + delta)
-        return val, der
-
-    # bracket: step outwards from u0 until the sign changes
-    step = abs(f0) / slope
-    lo = u0
-    hi = u0 + sgn * step
-    for _ in range(200):
-        if f(hi)[0] * sgn >= 0.0:
-            break
-        lo, hi = hi, u0 + sgn * 2.0 * abs(hi - u0)
-    u = hi
-    for _ in range(60):
-        val, der = f(u)
-        if val == 0.0:
-            return u
-        if (val > 0.0) == (sgn > 0.0):
-            hi = u
-        else:
-            lo = u
-        nxt = u - val / der if der > 0.0 else 0.5 * (lo + hi)
-        if not (min(lo, hi) < nxt < max(lo, hi)):
-            nxt = 0.5 * (lo + hi)
-        if abs(nxt - u) <= 1e-15 * max(1.0, abs(u)):
-            return nxt
-        u = nxt
-    return u
-
-
-def _pl_eval(knots: list[float], fk: list[float], slopes: list[float], u: float) -> float:
-    k = max(0, bisect.bisect_right(knots, u) - 1)
-    return fk[k] + slopes[k] * (u - knots[k])
-
-
-def _pl_solve(knots: list[float], fk: list[float], slopes: list[float], y: float) -> float:
-    k = max(0, bisect.bisect_right(fk, y) - 1)
-    return knots[k] + (y - fk[k]) / slopes[k]
-
-
-def _plays_at(h: PlayParams, plays0: F64, run: float, u: float) -> tuple[F64, float]:
-    """Plays and hysteretic position after a monotone run (direction ``run``) ending at ``u``."""
-    p = np.maximum(plays0, u - h.r) if run > 0.0 else np.minimum(plays0, u + h.r)
-    return p, h.b_um_per_v * (h.rho0 * u + float(h.w @ p))
-
-
-def _linear_stretch(
-    params: FamilyParams,
-    dt_s: float,
-    xc: F64,
-    j: int,
-    window: int,
-    run: float,
-    knots: list[float],
-    fk: list[float],
-    slopes: list[float],
-    g: float,
-    u_prev: float,
-    e: F64,
-    out: F64,
-) -> tuple[int, F64, int]:
-    """Samples ``j, j + 1, ...`` solved at once while the play law stays on one linear piece.
-
-    On a piece of slope ``sigma`` (law ``sigma - g``) the per-sample equation is linear and
-    time invariant: ``(sigma - g) (u + (s / (sigma - g)) (W u + w . e)) = x_c - c``, i.e. exactly
-    position-driven creep with weights ``s w / (sigma - g)`` driven by ``u``, whose modal inverse
-    (:mod:`piezod.model.dynamic`) solves the whole stretch. The samples kept are those before the
-    voltage reverses or reaches the next knot (there the per-sample solve takes over); the
-    result is the same as sample by sample. Returns ``(samples solved, deviations, next window)``.
-    """
-    uu = run * u_prev
-    k = max(0, bisect.bisect_right(knots, uu) - 1)
-    sigma_h = slopes[k] - g
-    s = params.law_slope_um_per_v
-    if sigma_h <= 0.0:
-        return 0, e, window
-    ratio = s / sigma_h
-    w = params.creep.weights
-    try:
-        spec = CreepSpectrum(params.creep.taus, tuple(float(x) for x in ratio * w))
-        disc = discretise(spec, dt_s)
-    except ModelError:
-        return 0, e, window
-    c = run * (fk[k] - slopes[k] * knots[k])
-    stop = min(xc.size, j + window)
-    target = (xc[j:stop] - c) / sigma_h
-    x_prev = (1.0 + disc.total) * u_prev + float(spec.weights @ e)
-    u, _ = _creep_inverse(spec, dt_s, disc, target, x_prev, u_prev, e)  # type: ignore[arg-type]
-    ru = run * u
-    bad = np.diff(ru, prepend=uu) < 0.0
-    if k + 1 < len(knots):
-        bad |= ru >= knots[k + 1]
-    first = int(np.argmax(bad)) if bad.any() else u.size
-    if first == 0:
-        return 0, e, 64
-    out[j : j + first] = u[:first]
-    base = discretise(params.creep, dt_s)
-    _, e_new = _creep_forward(params.creep, dt_s, base, u[:first], u_prev, e)  # type: ignore[arg-type]
-    return first, e_new, (2 * window if first == u.size else max(64, 1 << (2 * first - 1).bit_length()))
-
-
 def _voltage_creep_inverse(
     params: FamilyParams, xc: F64, dt_s: float, state: FamilyState
 ) -> tuple[F64, LawState, F64]:
-    """Drive voltages ``V_c`` giving ``x_c`` with voltage-driven creep: the per-sample solve."""
+    """Drive voltages ``V_c`` giving ``x_c`` with voltage-driven creep: the compiled per-sample loop."""
     disc = discretise(params.creep, dt_s)
     w = params.creep.weights
     s = params.law_slope_um_per_v
-    a = disc.a
     ob0 = disc.one_minus_b0
     g = s * float(w @ (1.0 - ob0))
-    wa, wb = s * (w * a), s * float(w @ ob0)
-    e = state.creep_um.copy()
-    u_prev = state.drive_v
+    wa, wb = s * (w * disc.a), s * float(w @ ob0)
+    e = np.array(state.creep_um, dtype=np.float64)
+    vc = np.empty(xc.size)
     h = params.hysteresis
-    n = xc.size
-    vc = np.empty(n)
+    law: LawState
     if isinstance(h, PlayParams):
         assert isinstance(state.law, PlayState)
-        b, rho, r, pw = h.b_um_per_v, h.rho0, h.r, h.w
-        plays0 = state.law.plays_v
-        xh0 = state.law.position_um
-        run = 0.0
-        knots: list[float] = []
-        fk: list[float] = []
-        slopes: list[float] = []
-        u = u_prev
-        j = 0
-        window = 64
-        while j < n:
-            y = float(xc[j]) - float(wa @ e) - wb * u_prev
-            f_prev = xh0 + g * u_prev if run == 0.0 else _pl_eval(knots, fk, slopes, run * u_prev) * run
-            if run == 0.0 or (y - f_prev) * run < 0.0:
-                if run != 0.0:
-                    plays0, xh0 = _plays_at(h, plays0, run, u_prev)
-                if y == xh0 + g * u_prev:
-                    vc[j] = u_prev
-                    e = a * e
-                    j += 1
-                    continue
-                run = 1.0 if y > xh0 + g * u_prev else -1.0
-                # rising in run * V: knots where each play engages, the (H + g V) there, slopes after
-                order = np.argsort(run * plays0 + r)
-                kn = (run * plays0 + r)[order]
-                k_all = np.concatenate(([run * u_prev], np.maximum(kn, run * u_prev)))
-                sl = b * (rho + np.concatenate(([0.0], np.cumsum(pw[order])))) + g
-                fvals = run * (xh0 + g * u_prev) + np.concatenate(
-                    ([0.0], np.cumsum(sl[:-1] * np.diff(k_all)))
-                )
-                knots, fk, slopes = k_all.tolist(), fvals.tolist(), sl.tolist()
-            u = run * _pl_solve(knots, fk, slopes, run * y)
-            e = a * e - ob0 * (u - u_prev)
-            vc[j] = u_prev = u
-            j += 1
-            if j < n and s > 0.0:
-                done, e, window = _linear_stretch(
-                    params, dt_s, xc, j, window, run, knots, fk, slopes, g, u_prev, e, vc
-                )
-                if done:
-                    j += done
-                    u_prev = float(vc[j - 1])
-        if run != 0.0:
-            plays0, xh0 = _plays_at(h, plays0, run, u_prev)
-        plays = plays0
-        xh = xh0
-        law: LawState = PlayState(u_prev, plays, xh)
+        plays = np.array(state.law.plays_v, dtype=np.float64)
+        u, xh = kernels.pi_loop(
+            xc, h.b_um_per_v, h.rho0, h.r, h.w, g, wa, wb, disc.a, ob0, e, plays,
+            state.drive_v, state.law.position_um, vc,
+        )
+        law = PlayState(u, plays, xh)
     else:
         assert isinstance(state.law, HysteresisState)
-        y0 = state.law.position_um - h.b_um_per_v * u_prev
-        xh = state.law.position_um
-        for j in range(n):
-            y = float(xc[j]) - float(wa @ e) - wb * u_prev
-            u = _ch_solve(h, g, y, u_prev, y0)
-            xh = y - g * u
-            y0 = xh - h.b_um_per_v * u
-            e = a * e - ob0 * (u - u_prev)
-            vc[j] = u_prev = u
-        law = HysteresisState(u_prev, xh)
+        u, xh = kernels.ch_loop(
+            xc, h.b_um_per_v, h.alpha_per_v, h.delta_um, g, wa, wb, disc.a, ob0, e,
+            state.drive_v, state.law.position_um, vc,
+        )
+        law = HysteresisState(u, xh)
     return vc, law, e
 
 

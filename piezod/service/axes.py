@@ -28,6 +28,7 @@ from piezod.errors import SafetyError
 from piezod.model.axis_model import AxisModel, DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
 from piezod.model.inverse import ThesisInverse
 from piezod.model.params import ThesisParams
+from piezod.model.parts import with_parts
 from piezod.model.thesis import effective_sensitivity
 from piezod.scan import slew_limit
 
@@ -86,8 +87,13 @@ def axis_model(config: AxisConfig) -> AxisModel:
 
     The thesis model starts with the creep term of a slow scan over the whole voltage range (moves
     and holds then use the stage's quasi-static sensitivity, not the bare ``b``) until a scan sets
-    its own (:meth:`AxisModel.with_plan`).
+    its own (:meth:`AxisModel.with_plan`). The axis's ``extensions:`` (runtime parts, the audit's
+    findings) wrap the model (:mod:`piezod.model.parts`).
     """
+    return with_parts(_bare_model(config), config.parts())
+
+
+def _bare_model(config: AxisConfig) -> AxisModel:
     if config.model == "dynamic" and config.dynamic is not None:
         return DynamicAxisModel(config.dynamic.params())
     if config.model == "family" and config.family is not None:

@@ -57,7 +57,7 @@ from piezod.errors import (
     RecordingError,
     SafetyError,
 )
-from piezod.link.board import Board, SerialBoard
+from piezod.link.board import Board, open_board
 from piezod.link.session import (
     BoardFault,
     HostLimitFault,
@@ -182,6 +182,7 @@ class Engine:
         write_images: bool = False,
     ) -> None:
         self.config = config
+        self._uncalibrated: list[str] = sorted(set(config.axes) - calibrated_axes(config))
         self.url = url
         self.rate_hz = float(config.sample_rate_hz)
         self.recording_dir = Path(
@@ -217,7 +218,7 @@ class Engine:
         self._recording_name: str | None = None
         self._next_recording = 0
         self._last_line: LineLinearity | None = None
-        self._board: Board = SerialBoard(url, config, self._on_link_event, self.settings)
+        self._board: Board = open_board(url, config, self._on_link_event, self.settings)
         self._clamped = 0
         self._closing = threading.Event()
         self._supervisor: threading.Thread | None = None
@@ -276,11 +277,10 @@ class Engine:
 
     def _start_stream(self) -> None:
         lead = self.config.service.lead_ms / 1000.0
-        if isinstance(self._board, SerialBoard):
-            capped = self._board.capped_lead_s(lead)
-            if capped < lead:
-                log.info("lead %.0f ms capped at %.0f ms by the board FIFO", 1e3 * lead, 1e3 * capped)
-            lead = capped
+        capped = self._board.capped_lead_s(lead)
+        if capped < lead:
+            log.info("lead %.0f ms capped at %.0f ms by the board FIFO", 1e3 * lead, 1e3 * capped)
+        lead = capped
         block = max(1, round(self.rate_hz * self.config.service.block_ms / 1000.0))
         with self._lock:
             self._job = HoldJob("idle")
@@ -503,6 +503,8 @@ class Engine:
             voltage_v={n: d.voltage_v for n, d in self.drivers.items()} if known else {},
             recording=self._recording_name,
             sensitivity_scale={a: t.scale for a, t in self._trackers.items()},
+            calibrated=not self._uncalibrated,
+            uncalibrated_axes=self._uncalibrated,
         )
 
     def check_scan(self, request: ScanRequest) -> None:

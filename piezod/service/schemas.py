@@ -111,6 +111,8 @@ class Status(_Body):
     position_um: dict[str, float] = Field(default_factory=dict)
     voltage_v: dict[str, float] = Field(default_factory=dict)
     recording: str | None = None
+    calibrated: bool = True
+    uncalibrated_axes: list[str] = Field(default_factory=list)
 
 
 class ScanEvent(_Body):

@@ -7,7 +7,7 @@ else at the path is left alone with an error. ``--api tcp:HOST:PORT`` binds
 loopback addresses only, unless ``api.allow_remote``; whenever ``api.token_file``
 is required on TCP (every local user can connect to a TCP port), and every TCP request needs
 ``Authorization: Bearer <token>``. Every request passes
-:class:`~piezod.service.api.RequestGuardMiddleware` first (Host / Origin checks against DNS
+:class:`~piezod.service.guards.RequestGuardMiddleware` first (Host / Origin checks against DNS
 rebinding and cross-site posts, bounded strict-JSON bodies).
 
 uvicorn runs in a thread of its own and installs no signal handlers: the daemon
@@ -354,7 +354,7 @@ class ApiServer:
         """
         import uvicorn
 
-        from piezod.service.api import LOOPBACK_HOSTS, BearerTokenMiddleware, RequestGuardMiddleware
+        from piezod.service.guards import LOOPBACK_HOSTS, BearerTokenMiddleware, RequestGuardMiddleware
 
         if self._thread is not None:
             raise RuntimeError("ApiServer already started")

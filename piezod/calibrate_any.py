@@ -1,0 +1,243 @@
+"""``piezod calibrate`` on any waveform: which model the recordings determine, and the fit.
+
+The thesis model (3.8) describes the *steady loop of a periodic triangular scan*: it needs
+every experiment to be such a scan (one complete loop at least; a one-period triangle as
+instruments export it, one loop per block, counts, :attr:`piezod.scan_inference.ScanInfo.wraps`).
+The dynamic model (:mod:`piezod.model.dynamic`: the hysteresis ODE (2.21) with log creep, run
+through the whole session) takes any waveform: sines, ramps, minor loops, steps, holds.
+
+:func:`choose_model` picks (3.8) when every experiment is a periodic triangular scan and the
+dynamic model otherwise, and says why; :func:`calibrate_any` fits the chosen one with the
+existing fitters (:func:`piezod.calibrate.calibrate`, :func:`piezod.calibrate_dynamic.calibrate_dynamic`)
+and returns which it was. Pure dispatch: no fitting code of its own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from piezod import calibrate as thesis_cal
+from piezod import calibrate_dynamic as dynamic_cal
+from piezod.config import ScannerConfig
+from piezod.errors import CalibrationError
+from piezod.model.params import ThesisParams
+from piezod.recording import Experiment
+
+ModelName = Literal["thesis", "dynamic"]
+#: ``--model`` choices of ``piezod calibrate``.
+MODEL_CHOICES: tuple[str, ...] = ("auto", "thesis", "dynamic")
+
+
+@dataclass(frozen=True)
+class ModelChoice:
+    """Which model a calibration fits, and why.
+
+    Attributes
+    ----------
+    model
+        ``thesis`` (3.8) or ``dynamic`` (ODE (2.21) + log creep).
+    reason
+        One line: why this model (the first experiment that is not a triangular scan, or that
+        all are).
+    """
+
+    model: ModelName
+    reason: str
+
+
+def choose_model(experiments: Sequence[Experiment], requested: str = "auto") -> ModelChoice:
+    """The model the recordings determine (``requested``: ``auto``, ``thesis`` or ``dynamic``).
+
+    Raises
+    ------
+    CalibrationError
+        ``thesis`` requested for recordings that are not all periodic triangular scans (the
+        message names the experiment and why), or an unknown ``requested``.
+    """
+    if requested not in MODEL_CHOICES:
+        raise CalibrationError(f"unknown model {requested!r}; choose one of {', '.join(MODEL_CHOICES)}")
+    if not experiments:
+        raise CalibrationError("no experiments to calibrate")
+    if requested == "dynamic":
+        return ModelChoice("dynamic", "requested (--model dynamic)")
+    for e in experiments:
+        info = e.scan()
+        if not info.is_scan:
+            why = (
+                f"experiment {e.describe()} is not a periodic triangular scan ({info.kind}"
+                + (f": {info.reason}" if info.reason else "")
+                + ")"
+            )
+            if requested == "thesis":
+                e.require_scan()  # the reader's error: file, line and reason
+            return ModelChoice(
+                "dynamic", why + ": the dynamic model (ODE 2.21 + log creep) takes any waveform"
+            )
+    if requested == "thesis":
+        return ModelChoice("thesis", "requested (--model thesis)")
+    return ModelChoice("thesis", "every experiment is a periodic triangular scan: the thesis model (3.8)")
+
+
+@dataclass(frozen=True, eq=False)
+class AnyCalibration:
+    """A calibration of either model.
+
+    Attributes
+    ----------
+    choice
+        The model and why.
+    thesis
+        The (3.8) fit (when ``choice.model == "thesis"``).
+    dynamic
+        The dynamic fit (when ``choice.model == "dynamic"``).
+    """
+
+    choice: ModelChoice
+    thesis: thesis_cal.CalibrationResult | None = None
+    dynamic: dynamic_cal.DynamicCalibrationResult | None = None
+
+    @property
+    def success(self) -> bool:
+        """Whether the solver converged."""
+        r = self.thesis if self.thesis is not None else self.dynamic
+        return bool(r is not None and r.success)
+
+    @property
+    def message(self) -> str:
+        """The solver's message."""
+        r = self.thesis if self.thesis is not None else self.dynamic
+        return "" if r is None else r.message
+
+
+def calibrate_any(
+    experiments: Sequence[Experiment],
+    *,
+    model: str = "auto",
+    start: ThesisParams | None = None,
+    loss: str = "linear",
+    f_scale: float | None = None,
+    fix: Iterable[str] = (),
+    skip_loops: int = 0,
+    max_samples_per_loop: int | None = 2048,
+    on_eval: Callable[[int], None] | None = None,
+) -> AnyCalibration:
+    """Fit the model :func:`choose_model` picks.
+
+    Parameters
+    ----------
+    experiments
+        The experiments (one axis).
+    model
+        ``auto``, ``thesis`` or ``dynamic``.
+    start, loss, f_scale, fix, skip_loops, max_samples_per_loop
+        Options of the (3.8) fit (:func:`piezod.calibrate.calibrate`). The dynamic fit takes
+        ``fix`` (its own parameter names) and ``max_samples_per_loop`` and starts from the
+        data (:func:`piezod.calibrate_dynamic.auto_start`; ``start`` is a (3.8) start and not
+        used); ``loss``, ``f_scale`` and ``skip_loops`` are (3.8) options only.
+    on_eval
+        Progress callback.
+
+    Raises
+    ------
+    CalibrationError
+        An option that the chosen model does not take, or the fit failed.
+    """
+    choice = choose_model(experiments, model)
+    if choice.model == "thesis":
+        res = thesis_cal.calibrate(
+            experiments,
+            start=start,
+            loss=loss,
+            f_scale=f_scale,
+            fix=fix,
+            skip_loops=skip_loops,
+            max_samples_per_loop=max_samples_per_loop,
+            on_eval=on_eval,
+        )
+        return AnyCalibration(choice, thesis=res)
+    if loss != "linear" or f_scale is not None or skip_loops:
+        raise CalibrationError(
+            f"--loss, --f-scale and --skip-loops are options of the thesis model (3.8); {choice.reason}"
+        )
+    fixed = tuple(fix)
+    unknown = set(fixed) - set(dynamic_cal.PARAM_NAMES)
+    if unknown:
+        raise CalibrationError(
+            f"cannot fix {', '.join(sorted(unknown))} in the dynamic model (its parameters: "
+            f"{', '.join(dynamic_cal.PARAM_NAMES)}); {choice.reason}"
+        )
+    per_loop = max_samples_per_loop or 512
+    try:
+        res_d = dynamic_cal.calibrate_dynamic(
+            experiments, fix=fixed, max_samples_per_loop=per_loop, on_eval=on_eval
+        )
+    except CalibrationError as exc:
+        # A free power-law exponent can carry the creep out of the model's domain (total creep
+        # >= 0.9) when the data hold something creep is not (a lag): the log law is the fallback.
+        if "model's domain" not in str(exc) or "creep_exponent" in fixed:
+            raise
+        res_d = dynamic_cal.calibrate_dynamic(
+            experiments, fix=(*fixed, "creep_exponent"), max_samples_per_loop=per_loop, on_eval=on_eval
+        )
+        choice = ModelChoice(
+            choice.model,
+            f"{choice.reason}; creep_exponent held at 0 (the log law), free it left the model's domain",
+        )
+    return AnyCalibration(choice, dynamic=res_d)
+
+
+def result_json(result: AnyCalibration, *, inputs: Sequence[str] = ()) -> dict[str, Any]:
+    """The JSON of ``piezod calibrate --json``: the fitter's keys plus ``model`` and ``model_reason``."""
+    if result.thesis is not None:
+        doc = thesis_cal.result_json(result.thesis, inputs=inputs)
+    elif result.dynamic is not None:
+        doc = dynamic_cal.result_json(result.dynamic, inputs=inputs)
+    else:  # pragma: no cover - AnyCalibration always holds one
+        raise CalibrationError("no fit result")
+    doc["model"] = result.choice.model
+    doc["model_reason"] = result.choice.reason
+    return doc
+
+
+def calibrated_config(
+    result: AnyCalibration,
+    *,
+    axis: str = "x",
+    base: ScannerConfig | None = None,
+    inputs: Sequence[str] = (),
+    voltage_span_v: tuple[float, float] | None = None,
+) -> ScannerConfig:
+    """The scanner config of the fit (``model: thesis`` or ``model: dynamic`` on ``axis``).
+
+    A dynamic fit without a base config gets a ``thesis:`` section (the engine plans periodic
+    scans with it) from the base, else the fitted hysteresis ``alpha, b, u`` with no creep
+    terms (``a1 = a2 = a3 = 0``: (3.8) reduces to the steady loop of (2.21)).
+    """
+    if result.thesis is not None:
+        return thesis_cal.calibrated_config(
+            result.thesis, axis=axis, base=base, inputs=inputs, voltage_span_v=voltage_span_v
+        )
+    if result.dynamic is None:  # pragma: no cover - AnyCalibration always holds one
+        raise CalibrationError("no fit result")
+    p = result.dynamic.params
+    thesis = None
+    if base is None or axis not in base.axes:
+        thesis = ThesisParams(
+            p.alpha_per_v, p.b_um_per_v, p.u_um_per_v, tau_s=1.0, a1=0.0, a2_per_v=0.0, a3=0.0
+        )
+    return dynamic_cal.calibrated_config(
+        result.dynamic, axis=axis, base=base, thesis=thesis, inputs=inputs, voltage_span_v=voltage_span_v
+    )
+
+
+__all__ = [
+    "MODEL_CHOICES",
+    "AnyCalibration",
+    "ModelChoice",
+    "calibrate_any",
+    "calibrated_config",
+    "choose_model",
+    "result_json",
+]

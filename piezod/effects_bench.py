@@ -1,0 +1,365 @@
+"""``piezod bench effects``: per hil_sim effect, online correction by the baseline and the extended model.
+
+For every effect the simulated stage can inject (``hil_sim.effects.EFFECT_NAMES``), at the
+middle of its realistic magnitude (:mod:`piezod.model.registry`), on the built-in stage
+(``configs/sim-stage.yaml``: the stage built from the controller's default model, so the
+baseline alone is at its self-consistency floor and what remains is the effect's):
+
+1. the calibration frame of :func:`piezod.stagecal.default_frame` (uncorrected triangles) is
+   stepped on the stage in process (deterministic, independent of machine load);
+2. **baseline**: the dynamic model calibrated on the frame (what ``piezod calibrate`` writes on
+   this stage);
+3. **extended**: the audit (:func:`piezod.audit.run_audit`) of the same frame, its material
+   findings mapped to runtime parts (:func:`piezod.extensions.adopt_findings`), the dynamic model
+   refitted with those parts fixed (the frame seen through the parts' exact inverse), the parts
+   around it (:class:`piezod.model.parts.PartsAxisModel`);
+4. both verified by online-corrected triangles at the frame's verification points
+   (:func:`piezod.stagecal.verification_points`; one warm-up loop, then ``loops`` recorded),
+   scored by :func:`piezod.linearity.experiment_linearity`;
+5. the floor: the baseline calibrated and verified the same way on the stage without the effect.
+
+What is left of an effect's error with a model is its worst metric over the points minus the
+floor's (never below 0). A third model, the parts with the *injected* values (refitted the same
+way), separates what the runtime parts can correct from what the audit finds. The target is
+``left(extended) <= left(baseline) / 3`` for both the
+nonlinearity and the length error. An effect whose error stays within ``resolution_pct`` of the
+floor with the baseline already is reported as "below resolution" (nothing to remove).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from piezod import calibrate_dynamic as cd
+from piezod.config import AxisName, ScannerConfig, default_sim_config_path, load_config
+from piezod.extensions import Adoption, adopt_findings, experiments_through_parts, extended_config
+from piezod.linearity import experiment_linearity
+from piezod.model.parts import PART_EFFECTS, Parts
+from piezod.model.registry import REGISTRY
+from piezod.recording import Experiment
+from piezod.service.axes import axis_model
+from piezod.stagecal import Frame, VerifyPoint, default_frame, verification_points
+
+F64 = NDArray[np.float64]
+#: Metrics of a verification: the worst nonlinearity and |length error| over the points (%).
+METRICS = ("nonlinearity_pct", "length_error_pct")
+#: The target: what the extended model leaves of the effect's error, as a fraction of the baseline's.
+TARGET_FRACTION = 1.0 / 3.0
+
+
+def realistic_specs(effect: str) -> list[str]:
+    """``NAME.FIELD=VALUE`` for the middle of every realistic range of ``effect`` (registry)."""
+    out = []
+    for p in REGISTRY[effect].params:
+        lo, hi = p.realistic
+        mid = math.sqrt(lo * hi) if lo > 0 and hi / lo > 5 else 0.5 * (lo + hi)
+        out.append(f"{effect}.{p.name}={mid:.6g}")
+    return out
+
+
+class _Bench:
+    """The stage and its clock: voltages in, sensed positions out, history kept."""
+
+    def __init__(self, stage: Any, rate_hz: float) -> None:
+        self.stage = stage
+        self.dt = 1.0 / rate_hz
+        self.t = 0.0
+        self.v = 0.0
+        self.history: list[F64] = []
+
+    def play(self, volts: F64) -> tuple[F64, F64]:
+        chunks = range(0, volts.size, 1 << 16)
+        xs = [self.stage.sense(self.stage.step(volts[i : i + (1 << 16)], self.dt)) for i in chunks]
+        t: F64 = self.t + self.dt * np.arange(1, volts.size + 1, dtype=np.float64)
+        self.t = float(t[-1])
+        self.v = float(volts[-1])
+        x: F64 = np.concatenate(xs).astype(np.float64)
+        self.history.append(np.asarray(volts, dtype=np.float64))
+        return t, x
+
+    def ramp(self, to_v: float, rate: float) -> None:
+        n = max(1, math.ceil(abs(to_v - self.v) / rate / self.dt))
+        self.play(self.v + (to_v - self.v) * np.arange(1, n + 1) / n)
+
+
+def _stage(path: Path, specs: Sequence[str], axis: AxisName, seed: int) -> Any:
+    from piezod.simulator import load_stage
+
+    return load_stage(path, specs, axis, seed)
+
+
+def _frame(bench: _Bench, frame: Frame, axis: AxisName, rate: float, ramp: float) -> list[Experiment]:
+    exps: list[Experiment] = []
+    for scan in frame.scans:
+        segs = scan.segments(rate)
+        bench.ramp(float(segs[0].volts[0]), ramp)
+        for seg in segs:
+            t, x = bench.play(np.asarray(seg.volts, dtype=np.float64))
+            if seg.record:
+                exps.append(Experiment(scan.label, axis, t, np.asarray(seg.volts, dtype=np.float64), x))
+    return exps
+
+
+def _dynamic(exps: Sequence[Experiment], base: ScannerConfig, axis: AxisName) -> ScannerConfig:
+    ramp = base.service.ramp_rate_v_per_s
+    rest = base.axes[axis].safe_voltage_v
+    dyn = cd.calibrate_dynamic(list(exps), slew_rate_v_per_s=ramp, rest_voltage_v=rest)
+    cfg = cd.calibrated_config(dyn, axis=axis, base=base)
+    axes = dict(cfg.axes)
+    axes[axis] = axes[axis].model_copy(update={"model": "dynamic"})
+    return cfg.model_copy(update={"axes": axes})
+
+
+def _verify(
+    bench: _Bench, config: ScannerConfig, axis: AxisName, points: Sequence[VerifyPoint], loops: int
+) -> list[dict[str, Any]]:
+    ax = config.axes[axis]
+    model = axis_model(ax)
+    rate = 1.0 / bench.dt
+    lo_v, hi_v = ax.voltage_min_v, ax.voltage_max_v
+    # the model has seen every voltage the stage has (as the daemon's driver carries its state
+    # through frames, moves and holds): its creep memory is the stage's, its clock the stage's
+    _, state = model.forward(np.concatenate(bench.history), bench.dt, model.rest(0.0))
+    rows = []
+    for k, pt in enumerate([points[0], *points]):
+        lo = pt.offset_um - 0.5 * pt.range_um
+        per = max(8, round(rate / pt.frequency_hz))
+        here = model.position(state)
+        n_move = max(1, round(abs(lo - here) / (0.5 * pt.range_um * pt.frequency_hz) * rate))
+        move = np.linspace(here, lo, n_move + 1)[1:]
+        phase = (np.arange(1, per * (1 + loops) + 1) % per) / per
+        target = np.concatenate([move, lo + pt.range_um * np.where(phase < 0.5, 2 * phase, 2 - 2 * phase)])
+        v, state = model.inverse(target, bench.dt, state)
+        clamped = int(np.count_nonzero((v < lo_v) | (v > hi_v)))
+        v = np.clip(v, lo_v, hi_v)
+        t, x = bench.play(v)
+        if k == 0:
+            continue  # one unrecorded warm-up scan after the model is switched in
+        k0 = n_move + per
+        lin = experiment_linearity(Experiment("verify", axis, t[k0:], v[k0:], x[k0:], target_um=target[k0:]))
+        rows.append(
+            {
+                "why": pt.why,
+                "inside_frame": pt.inside_frame,
+                "range_um": pt.range_um,
+                "frequency_hz": pt.frequency_hz,
+                "offset_um": pt.offset_um,
+                "nonlinearity_pct": float(lin.nonlinearity_pct),
+                "length_error_pct": float(lin.length_error_pct),
+                "position_offset_um": float(np.mean(x[k0:] - target[k0:])),
+                "clamped": clamped,
+            }
+        )
+    return rows
+
+
+def _worst(rows: Sequence[dict[str, Any]], inside_only: bool = True) -> dict[str, float]:
+    sel = [r for r in rows if r["inside_frame"] or not inside_only]
+    return {m: max(abs(float(r[m])) for r in sel) for m in METRICS}
+
+
+def _injected_parts(specs: Sequence[str]) -> dict[str, dict[str, float]]:
+    """``{effect: {parameter: value}}`` of the injected specs that have a runtime part."""
+    out: dict[str, dict[str, float]] = {}
+    for text in specs:
+        head, value = text.split("=", 1)
+        effect, _, name = head.partition(".")
+        if effect in PART_EFFECTS and name in PART_EFFECTS[effect]:
+            out.setdefault(effect, {})[name] = float(value)
+    return out
+
+
+def run_case(
+    specs: Sequence[str],
+    *,
+    stage_path: Path | None = None,
+    axis: AxisName = "x",
+    reduced: bool = True,
+    loops: int = 3,
+    seed: int = 1,
+    audit_effects: Sequence[str] | None = None,
+    folds: int = 4,
+    on_step: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Frame, baseline, audit, extended model and their verification on the stage with ``specs``.
+
+    Returns
+    -------
+    dict
+        ``specs``, ``findings`` (audit ids), ``adoption`` (adopted / skipped lines), ``baseline`` and
+        ``extended`` (``rows`` per point and ``worst`` inside the frame), ``injected`` (the same
+        refit with the injected values of the effects that have a runtime part), ``seconds``.
+    """
+    from piezod.audit import AuditOptions, result_json, run_audit
+
+    t0 = time.perf_counter()
+    path = stage_path or default_sim_config_path()
+    base = load_config(path)
+    rate = base.sample_rate_hz
+    frame = default_frame(base, axis, reduced=reduced)
+    bench = _Bench(_stage(path, specs, axis, seed), rate)
+    exps = _frame(bench, frame, axis, rate, base.service.ramp_rate_v_per_s)
+    step = on_step or (lambda _s: None)
+    step("frame")
+    baseline = _dynamic(exps, base, axis)
+    step("baseline")
+    points = verification_points(baseline, frame, reduced=reduced, axis=axis)
+    out: dict[str, Any] = {"specs": list(specs)}
+    out["baseline"] = {"rows": _verify(bench, baseline, axis, points, loops)}
+    step("baseline verified")
+    if not specs:
+        out["findings"], out["adoption"] = [], {"adopted": [], "skipped": []}
+        out["extended"] = out["baseline"]
+    else:
+        options = AuditOptions(folds=folds, refit_cv=False)
+        if audit_effects:
+            options = dataclasses.replace(options, effects=tuple(audit_effects))
+        doc = result_json(run_audit(exps, [], options=options))
+        step("audit")
+        adoption: Adoption = adopt_findings(doc["findings"])
+        out["findings"] = [f["effect"] for f in doc["findings"]]
+        out["adoption"] = {"adopted": list(adoption.adopted), "skipped": list(adoption.skipped)}
+        if adoption.effects:
+            parts = Parts.from_effects(adoption.effects)
+            refit = _dynamic(experiments_through_parts(exps, parts), base, axis)
+            extended = extended_config(refit, axis, adoption)
+            out["extended"] = {"rows": _verify(bench, extended, axis, points, loops)}
+        else:
+            out["extended"] = {"rows": _verify(bench, baseline, axis, points, loops)}
+        step("extended verified")
+        injected = _injected_parts(specs)
+        if injected:
+            # the same refit with the injected values: what the runtime parts do when the finding is right
+            refit = _dynamic(experiments_through_parts(exps, Parts.from_effects(injected)), base, axis)
+            oracle = extended_config(refit, axis, Adoption(injected))
+            out["injected"] = {"rows": _verify(bench, oracle, axis, points, loops)}
+            step("injected verified")
+    for key in ("baseline", "extended", "injected"):
+        if key not in out:
+            continue
+        out[key]["worst"] = _worst(out[key]["rows"])
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def score(case: dict[str, Any], floor: dict[str, float], resolution_pct: float) -> dict[str, Any]:
+    """What the baseline and the extended model leave of the effect's error, and whether the target is met."""
+    left: dict[str, dict[str, float]] = {}
+    met = True
+    below = True
+    for m in METRICS:
+        lb = max(0.0, case["baseline"]["worst"][m] - floor[m])
+        le = max(0.0, case["extended"]["worst"][m] - floor[m])
+        left[m] = {"baseline": lb, "extended": le, "fraction": le / lb if lb > 0 else math.nan}
+        if lb > resolution_pct:
+            below = False
+            met = met and le <= TARGET_FRACTION * lb
+    if "injected" in case:
+        for m in METRICS:
+            left[m]["injected"] = max(0.0, case["injected"]["worst"][m] - floor[m])
+    return {"left": left, "below_resolution": below, "met": met and not below}
+
+
+def run_effects_bench(
+    effects: Sequence[str] | None = None,
+    *,
+    reduced: bool = True,
+    loops: int = 3,
+    seed: int = 1,
+    resolution_pct: float = 0.01,
+    on_step: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """The table of the module docstring for ``effects`` (default: every hil_sim effect)."""
+    from piezod.simulator import sim_effect_names
+
+    names = list(effects) if effects else list(sim_effect_names())
+    floor_case = run_case([], reduced=reduced, loops=loops, seed=seed, on_step=on_step)
+    floor = floor_case["baseline"]["worst"]
+    rows = []
+    for name in names:
+        case = run_case(realistic_specs(name), reduced=reduced, loops=loops, seed=seed, on_step=on_step)
+        rows.append({"effect": name, **case, **score(case, floor, resolution_pct)})
+    return {
+        "stage": "built-in stage (configs/sim-stage.yaml) + one hil_sim effect: the baseline is the "
+        "stage's own model family (self-consistency), the effect is hil_sim's implementation",
+        "frame": "reduced" if reduced else "full",
+        "loops": loops,
+        "floor": floor,
+        "resolution_pct": resolution_pct,
+        "target_fraction": TARGET_FRACTION,
+        "rows": rows,
+    }
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """Markdown table: per effect the injected magnitude, the findings, and what each model leaves."""
+    fl = result["floor"]
+    lines = [
+        f"floor (baseline, no effect): nonlinearity {fl['nonlinearity_pct']:.3f} %, "
+        f"|length error| {fl['length_error_pct']:.3f} % (worst inside the frame)",
+        "",
+        "| effect (injected) | audit finds | adopted | nonlin. left: baseline / extended (%) | "
+        "length err. left: baseline / extended (%) | extended <= 1/3 baseline | "
+        "parts with the injected value: nonlin. / length err. left (%) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in result["rows"]:
+        left = r["left"]
+        verdict = "below resolution" if r["below_resolution"] else ("**yes**" if r["met"] else "no")
+        injected = ", ".join(s.split(".", 1)[1] for s in r["specs"])
+        adopted = "; ".join(a.split(":")[0] for a in r["adoption"]["adopted"]) or "-"
+        oracle = (
+            f"{left['nonlinearity_pct']['injected']:.3f} / {left['length_error_pct']['injected']:.3f}"
+            if "injected" in left["nonlinearity_pct"]
+            else "no runtime part"
+        )
+        lines.append(
+            f"| {r['effect']} ({injected}) | {', '.join(r['findings']) or 'none'} | {adopted} | "
+            f"{left['nonlinearity_pct']['baseline']:.3f} / {left['nonlinearity_pct']['extended']:.3f} | "
+            f"{left['length_error_pct']['baseline']:.3f} / {left['length_error_pct']['extended']:.3f} | "
+            f"{verdict} | {oracle} |"
+        )
+    return "\n".join(lines)
+
+
+def plot_effects(result: dict[str, Any], path: str | Path) -> Path:
+    """Bar chart: per effect, the error left by the baseline and the extended model (both metrics)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = result["rows"]
+    names = [r["effect"] for r in rows]
+    xs = np.arange(len(rows))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
+    for ax, m, label in zip(axes, METRICS, ("nonlinearity", "|length error|"), strict=True):
+        base = [r["left"][m]["baseline"] for r in rows]
+        ext = [r["left"][m]["extended"] for r in rows]
+        inj = [r["left"][m].get("injected", np.nan) for r in rows]
+        ax.bar(xs - 0.27, base, 0.27, label="baseline (dynamic model)")
+        ax.bar(xs, ext, 0.27, label="extended (audit findings as runtime parts)")
+        ax.bar(xs + 0.27, inj, 0.27, label="runtime parts with the injected value")
+        ax.set_xticks(xs, names, rotation=30, ha="right")
+        ax.set_ylabel(f"{label} left above the no-effect floor (%)")
+        ax.set_title(f"{label}: worst online-corrected scan inside the frame")
+        ax.legend(fontsize=8)
+    fig.suptitle(
+        "Error each hil_sim effect leaves after online correction (built-in stage + one effect, "
+        "realistic magnitude)"
+    )
+    out = Path(path)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
+__all__ = ["format_table", "plot_effects", "realistic_specs", "run_case", "run_effects_bench", "score"]

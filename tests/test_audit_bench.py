@@ -1,0 +1,44 @@
+"""``piezod bench audit``: the corpus and its targets (all of it is ``slow``; a short part runs by default).
+
+Targets (issue #10): hidden effects named right >= 9/10, ``none`` for clean sessions, no
+invariance failure, no finding outside the physical bounds, each audit <= 60 s of CPU, the
+P-885 held-out gain >= 1.2 with the honest estimate.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from piezod.audit.bench import format_report, run_corpus
+
+
+def test_short_corpus_names_the_hidden_resonance_in_every_variant() -> None:
+    # One clean session and one hidden resonance with its decimation and re-splits: the
+    # resonance was named "delay" in two variants before the resolvable band and the f0 start
+    # grid were fixed (docs/audit.md, section 7).
+    res = run_corpus(1, effects=("resonance",), presets=(), with_standins=False)
+    assert res["matrix"]["none"] == {"none": 1}
+    assert res["matrix"]["resonance"] == {"resonance": 1}
+    assert res["invariance_failures"] == []
+    assert res["outside_bounds"] == []
+    assert res["audits"] == 5
+    text = format_report(res)
+    assert "hidden effects named right: 1/1" in text and "invariance failures" in text
+
+
+@pytest.mark.slow
+def test_the_whole_corpus_meets_its_targets() -> None:
+    res = run_corpus(2)
+    assert res["hidden_right"] >= 0.9 * res["hidden_total"]
+    assert res["false_alarm_rate"] == 0.0
+    assert res["outside_bounds"] == []
+    assert res["cpu_s_max"] <= 60.0
+    p885 = {s["name"]: s for s in res["standins"] if s["name"].startswith("P-885")}
+    assert p885 and all(s["ok"] for s in p885.values())
+    val = p885["P-885, validation file"]
+    assert val["gain"] - 2.0 * val["gain_se"] >= 1.2
+    for s in res["standins"]:
+        assert s["ok"], s
+    for o in res["other_physics"]:
+        assert o.get("drift_ok", True), o
+    assert res["invariance_failures"] == [], format_report(res)

@@ -1,0 +1,80 @@
+"""The one fit-result type: every calibration fit returns a piezod.fitstats.FitResult whose
+standard errors, covariance and correlations agree, with n, dof and the residual RMS."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from piezod.calibrate import fit, prepare
+from piezod.calibrate_dynamic import DynamicCalibrationResult, fit_dynamic, prepare_dynamic
+from piezod.fitstats import FitResult, parameter_statistics, solve_linear
+from piezod.recording import split_experiments
+from piezod.synth import random_params, random_plan, synth_session
+
+
+def _check(res: FitResult, n_coefficients_besides: int) -> None:
+    assert isinstance(res, FitResult)
+    p = len(res.free)
+    assert res.covariance.shape == res.correlations.shape == (p, p)
+    sd = np.sqrt(np.diag(res.covariance))
+    np.testing.assert_allclose(sd, [res.stderr[k] for k in res.free], rtol=1e-9)
+    np.testing.assert_allclose(res.covariance / np.outer(sd, sd), res.correlations, rtol=1e-9, atol=1e-12)
+    assert all(res.stderr[k] == 0.0 for k in res.fixed)
+    assert res.n == res.residuals_um.size and res.dof == res.n - p - n_coefficients_besides
+    assert res.residual_rms_um == pytest.approx(float(np.sqrt(np.mean(res.residuals_um**2))))
+    assert set(res.values) >= set(res.free)
+
+
+def test_thesis_fit_returns_the_shared_result() -> None:
+    truth = random_params(3)
+    session = synth_session(truth, random_plan(3, 8), samples_per_loop=256, noise_um=0.005, seed=3)
+    data = prepare(split_experiments(session.recording))
+    _check(fit(data), data.n_experiments)  # one position offset per experiment
+
+
+def test_dynamic_fit_returns_the_shared_result() -> None:
+    from hil_sim.session import Triangle, calibration_plan, run_session
+    from hil_sim.stage import StageConfig
+    from piezod.config import default_sim_config_path
+    from piezod.simulator import session_experiments
+
+    stage = StageConfig.from_file(default_sim_config_path())
+    plan = calibration_plan(
+        [200.0, 400.0], [2.0, 8.0], reference=Triangle(300.0, 4.0, cycles=2), reference_every=2
+    )
+    sess = run_session(stage, plan, sample_rate_hz=500.0, axis="x", voltage_limits_v=(-230.0, 230.0))
+    res = fit_dynamic(prepare_dynamic(session_experiments(sess), max_samples_per_loop=128))
+    assert isinstance(res, DynamicCalibrationResult)
+    _check(res, len(res.experiments))
+
+
+def test_parameter_statistics_in_physical_units() -> None:
+    # y = exp(z0) * t + z1 fitted in (z0 = log slope, z1): the slope's standard error is slope * sd(z0)
+    t = np.linspace(0.0, 1.0, 50)
+    slope = 2.0
+    jac = np.column_stack([slope * t, np.ones_like(t)])
+    st = parameter_statistics(
+        jac,
+        0.49,
+        48,
+        names=("slope", "c"),
+        free=("slope", "c"),
+        z=[np.log(slope), 0.0],
+        lo=[-10.0, -10.0],
+        hi=[10.0, 10.0],
+        dvalue_dz=[slope, 1.0],
+    )
+    cov = np.linalg.inv(np.column_stack([t, np.ones_like(t)]).T @ np.column_stack([t, np.ones_like(t)]))
+    np.testing.assert_allclose(st.covariance, cov * 0.49 / 48, rtol=1e-9)
+    assert st.at_bounds == () and st.dof == 48
+
+
+def test_solve_linear_honours_bounds() -> None:
+    a = np.column_stack([np.ones(10), np.arange(10.0)])
+    y = 1.0 - 0.5 * np.arange(10.0)
+    c, rms = solve_linear(a, y, lower=np.array([-np.inf, 0.0]), upper=np.array([np.inf, np.inf]))
+    assert c[1] == pytest.approx(0.0, abs=1e-9) and rms > 0
+    c, rms = solve_linear(a, y)
+    np.testing.assert_allclose(c, [1.0, -0.5], atol=1e-9)
+    assert rms == pytest.approx(0.0, abs=1e-9)
