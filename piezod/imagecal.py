@@ -529,7 +529,7 @@ def verification_scans(*, reduced: bool = False) -> list[ImageScan]:
     return [
         ImageScan(20.0, 1.0, 0.0, 6, "in-20um-1Hz", "inside"),
         ImageScan(30.0, 2.0, 0.0, 6, "in-30um-2Hz", "inside"),
-        ImageScan(15.0, 0.5, 3.0, 5, "in-15um-0.5Hz-off3", "inside"),
+        ImageScan(18.0, 0.5, 3.0, 5, "in-18um-0.5Hz-off3", "inside"),
         ImageScan(20.0, 0.05, 0.0, 2, "out-20um-0.05Hz", "outside: 10x slower"),
         ImageScan(20.0, 10.0, 0.0, 30, "out-20um-10Hz", "outside: 5x faster"),
         ImageScan(14.0, 1.0, -10.5, 6, "out-14um-off-10.5", "outside: offset beyond the frame"),
