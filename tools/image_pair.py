@@ -53,13 +53,23 @@ def main(argv: list[str] | None = None) -> int:
     raw_cfg, cal_cfg = (str(ROOT / "configs" / name) for name in CONFIGS[args.stage])
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
-        _piezod("scan", "--sim", "--config", raw_cfg, *SCAN, "--no-correction", "--out", "raw.csv", cwd=d)
-        _piezod("scan", "--sim", "--config", cal_cfg, *SCAN, "--out", "corrected.csv", cwd=d)
+        _piezod(
+            "scan",
+            "--sim",
+            "--config",
+            raw_cfg,
+            *SCAN,
+            "--no-correction",
+            "--out",
+            "plain-triangle.csv",
+            cwd=d,
+        )
+        _piezod("scan", "--sim", "--config", cal_cfg, *SCAN, "--out", "sensorless-calibrated.csv", cwd=d)
         out = str(Path(args.out).resolve())
         _piezod(
             "image",
-            "raw.csv",
-            "corrected.csv",
+            "plain-triangle.csv",
+            "sensorless-calibrated.csv",
             "--config",
             cal_cfg,
             "--pitch-um",
