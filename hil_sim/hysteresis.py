@@ -1,6 +1,6 @@
 """Rate-independent hysteresis laws of the simulated stage (hil_sim's own implementations).
 
-Two laws, chosen per axis in the ``simulation:`` section:
+Three laws, chosen per axis in the ``simulation:`` section:
 
 ``coleman-hodgdon``
     The ODE ``dx/dV = alpha sgn(dV) (b V - x) + u`` (thesis eq. 2.21), stepped exactly for a
@@ -13,6 +13,11 @@ Two laws, chosen per axis in the ``simulation:`` section:
     its minor loops close after one period; the branch slope after a reversal rises from
     ``b rho0`` to ``b`` in steps as the voltage change passes ``2 r_i``. It is not the
     controller's default law: a stage built from it is *other physics*.
+``preisach``
+    A continuum of relay hysterons with a closed-form Everett function whose density depends on
+    the relay centre as well as its width (:class:`PreisachParams`): asymmetric loops, minor loops
+    that close but are not congruent. Neither law the controller fits: the held-out stage
+    ``configs/sim-preisach-stage.yaml`` uses it to check generality.
 
 Both are evaluated over whole blocks with state carried across blocks; a block split anywhere
 gives the same samples (the play operator is exact at the sample instants for a voltage that is
@@ -22,6 +27,7 @@ used by the host (``tests/test_stage.py`` checks that both agree).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -267,14 +273,197 @@ def pi_step(params: PIParams, voltage_v: ArrayLike, state: PIState) -> tuple[NDA
     return x, new
 
 
+# ---------------------------------------------------------------------------------------------
+# Preisach (Everett function), the held-out law
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PreisachParams:
+    """A Preisach law with a closed-form Everett function (the held-out law of ``sim-preisach-stage``).
+
+    ``x = b (rho0 V + E-part)``: the hysteretic part is a continuum of relay hysterons with
+    switching voltages ``alpha >= beta`` in ``[-V_s, V_s]`` and density
+    ``mu(alpha, beta) = k exp(-(alpha - beta) / u0) (1 + eps (alpha + beta) / (2 V_s))``: the
+    width density of a Prandtl-Ishlinskii law times a factor of the relay centre, so the loops
+    are asymmetric and minor loops at different offsets are *not* congruent (a
+    Prandtl-Ishlinskii law cannot represent it exactly). Its Everett function is closed form,
+    ``E(a, b) = k f(a - b) (1 + eps (a + b) / (2 V_s))`` with ``f(u) = u0^2 (exp(-u / u0) - 1 + u / u0)``;
+    ``k`` scales the major loop's excursion to ``(1 - rho0) 2 V_s`` (mean major slope ``b``).
+    The slope right after every reversal is ``b rho0``. Minor loops close (wiping-out memory).
+    Voltages beyond ``+-V_s`` switch no more relays (the reversible part still follows).
+
+    Attributes
+    ----------
+    b_um_per_v
+        Sensitivity (um/V), > 0.
+    rho0
+        Reversible fraction, in (0, 1].
+    width_v
+        ``u0``: decay of the density over the relay width (V), > 0.
+    asymmetry
+        ``eps``: centre dependence of the density, ``|eps| < 0.5`` (keeps every branch increasing).
+    saturation_v
+        ``V_s`` (V), > 0.
+    """
+
+    b_um_per_v: float
+    rho0: float
+    width_v: float
+    asymmetry: float
+    saturation_v: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.b_um_per_v) and self.b_um_per_v > 0.0):
+            raise SimModelError(f"b_um_per_v must be finite and > 0, got {self.b_um_per_v!r}")
+        if not 0.0 < self.rho0 <= 1.0:
+            raise SimModelError(f"rho0 must lie in (0, 1], got {self.rho0!r}")
+        if not (math.isfinite(self.width_v) and self.width_v > 0.0):
+            raise SimModelError(f"width_v must be finite and > 0, got {self.width_v!r}")
+        if not abs(self.asymmetry) < 0.5:
+            raise SimModelError(f"asymmetry must lie in (-0.5, 0.5), got {self.asymmetry!r}")
+        if not (math.isfinite(self.saturation_v) and self.saturation_v > 0.0):
+            raise SimModelError(f"saturation_v must be finite and > 0, got {self.saturation_v!r}")
+
+    def _f(self, u: NDArray[np.float64]) -> NDArray[np.float64]:
+        u0 = self.width_v
+        out: NDArray[np.float64] = u0 * u0 * (np.expm1(-u / u0) + u / u0)
+        return out
+
+    @property
+    def _k(self) -> float:
+        vs = self.saturation_v
+        return (1.0 - self.rho0) * 2.0 * vs / float(self._f(np.array([2.0 * vs]))[0])
+
+    def everett(self, a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
+        """``E(a, b)`` (V): the hysteretic change when the relays between ``b`` and ``a`` switch."""
+        av = np.asarray(a, dtype=np.float64)
+        bv = np.asarray(b, dtype=np.float64)
+        g = 1.0 + self.asymmetry * (av + bv) / (2.0 * self.saturation_v)
+        out: NDArray[np.float64] = self._k * self._f(av - bv) * g
+        return out
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PreisachState:
+    """The memory of a Preisach law.
+
+    Attributes
+    ----------
+    voltage_v, hyst_v
+        The last (clipped) voltage and the hysteretic part there (V).
+    direction
+        Direction of the run that reached it (+1, -1).
+    turns_v, turns_x
+        The dominant turning points (alternating maxima and minima, the first one positive
+        saturation ``+V_s``), the last one where the current run started, and the hysteretic
+        part at each.
+    """
+
+    voltage_v: float
+    hyst_v: float
+    direction: int
+    turns_v: NDArray[np.float64]
+    turns_x: NDArray[np.float64]
+
+
+def _preisach_runs(
+    params: PreisachParams, u: NDArray[np.float64], state: PreisachState
+) -> tuple[NDArray[np.float64], PreisachState]:
+    """Hysteretic part (V) for clipped voltages ``u`` (one vectorised pass per monotone run)."""
+    out = np.empty_like(u)
+    tv, tx = state.turns_v, state.turns_x
+    v_cur, h_cur, d_cur = state.voltage_v, state.hyst_v, state.direction
+    starts, dirs = _runs(u, v_cur)
+    bounds = np.append(starts, u.size)
+    for k, direction in enumerate(dirs):
+        seg = u[bounds[k] : bounds[k + 1]]
+        if direction == 0:
+            out[bounds[k] : bounds[k + 1]] = h_cur
+            continue
+        d = int(direction)
+        if d != d_cur:
+            tv, tx = np.append(tv, v_cur), np.append(tx, h_cur)
+        top = tv.size - 1
+        # the opposite turning points below the base, nearest first: wiped out once passed
+        opp = tv[top - 1 :: -2] if top >= 1 else np.empty(0)
+        base = top - 2 * np.searchsorted(d * opp, d * seg, side="left")
+        h = tx[base] + d * params.everett(np.maximum(seg, tv[base]), np.minimum(seg, tv[base]))
+        out[bounds[k] : bounds[k + 1]] = h
+        last = int(base[-1])
+        tv, tx = tv[: last + 1], tx[: last + 1]
+        v_cur, h_cur, d_cur = float(seg[-1]), float(h[-1]), d
+    return out, PreisachState(v_cur, h_cur, d_cur, tv, tx)
+
+
+def preisach_rest_state(params: PreisachParams, voltage_v: float = 0.0) -> PreisachState:
+    """Demagnetised at ``voltage_v``: from negative saturation, alternating extremes decaying onto it."""
+    vs = params.saturation_v
+    v0 = float(np.clip(voltage_v, -vs, vs))
+    top = float(params.everett(vs, -vs))
+    state = PreisachState(-vs, 0.0, -1, np.array([vs]), np.array([top]))
+    amp = min(vs - v0, vs + v0)
+    extremes = []
+    sign = 1.0
+    while amp > 1e-6 * vs:
+        extremes.append(v0 + sign * amp)
+        sign, amp = -sign, 0.8 * amp
+    extremes.append(v0)
+    _, state = _preisach_runs(params, np.array(extremes), state)
+    return state
+
+
+def preisach_step(
+    params: PreisachParams, voltage_v: ArrayLike, state: PreisachState
+) -> tuple[NDArray[np.float64], PreisachState]:
+    """Advance the Preisach law through a block; positions (um) relative to the demagnetised state at 0 V.
+
+    Parameters
+    ----------
+    params
+        The law's parameters.
+    voltage_v
+        Voltages (V), shape ``(n,)``.
+    state
+        State before the block.
+    """
+    v = np.asarray(voltage_v, dtype=np.float64)
+    if v.ndim != 1:
+        raise SimModelError(f"voltage_v must be 1-D, got shape {v.shape}")
+    if v.size == 0:
+        return np.empty(0), state
+    u = np.clip(v, -params.saturation_v, params.saturation_v)
+    h, new = _preisach_runs(params, u, state)
+    x = params.b_um_per_v * (params.rho0 * v + h - _preisach_zero(params))
+    return x, new
+
+
+def preisach_position(params: PreisachParams, voltage_v: float, state: PreisachState) -> float:
+    """The position (um) of a state reached at ``voltage_v`` (the unclipped voltage)."""
+    return params.b_um_per_v * (params.rho0 * voltage_v + state.hyst_v - _preisach_zero(params))
+
+
+def _preisach_zero(params: PreisachParams) -> float:
+    return _zero(params.rho0, params.width_v, params.asymmetry, params.saturation_v)
+
+
+@functools.lru_cache(maxsize=64)
+def _zero(rho0: float, width_v: float, asymmetry: float, saturation_v: float) -> float:
+    return preisach_rest_state(PreisachParams(1.0, rho0, width_v, asymmetry, saturation_v), 0.0).hyst_v
+
+
 __all__ = [
     "CHParams",
     "CHState",
     "PIParams",
     "PIState",
+    "PreisachParams",
+    "PreisachState",
     "ch_rest_state",
     "ch_step",
     "pi_rest_state",
     "pi_step",
     "play_step",
+    "preisach_position",
+    "preisach_rest_state",
+    "preisach_step",
 ]

@@ -81,18 +81,23 @@ from hil_sim.hysteresis import (
     CHState,
     PIParams,
     PIState,
+    PreisachParams,
+    PreisachState,
     ch_rest_state,
     ch_step,
     pi_rest_state,
     pi_step,
+    preisach_position,
+    preisach_rest_state,
+    preisach_step,
 )
 
 #: Axis names of a scanner.
 AxisName = Literal["x", "y", "z"]
 #: Hysteresis laws of an axis.
-HysteresisLaw = Literal["coleman-hodgdon", "prandtl-ishlinskii"]
-HysteresisParams = CHParams | PIParams
-HysteresisState = CHState | PIState
+HysteresisLaw = Literal["coleman-hodgdon", "prandtl-ishlinskii", "preisach"]
+HysteresisParams = CHParams | PIParams | PreisachParams
+HysteresisState = CHState | PIState | PreisachState
 
 
 class ScannerLike(Protocol):
@@ -156,7 +161,7 @@ class StageAxisConfig(_SimModel):
         default=None, gt=0, lt=100.0, description="coleman-hodgdon: slope after a reversal u (um/V)"
     )
     pi_rho0: float | None = Field(
-        default=None, gt=0, le=1.0, description="prandtl-ishlinskii: slope after a reversal / b"
+        default=None, gt=0, le=1.0, description="prandtl-ishlinskii, preisach: slope after a reversal / b"
     )
     pi_span_v: float | None = Field(
         default=None, gt=0, le=1e4, description="prandtl-ishlinskii: voltage change engaging every play (V)"
@@ -164,6 +169,18 @@ class StageAxisConfig(_SimModel):
     pi_operators: int = Field(default=16, ge=1, le=256, description="prandtl-ishlinskii: play operators")
     pi_decay_v: float | None = Field(
         default=None, gt=0, le=1e5, description="prandtl-ishlinskii: decay of the weights (V); none = uniform"
+    )
+    preisach_width_v: float | None = Field(
+        default=None,
+        gt=0,
+        le=1e4,
+        description="preisach: decay of the relay density over the relay width (V)",
+    )
+    preisach_asymmetry: float = Field(
+        default=0.0, gt=-0.5, lt=0.5, description="preisach: centre dependence of the relay density"
+    )
+    preisach_saturation_v: float = Field(
+        default=300.0, gt=0, le=1e4, description="preisach: voltage beyond which no relay switches (V)"
     )
     creep_pct_per_decade: float = Field(
         default=1.5, ge=0, le=20, description="creep per decade of time (% of the motion)"
@@ -187,6 +204,9 @@ class StageAxisConfig(_SimModel):
                     f"u_um_per_v ({self.u_um_per_v}) must exceed b_um_per_v / 2 ({0.5 * self.b_um_per_v:g}):"
                     " otherwise branches run backwards after a reversal (dx/dV = 2u - b < 0)"
                 )
+        elif self.law == "preisach":
+            if self.pi_rho0 is None or self.preisach_width_v is None:
+                raise ValueError("law preisach needs pi_rho0 and preisach_width_v")
         elif self.pi_rho0 is None or self.pi_span_v is None:
             raise ValueError("law prandtl-ishlinskii needs pi_rho0 and pi_span_v")
         return self
@@ -197,6 +217,15 @@ class StageAxisConfig(_SimModel):
         if self.law == "coleman-hodgdon":
             assert self.alpha_per_v is not None and self.u_um_per_v is not None
             return CHParams(self.alpha_per_v, self.b_um_per_v, self.u_um_per_v)
+        if self.law == "preisach":
+            assert self.pi_rho0 is not None and self.preisach_width_v is not None
+            return PreisachParams(
+                self.b_um_per_v,
+                self.pi_rho0,
+                self.preisach_width_v,
+                self.preisach_asymmetry,
+                self.preisach_saturation_v,
+            )
         assert self.pi_rho0 is not None and self.pi_span_v is not None
         return PIParams.from_shape(
             self.b_um_per_v, self.pi_rho0, self.pi_span_v, self.pi_operators, self.pi_decay_v
@@ -254,6 +283,12 @@ class StageConfig(_SimModel):
     axes: dict[AxisName, StageAxisConfig]
     creep: CreepConfig = CreepConfig()
     effects: EffectsConfig = EffectsConfig()
+    amplifier_lag_s: float = Field(
+        default=0.0,
+        ge=0,
+        le=1.0,
+        description="first-order pole of the HV amplifier at the drive (s); 0 = none",
+    )
     sensor_noise_nm_rms: float = Field(default=0.0, ge=0, le=1e5, description="sensor noise (nm rms)")
     seed: int = Field(default=0, ge=0, description="seed of the sensor noise")
 
@@ -491,6 +526,7 @@ class StageModel:
     creep_drive: Literal["position", "voltage"]
     effects: EffectsConfig
     curvature_per_v: tuple[float, ...] = ()
+    amplifier_lag_s: float = 0.0
 
     @classmethod
     def from_config(cls, config: StageConfig, axes: Sequence[AxisName] | None = None) -> StageModel:
@@ -517,6 +553,7 @@ class StageModel:
             creep_drive=config.creep.drive,
             effects=config.effects,
             curvature_per_v=curvature if any(curvature) else (),
+            amplifier_lag_s=config.amplifier_lag_s,
         )
 
     @property
@@ -558,6 +595,7 @@ class StageState:
     resonance: ResonanceState | None
     sensor_lag: tuple[NDArray[np.float64], NDArray[np.float64]] | None
     sensor_delay: DelayState | None
+    amplifier: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
 
 
 def _static_chain(model: StageModel, x: NDArray[np.float64], t: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -590,7 +628,16 @@ def _polarity(model: StageModel, v: NDArray[np.float64]) -> NDArray[np.float64]:
 def _relaxed(params: HysteresisParams, voltage_v: float) -> HysteresisState:
     if isinstance(params, CHParams):
         return ch_rest_state(params, voltage_v)
+    if isinstance(params, PreisachParams):
+        return preisach_rest_state(params, voltage_v)
     return pi_rest_state(params, voltage_v)
+
+
+def _rest_position(params: HysteresisParams, voltage_v: float, state: HysteresisState) -> float:
+    if isinstance(params, PreisachParams):
+        assert isinstance(state, PreisachState)
+        return preisach_position(params, voltage_v, state)
+    return params.b_um_per_v * voltage_v
 
 
 def _hysteresis_block(
@@ -599,6 +646,9 @@ def _hysteresis_block(
     if isinstance(params, CHParams):
         assert isinstance(state, CHState)
         return ch_step(params, v, state)
+    if isinstance(params, PreisachParams):
+        assert isinstance(state, PreisachState)
+        return preisach_step(params, v, state)
     assert isinstance(state, PIState)
     return pi_step(params, v, state)
 
@@ -612,7 +662,9 @@ def rest_state(model: StageModel, voltage_v: ArrayLike = 0.0) -> StageState:
     fx = model.effects
     v_eff = _polarity(model, v0[:, None])[:, 0]
     hyst = tuple(_relaxed(p, float(v)) for p, v in zip(model.hysteresis, v_eff, strict=True))
-    x_h = model.b_um_per_v * v_eff
+    x_h = np.array(
+        [_rest_position(p, float(v), s) for p, v, s in zip(model.hysteresis, v_eff, hyst, strict=True)]
+    )
     drive = x_h if model.creep_drive == "position" else model.b_um_per_v * v_eff
     creep = creep_rest_state(model.creep, drive)
     x = x_h + model.creep.total_weight * drive
@@ -629,6 +681,7 @@ def rest_state(model: StageModel, voltage_v: ArrayLike = 0.0) -> StageState:
         resonance=resonance_rest_state(x) if fx.resonance is not None else None,
         sensor_lag=(x.copy(), x.copy()) if at_sensor else None,
         sensor_delay=delay_rest_state(x, 0.0, delay.delay_s) if delay is not None and at_sensor else None,
+        amplifier=(v0.copy(), v0.copy()) if model.amplifier_lag_s > 0.0 else None,
     )
 
 
@@ -688,6 +741,11 @@ def stage_step(
         return np.empty_like(v), state
     fx = model.effects
     t = state.time_s + dt_s * np.arange(1, n + 1, dtype=np.float64)
+    amplifier = state.amplifier
+    if amplifier is not None:
+        v_amp = lowpass_block(model.amplifier_lag_s, v, dt_s, amplifier[0], amplifier[1])
+        amplifier = (v_amp[:, -1].copy(), v[:, -1].copy())
+        v = v_amp
     drive_lag, drive_delay = state.drive_lag, state.drive_delay
     if fx.delay is not None and fx.delay.at == "drive":
         v, drive_lag, drive_delay = _lag_and_delay(fx.delay, v, t, dt_s, drive_lag, drive_delay)
@@ -717,6 +775,7 @@ def stage_step(
         resonance=res_state,
         sensor_lag=sensor_lag,
         sensor_delay=sensor_delay,
+        amplifier=amplifier,
     )
     return x, new
 

@@ -97,12 +97,26 @@ def _play_features(data: DynamicCalibrationData, thresholds: F64) -> F64:
     return out
 
 
-def default_thresholds(data: DynamicCalibrationData, count: int) -> F64:
-    """Play half-widths spread evenly up to half the recorded voltage span."""
+def default_thresholds(data: DynamicCalibrationData, count: int, spacing: str = "mixed") -> F64:
+    """Play half-widths up to half the recorded voltage span.
+
+    ``uniform``: evenly spaced; ``geometric``: log-spaced from 1/200 of the span, dense near zero;
+    ``mixed`` (default): a quarter log-spaced from 1/200 of the span up to the first even step
+    (the shape of loops smaller than any in the frame), the rest evenly spaced.
+    """
     v = data.grid_voltage_v[data.compared]
     span = float(np.max(v) - np.min(v))
     if not span > 0.0:
         raise CalibrationError("the recordings span no voltage: nothing to fit a hysteresis law to")
+    top = 0.5 * span * count / (count + 1)
+    if spacing == "geometric":
+        return np.geomspace(span / 200.0, top, count)
+    if spacing == "mixed":
+        n_even = count - count // 4
+        small = np.geomspace(span / 200.0, top / n_even, count // 4, endpoint=False)
+        return np.concatenate([small, top * np.arange(1, n_even + 1) / n_even])
+    if spacing != "uniform":
+        raise CalibrationError(f"unknown threshold spacing {spacing!r} (uniform, geometric, mixed)")
     return 0.5 * span * np.arange(1, count + 1) / (count + 1)
 
 
@@ -203,8 +217,13 @@ def _alternate(
     tol: float = 1e-5,
     *,
     slope_of_theta: F64 | None = None,
+    refine: bool = True,
 ) -> tuple[F64, F64, float, float, float, int]:
     """Alternating bounded least squares: ``(theta, w, kappa, tau_lag, rms_train, iterations)``.
+
+    The alternation finds the basin; it converges slowly along the valley where the hysteresis
+    coefficients and the creep weights trade off (their product is what the data pin), so
+    ``refine`` continues with joint Gauss-Newton steps (:func:`_joint_refine`).
 
     The drive lag enters to first order: ``x(V lagged by tau) = x(V) - tau dx/dt``.
     ``slope_of_theta`` selects voltage-driven creep: the law's rest slope is
@@ -295,7 +314,114 @@ def _alternate(
             stall += 1
             if stall >= 2:
                 break
+    if refine:
+        return _joint_refine(s, f_grid, f_rest, lam, best, slope_of_theta=slope_of_theta)
     return best
+
+
+def _joint_refine(
+    s: _Session,
+    f_grid: F64,
+    f_rest: F64,
+    lam: float,
+    start: tuple[F64, F64, float, float, float, int],
+    *,
+    slope_of_theta: F64 | None = None,
+    max_iter: int = 40,
+    tol: float = 1e-6,
+) -> tuple[F64, F64, float, float, float, int]:
+    """Joint Gauss-Newton refinement of ``(theta, w, kappa, tau)`` from the alternation's result.
+
+    The position is bilinear in ``theta`` and ``w``, ``x_c = A(w) theta = x_h + B(theta) w``, so
+    its linearisation at ``(theta0, w0)`` is ``A(w0) theta + B(theta0) (w - w0)``; with the
+    stiffness and the lag (chain rule through ``x_c + kappa x_c^2 - tau dx/dt``) every step is one
+    bounded, regularised linear least-squares problem in all coefficients at once
+    (:func:`solve_linear`), accepted with step halving only when the regularised training cost
+    falls.
+    """
+    data = s.data
+    voltage = slope_of_theta is not None
+    sv: F64 = np.zeros(f_grid.shape[1]) if slope_of_theta is None else slope_of_theta
+    f = f_grid[data.compared]
+    n_f, m = f.shape[1], s.taus.size
+    e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(n_f)]
+    rates = np.column_stack([_rate(data, f_grid[:, j]) for j in range(n_f)])
+    tr = s.train_rows
+    reg = s.creep_reg
+
+    def parts(theta: F64, w: F64, kappa: float, tau: float) -> tuple[F64, F64, F64, F64, F64, F64]:
+        total = float(w.sum())
+        xh = f @ theta
+        if voltage:
+            slope = float(sv @ theta)
+            cv = total * f[:, 0] + e_f[0] @ w
+            xc = xh + slope * cv
+            a = f + np.outer(cv, sv)
+            b = slope * (f[:, 0][:, None] + e_f[0])
+            rate_cols = rates + total * np.outer(rates[:, 0], sv)
+        else:
+            e_x = np.tensordot(theta, np.stack(e_f), axes=1)
+            xc = (1.0 + total) * xh + e_x @ w
+            a = (1.0 + total) * f + np.column_stack([e_f[j] @ w for j in range(n_f)])
+            b = xh[:, None] + e_x
+            rate_cols = (1.0 + total) * rates
+        rate = rate_cols @ theta
+        x = xc + kappa * xc * xc - tau * rate
+        return x, xc, a, b, rate, rate_cols
+
+    def cost(theta: F64, w: F64, kappa: float, tau: float, ridge_scale: float) -> tuple[float, float]:
+        x = parts(theta, w, kappa, tau)[0]
+        resid = (_centre(data, x) - s.yc)[tr]
+        fit = float(resid @ resid)
+        return fit + lam * ridge_scale**2 * float(np.sum((reg @ w) ** 2)), math.sqrt(fit / max(1, resid.size))
+
+    theta, w, kappa, tau, rms, it = start
+    theta, w = theta.copy(), w.copy()
+    if not math.isfinite(rms):
+        return start
+    lower = np.concatenate([np.zeros(n_f), np.zeros(m), [-np.inf, 0.0]])
+    upper = np.concatenate([np.full(n_f, np.inf), np.full(m, MAX_TOTAL_CREEP / m), [np.inf, _MAX_LAG_S]])
+    lower[0] = 1e-9
+    b = parts(theta, w, kappa, tau)[3]
+    ridge_scale = float(np.linalg.norm(_centre(data, b)[tr])) / math.sqrt(m)
+    current, rms = cost(theta, w, kappa, tau, ridge_scale)
+    norms = np.linalg.norm(_centre(data, f)[tr], axis=0)
+    dead = norms <= 1e-9 * float(np.max(norms))
+    lower[:n_f][dead] = 0.0
+    upper[:n_f][dead] = 0.0
+    for _ in range(max_iter):
+        x, xc, a, b, rate, rate_cols = parts(theta, w, kappa, tau)
+        chain = 1.0 + 2.0 * kappa * xc
+        # d rate / d w_i: the creep's instantaneous share scales the rate of its driver
+        rate_w = float(sv @ theta) * rates[:, 0] if voltage else rates @ theta
+        jac = np.column_stack(
+            [chain[:, None] * a - tau * rate_cols, chain[:, None] * b - tau * rate_w[:, None], xc * xc, -rate]
+        )
+        p0 = np.concatenate([theta, w, [kappa, tau]])
+        jc = _centre(data, jac)[tr]
+        target = (s.yc - _centre(data, x))[tr] + jc @ p0
+        ridge = np.zeros((reg.shape[0], p0.size))
+        ridge[:, n_f : n_f + m] = math.sqrt(lam) * ridge_scale * reg
+        p, _ = solve_linear(jc, target, lower=lower, upper=upper, ridge=ridge)
+        step = 1.0
+        accepted = False
+        while step >= 1.0 / 16.0:
+            q = p0 + step * (p - p0)
+            th, wq, kq, tq = q[:n_f], q[n_f : n_f + m], float(q[-2]), float(q[-1])
+            if float(wq.sum()) < MAX_TOTAL_CREEP:
+                new, new_rms = cost(th, wq, kq, tq, ridge_scale)
+                if new < current:
+                    accepted = True
+                    break
+            step *= 0.5
+        if not accepted:
+            break
+        gain = (current - new) / current
+        theta, w, kappa, tau, current, rms = th.copy(), wq.copy(), kq, tq, new, new_rms
+        it += 1
+        if gain < tol:
+            break
+    return theta, w, kappa, tau, rms, it
 
 
 def _heldout(s: _Session, params: FamilyParams) -> float:
@@ -363,11 +489,12 @@ def fit_family(
     *,
     alpha_per_v: float | None = None,
     train: NDArray[np.bool_] | None = None,
-    plays: int = 16,
+    plays: int = 32,
     taus: F64 | None = None,
     regularisation: float = 1e-4,
     skip_s: float = 0.0,
     creep_driver: str = "position",
+    thresholds: F64 | None = None,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -392,6 +519,9 @@ def fit_family(
         (start-up transients the session reconstruction cannot know).
     creep_driver
         ``position`` or ``voltage``: what the fitted creep spectrum follows.
+    thresholds
+        Play half-widths (V) of the Prandtl-Ishlinskii law (default :func:`default_thresholds`
+        with ``plays`` plays).
 
     Raises
     ------
@@ -411,7 +541,8 @@ def fit_family(
     rest_v = data.rest_voltage_v
     try:
         if law == "prandtl-ishlinskii":
-            r = default_thresholds(data, plays)
+            r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
+            plays = r.size
             f_grid = _play_features(data, r)
             theta, w, kappa, tau, rms, it = _alternate(
                 s,
@@ -421,8 +552,12 @@ def fit_family(
                 slope_of_theta=np.ones(plays + 1) if voltage else None,
             )
             b = float(theta.sum())
+            # plays the fit left at zero weight only cost inverse time: dropped (one kept)
+            used = np.flatnonzero(theta[1:] > 0.0)
+            used = used if used.size else np.array([0])
+            weights = theta[1:][used] / b
             hyst: HysteresisParams | PlayParams = PlayParams(
-                b, float(theta[0] / b), tuple(map(float, r)), tuple(float(t / b) for t in theta[1:])
+                b, float(theta[0] / b), tuple(map(float, r[used])), tuple(map(float, weights))
             )
         else:
             ch_slope = np.array([1.0, 0.0]) if voltage else None
@@ -432,7 +567,13 @@ def fit_family(
                 y = _hysteresis_unit(data, alpha)
                 f_grid = np.column_stack([data.grid_voltage_v, y])
                 res = _alternate(
-                    s, f_grid, np.array([rest_v, 0.0]), regularisation, max_iter=4, slope_of_theta=ch_slope
+                    s,
+                    f_grid,
+                    np.array([rest_v, 0.0]),
+                    regularisation,
+                    max_iter=4,
+                    slope_of_theta=ch_slope,
+                    refine=False,
                 )
                 return res[4], res[0], res[1], res[2], res[5]
 
@@ -521,7 +662,7 @@ def choose_model(
     laws: Sequence[str] = LAWS,
     holdout_every: int = 4,
     others: dict[str, FamilyParams] | None = None,
-    plays: int = 16,
+    plays: int = 32,
     alpha_per_v: float | None = None,
     creep_drivers: Sequence[str] = CREEP_DRIVERS,
     adoptable_drivers: Sequence[str] = CREEP_DRIVERS,

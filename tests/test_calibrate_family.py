@@ -32,21 +32,24 @@ def _pi_session() -> DynamicCalibrationData:
 
 
 def test_prandtl_ishlinskii_is_chosen_on_a_prandtl_ishlinskii_stage_by_held_out_data() -> None:
-    """pi-stage: play hysteresis, creep driven by the voltage -- the held-out data pick both."""
+    """pi-stage (play hysteresis): the held-out data pick the play law, predicted to a few nm.
+
+    On this short session (8 experiments of 2 loops at 1 kS/s) the two creep drivers are within
+    a few nm of each other once the fit converges (joint Gauss-Newton); the full frame separates
+    them (docs/model-family.md, section 6.1).
+    """
     data = _pi_session()
     choice = choose_model(data, alpha_per_v=3e-3, holdout_every=3)
-    assert choice.chosen == "family/prandtl-ishlinskii/voltage-creep", choice.table()
+    assert choice.chosen.startswith("family/prandtl-ishlinskii"), choice.table()
     assert choice.holdout and all(i % 3 == 2 for i in choice.holdout)
     held = choice.heldout_rms_um
-    assert held["family/prandtl-ishlinskii"] < 0.5 * held["family/coleman-hodgdon"]
-    assert held["family/prandtl-ishlinskii/voltage-creep"] < 0.6 * held["family/prandtl-ishlinskii"]
+    assert held["family/prandtl-ishlinskii"] < 0.1 * held["family/coleman-hodgdon"]
     # the sensor noise is 2 nm rms; the fitted law leaves a few nm over ~35 um loops
-    assert held["family/prandtl-ishlinskii/voltage-creep"] < 0.02
+    assert held[choice.chosen] < 0.01
     fit = choice.fit
     assert fit is not None and isinstance(fit.params.hysteresis, PlayParams)
-    assert fit.params.creep_driver == "voltage"
     section = family_model_config(fit.params)
-    assert section.creep_driver == "voltage"
+    assert section.creep_driver == fit.params.creep_driver
     again = section.params()
     np.testing.assert_allclose(session_positions(data, again), session_positions(data, fit.params), atol=1e-4)
     assert "<- chosen" in choice.table()
@@ -88,3 +91,38 @@ def test_the_streaming_choice_adopts_voltage_creep_and_can_still_block_a_driver(
     assert "voltage-creep" not in blocked.chosen, blocked.table()
     assert blocked.fit is None or blocked.fit.params.creep_driver == "position"
     assert "not adopted" in blocked.table()
+
+
+def test_held_out_preisach_stage_picks_a_law_with_closing_loops() -> None:
+    """The held-out stage (Preisach, never tuned on): the play law still predicts best by held-out data."""
+    path = resolve_stage("preisach-stage")
+    assert path is not None
+    stage = StageConfig.from_file(path)
+    plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
+    sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-230.0, 230.0))
+    data = prepare_dynamic(session_experiments(sess), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
+    choice = choose_model(data, alpha_per_v=3e-3, holdout_every=3, creep_drivers=("position",))
+    assert choice.chosen == "family/prandtl-ishlinskii", choice.table()
+    fit = choice.fit
+    assert fit is not None and isinstance(fit.params.hysteresis, PlayParams)
+    # unused plays are dropped; the small, log-spaced thresholds exist for loops below the frame's
+    h = fit.params.hysteresis
+    assert 0 < len(h.thresholds_v) <= 32 and all(w > 0 for w in h.weights)
+    held = choice.heldout_rms_um
+    assert held["family/prandtl-ishlinskii"] < 0.5 * held["family/coleman-hodgdon"]
+
+
+def test_joint_gauss_newton_finishes_what_the_alternation_leaves(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The alternation alone stalls in the valley where play weights and creep weights trade off."""
+    import functools
+
+    import piezod.calibrate_family as cf
+
+    data = _pi_session()
+    train = holdout_mask(data.n_experiments, 3)
+    refined = cf.fit_family(data, "prandtl-ishlinskii", train=train, plays=16)
+    monkeypatch.setattr(cf, "_alternate", functools.partial(cf._alternate, refine=False))
+    alternated = cf.fit_family(data, "prandtl-ishlinskii", train=train, plays=16)
+    assert refined.rms_um < 0.3 * alternated.rms_um
+    assert refined.heldout_rms_um < 0.3 * alternated.heldout_rms_um
+    assert refined.heldout_rms_um < 0.008

@@ -11,7 +11,18 @@ import pytest
 
 from hil_sim.creep import CreepBank
 from hil_sim.errors import SimConfigError
-from hil_sim.hysteresis import CHParams, PIParams, ch_rest_state, ch_step, pi_rest_state, pi_step
+from hil_sim.hysteresis import (
+    CHParams,
+    PIParams,
+    PreisachParams,
+    ch_rest_state,
+    ch_step,
+    pi_rest_state,
+    pi_step,
+    preisach_position,
+    preisach_rest_state,
+    preisach_step,
+)
 from hil_sim.stage import Stage, StageConfig, preset_names, resolve_stage
 
 
@@ -133,9 +144,51 @@ def test_amplifier_pole_lags_a_sine_by_atan() -> None:
     assert abs(z) / 0.1 == pytest.approx(1 / np.hypot(1, 2 * np.pi * f * tau), rel=0.01)
 
 
+PREISACH = PreisachParams(0.1, 0.4, 90.0, 0.3, 300.0)
+
+
+def test_preisach_minor_loops_close_branches_increase_and_blocks_split_anywhere() -> None:
+    rest = preisach_rest_state(PREISACH)
+    assert preisach_position(PREISACH, 0.0, rest) == pytest.approx(0.0, abs=1e-12)
+    lead = np.concatenate([np.linspace(0, 200, 400), np.linspace(200, 50, 300)])
+    v = np.concatenate([lead, _minor_cycles(50.0, 30.0, 10), np.linspace(50, -230, 700)])
+    x, _ = preisach_step(PREISACH, v, rest)
+    ends = len(lead) + 200 * np.arange(1, 11) - 1
+    assert np.ptp(x[ends[1:]]) < 1e-9
+    dv, dx = np.diff(v), np.diff(x)
+    moving = np.abs(dv) > 1e-9
+    slope = dx[moving] / dv[moving] / PREISACH.b_um_per_v
+    assert slope.min() >= PREISACH.rho0 - 1e-9
+    for cut in (1, 401, 777, v.size - 1):
+        xa, mid = preisach_step(PREISACH, v[:cut], rest)
+        xb, _ = preisach_step(PREISACH, v[cut:], mid)
+        np.testing.assert_allclose(np.concatenate([xa, xb]), x, rtol=0, atol=1e-12)
+    # wiping out: a larger excursion erases the minor loops; the same major branch as without them
+    x_plain, _ = preisach_step(PREISACH, np.concatenate([lead, np.linspace(50, 230, 300)]), rest)
+    x_loops, _ = preisach_step(
+        PREISACH, np.concatenate([lead, _minor_cycles(50.0, 30.0, 3), np.linspace(50, 230, 300)]), rest
+    )
+    assert x_loops[-1] == pytest.approx(x_plain[-1], abs=1e-10)
+
+
+def test_preisach_minor_loops_are_not_congruent() -> None:
+    """The relay density depends on the relay centre: the same loop is taller at +100 V than at -100 V."""
+    rest = preisach_rest_state(PREISACH)
+    heights = []
+    for offset in (-100.0, 100.0):
+        v = np.concatenate([np.linspace(0, offset + 30, 200), _minor_cycles(offset, 30.0, 2)])
+        x, _ = preisach_step(PREISACH, v, rest)
+        heights.append(np.ptp(x[-200:]))
+    assert heights[1] / heights[0] > 1.03
+
+
 def test_presets_load_and_are_other_physics() -> None:
     names = preset_names()
-    assert {"stage", "pi-stage", "p885-stage"} <= set(names)
+    assert {"stage", "pi-stage", "p885-stage", "preisach-stage"} <= set(names)
+    held_out = StageConfig.from_file(resolve_stage("preisach-stage") or "")
+    assert all(a.law == "preisach" for a in held_out.axes.values())
+    assert held_out.amplifier_lag_s > 0 and held_out.effects.delay is not None
+    Stage(held_out).step(np.zeros((3, 10)), 1e-4)
     for name in ("pi-stage", "p885-stage"):
         path = resolve_stage(name)
         assert path is not None
