@@ -56,6 +56,12 @@ from piezod.model.params import ThesisParams
 from piezod.recording import Experiment, Recording, infer_scan
 
 _CONTINUITY_FLANKS = 4
+#: Faults that mean the stream broke during a scan (the scan is repeated).
+_STREAM_FAULTS = frozenset(
+    {"STREAM", "STREAM_END", "UNDERRUN", "WATCHDOG", "LINKDOWN", "LINKLOST", "RESTART"}
+)
+#: A frame scan's recording is far larger than its header alone.
+_MIN_RECORDING_BYTES = 4096
 
 
 @dataclass(frozen=True, slots=True)
@@ -572,6 +578,7 @@ def run_image_scans(
         if progress is not None:
             progress(sc.name())
         engine.check_scan(request)
+        scan_start_s = engine.status().uptime_s
         engine.start_scan(request, path=path)
         limit = time.monotonic() + 60.0 + 4.0 * (sc.lines + 2) / sc.line_rate_hz
         while engine.status().state == "scanning":
@@ -583,6 +590,12 @@ def run_image_scans(
         if state != "idle":
             faults = "; ".join(f"{f.code}: {f.message}" for f in engine.status().faults[-3:])
             raise CalibrationError(f"scan {sc.name()} ended in state {state}: {faults}")
+        # a stream that broke and restarted during the scan leaves the engine idle with a short or
+        # empty recording: the scan is not a measurement of the frame
+        broken = [f for f in engine.status().faults if f.time_s >= scan_start_s and f.code in _STREAM_FAULTS]
+        if broken or not path.exists() or path.stat().st_size < _MIN_RECORDING_BYTES:
+            why = "; ".join(f"{f.code}: {f.message}" for f in broken[-3:]) or "the recording is empty"
+            raise CalibrationError(f"scan {sc.name()} was interrupted ({why})")
         paths.append(path)
     return paths
 
