@@ -20,11 +20,17 @@ coarse grid. Events inside one :meth:`advance` span (stop index reached, underru
 ramp end) are processed in time order.
 
 Fault injection (:class:`BoardConfig`): bit flips in outgoing and incoming bytes and dropped
-outgoing frames, from a generator seeded by ``BoardConfig.seed``.
+outgoing frames, from a generator seeded by ``BoardConfig.seed``; a board of another protocol
+version; an ADC wired to the DAC (``adc_loopback``: the sensor reads back the applied code).
+At run time (:attr:`Board.faults`, :class:`FaultHooks`): the next replies to a request type
+lost on the way, a request type refused with a forced NAK. :mod:`hil_sim.wire` runs a board
+on the wall clock over a socket pair (the link tests' board).
 
-Over 800 lines because it is the firmware's whole state machine (PROTOCOL.md sections 2-7) in
-one class, as the C firmware under ``firmware_proto/c`` is one core; splitting it would put the
-FIFO, the clock and the fault handling, which change state together, in different files.
+What the board is (:class:`BoardConfig`, :class:`FaultHooks`) lives in
+:mod:`hil_sim.board_config`. This module is still over 800 lines because it is the firmware's
+whole state machine (PROTOCOL.md sections 2-7) in one class, as the C firmware under
+``firmware_proto/c`` is one core; splitting it would put the FIFO, the clock and the fault
+handling, which change state together, in different files.
 """
 
 from __future__ import annotations
@@ -69,6 +75,7 @@ from firmware_proto import (
     Sync,
     max_samples_per_frame,
 )
+from hil_sim.board_config import BoardConfig, FaultHooks
 from hil_sim.errors import SimConfigError as ConfigError
 from hil_sim.microscope import Microscope, MicroscopeConfig
 from hil_sim.stage import PRESET_DIR, Stage, StageConfig
@@ -116,96 +123,6 @@ def _f32_outward(value: float, up: bool) -> float:
     elif not up and float(f) > value:
         f = np.nextafter(f, np.float32(-np.inf))
     return float(f)
-
-
-@dataclass(frozen=True, slots=True)
-class BoardConfig:
-    """Properties of the simulated board (what CAPABILITIES advertises) and fault injection.
-
-    Attributes
-    ----------
-    amplifier_ranges_v
-        Per channel ``(v_min, v_max)`` of the HV amplifier (V); ``None``: +-250 V on every channel.
-        :meth:`Board.from_scanner_file` uses the scanner's voltage limits.
-    fifo_depth_samples
-        FIFO capacity, samples per channel.
-    max_samples_per_frame
-        Most rows per SAMPLES / SENSOR frame; ``None``: the most that fit a frame.
-    sample_rate_min_hz, sample_rate_max_hz
-        Range of the sample clock (Hz).
-    sample_clock_hz
-        Base clock (exact rates are ``sample_clock_hz / k``); 0: every integer rate.
-    dac_bits, adc_bits
-        Converter resolution (1..16).
-    firmware_version
-        ``(major, minor, patch)`` reported in CAPABILITIES.
-    board_serial
-        Serial number reported in CAPABILITIES.
-    amp_slew_v_per_s
-        Slew-rate limit of the HV amplifier output (V/s).
-    ramp_update_s
-        Update interval of ramps to the safe value (s), <= 1 ms per the spec.
-    idle_block_s
-        Outside RUNNING the stage is stepped at least this often (s of simulated time).
-    corrupt_rate
-        Probability per outgoing byte of one flipped bit.
-    corrupt_in_rate
-        Probability per incoming byte of one flipped bit (before decoding).
-    drop_rate
-        Probability per outgoing frame of being dropped entirely.
-    seed
-        Seed of the fault-injection generator.
-    microscope
-        The simulated microscope (:mod:`hil_sim.microscope`), or None (a bare stage). With it the
-        z channel's ADC reads the z-piezo voltage through the amplifier's monitor
-        (``V_z / monitor_ratio``) while the z feedback drives the z piezo, and without its
-        position sensor the x / y ADC channels read 0 and CAPABILITIES says so
-        (``position_sensor`` false, protocol revision 2).
-    truth_log
-        With a microscope: append the hidden truth to this file, every 10th played sample, as
-        float64 rows ``(sample_index, x_um, y_um, z_voltage_v, z_um)`` (raw, native byte order):
-        the true tip position an external interferometer would measure, for checking sensorless
-        calibrations (``piezod.imagecal.read_truth_log``).
-    sync_outputs
-        Digital sync outputs driven from SYNC frames (0..8; CAPABILITIES ``sync_outputs``).
-    """
-
-    amplifier_ranges_v: tuple[tuple[float, float], ...] | None = None
-    fifo_depth_samples: int = 65536
-    max_samples_per_frame: int | None = None
-    sample_rate_min_hz: int = 1
-    sample_rate_max_hz: int = 200_000
-    sample_clock_hz: int = 0
-    dac_bits: int = 16
-    adc_bits: int = 16
-    firmware_version: tuple[int, int, int] = (1, 0, 0)
-    board_serial: int = 0x51A0_0001
-    amp_slew_v_per_s: float = 1.0e6
-    ramp_update_s: float = 1.0e-3
-    idle_block_s: float = 0.1
-    corrupt_rate: float = 0.0
-    corrupt_in_rate: float = 0.0
-    drop_rate: float = 0.0
-    seed: int = 0
-    microscope: MicroscopeConfig | None = None
-    truth_log: str | None = None
-    sync_outputs: int = 3
-
-    def __post_init__(self) -> None:
-        for name in ("corrupt_rate", "corrupt_in_rate", "drop_rate"):
-            value = getattr(self, name)
-            if not 0.0 <= value <= 1.0:
-                raise ConfigError(f"board: {name} must lie in [0, 1], got {value!r}")
-        if not 1 <= self.fifo_depth_samples <= _U32:
-            raise ConfigError(f"board: fifo_depth_samples {self.fifo_depth_samples} outside [1, 2**32-1]")
-        if not (math.isfinite(self.amp_slew_v_per_s) and self.amp_slew_v_per_s > 0):
-            raise ConfigError(f"board: amp_slew_v_per_s must be > 0, got {self.amp_slew_v_per_s!r}")
-        if not 0.0 < self.ramp_update_s <= 1e-3:
-            raise ConfigError(f"board: ramp_update_s must lie in (0, 1e-3] s, got {self.ramp_update_s!r}")
-        if not self.idle_block_s > 0.0:
-            raise ConfigError(f"board: idle_block_s must be > 0, got {self.idle_block_s!r}")
-        if self.seed < 0:
-            raise ConfigError(f"board: seed must be >= 0, got {self.seed}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -298,7 +215,11 @@ class Board:
             raise ConfigError(f"board: max_samples_per_frame {mspf} outside [1, {limit}] for {C} channels")
         self._caps = Capabilities(
             reply_to_seq=0,
-            protocol_version=PROTOCOL_VERSION,
+            protocol_version=(
+                self._cfg.protocol_version
+                if self._cfg.caps_protocol_version is None
+                else self._cfg.caps_protocol_version
+            ),
             firmware_version=self._cfg.firmware_version,
             dac_bits=self._cfg.dac_bits,
             adc_bits=self._cfg.adc_bits,
@@ -314,6 +235,20 @@ class Board:
         )
         self._ep = Endpoint()
         self._fx_rng = np.random.default_rng(self._cfg.seed)
+        #: Faults injected at run time.
+        self.faults = FaultHooks()
+        #: Every HELLO received (the host's session ids).
+        self.hellos: list[Hello] = []
+        #: Control requests applied (retransmissions answered from the cache not counted), by type name.
+        self.requests: dict[str, int] = {}
+        #: With ``record_played``: ``(first index, codes)`` of every block played.
+        self.played: list[tuple[int, NDArray[np.int16]]] = []
+        #: Injected faults so far: frames dropped, bytes damaged (out / in), replies lost.
+        self.injected = {"frames_dropped": 0, "bytes_out": 0, "bytes_in": 0, "replies_dropped": 0}
+        #: Most samples the FIFO held, samples it accepted.
+        self.max_fifo_level = 0
+        self.samples_accepted = 0
+        self._held_out: list[bytes] = []
         self._t = float(now)
         self._t_power_up = float(now)
 
@@ -540,12 +475,17 @@ class Board:
         now = self._t
         raw = bytes(data)
         if self._cfg.corrupt_in_rate > 0.0:
-            raw = self._corrupt(raw, self._cfg.corrupt_in_rate)
+            raw = self._corrupt(raw, self._cfg.corrupt_in_rate, "bytes_in")
         ok_before = self._ep.decoder_stats.frames_ok
         dup_before = self._ep.stats.duplicate_requests
         for event in self._ep.receive(raw, now):
             if isinstance(event, DecodeError):
                 self._on_decode_error(event, now)
+            elif isinstance(event, Frame) and event.ack_requested and self._reply_dropped(event):
+                self._held_out.append(self._ep.data_to_send())
+                self._on_frame(event, now)
+                self._ep.data_to_send()  # the reply (and what it triggered) is lost on the way
+                self.injected["replies_dropped"] += 1
             elif isinstance(event, Frame):
                 self._on_frame(event, now)
             # Acked / Nacked / TimedOut cannot happen: the board sends no requests
@@ -580,15 +520,26 @@ class Board:
     def data_to_send(self) -> bytes:
         """The bytes the board wrote since the last call (after the fault injection)."""
         out = self._ep.data_to_send()
+        if self._held_out:
+            out = b"".join(self._held_out) + out
+            self._held_out.clear()
         if not out:
             return b""
         if self._cfg.drop_rate > 0.0:
             frames = out.split(b"\x00")[:-1]
             keep = self._fx_rng.random(len(frames)) >= self._cfg.drop_rate
+            self.injected["frames_dropped"] += int(np.count_nonzero(~keep))
             out = b"".join(f + b"\x00" for f, k in zip(frames, keep, strict=True) if k)
         if self._cfg.corrupt_rate > 0.0:
-            out = self._corrupt(out, self._cfg.corrupt_rate)
+            out = self._corrupt(out, self._cfg.corrupt_rate, "bytes_out")
         return out
+
+    def _reply_dropped(self, frame: Frame) -> bool:
+        left = self.faults.drop_replies.get(frame.msg.TYPE, 0)
+        if left <= 0:
+            return False
+        self.faults.drop_replies[frame.msg.TYPE] = left - 1
+        return True
 
     def next_deadline(self) -> float:
         """Earliest time at which :meth:`advance` has scheduled work (may be in the past)."""
@@ -598,11 +549,12 @@ class Board:
             t = min(t, self._tick_time(self._play_index))
         return t
 
-    def _corrupt(self, data: bytes, rate: float) -> bytes:
+    def _corrupt(self, data: bytes, rate: float, what: str) -> bytes:
         n = len(data)
         k = int(self._fx_rng.binomial(n, rate))
         if k == 0:
             return data
+        self.injected[what] += k
         arr = np.frombuffer(data, dtype=np.uint8).copy()
         pos = self._fx_rng.integers(0, n, size=k)
         bits = self._fx_rng.integers(0, 8, size=k).astype(np.uint8)
@@ -769,6 +721,8 @@ class Board:
         else:
             codes = np.concatenate((self._fifo[start:], self._fifo[: end - depth]))
         c64 = _quantise_top_bits(codes.astype(np.int64), self._cfg.dac_bits)
+        if self._cfg.record_played or self._cfg.adc_loopback:
+            self.played.append((self._play_index, c64.astype(np.int16)))
         volts = self._dac_offset[:, None] + self._dac_scale[:, None] * c64.T
         dt = 1.0 / self._conf.sample_rate_hz
         volts = slew_limit(volts, self._v_amp, self._cfg.amp_slew_v_per_s * dt)
@@ -814,8 +768,11 @@ class Board:
         self._pending = []
         self._pending_n = 0
         dt = 1.0 / self._conf.sample_rate_hz
-        x = self._stage.step(v, dt)
         self._stage_t = self._tick_time(first + v.shape[1] - 1)
+        if self._cfg.adc_loopback:
+            self._send_sensor(first, self._played_codes(first, v.shape[1]).T.astype(np.float64))
+            return
+        x = self._stage.step(v, dt)
         z_monitor: F64 | None = None
         mic = self._microscope
         if mic is not None:
@@ -840,6 +797,18 @@ class Board:
                         sensed[axes.index(a)] = 0.0
         step = float(1 << (16 - self._cfg.adc_bits))
         codes = np.rint((sensed - self._adc_offset[:, None]) / (self._adc_scale[:, None] * step)) * step
+        self._send_sensor(first, codes, offset)
+
+    def _send_sensor(self, first: int, codes: F64, offset: int | None = None) -> None:
+        """SENSOR frames of ADC ``codes`` (channels x ticks, decimated from ``first + offset``)."""
+        assert self._conf is not None
+        dec = self._conf.sensor_decimation
+        if offset is None:
+            offset = (self._start_index - first) % dec
+            codes = codes[:, offset::dec]
+        if codes.shape[1] == 0:
+            return
+        step = float(1 << (16 - self._cfg.adc_bits))
         codes = np.clip(codes, -32768.0, 32768.0 - step)
         table = np.ascontiguousarray(codes.T, dtype=np.int16)
         mspf = self._caps.max_samples_per_frame
@@ -848,6 +817,16 @@ class Board:
         for lo in range(0, table.shape[0], mspf):
             self._ep.send(Sensor(first_row + lo * dec, dec, table[lo : lo + mspf]), now)
         self._sensor_rows_sent += table.shape[0]
+
+    def _played_codes(self, first: int, n: int) -> NDArray[np.int16]:
+        """The codes played at indices ``[first, first + n)`` (``adc_loopback``), rows."""
+        parts = [(f, c) for f, c in self.played if f < first + n and f + c.shape[0] > first]
+        rows = np.concatenate([c for _, c in parts]) if parts else np.zeros((0, self._C), np.int16)
+        lo = first - (parts[0][0] if parts else first)
+        out: NDArray[np.int16] = rows[lo : lo + n]
+        if not self._cfg.record_played:  # keep only what a later block may still need
+            self.played = [(f, c) for f, c in self.played if f + c.shape[0] > first + n]
+        return out
 
     def _record_truth(self, first: int, rows: F64) -> None:
         if self._truth_fh is None:
@@ -950,6 +929,14 @@ class Board:
             self._on_hello(frame, msg, now)
             return
         reply = frame.ack_requested
+        self.requests[msg.TYPE.name] = self.requests.get(msg.TYPE.name, 0) + 1
+        forced = self.faults.force_nak.get(msg.TYPE)
+        if forced is not None and self._hello_seen:
+            if reply:
+                self._ep.nak(frame, forced[0], forced[1])
+            if isinstance(msg, Configure):
+                self._fault(FaultCode.CONFIG_REJECTED, now, detail=forced[1])
+            return
         if not self._hello_seen or (
             self._state is BoardState.UNCONFIGURED and not isinstance(msg, Configure)
         ):
@@ -969,13 +956,14 @@ class Board:
             self._leave_for_ramp(now)
 
     def _on_hello(self, frame: Frame, msg: Hello, now: float) -> None:
-        if msg.protocol_version != PROTOCOL_VERSION:
+        self.hellos.append(msg)
+        if msg.protocol_version != self._cfg.protocol_version:
             log.warning(
                 "HELLO in protocol version %d refused (this board speaks %d)",
                 msg.protocol_version,
-                PROTOCOL_VERSION,
+                self._cfg.protocol_version,
             )
-            self._ep.nak(frame, NakReason.VERSION_MISMATCH, PROTOCOL_VERSION)
+            self._ep.nak(frame, NakReason.VERSION_MISMATCH, self._cfg.protocol_version)
             return
         self._hello_seen = True
         self._session_id = msg.session_id
@@ -1132,7 +1120,9 @@ class Board:
         self._fifo[start : start + first_part] = rows[:first_part]
         if first_part < n:
             self._fifo[: n - first_part] = rows[first_part:]
+        self.samples_accepted += F + N - max(W, F)
         self._write_index = F + N
+        self.max_fifo_level = max(self.max_fifo_level, self._write_index - self._play_index)
         if self._state is BoardState.ARMED and self._write_index - self._play_index >= self._prefill:
             assert self._conf is not None
             self._sync_idle(now)
@@ -1178,4 +1168,4 @@ def _voltage_limits(path: Path) -> dict[str, tuple[float, float]]:
     return out
 
 
-__all__ = ["Board", "BoardConfig", "BoardCounters", "slew_limit"]
+__all__ = ["Board", "BoardConfig", "BoardCounters", "FaultHooks", "slew_limit"]

@@ -170,15 +170,15 @@ class AxisConfig(StrictModel):
     family: FamilyModelConfig | None = Field(
         default=None, description="model-family parameters (required by model: family)"
     )
-    extensions: dict[PartEffect, dict[str, float]] = Field(
-        default={},
+    extensions: dict[PartEffect, dict[str, float]] | None = Field(
+        default=None,
         description="runtime parts around the model (the audit's findings, piezod.model.parts): "
         "{effect id: {parameter: value}} with the names of piezod.model.registry",
     )
 
     def parts(self) -> Parts:
         """The runtime parts of :attr:`extensions`."""
-        return Parts.from_effects(dict(self.extensions))
+        return Parts.from_effects(dict(self.extensions or {}))
 
     @model_validator(mode="after")
     def _check_limits(self) -> AxisConfig:

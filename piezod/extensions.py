@@ -99,7 +99,7 @@ def extended_config(config: ScannerConfig, axis: str, adoption: Adoption) -> Sca
         raise ConfigError(f"the scanner config has no axis {axis!r} (axes: {', '.join(config.axes)})")
     name = next(a for a in config.axes if a == axis)
     ax = config.axes[name]
-    merged: dict[str, dict[str, float]] = {str(k): v for k, v in ax.extensions.items()}
+    merged: dict[str, dict[str, float]] = {str(k): v for k, v in (ax.extensions or {}).items()}
     merged.update(adoption.effects)
     new_ax = ax.model_validate({**ax.model_dump(), "extensions": merged})
     axes = dict(config.axes)

@@ -54,7 +54,9 @@ def test_audit_out_writes_a_scanner_yaml_the_daemon_loads(
     assert text.startswith("# Extended by piezod audit frame.csv")
     assert "# adopted stiffness: sensitivity_pct_per_um = " in text
     config = load_config(out)
-    k = config.axes["x"].extensions["stiffness"]["sensitivity_pct_per_um"]
+    extensions = config.axes["x"].extensions
+    assert extensions is not None
+    k = extensions["stiffness"]["sensitivity_pct_per_um"]
     assert k == pytest.approx(MID["stiffness"]["sensitivity_pct_per_um"], rel=0.3)
     model = axis_model(config.axes["x"])
     assert isinstance(model, PartsAxisModel) and model.parts.sensitivity_pct_per_um == k

@@ -148,3 +148,18 @@ def test_the_engine_runs_on_the_sim_url_and_stops_the_simulator(
     finally:
         engine.close()
     assert board.sim is None and sim.poll() is not None
+
+
+def test_probe_takes_sim_urls_and_names_other_boards(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    from piezod.cli import main
+
+    out = tmp_path / "caps.json"
+    assert main(["probe", "sim://?seed=1", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["n_channels"] == 3
+    monkeypatch.setitem(board_mod.BOARDS, "memdaq", f"{__name__}:_MemoryBoard")
+    assert main(["probe", "memdaq://Dev1"]) == 2
+    assert "names a memdaq:// board" in capsys.readouterr().err

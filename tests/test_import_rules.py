@@ -1,7 +1,8 @@
 """The import rules of the layout (docs/architecture.md), checked on the source with ast.
 
-- ``piezod.model`` is pure: numpy / scipy / math only, no I/O module, nothing else of the host
-  but ``piezod.errors``;
+- ``piezod.model`` is pure: numpy / scipy / math (and numba, which compiles the per-sample loops of
+  ``piezod.model.kernels`` to machine code: computation only), no I/O module, nothing else of the
+  host but ``piezod.errors``;
 - ``firmware_proto`` and ``hil_sim`` import nothing from ``piezod`` (they stand on their own: the
   simulator stands in for hardware the host does not own);
 - the host imports ``hil_sim`` only through ``piezod.simulator`` (used when the user asks for it);

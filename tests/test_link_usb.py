@@ -2,7 +2,7 @@
 
 Real USB hardware and libusb are NOT exercised here: the backend enumerates one simulated device
 with the board's descriptors and carries its bulk transfers over the simulator's ``--usb-socket``
-(or the in-memory board's socket).
+(or the socket of hil_sim's board in the test process, tests/wire_board.py).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import usb.core
 import usb.util
-from fake_board import FakeBoard
+from wire_board import TestBoard
 
 from firmware_proto import FrameDecoder, Hello, encode
 from hil_sim.usb_backend import SimSocketBackend
@@ -27,15 +27,15 @@ from piezod.link.usb import BACKEND_ENV, BOARD_PID, BOARD_VID, EP_IN, EP_OUT, Us
 
 
 @pytest.fixture
-def served(tmp_path: Path) -> Iterator[tuple[FakeBoard, str]]:
-    board = FakeBoard()
+def served(tmp_path: Path) -> Iterator[tuple[TestBoard, str]]:
+    board = TestBoard()
     path = str(tmp_path / "usb.sock")
     board.serve_unix(path)
     yield board, path
     board.close()
 
 
-def test_backend_enumerates_the_documented_device(served: tuple[FakeBoard, str]) -> None:
+def test_backend_enumerates_the_documented_device(served: tuple[TestBoard, str]) -> None:
     _, path = served
     dev = usb.core.find(idVendor=BOARD_VID, idProduct=BOARD_PID, backend=SimSocketBackend(path))
     assert dev is not None
@@ -55,7 +55,7 @@ def test_no_device_without_the_socket(tmp_path: Path) -> None:
         open_transport(f"usb://1209:7a01?backend=simsock:{tmp_path / 'absent.sock'}")
 
 
-def test_serial_filter(served: tuple[FakeBoard, str]) -> None:
+def test_serial_filter(served: tuple[TestBoard, str]) -> None:
     _, path = served
     open_transport(f"usb://1209:7a01?serial=SIM0001&backend=simsock:{path}").close()
     with pytest.raises(LinkClosedError, match="serial 'OTHER'"):
@@ -69,7 +69,7 @@ def test_unknown_backend_is_a_config_error() -> None:
         open_transport("usb://1209:7a01?backend=warp:/x")
 
 
-def test_bulk_transfers_carry_the_byte_stream(served: tuple[FakeBoard, str]) -> None:
+def test_bulk_transfers_carry_the_byte_stream(served: tuple[TestBoard, str]) -> None:
     board, path = served
     t = open_transport(f"usb://1209:7a01?backend=simsock:{path}", read_timeout_s=0.02)
     assert isinstance(t, UsbTransport) and (t.ep_out, t.ep_in) == (EP_OUT, EP_IN)
@@ -93,7 +93,7 @@ def test_bulk_transfers_carry_the_byte_stream(served: tuple[FakeBoard, str]) -> 
 
 
 def test_session_streams_over_usb_selected_by_env(
-    served: tuple[FakeBoard, str], monkeypatch: pytest.MonkeyPatch
+    served: tuple[TestBoard, str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     board, path = served
     monkeypatch.setenv(BACKEND_ENV, f"simsock:{path}")

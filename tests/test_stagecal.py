@@ -75,20 +75,20 @@ def test_full_frame(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_calibration_adopts_an_audit_finding_that_predicts_better() -> None:
-    """In process: a stiffness stage's frame, the model choice, the audit, the extended choice."""
+    """In process: a polarity stage's frame, the model choice, the audit, the extended choice."""
     from piezod.config import default_sim_config_path, load_config
     from piezod.effects_bench import _Bench, _frame, _stage, realistic_specs
     from piezod.stagecal import audit_and_extend, choose_for_experiments
 
     path = default_sim_config_path()
     base = load_config(path)
-    bench = _Bench(_stage(path, realistic_specs("stiffness"), "x", 1), base.sample_rate_hz)
+    bench = _Bench(_stage(path, realistic_specs("polarity"), "x", 1), base.sample_rate_hz)
     frame = default_frame(base, "x", reduced=True)
     exps = _frame(bench, frame, "x", base.sample_rate_hz, base.service.ramp_rate_v_per_s)
     ramp, rest = base.service.ramp_rate_v_per_s, base.axes["x"].safe_voltage_v
     chosen = choose_for_experiments(exps, "x", base, ramp, rest)
     audited = audit_and_extend(exps, "x", chosen, base, ramp, rest)
-    assert "stiffness" in audited.report["findings"]
-    assert any(a.startswith("stiffness:") for a in audited.report["adopted"]), audited.report["text"]
+    assert "polarity" in audited.report["findings"]
+    assert any(a.startswith("polarity:") for a in audited.report["adopted"]), audited.report["text"]
     assert audited.fit_error_pct < chosen.fit_error_pct
-    assert "stiffness" in audited.config.axes["x"].extensions
+    assert "polarity" in (audited.config.axes["x"].extensions or {})

@@ -9,6 +9,7 @@ from typing import Any
 from firmware_proto import Capabilities
 from piezod.cli._common import add_json_option, human_stream, positive_float, write_json
 from piezod.errors import ConfigError
+from piezod.link.board import board_scheme
 from piezod.link.session import BoardSession, LinkSettings
 
 
@@ -19,7 +20,8 @@ def register(sub: Any) -> None:
         help="connect to a board and print its capabilities",
         description=(
             "Open the link (a serial device, a pyserial URL such as socket://host:port, unix:///path, "
-            "or usb://VID:PID[?serial=S]), exchange HELLO / CAPABILITIES and print them. "
+            "usb://VID:PID[?serial=S], or sim://[SCANNER.yaml] for a freshly started simulator), "
+            "exchange HELLO / CAPABILITIES and print them. "
             "Nothing is configured or changed on the board."
         ),
     )
@@ -98,10 +100,17 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("probe: give either a URL or --sim")
     with contextlib.ExitStack() as stack:
         url = args.url
-        if args.sim:
-            from piezod.simulator import spawn_sim
+        scheme = None if args.sim else board_scheme(url)
+        if args.sim or scheme == "sim":
+            from piezod.simulator import parse_sim_url, spawn_sim
 
-            url = stack.enter_context(spawn_sim()).path
+            path, effects, seed = parse_sim_url(url) if scheme == "sim" else (None, (), 0)
+            url = stack.enter_context(spawn_sim(path, effects=effects, seed=seed)).path
+        elif scheme is not None:
+            raise ConfigError(
+                f"probe: {url} names a {scheme}:// board, not a link of the framed protocol "
+                "(probe speaks HELLO / CAPABILITIES); use piezod scan / serve --port"
+            )
         info = probe(url, args.timeout)
     print(format_table(info), file=human_stream(args))
     write_json(args.json, info)

@@ -6,8 +6,11 @@ threads); the engine, the streamer and the tests consume them.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import logging
+import queue
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -26,6 +29,8 @@ from piezod.errors import (
     LinkError,
     ProtocolError,
 )
+
+log = logging.getLogger("piezod.link.session")
 
 _U32 = 1 << 32
 
@@ -277,3 +282,62 @@ class LinkCounters:
     def crc_errors(self) -> int:
         """CRC errors detected on both sides."""
         return self.crc_errors_host + self.crc_errors_board
+
+
+class Subscribable(Protocol):
+    """What :class:`EventQueue` needs of a session: ``subscribe`` returning the unsubscribe call."""
+
+    def subscribe(self, callback: Callable[[LinkEvent], None]) -> Callable[[], None]: ...
+
+
+class EventQueue:
+    """A bounded queue of a session's events, for a consumer that polls instead of a callback.
+
+    Parameters
+    ----------
+    session
+        The session to subscribe to (:class:`piezod.link.session.BoardSession`).
+    kinds
+        Event classes kept (e.g. ``(SensorBlock,)``); others are ignored.
+    maxsize
+        Events kept at most; when the consumer falls behind, new events are counted in
+        :attr:`dropped` (and logged once) instead of growing without bound.
+    """
+
+    def __init__(
+        self,
+        session: Subscribable,
+        kinds: tuple[type[LinkEvent], ...] = (LinkEvent,),
+        maxsize: int = 10_000,
+    ) -> None:
+        self.kinds = kinds
+        self.dropped = 0
+        self._q: queue.Queue[LinkEvent] = queue.Queue(maxsize)
+        self._unsubscribe = session.subscribe(self._put)
+
+    def _put(self, ev: LinkEvent) -> None:
+        if not isinstance(ev, self.kinds):
+            return
+        try:
+            self._q.put_nowait(ev)
+        except queue.Full:
+            if not self.dropped:
+                log.error("event queue full (%d): the consumer falls behind; counting drops", self._q.maxsize)
+            self.dropped += 1
+
+    def get(self, timeout_s: float | None = None) -> LinkEvent:
+        """The next event; raises :class:`queue.Empty` after ``timeout_s``."""
+        return self._q.get(timeout=timeout_s)
+
+    def drain(self) -> list[LinkEvent]:
+        """Every event queued now."""
+        out: list[LinkEvent] = []
+        while True:
+            try:
+                out.append(self._q.get_nowait())
+            except queue.Empty:
+                return out
+
+    def close(self) -> None:
+        """Stop collecting."""
+        self._unsubscribe()

@@ -18,12 +18,14 @@ meanwhile (watchdog ramp, last played index, counters) and reports :class:`Recon
 not reconfigure or restart the output by itself: the caller decides how to re-enter (see
 :meth:`BoardSession.prepare_restart`).
 
-Settings and the channel plan live in :mod:`piezod.link.plan`, the events and counters in
-:mod:`piezod.link.events` (re-exported here). Why this module is still over 800 lines: the
-reader and writer threads, the reconnection supervisor and the request / acknowledge state of
-one connection share one lock and one set of invariants (sequence numbers, retransmission,
-the connection generation); split across modules they would have to reach into each other's
-private state. The board-level interface the engine uses is :class:`piezod.link.board.Board`.
+Settings and the channel plan live in :mod:`piezod.link.plan`, the events, counters and the
+polling :class:`EventQueue` in :mod:`piezod.link.events` (re-exported here), the detection of
+frames lost whole by sequence number in :mod:`piezod.link.seqwatch`. Why this module is still
+over 800 lines: the reader and writer threads, the reconnection supervisor and the request /
+acknowledge state of one connection share one lock and one set of invariants (sequence
+numbers, retransmission, the connection generation); split across modules they would have to
+reach into each other's private state. The board-level interface the engine uses is
+:class:`piezod.link.board.Board`.
 """
 
 from __future__ import annotations
@@ -31,7 +33,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import queue
 import threading
 import time
 from collections.abc import Callable
@@ -44,26 +45,22 @@ import numpy as np
 from firmware_proto import (
     NO_INDEX,
     PROTOCOL_VERSION,
-    Ack,
     Acked,
     BoardState,
     Capabilities,
     CodeArray,
     Configure,
     DecodeError,
-    Endpoint,
     ErrorKind,
     Fault,
     FaultCode,
     FaultFlags,
     Frame,
-    FrameDecoder,
     Heartbeat,
     Hello,
     Message,
     MessageType,
     Nacked,
-    Nak,
     NakReason,
     RampToSafe,
     Samples,
@@ -90,6 +87,7 @@ from piezod.link.events import (
     BoardFault,
     BoardRefusedError,
     DecodeFailure,
+    EventQueue,
     FaultFlagsRaised,
     HostLimitFault,
     LinkCounters,
@@ -110,6 +108,7 @@ from piezod.link.plan import (
     describe_configure_offset,
     plan_channels,
 )
+from piezod.link.seqwatch import SeqWatch, gap_before, missing_frames, new_endpoint
 from piezod.link.transport import Transport, open_transport
 
 log = logging.getLogger(__name__)
@@ -170,69 +169,11 @@ class _Request:
         self.status_mark = 0  # STATUS frames received before the reply
 
 
-class _SeqWatch(FrameDecoder):
-    """A :class:`FrameDecoder` that also counts frames missing from the peer's sequence numbers.
-
-    Every frame the board sends carries the next ``seq``; a jump reveals frames lost on the way
-    (damaged beyond recognition, merged by a damaged delimiter, or dropped), replies included.
-
-    A reply the board answers from its duplicate cache (PROTOCOL.md 5.3: a retransmitted request
-    whose first reply was lost) is re-sent byte-identical, so it carries its *old* ``seq``. It is
-    counted in :attr:`resent_replies` and leaves the expected ``seq`` alone: taking it as the new
-    position would count every frame sent since the first reply as missing once the next frame
-    arrives. Any other frame behind the expected ``seq`` (a board that restarted its counter)
-    re-synchronises the count.
-    """
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.expected: int | None = None
-        self.missing = 0
-        self.out_of_order = 0
-        self.resent_replies = 0
-        # frames missing right before a frame, by id() of its message: the session places each
-        # loss at its position in the stream (a batch of bytes may hold a loss after a SENSOR)
-        self.gap_before: dict[int, int] = {}
-
-    def feed(self, data: bytes | bytearray | memoryview) -> list[Frame | DecodeError]:
-        items = super().feed(data)
-        for item in items:
-            if isinstance(item, Frame):
-                if self.expected is not None and item.seq != self.expected:
-                    gap = (item.seq - self.expected) & 0xFFFFFFFF
-                    if gap < 1 << 31:
-                        self.missing += gap
-                        self.gap_before[id(item.msg)] = gap
-                    elif isinstance(item.msg, Ack | Nak | Capabilities):
-                        self.resent_replies += 1
-                        continue
-                    else:
-                        self.out_of_order += 1
-                self.expected = (item.seq + 1) & 0xFFFFFFFF
-        return items
-
-
-def _new_endpoint(settings: LinkSettings) -> Endpoint:
-    ep = Endpoint(ack_timeout_s=settings.ack_timeout_s, max_retries=settings.max_retries)
-    ep.decoder = _SeqWatch()
-    return ep
-
-
-def _missing(ep: Endpoint) -> int:
-    dec = ep.decoder
-    return dec.missing if isinstance(dec, _SeqWatch) else 0
-
-
-def _gap_before(ep: Endpoint, msg: Message) -> int:
-    dec = ep.decoder
-    return dec.gap_before.pop(id(msg), 0) if isinstance(dec, _SeqWatch) else 0
-
-
 class _Connection:
     def __init__(self, transport: Transport, settings: LinkSettings, generation: int) -> None:
         self.transport = transport
         self.generation = generation
-        self.endpoint = _new_endpoint(settings)
+        self.endpoint = new_endpoint(settings)
         self.alive = True
         self.wake = threading.Event()
         self.requests: dict[int, _Request] = {}
@@ -345,7 +286,7 @@ class BoardSession:
         sample_rate_hz
             Overrides ``config.sample_rate_hz``.
         transport_factory
-            Instead of ``url``: a callable opening the transport (tests, in-memory boards).
+            Instead of ``url``: a callable opening the transport (tests: hil_sim.wire on a socket pair).
         on_event
             Subscribed before the handshake (sees :class:`LinkUp`).
         session_id
@@ -480,7 +421,7 @@ class BoardSession:
             frames_rx, bytes_rx = t.frames_received, t.bytes_received
             lost_rx = t.frames_missing
             if self._conn is not None:
-                lost_rx += _missing(self._conn.endpoint)
+                lost_rx += missing_frames(self._conn.endpoint)
                 es, ds = self._conn.endpoint.stats, self._conn.endpoint.decoder_stats
                 frames_sent += es.frames_sent
                 bytes_sent += es.bytes_sent
@@ -531,7 +472,7 @@ class BoardSession:
         """Frames from the board known lost so far: dropped by the decoder or missing by ``seq``."""
         total = sum(self._tally.decode_kinds.values()) + self._tally.frames_missing
         if self._conn is not None:
-            total += self._conn.endpoint.decoder_stats.errors + _missing(self._conn.endpoint)
+            total += self._conn.endpoint.decoder_stats.errors + missing_frames(self._conn.endpoint)
         return total
 
     # -- connection management ----------------------------------------------------------------
@@ -597,8 +538,8 @@ class BoardSession:
             t.bytes_received += ds.bytes_in
             for kind in ErrorKind:
                 t.decode_kinds[kind.value] = t.decode_kinds.get(kind.value, 0) + ds.count(kind)
-            t.frames_missing += _missing(conn.endpoint)
-            conn.endpoint = _new_endpoint(self.settings)
+            t.frames_missing += missing_frames(conn.endpoint)
+            conn.endpoint = new_endpoint(self.settings)
             conn.alive = False
             conn.wake.set()
         with contextlib.suppress(LinkError):
@@ -809,7 +750,7 @@ class BoardSession:
                     for ev in events:
                         self._handle(conn, ev, now, out)
                     dec = conn.endpoint.decoder
-                    if isinstance(dec, _SeqWatch):
+                    if isinstance(dec, SeqWatch):
                         dec.gap_before.clear()  # e.g. before a stray reply: no event to place it at
                     self._loss_pos = self._losses_now()
                 self._check_tail(now, out)
@@ -872,9 +813,9 @@ class BoardSession:
         if isinstance(ev, DecodeError):
             self._loss_pos += 1
         elif isinstance(ev, Frame):
-            self._loss_pos += _gap_before(conn.endpoint, ev.msg)
+            self._loss_pos += gap_before(conn.endpoint, ev.msg)
         elif isinstance(ev, Acked | Nacked):
-            self._loss_pos += _gap_before(conn.endpoint, ev.reply)
+            self._loss_pos += gap_before(conn.endpoint, ev.reply)
         if isinstance(ev, Frame):
             msg = ev.msg
             if isinstance(msg, Status):
@@ -1250,59 +1191,6 @@ class BoardSession:
         if st is None or self.capabilities is None:
             return None
         return int(self.capabilities.fifo_depth_samples - st.fifo_free_samples)
-
-
-class EventQueue:
-    """A bounded queue of a session's events, for a consumer that polls instead of a callback.
-
-    Parameters
-    ----------
-    session
-        The session to subscribe to.
-    kinds
-        Event classes kept (e.g. ``(SensorBlock,)``); others are ignored.
-    maxsize
-        Events kept at most; when the consumer falls behind, new events are counted in
-        :attr:`dropped` (and logged once) instead of growing without bound.
-    """
-
-    def __init__(
-        self,
-        session: BoardSession,
-        kinds: tuple[type[LinkEvent], ...] = (LinkEvent,),
-        maxsize: int = 10_000,
-    ) -> None:
-        self.kinds = kinds
-        self.dropped = 0
-        self._q: queue.Queue[LinkEvent] = queue.Queue(maxsize)
-        self._unsubscribe = session.subscribe(self._put)
-
-    def _put(self, ev: LinkEvent) -> None:
-        if not isinstance(ev, self.kinds):
-            return
-        try:
-            self._q.put_nowait(ev)
-        except queue.Full:
-            if not self.dropped:
-                log.error("event queue full (%d): the consumer falls behind; counting drops", self._q.maxsize)
-            self.dropped += 1
-
-    def get(self, timeout_s: float | None = None) -> LinkEvent:
-        """The next event; raises :class:`queue.Empty` after ``timeout_s``."""
-        return self._q.get(timeout=timeout_s)
-
-    def drain(self) -> list[LinkEvent]:
-        """Every event queued now."""
-        out: list[LinkEvent] = []
-        while True:
-            try:
-                out.append(self._q.get_nowait())
-            except queue.Empty:
-                return out
-
-    def close(self) -> None:
-        """Stop collecting."""
-        self._unsubscribe()
 
 
 __all__ = [

@@ -211,7 +211,17 @@ def _ch_loop(
 
 Loop = Callable[..., tuple[float, float]]
 
-_jit: Any = numba.njit(cache=True, nogil=True)
+
+
+def _jit(fn: Any) -> Any:
+    """``numba.njit`` with the on-disk cache, or without it where no cache directory is writable
+    (numba refuses ``cache=True`` then, e.g. in a hardened service without ``NUMBA_CACHE_DIR``):
+    the loops then compile once per process, still at model load."""
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError:
+        return numba.njit(nogil=True)(fn)
+
 # _ch_loop calls ch_solve by its global name, resolved when _ch_loop compiles
 ch_solve = cast(Callable[..., float], _jit(_ch_solve_py))
 pi_loop = cast(Loop, _jit(_pi_loop))

@@ -21,9 +21,11 @@ reported as a fault); ``stop()`` holds; a fault, a lost link and shutdown ramp t
 outputs to the safe values (the board also ramps by itself when the host's heartbeat stops).
 
 The jobs live in :mod:`piezod.service.jobs`, the recorder in :mod:`piezod.service.recorder`.
-This module is still a little over 800 lines: the engine's public control surface (scan,
-change, move, stop, programs, status, recordings, faults) shares one lock and one job state;
-the shadow engine that checks a scan before it starts stays next to it.
+This module is still over 800 lines (about 1000): the engine's public control surface (scan,
+change, move, stop, programs, status, recordings, faults), the recording lifecycle and the scan's
+line / frame events (called from the recorder thread) share one lock and one job state; the
+shadow engine that checks a scan before it starts stays next to it. The next seam, when the
+image events settle: the per-frame image writing (``_write_images_here``) into its own module.
 """
 
 from __future__ import annotations
