@@ -56,6 +56,12 @@ from piezod.model.params import ThesisParams
 from piezod.recording import Experiment, Recording, infer_scan
 
 _CONTINUITY_FLANKS = 4
+#: Faults that mean the stream broke during a scan (the scan is repeated).
+_STREAM_FAULTS = frozenset(
+    {"STREAM", "STREAM_END", "UNDERRUN", "WATCHDOG", "LINKDOWN", "LINKLOST", "RESTART"}
+)
+#: A frame scan's recording is far larger than its header alone.
+_MIN_RECORDING_BYTES = 4096
 
 
 @dataclass(frozen=True, slots=True)
@@ -524,15 +530,15 @@ def verification_scans(*, reduced: bool = False) -> list[ImageScan]:
         return [
             ImageScan(20.0, 1.0, 0.0, 5, "in-20um-1Hz", "inside"),
             ImageScan(20.0, 10.0, 0.0, 20, "out-20um-10Hz", "outside: 5x faster"),
-            ImageScan(12.0, 1.0, 12.0, 5, "out-12um-off12", "outside: offset beyond the frame"),
+            ImageScan(14.0, 1.0, -10.5, 5, "out-14um-off-10.5", "outside: offset beyond the frame"),
         ]
     return [
         ImageScan(20.0, 1.0, 0.0, 6, "in-20um-1Hz", "inside"),
         ImageScan(30.0, 2.0, 0.0, 6, "in-30um-2Hz", "inside"),
-        ImageScan(15.0, 0.5, 3.0, 5, "in-15um-0.5Hz-off3", "inside"),
+        ImageScan(18.0, 0.5, 3.0, 5, "in-18um-0.5Hz-off3", "inside"),
         ImageScan(20.0, 0.05, 0.0, 2, "out-20um-0.05Hz", "outside: 10x slower"),
         ImageScan(20.0, 10.0, 0.0, 30, "out-20um-10Hz", "outside: 5x faster"),
-        ImageScan(12.0, 1.0, 12.0, 6, "out-12um-off12", "outside: offset beyond the frame"),
+        ImageScan(14.0, 1.0, -10.5, 6, "out-14um-off-10.5", "outside: offset beyond the frame"),
     ]
 
 
@@ -572,6 +578,7 @@ def run_image_scans(
         if progress is not None:
             progress(sc.name())
         engine.check_scan(request)
+        scan_start_s = engine.status().uptime_s
         engine.start_scan(request, path=path)
         limit = time.monotonic() + 60.0 + 4.0 * (sc.lines + 2) / sc.line_rate_hz
         while engine.status().state == "scanning":
@@ -583,6 +590,12 @@ def run_image_scans(
         if state != "idle":
             faults = "; ".join(f"{f.code}: {f.message}" for f in engine.status().faults[-3:])
             raise CalibrationError(f"scan {sc.name()} ended in state {state}: {faults}")
+        # a stream that broke and restarted during the scan leaves the engine idle with a short or
+        # empty recording: the scan is not a measurement of the frame
+        broken = [f for f in engine.status().faults if f.time_s >= scan_start_s and f.code in _STREAM_FAULTS]
+        if broken or not path.exists() or path.stat().st_size < _MIN_RECORDING_BYTES:
+            why = "; ".join(f"{f.code}: {f.message}" for f in broken[-3:]) or "the recording is empty"
+            raise CalibrationError(f"scan {sc.name()} was interrupted ({why})")
         paths.append(path)
     return paths
 

@@ -36,6 +36,33 @@ def test_linear_drift_in_a_long_voltage_hold_is_drift_with_its_rate() -> None:
     _all_plausible(result)
 
 
+@pytest.mark.parametrize(
+    ("rate", "volts", "hold_s"),
+    [(0.63, (400.0,), 1355.0), (-0.6, (400.0, -400.0, 200.0), 600.0), (0.63, (400.0,), 300.0)],
+)
+def test_hold_only_recordings_name_the_drift_with_its_rate(
+    rate: float, volts: tuple[float, ...], hold_s: float
+) -> None:
+    from piezod.audit.standins import pnzt_holds
+
+    # Hold-only files cannot determine the actuator model; the drift in the holds is measured
+    # without it (model-free) and stands. The creep is a spread of relaxations (not a log law),
+    # the interferometer walks and is quantised, the voltage monitor is noisy.
+    result = run_audit(pnzt_holds(rate, volts=volts, hold_s=hold_s))
+    assert result.cause == "drift"
+    assert result.findings[0].params["rate_nm_per_s"] == pytest.approx(rate, rel=0.3)
+    assert result.outside.drift is not None and result.outside.drift.n_holds == len(volts)
+    _all_plausible(result)
+
+
+def test_hold_only_recordings_without_drift_name_no_drift() -> None:
+    from piezod.audit.standins import pnzt_holds
+
+    result = run_audit(pnzt_holds(0.0))
+    assert "drift" not in [f.effect for f in result.findings]
+    assert any("judged in the voltage holds" in n for n in result.notes)
+
+
 def test_a_hold_without_drift_names_no_drift() -> None:
     result = run_audit(pnzt_hold_session(0.0, hold_s=400.0))
     assert "drift" not in [f.effect for f in result.findings]

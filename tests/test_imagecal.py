@@ -181,3 +181,29 @@ def test_sensorless_calibration_on_the_simulated_stage(tmp_path: Path) -> None:
             assert abs(im["length_error_pct"] - tr["length_error_pct"]) <= 0.05
         else:
             assert abs(tr["length_error_pct"]) <= 1.0
+
+
+@pytest.mark.slow
+def test_sensorless_calibration_on_a_stage_of_other_physics(tmp_path: Path) -> None:
+    """`configs/sim-pi-microscope.yaml` (Prandtl-Ishlinskii, voltage-driven creep, no sensor): the
+    targets by the hidden truth (docs/images.md; image vs truth within 0.05 % is not met yet)."""
+    cfg = str(config_dir() / "sim-pi-microscope.yaml")
+    p = subprocess.run(
+        [
+            *(sys.executable, "-m", "piezod", "calibrate", "--sim", "--config", cfg, "--from-images"),
+            *("--pitch-um", "3", "--out", str(tmp_path / "cal.yaml"), "--json", "-"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=3600,
+        cwd=tmp_path,
+    )
+    assert p.returncode == 0, p.stderr
+    rep = json.loads(p.stdout)
+    assert rep["choice"]["chosen"].startswith("family/prandtl-ishlinskii"), rep["choice"]["table"]
+    for r in (r for r in rep["verification"] if r["model"] == rep["choice"]["model"]):
+        tr = r["truth"]
+        if r["frame"] == "inside":
+            assert tr["nonlinearity_pct"] <= 0.1 and abs(tr["length_error_pct"]) <= 0.2, r
+        else:
+            assert abs(tr["length_error_pct"]) <= 1.0, r

@@ -105,3 +105,20 @@ def test_a_board_without_a_sensor_is_driven_and_sensor_features_refuse(tmp_path:
     p = _piezod("image", str(path), "--out", str(tmp_path / "img"), cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     assert (tmp_path / "img" / "nosensor.gwy").exists()
+
+
+def test_the_sensor_calibration_refuses_a_scanner_without_a_sensor(tmp_path: Path) -> None:
+    p = _piezod(
+        "calibrate",
+        "--sim",
+        "--config",
+        str(config_dir() / "sim-microscope.yaml"),
+        "--frame",
+        "reduced",
+        "--out",
+        str(tmp_path / "cal.yaml"),
+        cwd=tmp_path,
+    )
+    assert p.returncode == 2, p.stderr
+    assert "no position sensor" in p.stderr and "--from-images" in p.stderr and "Traceback" not in p.stderr
+    assert not (tmp_path / "cal.yaml").exists()

@@ -13,7 +13,9 @@ The corpus (nothing is read from disk except the shipped P-885 recordings):
   ferroelectric switching above its coercive voltage, loops below it;
 * **stages of other physics** (hil_sim presets ``pi-stage``, ``p885-stage``, run in process): a
   small frame, its decimation by 2 and its even / odd experiments (the verdict must not change),
-  and the frame with a 600 s voltage hold with and without a hidden linear drift of 1 nm/s;
+  and the frame with a 600 s voltage hold (at 100 samples/s) with and without a hidden linear
+  drift of 1 nm/s (the verdict changes on these stages are listed apart from the invariance
+  failures of the own-model sessions and the stand-ins);
 * **real recordings**: the P-885 stack (validation file, blocked split in time, decimated by 2).
 
 Printed: the confusion matrix (rows: what is hidden, columns: the cause named), the false-alarm
@@ -207,6 +209,7 @@ def run_corpus(
             if len({a, b, c}) > 1:
                 invariance.append(f"P-885: validation {a}, blocked {b}, decimated {c}")
     other: list[dict[str, Any]] = []
+    other_changes: list[str] = []
     for name in presets:
         exps = preset_session(name)
         r, s = _audit(exps)
@@ -221,13 +224,11 @@ def run_corpus(
             record(f"{name} {vname}", rv, sv)
             causes[vname] = rv.cause
             if rv.cause != r.cause:
-                (lost if rv.cause == "none" else invariance).append(
-                    f"{name}: {r.cause} -> {vname}: {rv.cause}"
-                )
+                other_changes.append(f"{name}: {r.cause} -> {vname}: {rv.cause}")
         other.append({"name": f"{name} frame", "causes": causes, "findings": _findings(r)})
         for rate in (0.0, 1.0):
             fx = (f"drift={rate:g}",) if rate else ()
-            rh, sh = _audit(preset_session(name, fx, hold_s=600.0))
+            rh, sh = _audit(preset_session(name, fx, hold_s=600.0, rate_hz=100.0))
             label = f"{name} + 600 s hold" + (f", drift {rate:g} nm/s" if rate else ", no drift")
             record(label, rh, sh)
             found = [f for f in rh.findings if f.effect == "drift"]
@@ -256,6 +257,7 @@ def run_corpus(
         "outside_bounds": bounds,
         "standins": standins,
         "other_physics": other,
+        "other_physics_changes": other_changes,
         "cpu_s_median": float(np.median(seconds)),
         "cpu_s_max": float(np.max(seconds)),
         "audits": len(seconds),
@@ -305,6 +307,10 @@ def format_report(res: dict[str, Any]) -> str:
             f"  {o['name']}: {named}{ok}"
             + (f"; findings {'; '.join(o['findings'])}" if o["findings"] else "")
         )
+    oc = res.get("other_physics_changes", [])
+    if other:
+        lines.append(f"  verdicts that change on a stage of other physics (decimated / re-split): {len(oc)}")
+        lines.extend(f"    {x}" for x in oc)
     inv = res["invariance_failures"]
     lines.append(
         f"invariance failures (another cause when decimated / re-split / held out otherwise): {len(inv)}"

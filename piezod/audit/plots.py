@@ -145,7 +145,8 @@ def _loops(plt: Any, result: AuditResult, max_panels: int = 16) -> Any:
     )
     cols = min(4, len(idx))
     rows = math.ceil(len(idx) / cols)
-    fig, ax = plt.subplots(rows, cols, figsize=(3.4 * cols + 0.8, 2.9 * rows + 0.9), squeeze=False)
+    # At least 5 in wide: the title of a one-panel figure must fit.
+    fig, ax = plt.subplots(rows, cols, figsize=(max(3.4 * cols + 0.8, 5.0), 2.9 * rows + 0.9), squeeze=False)
     before = _full(result, result.base_fit.residual)
     after = _full(result, result.final_fit.residual)
     for j, i in enumerate(idx):
@@ -172,7 +173,7 @@ def _loops(plt: Any, result: AuditResult, max_panels: int = 16) -> Any:
         if len(idx) == n
         else f"{len(idx)} of {n} experiments (evenly spaced)"
     )
-    fig.suptitle(f"measured loops and the fitted models, {shown}", fontsize=10)
+    fig.suptitle(f"measured loops and the fitted models,\n{shown}", fontsize=10)
     fig.tight_layout()
     return fig
 

@@ -10,6 +10,9 @@ sensor, at the sample rates and durations of the instruments described in issue 
 * :func:`actuator_5khz`: a +-150 V actuator driven by a 1 Hz sine, sampled at 5 kHz, with an
   amplifier lag; :func:`decimate` makes the 200 Hz version;
 * :func:`butterfly_session`: a ferroelectric cycled above its coercive voltage (butterfly);
+* :func:`pnzt_holds`: hold-only recordings (one file per voltage hold, up to 1355 s), the
+  creep of the step before each a spread of relaxation times (not the audit's log law), an
+  interferometer with white noise, a slow random walk (air, temperature) and 0.3 nm steps;
 * :func:`one_period_triangles`: one-period triangles at 1, 0.1 and 0.01 Hz, one per block
   (the way many instruments export);
 * :func:`preset_session`: a small calibration frame (and optionally a voltage hold) on a
@@ -84,6 +87,43 @@ def pnzt_hold_session(
         sl = slice(k, k + v.size)
         out.append(Experiment(label, None, t_all[sl], v_all[sl], x[sl]))
         k += v.size
+    return out
+
+
+def pnzt_holds(
+    drift_nm_per_s: float = 0.63,
+    *,
+    volts: tuple[float, ...] = (400.0,),
+    hold_s: float = 1355.0,
+    rate_hz: float = 10.0,
+    walk_nm_per_sqrt_s: float = 0.05,
+    seed: int = 4,
+) -> list[Experiment]:
+    """Hold-only recordings of a PNZT disc: one experiment per hold at each of ``volts``.
+
+    Before each hold the voltage stepped there 5 s before the recording started. The creep is a
+    spread of relaxations (24 times, 1 ms to 1e5 s, weights growing as ``tau^0.05``: about
+    2 %/decade of the step, not a pure log law); the interferometer adds 2 nm white noise, a
+    random walk of ``walk_nm_per_sqrt_s`` and 0.3 nm quantisation; a linear drift of
+    ``drift_nm_per_s`` runs through the session. The voltage monitor reads 0.05 V noise.
+    """
+    rng = np.random.default_rng(seed)
+    b = 2.4e-3
+    taus = np.geomspace(1e-3, 1e5, 24)
+    w = taus**0.05
+    w *= 0.02 * 8.0 / w.sum()  # ~2 % of the step per decade over the 8 decades
+    out, t0, v_prev = [], 0.0, 0.0
+    for k, volt in enumerate(volts):
+        t = np.arange(round(hold_s * rate_hz)) / rate_hz
+        since = t + 5.0
+        creep = (volt - v_prev) * b * ((1.0 - np.exp(-since[:, None] / taus[None, :])) @ w)
+        x = b * volt + creep + drift_nm_per_s * 1e-3 * (t + t0)
+        x = x + np.cumsum(rng.normal(0.0, walk_nm_per_sqrt_s * 1e-3 / math.sqrt(rate_hz), t.size))
+        x = np.round((x + rng.normal(0.0, 2e-3, t.size)) / 3e-4) * 3e-4
+        v = volt + rng.normal(0.0, 0.05, t.size)
+        out.append(Experiment(f"hold_{volt:g}V_{k}", None, t + t0, v, x))
+        t0 += hold_s + 60.0
+        v_prev = volt
     return out
 
 

@@ -57,7 +57,11 @@ def _truth_metrics(path: Path, truth_log: Path, rate_hz: float) -> dict[str, flo
     rec = with_truth(read_recording(path), read_truth_log(truth_log), rate_hz)
     exp = next(e for e in split_experiments(rec) if e.axis in (None, "x"))
     lin = experiment_linearity(exp)
-    return {"nonlinearity_pct": lin.nonlinearity_pct, "length_error_pct": lin.length_error_pct}
+    # the worse of trace and retrace, as the image metrics report it
+    return {
+        "nonlinearity_pct": max(lin.trace.nonlinearity_pct, lin.retrace.nonlinearity_pct),
+        "length_error_pct": max((lin.trace.length_error_pct, lin.retrace.length_error_pct), key=abs),
+    }
 
 
 def _fit_here(

@@ -30,14 +30,14 @@ image events settle: the per-frame image writing (``_write_images_here``) into i
 
 from __future__ import annotations
 
-import concurrent.futures
 import copy
 import hashlib
 import json
 import logging
 import math
-import multiprocessing
 import stat
+import subprocess
+import sys
 import threading
 import time
 from collections import deque
@@ -198,7 +198,7 @@ class Engine:
         #: Write the trace / retrace images beside every finished recording with a height channel.
         self.write_images = write_images
         self._scans: dict[int, _RecordingScan] = {}
-        self._image_pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self._image_procs: list[subprocess.Popen[bytes]] = []
         self.drivers: dict[str, AxisDriver] = {
             name: AxisDriver(name, axis, self.rate_hz) for name, axis in config.axes.items()
         }
@@ -343,12 +343,20 @@ class Engine:
         try:
             board.finish(timeout_s=timeout_s)
         finally:
-            self._end_recording()
-            self._recorder.queue.put(None)
-            self._recorder.join(timeout=10.0)
-            board.close(ramp_to_safe=True)
-            if self._image_pool is not None:  # images being written are finished
-                self._image_pool.shutdown(wait=True)
+            try:
+                self._end_recording()
+                self._recorder.queue.put(None)
+                self._recorder.join(timeout=10.0)
+                board.close(ramp_to_safe=True)
+            finally:
+                with self._lock:
+                    procs, self._image_procs = list(self._image_procs), []
+                for proc in procs:  # images being written are finished (or ended after 30 s)
+                    try:
+                        proc.wait(timeout=30.0)
+                    except subprocess.TimeoutExpired:
+                        proc.kill()
+                        proc.wait()
 
     # -- the block source (streamer thread) ------------------------------------------------------
 
@@ -923,19 +931,30 @@ class Engine:
         if not (self.write_images and scan.height):
             self._publish(ScanEvent(kind="frame", recording=scan.path.name, frame=frame, lines=scan.lines))
             return
+        # a child process of its own (``piezod image``): image assembly must not hold the GIL of the
+        # streaming threads, and a plain child is simple to wait for or end at shutdown
+        cmd = [sys.executable, "-m", "piezod", "image", str(scan.path), "--out", str(scan.path.parent)]
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         with self._lock:
-            if self._image_pool is None:
-                ctx = multiprocessing.get_context("spawn")
-                self._image_pool = concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=ctx)
-            pool = self._image_pool
-        future = pool.submit(_write_images_here, scan.path, self.config.axes.get("z"))
+            self._image_procs.append(proc)
 
-        def done(f: concurrent.futures.Future[tuple[list[str], str | None]]) -> None:
-            try:
-                files, error = f.result()
-            except Exception as exc:  # the worker died: say so on the event
-                files, error = [], f"image worker failed: {exc}"
-            if error is not None:
+        def wait() -> None:
+            _, err = proc.communicate()
+            with self._lock:
+                if proc in self._image_procs:
+                    self._image_procs.remove(proc)
+            files: list[str] = []
+            error = None
+            if proc.returncode == 0:
+                stem = scan.path.stem
+                files = sorted(
+                    f.name
+                    for f in scan.path.parent.iterdir()
+                    if f.name == f"{stem}.gwy" or (f.name.startswith(f"{stem}-") and f.suffix == ".png")
+                )
+            else:
+                lines = err.decode(errors="replace").strip().splitlines()
+                error = lines[-1] if lines else f"piezod image exited with {proc.returncode}"
                 log.warning("images of %s: %s", scan.path.name, error)
             self._publish(
                 ScanEvent(
@@ -948,7 +967,7 @@ class Engine:
                 )
             )
 
-        future.add_done_callback(done)
+        threading.Thread(target=wait, name="piezod-images", daemon=True).start()
 
     def set_line_linearity(self, value: LineLinearity, corrected: bool) -> None:
         """Called by the recorder when a line of the fast axis completes (feeds the tracker)."""
@@ -1019,16 +1038,6 @@ class _RecordingScan:
     frames: int
     height: bool
     last_line: int = -1
-
-
-def _write_images_here(path: Path, z_axis: AxisConfig | None) -> tuple[list[str], str | None]:
-    """In the image worker: the recording's images beside it; (file names, error or None)."""
-    from piezod.image_io import write_recording_images
-
-    try:
-        return [f.name for f in write_recording_images(path, z_axis=z_axis)], None
-    except (PiezodError, OSError, ValueError) as exc:
-        return [], str(exc)
 
 
 __all__ = ["Engine", "FaultSource", "Segment"]
