@@ -195,10 +195,7 @@ def verification_points(
         return round(float(scan_range_um(p, f, 0.5 * range_v)), 1)
 
     f_mid = float(np.sqrt(f_lo * f_hi))
-    # offsets placed with the rest sensitivity of the model in use (the thesis b of a loop
-    # shape like the P-885's is well above it, pushing the scans into the voltage limits)
-    family = ax.family if ax.model == "family" else None
-    b = family.params().static_sensitivity_um_per_v if family is not None else p.b_um_per_v
+    b = p.b_um_per_v
     pts = [
         VerifyPoint(um(r_lo * 1.1, f_mid), round(f_mid, 2), 0.0, True, "inside: small range"),
         VerifyPoint(um(0.5 * (r_lo + r_hi), f_mid), round(f_mid, 2), 0.0, True, "inside: mid range"),

@@ -3,6 +3,7 @@
 Usage::
 
     python tools/model_family_verify.py --stage pi-stage [--json out.json]
+    python tools/model_family_verify.py --markdown out.json    # the docs tables of a saved run
 
 The same steps as ``piezod calibrate --sim --config configs/sim-NAME.yaml`` with the full frame,
 but the stage (:class:`hil_sim.stage.Stage`, the preset's ``simulation:`` section) is stepped in
@@ -63,12 +64,44 @@ class Bench:
         self.play(self.v + (to_v - self.v) * np.arange(1, n + 1) / n)
 
 
+def markdown(result: dict[str, Any]) -> str:
+    """The model-choice and verification tables of a run (its ``--json`` output) as markdown."""
+    rep = result["choice"]
+    lines = ["| model | train RMS (nm) | held-out RMS (nm) |", "|---|---|---|"]
+    for name, held in sorted(rep["heldout_rms_um"].items(), key=lambda kv: kv[1]):
+        mark = " (chosen)" if name == rep["chosen"] else ""
+        lines.append(f"| {name}{mark} | {1e3 * rep['train_rms_um'][name]:.2f} | {1e3 * held:.2f} |")
+    lines += [
+        "",
+        "| model | point | range um | f Hz | offset um | nonlin % | length err % |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in result["rows"]:
+        lines.append(
+            f"| {r['model']} | {r['why']} | {r['range_um']:.1f} | {r['frequency_hz']:g} |"
+            f" {r['offset_um']:+.2f} | {r['nonlinearity_pct']:.3f} | {r['length_error_pct']:+.3f} |"
+        )
+    for key, s in result["summary"].items():
+        lines.append(
+            f"| **{key.split('/')[0]}** | **max {key.split('/')[1]}** | | | |"
+            f" **{s['max_nonlinearity_pct']:.3f}** | **{s['max_abs_length_error_pct']:.3f}** |"
+        )
+    return "\n".join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--stage", default="pi-stage", help="preset name or scanner YAML with simulation:")
     ap.add_argument("--json", default=None)
     ap.add_argument("--loops", type=int, default=4)
+    ap.add_argument("--skip-dynamic", action="store_true", help="verify the chosen model only")
+    ap.add_argument(
+        "--markdown", default=None, metavar="F.json", help="print the tables of a saved --json run"
+    )
     args = ap.parse_args()
+    if args.markdown:
+        print(markdown(json.loads(Path(args.markdown).read_text())))
+        return 0
     path = resolve_stage(args.stage)
     assert path is not None
     base = load_config(path)
@@ -97,7 +130,7 @@ def main() -> int:
     chosen_kind = calibrated.axes[axis].model
     rows: list[dict[str, Any]] = []
     points = verification_points(calibrated, frame, axis=axis)
-    kinds = [chosen_kind] + (["dynamic"] if chosen_kind != "dynamic" else [])
+    kinds = [chosen_kind] + (["dynamic"] if chosen_kind != "dynamic" and not args.skip_dynamic else [])
     for kind in kinds:
         cfg = calibrated.axes[axis].model_copy(update={"model": kind, "slew_rate_v_per_s": 1e6})
         driver = AxisDriver(axis, cfg, rate)

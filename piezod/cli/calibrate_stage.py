@@ -49,7 +49,13 @@ def run_on_stage(args: argparse.Namespace) -> int:
     t_start = time.monotonic()
     report: dict[str, Any] = {}
     with board_url(args, config_path) as url, AnalysisWorker() as worker:
-        engine = Engine(base, url, recording_dir=recdir)
+        from piezod.link.session import LinkSettings
+
+        # --sim: the board is a Python process on the same, possibly overloaded machine; at load 14
+        # it once sent nothing for over 1 s (the hardware silence limit) in the 314 s frame and the
+        # link dropped mid-frame. The same allowance as `calibrate --from-images --sim`.
+        settings = LinkSettings.from_config(base, silence_timeout_s=5.0) if args.sim else None
+        engine = Engine(base, url, recording_dir=recdir, settings=settings)
         engine.open()
         try:
             if not engine.position_sensor:

@@ -1,0 +1,83 @@
+"""docs/model-family.md: each results table names the command that regenerates it, in that tool's format."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+DOC = (ROOT / "docs" / "model-family.md").read_text(encoding="utf-8")
+
+
+def _section(title: str) -> str:
+    start = DOC.index(title)
+    end = DOC.find("\n### ", start + len(title))
+    return DOC[start : end if end > 0 else None]
+
+
+def test_each_results_section_names_its_command() -> None:
+    for title, command in [
+        ("### 6.1", "python tools/model_family_verify.py --stage pi-stage"),
+        ("### 6.2", "python tools/model_family_verify.py --stage preisach-stage"),
+        ("### 6.3", "python tools/model_family_p885.py"),
+    ]:
+        assert command in _section(title), (title, command)
+
+
+def test_verification_tables_have_the_tool_format_and_the_held_out_stage_is_labelled() -> None:
+    spec = importlib.util.spec_from_file_location("mfv", ROOT / "tools" / "model_family_verify.py")
+    assert spec is not None and spec.loader is not None
+    mfv = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mfv)
+    result = {
+        "choice": {
+            "chosen": "a",
+            "heldout_rms_um": {"a": 0.005, "b": 0.1},
+            "train_rms_um": {"a": 0.004, "b": 0.1},
+        },
+        "rows": [
+            {
+                "model": "family",
+                "why": "inside: small range",
+                "range_um": 13.3,
+                "frequency_hz": 0.63,
+                "offset_um": 0.0,
+                "nonlinearity_pct": 0.038,
+                "length_error_pct": -0.015,
+            }
+        ],
+        "summary": {"family/inside": {"max_nonlinearity_pct": 0.038, "max_abs_length_error_pct": 0.015}},
+    }
+    text = mfv.markdown(result)
+    header = text.splitlines()[0]
+    assert header in _section("### 6.1") and header in _section("### 6.2")
+    assert "| family | inside: small range | 13.3 | 0.63 | +0.00 | 0.038 | -0.015 |" in text
+    for title in ("### 6.1", "### 6.2"):
+        assert re.search(
+            r"\| \*\*family\*\* \| \*\*max inside\*\* \|( \|){3} \*\*\d\.\d{3}\*\* \| \*\*\d\.\d{3}\*\* \|",
+            _section(title),
+        )
+    assert "Held-out physics" in _section("### 6.2")
+
+
+@pytest.mark.slow
+def test_full_frame_calibrate_and_verify_on_pi_stage_meets_the_targets(tmp_path: Path) -> None:
+    """The #9 targets on the other-physics stage, full frame, in process (~5-20 min)."""
+    out = tmp_path / "verify.json"
+    tool = str(ROOT / "tools" / "model_family_verify.py")
+    subprocess.run(
+        [sys.executable, tool, "--stage", "pi-stage", "--skip-dynamic", "--json", str(out)],
+        check=True,
+        cwd=ROOT,
+    )
+    summary = json.loads(out.read_text())["summary"]
+    inside, outside = summary["family/inside"], summary["family/outside"]
+    assert inside["max_nonlinearity_pct"] <= 0.05
+    assert inside["max_abs_length_error_pct"] <= 0.1
+    assert outside["max_abs_length_error_pct"] <= 1.0
