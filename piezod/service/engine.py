@@ -700,9 +700,11 @@ class Engine:
 
     def set_axis_model(self, axis: AxisName, config: AxisConfig) -> None:
         """Use new model parameters on ``axis`` from now on (the model state carries over)."""
+        # Built outside the lock: building a model may compile its per-sample loop (seconds), and
+        # the block producer needs the lock to keep the board's FIFO fed meanwhile.
+        new = AxisDriver(axis, config, self.rate_hz)
         with self._lock:
             old = self.drivers[axis]
-            new = AxisDriver(axis, config, self.rate_hz)
             new.adopt_state(old)
             self.drivers[axis] = new
 
