@@ -196,15 +196,20 @@ class RealDaemon:
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
+        hung = False
         try:
             if self.proc is not None and self.proc.poll() is None:
                 self.proc.send_signal(signal.SIGTERM)
                 try:
                     self.proc.wait(30 * SLOW)
                 except subprocess.TimeoutExpired:
+                    hung = True
                     self.proc.kill()
                     self.proc.wait()
         finally:
             if self.sim is not None:
                 self.sim.close()
             self.notify.close()
+        # SIGTERM must stop the daemon (ramp to safe, flush, exit): a hang is a failure, not a kill
+        if hung and exc_type is None:
+            raise AssertionError(f"the daemon outlived SIGTERM by {30 * SLOW:g} s: {self.log_path}")

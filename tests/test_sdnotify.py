@@ -55,3 +55,27 @@ def test_journal_priority_prefix() -> None:
     assert fmt.format(rec) == "<3>link lost\n<3>second line"
     rec = logging.LogRecord("piezod", logging.INFO, __file__, 1, "streaming", None, None)
     assert fmt.format(rec) == "<6>streaming"
+
+
+def test_a_receiver_that_stops_reading_never_blocks_the_daemon(tmp_path: Path) -> None:
+    """The daemon's main loop pings the watchdog and must stay free to act on SIGTERM: when the
+    receiver's queue is full, notifications are dropped and counted, not waited for (a blocked
+    sendto held the real daemon past its stop timeout in the fault tests)."""
+    import threading
+
+    path = tmp_path / "notify.sock"
+    rx = _receiver(path)
+    n = SystemdNotifier.from_env({"NOTIFY_SOCKET": str(path), "WATCHDOG_USEC": "4000000"})
+
+    def ping() -> None:
+        for _ in range(5000):  # far more than a datagram queue holds
+            n.watchdog()
+
+    t = threading.Thread(target=ping, daemon=True)
+    t.start()
+    t.join(30.0)
+    assert not t.is_alive(), "notify blocked on a receiver that does not read"
+    assert n.dropped > 0
+    assert rx.recv(4096) == b"WATCHDOG=1"  # what fitted was delivered
+    n.close()
+    rx.close()

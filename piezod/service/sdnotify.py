@@ -10,9 +10,12 @@ healthy so that systemd restarts a daemon whose streaming has stalled.
 
 from __future__ import annotations
 
+import logging
 import os
 import socket
 from collections.abc import Mapping
+
+log = logging.getLogger(__name__)
 
 
 class SystemdNotifier:
@@ -32,6 +35,8 @@ class SystemdNotifier:
             self._address = b"\0" + socket_path[1:].encode() if socket_path.startswith("@") else socket_path
         self.watchdog_usec = watchdog_usec
         self._sock: socket.socket | None = None
+        #: notifications dropped because the receiver's queue was full
+        self.dropped = 0
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> SystemdNotifier:
@@ -59,17 +64,33 @@ class SystemdNotifier:
     def notify(self, **fields: str | int) -> None:
         """Send one notification, e.g. ``notify(READY=1, STATUS="streaming")``.
 
+        Never blocks: the daemon's main loop sends these, and it must stay free to act on SIGTERM
+        (ramp to safe) even when the receiver stops reading. A notification the receiver's full
+        queue cannot take is dropped, counted in :attr:`dropped` and logged (the first one, then
+        every 100th).
+
         Raises
         ------
         OSError
-            When the datagram cannot be sent (systemd gone, socket full).
+            When the datagram cannot be sent for another reason (systemd gone).
         """
         if self._address is None:
             return
         if self._sock is None:
-            self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            self._sock = socket.socket(
+                socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC | socket.SOCK_NONBLOCK
+            )
         payload = "\n".join(f"{key}={value}" for key, value in fields.items())
-        self._sock.sendto(payload.encode(), self._address)
+        try:
+            self._sock.sendto(payload.encode(), self._address)
+        except BlockingIOError:
+            self.dropped += 1
+            if self.dropped % 100 == 1:
+                log.warning(
+                    "systemd notification dropped (%d so far): the receiver's queue is full: %s",
+                    self.dropped,
+                    ", ".join(fields),
+                )
 
     def ready(self, status: str) -> None:
         """``READY=1`` with a status line."""
