@@ -88,27 +88,32 @@ class AnyCalibration:
     ----------
     choice
         The model and why.
-    thesis
-        The (3.8) fit (when ``choice.model == "thesis"``).
-    dynamic
-        The dynamic fit (when ``choice.model == "dynamic"``).
+    fit
+        The fitter's result: (3.8) or the dynamic model, as ``choice.model`` says.
     """
 
     choice: ModelChoice
-    thesis: thesis_cal.CalibrationResult | None = None
-    dynamic: dynamic_cal.DynamicCalibrationResult | None = None
+    fit: thesis_cal.CalibrationResult | dynamic_cal.DynamicCalibrationResult
+
+    @property
+    def thesis(self) -> thesis_cal.CalibrationResult | None:
+        """The (3.8) fit, or None."""
+        return self.fit if isinstance(self.fit, thesis_cal.CalibrationResult) else None
+
+    @property
+    def dynamic(self) -> dynamic_cal.DynamicCalibrationResult | None:
+        """The dynamic fit, or None."""
+        return self.fit if isinstance(self.fit, dynamic_cal.DynamicCalibrationResult) else None
 
     @property
     def success(self) -> bool:
         """Whether the solver converged."""
-        r = self.thesis if self.thesis is not None else self.dynamic
-        return bool(r is not None and r.success)
+        return bool(self.fit.success)
 
     @property
     def message(self) -> str:
         """The solver's message."""
-        r = self.thesis if self.thesis is not None else self.dynamic
-        return "" if r is None else r.message
+        return self.fit.message
 
 
 def calibrate_any(
@@ -156,7 +161,7 @@ def calibrate_any(
             max_samples_per_loop=max_samples_per_loop,
             on_eval=on_eval,
         )
-        return AnyCalibration(choice, thesis=res)
+        return AnyCalibration(choice, res)
     if loss != "linear" or f_scale is not None or skip_loops:
         raise CalibrationError(
             f"--loss, --f-scale and --skip-loops are options of the thesis model (3.8); {choice.reason}"
@@ -185,17 +190,16 @@ def calibrate_any(
             choice.model,
             f"{choice.reason}; creep_exponent held at 0 (the log law), free it left the model's domain",
         )
-    return AnyCalibration(choice, dynamic=res_d)
+    return AnyCalibration(choice, res_d)
 
 
 def result_json(result: AnyCalibration, *, inputs: Sequence[str] = ()) -> dict[str, Any]:
     """The JSON of ``piezod calibrate --json``: the fitter's keys plus ``model`` and ``model_reason``."""
-    if result.thesis is not None:
-        doc = thesis_cal.result_json(result.thesis, inputs=inputs)
-    elif result.dynamic is not None:
-        doc = dynamic_cal.result_json(result.dynamic, inputs=inputs)
-    else:  # pragma: no cover - AnyCalibration always holds one
-        raise CalibrationError("no fit result")
+    fit = result.fit
+    if isinstance(fit, thesis_cal.CalibrationResult):
+        doc = thesis_cal.result_json(fit, inputs=inputs)
+    else:
+        doc = dynamic_cal.result_json(fit, inputs=inputs)
     doc["model"] = result.choice.model
     doc["model_reason"] = result.choice.reason
     return doc
@@ -215,20 +219,19 @@ def calibrated_config(
     scans with it) from the base, else the fitted hysteresis ``alpha, b, u`` with no creep
     terms (``a1 = a2 = a3 = 0``: (3.8) reduces to the steady loop of (2.21)).
     """
-    if result.thesis is not None:
+    fit = result.fit
+    if isinstance(fit, thesis_cal.CalibrationResult):
         return thesis_cal.calibrated_config(
-            result.thesis, axis=axis, base=base, inputs=inputs, voltage_span_v=voltage_span_v
+            fit, axis=axis, base=base, inputs=inputs, voltage_span_v=voltage_span_v
         )
-    if result.dynamic is None:  # pragma: no cover - AnyCalibration always holds one
-        raise CalibrationError("no fit result")
-    p = result.dynamic.params
+    p = fit.params
     thesis = None
     if base is None or axis not in base.axes:
         thesis = ThesisParams(
             p.alpha_per_v, p.b_um_per_v, p.u_um_per_v, tau_s=1.0, a1=0.0, a2_per_v=0.0, a3=0.0
         )
     return dynamic_cal.calibrated_config(
-        result.dynamic, axis=axis, base=base, thesis=thesis, inputs=inputs, voltage_span_v=voltage_span_v
+        fit, axis=axis, base=base, thesis=thesis, inputs=inputs, voltage_span_v=voltage_span_v
     )
 
 
