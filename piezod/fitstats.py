@@ -177,7 +177,8 @@ def parameter_statistics(
 class FitResult:
     """What every least-squares fit returns (values in the units of the parameter names).
 
-    Subclasses add the fitted model (``params``) and their per-experiment summaries.
+    Subclasses add the fitted model (``params``, ``values``: name -> fitted value) and their
+    per-experiment summaries.
 
     Attributes
     ----------
@@ -233,11 +234,6 @@ class FitResult:
         """RMS of :attr:`residuals_um` (um)."""
         r = self.residuals_um
         return float(np.sqrt(np.mean(r * r))) if r.size else math.nan
-
-    @property
-    def values(self) -> dict[str, float]:
-        """Parameter name -> fitted value (of the subclass's ``params``)."""
-        raise NotImplementedError
 
 
 def solve_linear(
