@@ -109,6 +109,11 @@ class Board(ABC):
         """The streaming lead the board can hold (s); default: ``lead_s`` unchanged."""
         return lead_s
 
+    @property
+    def position_sensor(self) -> bool:
+        """Whether the board reads back a position sensor; default: it does."""
+        return True
+
     def limit(self, volts: FloatArray, first_index: int) -> FloatArray:
         """``volts`` ``(axes, n)`` clamped to the voltage limits and slew rates (reported if changed)."""
         out = np.array(volts, dtype=np.float64, copy=True)
@@ -218,6 +223,12 @@ class SerialBoard(Board):
         if self.settings.budget is not None:
             log.info("%s", self.settings.budget.describe())
         return tuple(self.session.plan.axes)
+
+    @property
+    def position_sensor(self) -> bool:
+        """False when the board's CAPABILITIES say it has no position sensor."""
+        caps = self.session.capabilities if self.session is not None else None
+        return caps is None or caps.position_sensor
 
     def capped_lead_s(self, lead_s: float) -> float:
         """The lead, capped at 60 % of the board FIFO (at high sample rates a long lead does not fit)."""

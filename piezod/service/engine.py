@@ -257,9 +257,7 @@ class Engine:
         mic = self.config.microscope
         if mic is not None and not mic.position_sensor:
             return False
-        session = getattr(self._board, "session", None)
-        caps = getattr(session, "capabilities", None)
-        return bool(getattr(caps, "position_sensor", True))
+        return self._board.position_sensor
 
     def open(self, timeout_s: float = 10.0) -> None:
         """Connect to the board, configure it, start streaming (hold), start the recorder."""
