@@ -65,14 +65,25 @@ def realistic_specs(effect: str) -> list[str]:
     return out
 
 
-class _Bench:
-    """The stage and its clock: voltages in, sensed positions out, history kept."""
+class StageBench:
+    """A hil_sim stage and its clock, stepped in process: voltages in, sensed positions out.
 
-    def __init__(self, stage: Any, rate_hz: float) -> None:
+    Parameters
+    ----------
+    stage
+        The stage (:func:`piezod.simulator.load_stage`).
+    rate_hz
+        Sample rate.
+    keep_history
+        Keep every voltage played (:attr:`history`), to replay the stage's past through a model.
+    """
+
+    def __init__(self, stage: Any, rate_hz: float, *, keep_history: bool = True) -> None:
         self.stage = stage
         self.dt = 1.0 / rate_hz
         self.t = 0.0
         self.v = 0.0
+        self.keep_history = keep_history
         self.history: list[F64] = []
 
     def play(self, volts: F64) -> tuple[F64, F64]:
@@ -82,7 +93,8 @@ class _Bench:
         self.t = float(t[-1])
         self.v = float(volts[-1])
         x: F64 = np.concatenate(xs).astype(np.float64)
-        self.history.append(np.asarray(volts, dtype=np.float64))
+        if self.keep_history:
+            self.history.append(np.asarray(volts, dtype=np.float64))
         return t, x
 
     def ramp(self, to_v: float, rate: float) -> None:
@@ -96,7 +108,7 @@ def _stage(path: Path, specs: Sequence[str], axis: AxisName, seed: int) -> Any:
     return load_stage(path, specs, axis, seed)
 
 
-def _frame(bench: _Bench, frame: Frame, axis: AxisName, rate: float, ramp: float) -> list[Experiment]:
+def _frame(bench: StageBench, frame: Frame, axis: AxisName, rate: float, ramp: float) -> list[Experiment]:
     exps: list[Experiment] = []
     for scan in frame.scans:
         segs = scan.segments(rate)
@@ -119,7 +131,7 @@ def _dynamic(exps: Sequence[Experiment], base: ScannerConfig, axis: AxisName) ->
 
 
 def _verify(
-    bench: _Bench, config: ScannerConfig, axis: AxisName, points: Sequence[VerifyPoint], loops: int
+    bench: StageBench, config: ScannerConfig, axis: AxisName, points: Sequence[VerifyPoint], loops: int
 ) -> list[dict[str, Any]]:
     ax = config.axes[axis]
     model = axis_model(ax)
@@ -205,7 +217,7 @@ def run_case(
     base = load_config(path)
     rate = base.sample_rate_hz
     frame = default_frame(base, axis, reduced=reduced)
-    bench = _Bench(_stage(path, specs, axis, seed), rate)
+    bench = StageBench(_stage(path, specs, axis, seed), rate)
     exps = _frame(bench, frame, axis, rate, base.service.ramp_rate_v_per_s)
     step = on_step or (lambda _s: None)
     step("frame")
@@ -362,4 +374,12 @@ def plot_effects(result: dict[str, Any], path: str | Path) -> Path:
     return out
 
 
-__all__ = ["format_table", "plot_effects", "realistic_specs", "run_case", "run_effects_bench", "score"]
+__all__ = [
+    "StageBench",
+    "format_table",
+    "plot_effects",
+    "realistic_specs",
+    "run_case",
+    "run_effects_bench",
+    "score",
+]

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from pathlib import Path
 from typing import Any
@@ -35,33 +34,11 @@ from hil_sim.stage import Stage, StageConfig, resolve_stage
 from piezod import calibrate_dynamic as cd
 from piezod.calibrate import calibrate, calibrated_config
 from piezod.config import load_config
+from piezod.effects_bench import StageBench
 from piezod.linearity import experiment_linearity
 from piezod.recording import Experiment
 from piezod.service.axes import AxisDriver
 from piezod.stagecal import choose_for_experiments, default_frame, verification_points
-
-
-class Bench:
-    """The stage and its clock: voltages in, sensed positions out, history kept."""
-
-    def __init__(self, stage: Stage, rate_hz: float) -> None:
-        self.stage = stage
-        self.dt = 1.0 / rate_hz
-        self.t = 0.0
-        self.v = 0.0
-
-    def play(self, volts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        xs = []
-        for i in range(0, volts.size, 1 << 16):
-            xs.append(self.stage.sense(self.stage.step(volts[i : i + (1 << 16)], self.dt)))
-        t = self.t + self.dt * np.arange(1, volts.size + 1)
-        self.t = float(t[-1])
-        self.v = float(volts[-1])
-        return t, np.concatenate(xs)
-
-    def ramp(self, to_v: float, rate: float) -> None:
-        n = max(1, math.ceil(abs(to_v - self.v) / rate / self.dt))
-        self.play(self.v + (to_v - self.v) * np.arange(1, n + 1) / n)
 
 
 def markdown(result: dict[str, Any]) -> str:
@@ -108,7 +85,7 @@ def main() -> int:
     axis = "x"
     rate = base.sample_rate_hz
     stage = Stage(StageConfig.from_file(path), axes=(axis,))
-    bench = Bench(stage, rate)
+    bench = StageBench(stage, rate, keep_history=False)
     ramp = base.service.ramp_rate_v_per_s
     t0 = time.perf_counter()
     frame = default_frame(base, axis)
