@@ -80,6 +80,7 @@ class StageBench:
 
     def __init__(self, stage: Any, rate_hz: float, *, keep_history: bool = True) -> None:
         self.stage = stage
+        self.rate_hz = rate_hz
         self.dt = 1.0 / rate_hz
         self.t = 0.0
         self.v = 0.0
@@ -101,23 +102,24 @@ class StageBench:
         n = max(1, math.ceil(abs(to_v - self.v) / rate / self.dt))
         self.play(self.v + (to_v - self.v) * np.arange(1, n + 1) / n)
 
+    def play_frame(self, frame: Frame, axis: AxisName, ramp_v_per_s: float) -> list[Experiment]:
+        """Play a calibration frame (ramping to each scan's start); the recorded experiments."""
+        exps: list[Experiment] = []
+        for scan in frame.scans:
+            segs = scan.segments(self.rate_hz)
+            self.ramp(float(segs[0].volts[0]), ramp_v_per_s)
+            for seg in segs:
+                volts = np.asarray(seg.volts, dtype=np.float64)
+                t, x = self.play(volts)
+                if seg.record:
+                    exps.append(Experiment(scan.label, axis, t, volts, x))
+        return exps
+
 
 def _stage(path: Path, specs: Sequence[str], axis: AxisName, seed: int) -> Any:
     from piezod.simulator import load_stage
 
     return load_stage(path, specs, axis, seed)
-
-
-def _frame(bench: StageBench, frame: Frame, axis: AxisName, rate: float, ramp: float) -> list[Experiment]:
-    exps: list[Experiment] = []
-    for scan in frame.scans:
-        segs = scan.segments(rate)
-        bench.ramp(float(segs[0].volts[0]), ramp)
-        for seg in segs:
-            t, x = bench.play(np.asarray(seg.volts, dtype=np.float64))
-            if seg.record:
-                exps.append(Experiment(scan.label, axis, t, np.asarray(seg.volts, dtype=np.float64), x))
-    return exps
 
 
 def _dynamic(exps: Sequence[Experiment], base: ScannerConfig, axis: AxisName) -> ScannerConfig:
@@ -218,7 +220,7 @@ def run_case(
     rate = base.sample_rate_hz
     frame = default_frame(base, axis, reduced=reduced)
     bench = StageBench(_stage(path, specs, axis, seed), rate)
-    exps = _frame(bench, frame, axis, rate, base.service.ramp_rate_v_per_s)
+    exps = bench.play_frame(frame, axis, base.service.ramp_rate_v_per_s)
     step = on_step or (lambda _s: None)
     step("frame")
     baseline = _dynamic(exps, base, axis)

@@ -77,14 +77,14 @@ def test_full_frame(tmp_path: Path) -> None:
 def test_calibration_adopts_an_audit_finding_that_predicts_better() -> None:
     """In process: a polarity stage's frame, the model choice, the audit, the extended choice."""
     from piezod.config import default_sim_config_path, load_config
-    from piezod.effects_bench import StageBench, _frame, _stage, realistic_specs
+    from piezod.effects_bench import StageBench, _stage, realistic_specs
     from piezod.stagecal import audit_and_extend, choose_for_experiments
 
     path = default_sim_config_path()
     base = load_config(path)
     bench = StageBench(_stage(path, realistic_specs("polarity"), "x", 1), base.sample_rate_hz)
     frame = default_frame(base, "x", reduced=True)
-    exps = _frame(bench, frame, "x", base.sample_rate_hz, base.service.ramp_rate_v_per_s)
+    exps = bench.play_frame(frame, "x", base.service.ramp_rate_v_per_s)
     ramp, rest = base.service.ramp_rate_v_per_s, base.axes["x"].safe_voltage_v
     chosen = choose_for_experiments(exps, "x", base, ramp, rest)
     audited = audit_and_extend(exps, "x", chosen, base, ramp, rest)

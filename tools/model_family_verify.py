@@ -89,14 +89,7 @@ def main() -> int:
     ramp = base.service.ramp_rate_v_per_s
     t0 = time.perf_counter()
     frame = default_frame(base, axis)
-    exps: list[Experiment] = []
-    for scan in frame.scans:
-        segs = scan.segments(rate)
-        bench.ramp(float(segs[0].volts[0]), ramp)
-        for seg in segs:
-            t, x = bench.play(np.asarray(seg.volts, dtype=np.float64))
-            if seg.record:
-                exps.append(Experiment(scan.label, axis, t, np.asarray(seg.volts, dtype=np.float64), x))
+    exps = bench.play_frame(frame, axis, ramp)
     print(f"frame: {len(exps)} experiments, {bench.t:.0f} s simulated")
     thesis = calibrated_config(calibrate(exps), axis=axis, base=base)
     dyn = cd.calibrate_dynamic(exps, slew_rate_v_per_s=ramp, rest_voltage_v=base.axes[axis].safe_voltage_v)
