@@ -270,3 +270,22 @@ def test_the_repository_cites_only_what_it_contains() -> None:
     assert "Kai Dirscherl" in formats and "2000" in formats
     for heading in ("recording format", "Command-line contract", "JSON keys"):
         assert heading in formats
+
+
+@pytest.mark.parametrize("config", ["sim-pi-microscope-calibrated.yaml", "sim-stage-calibrated.yaml"])
+def test_the_recording_names_the_parameters_of_the_model_in_use(config: str) -> None:
+    """``model_params`` is the section of the model that corrects (it was the thesis section for a
+    family model before)."""
+    from piezod.service.recorder import scan_metadata
+
+    cfg = load_config(default_sim_config_path().parent / config)
+    fast = cfg.axes["x"]
+    request = ScanRequest(range_um=10.0, line_rate_hz=1.0, lines=2)
+    meta = scan_metadata(cfg, request, cfg.sample_rate_hz, True, ("x",), fast.model)
+    assert meta["model"] == fast.model != "thesis"
+    section = getattr(fast, fast.model)
+    assert json.loads(str(meta["model_params"])) == section.model_dump(mode="json")
+    off = scan_metadata(
+        cfg, request.model_copy(update={"correction": False}), cfg.sample_rate_hz, True, ("x",), "none"
+    )
+    assert off["model"] == off["correction"] == "none" and "model_params" not in off
