@@ -128,29 +128,3 @@ def test_family_fit_returns_the_shared_result() -> None:
     # theta (V, hysteresis unit), a weight per relaxation time, kappa, the lag; an offset per experiment
     assert res.dof == res.n - (2 + default_taus(data).size + 2) - int(train.sum())
     assert np.isnan(fit_family(data, "coleman-hodgdon", alpha_per_v=3e-3).heldout_rms_um)
-
-
-def test_audit_fit_returns_the_shared_result() -> None:
-    """The audit's fit: projected residual, dof = n - (free parameters + nuisance terms), its BIC."""
-    from test_audit_sessions import thesis_session
-
-    from piezod.audit import data as audit_data
-    from piezod.audit.baseline import geometry, thesis_start
-    from piezod.audit.candidates import AuditModel
-    from piezod.audit.decide import _scales
-    from piezod.audit.fitting import Fit, Problem
-
-    exps, _ = thesis_session([], 11, small=True)
-    data = audit_data.build(exps)
-    base, z, _ = thesis_start(exps)
-    x0, _ = AuditModel(base, (), _scales(data, np.zeros(1))).evaluate(z, geometry(data, 0.0, 1.0))
-    sc = _scales(data, x0)
-    geo = geometry(data, sc.t_ref_s, sc.f_ref_hz)
-    model = AuditModel(base, (), sc)
-    problem = Problem(model, geo, data.fit_mask)
-    fit = problem.fit(z)
-    assert isinstance(fit, Fit)
-    _check_common(fit)
-    assert fit.k == int(model.free().sum()) + problem.n_nuisance(fit.p) == fit.n - fit.dof
-    assert fit.residual is fit.residuals_um and fit.rms_um == fit.residual_rms_um
-    assert fit.cost == pytest.approx(0.5 * fit.rss) and not fit.has_errors
