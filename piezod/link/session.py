@@ -36,7 +36,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from types import TracebackType
 from typing import Any
 
@@ -51,6 +51,7 @@ from firmware_proto import (
     CodeArray,
     Configure,
     DecodeError,
+    Endpoint,
     ErrorKind,
     Fault,
     FaultCode,
@@ -125,9 +126,19 @@ _BOARD_COUNTERS = (
 
 @dataclass(slots=True)
 class _Tally:
+    """The session's running counts under the names of :class:`LinkCounters`, with the endpoint
+    counts of retired connections folded in (:meth:`fold`); :meth:`snapshot` is the counters."""
+
+    frames_sent: int = 0
+    bytes_sent: int = 0
     samples_frames_sent: int = 0
     sample_rows_sent: int = 0
     heartbeats_sent: int = 0
+    retransmits: int = 0
+    request_timeouts: int = 0
+    frames_received: int = 0
+    bytes_received: int = 0
+    frames_lost_rx: int = 0
     status_frames: int = 0
     sensor_frames: int = 0
     sensor_rows: int = 0
@@ -136,22 +147,46 @@ class _Tally:
     sensor_gaps: int = 0
     sensor_rows_duplicate: int = 0
     unexpected_frames: int = 0
+    stray_replies: int = 0
     link_downs: int = 0
     reconnects: int = 0
     callback_errors: int = 0
-    board: dict[str, int] = field(default_factory=lambda: {name: 0 for _, name in _BOARD_COUNTERS})
     watchdogs: int = 0
-    fault_frames: dict[str, int] = field(default_factory=dict)
-    # from retired connections
-    frames_sent: int = 0
-    bytes_sent: int = 0
-    retransmits: int = 0
-    request_timeouts: int = 0
-    stray_replies: int = 0
-    frames_received: int = 0
-    bytes_received: int = 0
+    board: dict[str, int] = field(default_factory=lambda: {name: 0 for _, name in _BOARD_COUNTERS})
     decode_kinds: dict[str, int] = field(default_factory=dict)
-    frames_missing: int = 0
+    fault_frames: dict[str, int] = field(default_factory=dict)
+
+    def fold(self, endpoint: Endpoint) -> None:
+        """Add a connection's endpoint counts (frames, bytes, retransmissions, decode errors, losses)."""
+        es, ds = endpoint.stats, endpoint.decoder_stats
+        self.frames_sent += es.frames_sent
+        self.bytes_sent += es.bytes_sent
+        self.retransmits += es.retransmits
+        self.request_timeouts += es.timeouts
+        self.stray_replies += es.stray_replies
+        self.frames_received += ds.frames_ok
+        self.bytes_received += ds.bytes_in
+        for kind in ErrorKind:
+            self.decode_kinds[kind.value] = self.decode_kinds.get(kind.value, 0) + ds.count(kind)
+        self.frames_lost_rx += missing_frames(endpoint)
+
+    def snapshot(self, live: Endpoint | None = None) -> LinkCounters:
+        """The counters, with the live connection's endpoint (if any) counted too."""
+        t = replace(self, board=dict(self.board), decode_kinds=dict(self.decode_kinds))
+        t.fault_frames = dict(self.fault_frames)
+        if live is not None:
+            t.fold(live)
+        counts: dict[str, Any] = {
+            f.name: getattr(t, f.name) for f in fields(t) if f.name not in ("board", "decode_kinds")
+        }
+        counts.update(t.board)
+        kinds = t.decode_kinds
+        return LinkCounters(
+            **counts,
+            decode_errors=sum(kinds.values()),
+            crc_errors_host=kinds.get(ErrorKind.BAD_CRC.value, 0),
+            decode_errors_by_kind={k: v for k, v in kinds.items() if v},
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -414,63 +449,11 @@ class BoardSession:
     def counters(self) -> LinkCounters:
         """A snapshot of :class:`LinkCounters`."""
         with self._lock:
-            t = self._tally
-            kinds = dict(t.decode_kinds)
-            frames_sent, bytes_sent = t.frames_sent, t.bytes_sent
-            retrans, timeouts, strays = t.retransmits, t.request_timeouts, t.stray_replies
-            frames_rx, bytes_rx = t.frames_received, t.bytes_received
-            lost_rx = t.frames_missing
-            if self._conn is not None:
-                lost_rx += missing_frames(self._conn.endpoint)
-                es, ds = self._conn.endpoint.stats, self._conn.endpoint.decoder_stats
-                frames_sent += es.frames_sent
-                bytes_sent += es.bytes_sent
-                retrans += es.retransmits
-                timeouts += es.timeouts
-                strays += es.stray_replies
-                frames_rx += ds.frames_ok
-                bytes_rx += ds.bytes_in
-                for kind in ErrorKind:
-                    kinds[kind.value] = kinds.get(kind.value, 0) + ds.count(kind)
-            return LinkCounters(
-                frames_sent=frames_sent,
-                bytes_sent=bytes_sent,
-                samples_frames_sent=t.samples_frames_sent,
-                sample_rows_sent=t.sample_rows_sent,
-                heartbeats_sent=t.heartbeats_sent,
-                retransmits=retrans,
-                request_timeouts=timeouts,
-                frames_received=frames_rx,
-                bytes_received=bytes_rx,
-                decode_errors=sum(kinds.values()),
-                crc_errors_host=kinds.get(ErrorKind.BAD_CRC.value, 0),
-                decode_errors_by_kind={k: v for k, v in kinds.items() if v},
-                frames_lost_rx=lost_rx,
-                status_frames=t.status_frames,
-                sensor_frames=t.sensor_frames,
-                sensor_rows=t.sensor_rows,
-                sensor_rows_lost=t.sensor_rows_lost,
-                sensor_rows_lost_unexplained=t.sensor_rows_lost_unexplained,
-                sensor_gaps=t.sensor_gaps,
-                sensor_rows_duplicate=t.sensor_rows_duplicate,
-                unexpected_frames=t.unexpected_frames,
-                stray_replies=strays,
-                link_downs=t.link_downs,
-                reconnects=t.reconnects,
-                callback_errors=t.callback_errors,
-                crc_errors_board=t.board["crc_errors_board"],
-                frames_dropped_board=t.board["frames_dropped_board"],
-                underruns=t.board["underruns"],
-                clamped_samples=t.board["clamped_samples"],
-                index_gaps=t.board["index_gaps"],
-                overflows=t.board["overflows"],
-                watchdogs=t.watchdogs,
-                fault_frames=dict(t.fault_frames),
-            )
+            return self._tally.snapshot(None if self._conn is None else self._conn.endpoint)
 
     def _losses_now(self) -> int:
         """Frames from the board known lost so far: dropped by the decoder or missing by ``seq``."""
-        total = sum(self._tally.decode_kinds.values()) + self._tally.frames_missing
+        total = sum(self._tally.decode_kinds.values()) + self._tally.frames_lost_rx
         if self._conn is not None:
             total += self._conn.endpoint.decoder_stats.errors + missing_frames(self._conn.endpoint)
         return total
@@ -527,18 +510,7 @@ class BoardSession:
             if conn.retired:
                 return
             conn.retired = True
-            t = self._tally
-            es, ds = conn.endpoint.stats, conn.endpoint.decoder_stats
-            t.frames_sent += es.frames_sent
-            t.bytes_sent += es.bytes_sent
-            t.retransmits += es.retransmits
-            t.request_timeouts += es.timeouts
-            t.stray_replies += es.stray_replies
-            t.frames_received += ds.frames_ok
-            t.bytes_received += ds.bytes_in
-            for kind in ErrorKind:
-                t.decode_kinds[kind.value] = t.decode_kinds.get(kind.value, 0) + ds.count(kind)
-            t.frames_missing += missing_frames(conn.endpoint)
+            self._tally.fold(conn.endpoint)
             conn.endpoint = new_endpoint(self.settings)
             conn.alive = False
             conn.wake.set()
