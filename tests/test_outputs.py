@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 from fake_engine import running_api
+from real_daemon import DAEMON_NICE, _nice
 
 from hil_sim.server import spawn_sim
 from piezod.calibrate import calibrated_config, fit, prepare
@@ -36,6 +37,10 @@ from piezod.synth import random_params, random_plan, synth_session
 
 
 def _piezod(*args: str, cwd: Path, timeout_s: float = 300.0) -> subprocess.CompletedProcess[str]:
+    """Run ``piezod``; a streaming command (``scan --sim``: the simulator stands in for a board
+    with its own clock) at the daemon's priority, as the real-daemon tests run it, so that a
+    machine saturated by other jobs does not starve the stream."""
+    streaming = args[:1] == ("scan",)
     return subprocess.run(
         [sys.executable, "-m", "piezod", *args],
         cwd=cwd,
@@ -43,6 +48,7 @@ def _piezod(*args: str, cwd: Path, timeout_s: float = 300.0) -> subprocess.Compl
         text=True,
         timeout=timeout_s,
         check=False,
+        preexec_fn=_nice(DAEMON_NICE) if streaming else None,
     )
 
 

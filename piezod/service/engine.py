@@ -437,6 +437,10 @@ class Engine:
             uncalibrated_axes=self._uncalibrated,
         )
 
+    def trajectory_for(self, request: ScanRequest) -> Trajectory:
+        """The scan path a request asks for (the raster today; a new path is selected here)."""
+        return RasterTrajectory.from_request(request, self.rate_hz)
+
     def check_scan(self, request: ScanRequest) -> None:
         """Refuse a scan the stage cannot do (with the reason).
 
@@ -446,12 +450,12 @@ class Engine:
         limits there (an offset that drives an axis into its limits while the creep settles) is
         refused with the numbers instead of being clamped while it runs.
         """
-        trajectory = RasterTrajectory.from_request(request, self.rate_hz)
+        trajectory = self.trajectory_for(request)
         check_scan_start(self, request, trajectory, self.plans_for(trajectory))
 
     def start_scan(self, request: ScanRequest, *, path: Path | None = None) -> Status:
         """Start a scan; recorded to ``path`` or to the recording directory."""
-        trajectory = RasterTrajectory.from_request(request, self.rate_hz)
+        trajectory = self.trajectory_for(request)
         plans = self.plans_for(trajectory)  # the heavy parts, outside the lock
         check_scan_start(self, request, trajectory, plans)
         with self._lock:
