@@ -295,3 +295,59 @@ def test_the_recording_names_the_parameters_of_the_model_in_use(config: str) -> 
         cfg, request.model_copy(update={"correction": False}), cfg.sample_rate_hz, True, ("x",), "none"
     )
     assert off["model"] == off["correction"] == "none" and "model_params" not in off
+
+
+def test_the_audit_report_and_plots_say_what_the_decision_did() -> None:
+    """Tried: an audit of a frame with a hidden delay. Held: every finding is eligible and the
+    first is the one marked '>' (a non-eligible candidate was finding 2 before); the held-out panel
+    colours findings green and only them (it coloured them opposite); gains on a linear axis (a
+    symlog axis read -10^0, 0, 10^0); every panel labelled; the loops figure shows every
+    experiment (3 of 10 before) and says so; no per-experiment panel of one point."""
+    from test_audit_decide import MID, small_session
+
+    from piezod.audit import run_audit
+    from piezod.audit.plots import _gains, _loops, _prediction, _pyplot, _residuals, _structure, _summary
+    from piezod.audit.report import print_summary
+
+    result = run_audit(small_session({"delay": MID["delay"]}, 21))
+    assert result.findings and result.findings[0].effect == "delay"
+    assert all(f.eligible for f in result.findings)
+    out = io.StringIO()
+    print_summary(result, out)
+    marked = [
+        line.split()[0] for line in out.getvalue().splitlines() if " >" in line and "finding" not in line
+    ]
+    assert marked == ["delay"]
+    eligible_first = max((c for c in result.rounds[0] if c.eligible), key=lambda c: c.gain)
+    assert eligible_first.effect == result.findings[0].effect
+
+    plt = _pyplot()
+    from matplotlib.colors import to_hex
+
+    gains = _gains(plt, result)
+    bars = gains.axes[0]
+    assert bars.get_yscale() == "linear"
+    green = [p for p in bars.patches if to_hex(p.get_facecolor()) == to_hex("tab:green")]
+    assert len(green) == len(result.findings)
+    n = result.data.n_experiments
+    loops = _loops(plt, result)
+    shown = [a for a in loops.axes if a.get_visible()]
+    assert len(shown) == min(n, 16)
+    if n <= 16:
+        assert f"all {n} experiments" in loops._suptitle.get_text()
+    figures = {
+        "gains": gains,
+        "summary": _summary(plt, result),
+        "residuals": _residuals(plt, result),
+        "structure": _structure(plt, result),
+        "prediction": _prediction(plt, result),
+    }
+    for name, fig in figures.items():
+        for a in fig.axes:
+            if a.get_visible():
+                assert a.get_ylabel() and a.get_title(), name
+    for a in figures["structure"].axes:
+        if a.get_visible() and a.get_title().startswith("per experiment"):
+            assert all(len(line.get_xdata()) >= 3 for line in a.get_lines() if line.get_marker() == "o")
+    for fig in list(map(plt.figure, plt.get_fignums())):
+        plt.close(fig)
