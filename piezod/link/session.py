@@ -36,7 +36,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import fields
 from types import TracebackType
 from typing import Any
 
@@ -124,68 +124,57 @@ _BOARD_COUNTERS = (
 )
 
 
-@dataclass(slots=True)
-class _Tally:
-    """The session's running counts under the names of :class:`LinkCounters`, with the endpoint
-    counts of retired connections folded in (:meth:`fold`); :meth:`snapshot` is the counters."""
+#: The counts :class:`LinkCounters` derives from the decode errors rather than keeps.
+_DERIVED = frozenset({"decode_errors", "crc_errors_host", "decode_errors_by_kind", "fault_frames"})
 
-    frames_sent: int = 0
-    bytes_sent: int = 0
-    samples_frames_sent: int = 0
-    sample_rows_sent: int = 0
-    heartbeats_sent: int = 0
-    retransmits: int = 0
-    request_timeouts: int = 0
-    frames_received: int = 0
-    bytes_received: int = 0
-    frames_lost_rx: int = 0
-    status_frames: int = 0
-    sensor_frames: int = 0
-    sensor_rows: int = 0
-    sensor_rows_lost: int = 0
-    sensor_rows_lost_unexplained: int = 0
-    sensor_gaps: int = 0
-    sensor_rows_duplicate: int = 0
-    unexpected_frames: int = 0
-    stray_replies: int = 0
-    link_downs: int = 0
-    reconnects: int = 0
-    callback_errors: int = 0
-    watchdogs: int = 0
-    board: dict[str, int] = field(default_factory=lambda: {name: 0 for _, name in _BOARD_COUNTERS})
-    decode_kinds: dict[str, int] = field(default_factory=dict)
-    fault_frames: dict[str, int] = field(default_factory=dict)
+
+class _Tally:
+    """The session's running counts, keyed by the names of :class:`LinkCounters`' fields (an unknown
+    name cannot be tallied), with the endpoint counts of retired connections folded in (:meth:`fold`);
+    :meth:`snapshot` is the counters."""
+
+    __slots__ = ("decode_kinds", "fault_frames", "n")
+
+    def __init__(self) -> None:
+        self.n: dict[str, int] = {f.name: 0 for f in fields(LinkCounters) if f.name not in _DERIVED}
+        self.decode_kinds: dict[str, int] = {}
+        self.fault_frames: dict[str, int] = {}
+
+    def add(self, name: str, count: int = 1) -> int:
+        """Count ``count`` more of ``name`` (a :class:`LinkCounters` field); returns the new total."""
+        self.n[name] += count  # KeyError for a name LinkCounters does not have
+        return self.n[name]
 
     def fold(self, endpoint: Endpoint) -> None:
         """Add a connection's endpoint counts (frames, bytes, retransmissions, decode errors, losses)."""
         es, ds = endpoint.stats, endpoint.decoder_stats
-        self.frames_sent += es.frames_sent
-        self.bytes_sent += es.bytes_sent
-        self.retransmits += es.retransmits
-        self.request_timeouts += es.timeouts
-        self.stray_replies += es.stray_replies
-        self.frames_received += ds.frames_ok
-        self.bytes_received += ds.bytes_in
+        for name, count in (
+            ("frames_sent", es.frames_sent),
+            ("bytes_sent", es.bytes_sent),
+            ("retransmits", es.retransmits),
+            ("request_timeouts", es.timeouts),
+            ("stray_replies", es.stray_replies),
+            ("frames_received", ds.frames_ok),
+            ("bytes_received", ds.bytes_in),
+            ("frames_lost_rx", missing_frames(endpoint)),
+        ):
+            self.add(name, count)
         for kind in ErrorKind:
             self.decode_kinds[kind.value] = self.decode_kinds.get(kind.value, 0) + ds.count(kind)
-        self.frames_lost_rx += missing_frames(endpoint)
 
     def snapshot(self, live: Endpoint | None = None) -> LinkCounters:
         """The counters, with the live connection's endpoint (if any) counted too."""
-        t = replace(self, board=dict(self.board), decode_kinds=dict(self.decode_kinds))
-        t.fault_frames = dict(self.fault_frames)
+        t = _Tally()
+        t.n, t.decode_kinds, t.fault_frames = dict(self.n), dict(self.decode_kinds), dict(self.fault_frames)
         if live is not None:
             t.fold(live)
-        counts: dict[str, Any] = {
-            f.name: getattr(t, f.name) for f in fields(t) if f.name not in ("board", "decode_kinds")
-        }
-        counts.update(t.board)
         kinds = t.decode_kinds
         return LinkCounters(
-            **counts,
+            **t.n,
             decode_errors=sum(kinds.values()),
             crc_errors_host=kinds.get(ErrorKind.BAD_CRC.value, 0),
             decode_errors_by_kind={k: v for k, v in kinds.items() if v},
+            fault_frames=t.fault_frames,
         )
 
 
@@ -401,7 +390,7 @@ class BoardSession:
                 cb(event)
             except Exception:
                 with self._lock:
-                    self._tally.callback_errors += 1
+                    self._tally.add("callback_errors")
                 log.exception("link event subscriber %r failed on %s", cb, type(event).__name__)
 
     def _emit_all(self, events: list[LinkEvent]) -> None:
@@ -453,7 +442,7 @@ class BoardSession:
 
     def _losses_now(self) -> int:
         """Frames from the board known lost so far: dropped by the decoder or missing by ``seq``."""
-        total = sum(self._tally.decode_kinds.values()) + self._tally.frames_lost_rx
+        total = sum(self._tally.decode_kinds.values()) + self._tally.n["frames_lost_rx"]
         if self._conn is not None:
             total += self._conn.endpoint.decoder_stats.errors + missing_frames(self._conn.endpoint)
         return total
@@ -549,7 +538,7 @@ class BoardSession:
             conn.requests.clear()
             closing = self._closing or not conn.established  # a failed handshake raises in _connect
             if not closing:
-                self._tally.link_downs += 1
+                self._tally.add("link_downs")
                 self._down_since = time.monotonic()
                 self._link_broke_in_run = self._sensor_next is not None
             self._cond.notify_all()
@@ -618,7 +607,7 @@ class BoardSession:
                 timeout=wait,
             )
             status = self._status if conn is not None and conn.got_status else None
-            self._tally.reconnects += 1
+            self._tally.add("reconnects")
             down = time.monotonic() - (self._down_since or time.monotonic())
             self._down_since = None
         flags = status.fault_flags if status is not None else FaultFlags.NONE
@@ -763,7 +752,7 @@ class BoardSession:
                 data = conn.endpoint.data_to_send()
                 if not data and now - conn.last_tx >= hb and conn.hello_done:
                     conn.endpoint.send(Heartbeat(time_us=int(now * 1e6) & ((1 << 64) - 1)), now)
-                    self._tally.heartbeats_sent += 1
+                    self._tally.add("heartbeats_sent")
                     data = conn.endpoint.data_to_send()
             for req, err in failed:
                 req.error = err
@@ -801,7 +790,7 @@ class BoardSession:
                     self._last_played_seen = max(self._last_played_seen or 0, msg.index)
                 out.append(BoardFault(now, msg))
             else:
-                self._tally.unexpected_frames += 1
+                self._tally.add("unexpected_frames")
         elif isinstance(ev, DecodeError):
             out.append(DecodeFailure(now, ev.kind, ev.detail, ev.wire_size))
         elif isinstance(ev, Acked | Nacked):
@@ -862,7 +851,7 @@ class BoardSession:
         self._status_time = now
         self._status_count += 1
         conn.got_status = True
-        self._tally.status_frames += 1
+        self._tally.add("status_frames")
         raw = {src: int(getattr(st, src)) for src, _ in _BOARD_COUNTERS}
         if self._board_raw is not None:
             for src, dst in _BOARD_COUNTERS:
@@ -870,13 +859,12 @@ class BoardSession:
                 if delta > _U32 // 2:  # the counter went down: the board restarted
                     delta = raw[src]
                 if delta:
-                    self._tally.board[dst] += delta
-                    out.append(BoardCounter(now, src, delta, self._tally.board[dst]))
+                    out.append(BoardCounter(now, src, delta, self._tally.add(dst, delta)))
         self._board_raw = raw
         raised = st.fault_flags & ~self._flags_seen
         if raised:
             if raised & FaultFlags.WATCHDOG:
-                self._tally.watchdogs += 1
+                self._tally.add("watchdogs")
             out.append(FaultFlagsRaised(now, FaultFlags(raised), st))
         self._flags_seen = st.fault_flags
         was_running = prev is not None and prev.state == BoardState.RUNNING
@@ -892,8 +880,8 @@ class BoardSession:
 
     def _on_sensor(self, msg: Sensor, now: float, out: list[LinkEvent]) -> None:
         n = msg.n_samples
-        self._tally.sensor_frames += 1
-        self._tally.sensor_rows += n
+        self._tally.add("sensor_frames")
+        self._tally.add("sensor_rows", n)
         errors = self._loss_pos
         nxt = self._sensor_next
         if nxt is not None:
@@ -901,7 +889,7 @@ class BoardSession:
                 missing = -(-(msg.first_index - nxt) // msg.stride)
                 self._count_gap(nxt, missing, errors > self._sensor_err_mark, now, out)
             elif msg.first_index < nxt:
-                self._tally.sensor_rows_duplicate += min(n, -(-(nxt - msg.first_index) // msg.stride))
+                self._tally.add("sensor_rows_duplicate", min(n, -(-(nxt - msg.first_index) // msg.stride)))
         self._sensor_next = msg.first_index + n * msg.stride
         self._sensor_stride = msg.stride
         self._sensor_err_mark = errors
@@ -910,13 +898,13 @@ class BoardSession:
                 SensorBlock(now, msg.first_index, msg.stride, msg.codes, self._adc_scale, self._adc_offset)
             )
         else:
-            self._tally.unexpected_frames += 1
+            self._tally.add("unexpected_frames")
 
     def _count_gap(self, index: int, missing: int, explained: bool, now: float, out: list[LinkEvent]) -> None:
-        self._tally.sensor_gaps += 1
-        self._tally.sensor_rows_lost += missing
+        self._tally.add("sensor_gaps")
+        self._tally.add("sensor_rows_lost", missing)
         if not explained:
-            self._tally.sensor_rows_lost_unexplained += missing
+            self._tally.add("sensor_rows_lost_unexplained", missing)
             log.error("sensor rows %d.. (%d rows) lost without a detected frame error", index, missing)
         out.append(SensorGap(now, index, missing, explained))
 
@@ -1131,8 +1119,8 @@ class BoardSession:
             if conn is None or not conn.alive:
                 raise LinkClosedError(f"{self.url}: the link is down")
             seq = conn.endpoint.send(msg, time.monotonic())
-            self._tally.samples_frames_sent += 1
-            self._tally.sample_rows_sent += msg.n_samples
+            self._tally.add("samples_frames_sent")
+            self._tally.add("sample_rows_sent", msg.n_samples)
         conn.wake.set()
         return seq
 
