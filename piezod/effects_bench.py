@@ -40,10 +40,11 @@ from numpy.typing import NDArray
 
 from piezod import calibrate_dynamic as cd
 from piezod.config import AxisName, ScannerConfig, default_sim_config_path, load_config
-from piezod.extensions import Adoption, adopt_findings, experiments_through_parts, extended_config
+from piezod.extensions import Adoption, adopt_findings, experiments_through, extended_config
 from piezod.linearity import experiment_linearity
-from piezod.model.parts import PART_EFFECTS, Parts
+from piezod.model.parts import PART_EFFECTS
 from piezod.model.registry import REGISTRY
+from piezod.model.sensor import SENSOR_EFFECTS
 from piezod.recording import Experiment
 from piezod.service.axes import axis_model
 from piezod.stagecal import Frame, VerifyPoint, default_frame, verification_points
@@ -76,10 +77,17 @@ class StageBench:
         Sample rate.
     keep_history
         Keep every voltage played (:attr:`history`), to replay the stage's past through a model.
+    truth
+        The same stage without its sensor-side effects, stepped alongside: where the stage really
+        is (:attr:`last_truth`, the last block's), when the readback is delayed.
     """
 
-    def __init__(self, stage: Any, rate_hz: float, *, keep_history: bool = True) -> None:
+    def __init__(
+        self, stage: Any, rate_hz: float, *, keep_history: bool = True, truth: Any | None = None
+    ) -> None:
         self.stage = stage
+        self.truth = truth
+        self.last_truth: F64 | None = None
         self.rate_hz = rate_hz
         self.dt = 1.0 / rate_hz
         self.t = 0.0
@@ -90,6 +98,9 @@ class StageBench:
     def play(self, volts: F64) -> tuple[F64, F64]:
         chunks = range(0, volts.size, 1 << 16)
         xs = [self.stage.sense(self.stage.step(volts[i : i + (1 << 16)], self.dt)) for i in chunks]
+        if self.truth is not None:
+            true = [self.truth.sense(self.truth.step(volts[i : i + (1 << 16)], self.dt)) for i in chunks]
+            self.last_truth = np.concatenate(true).astype(np.float64)
         t: F64 = self.t + self.dt * np.arange(1, volts.size + 1, dtype=np.float64)
         self.t = float(t[-1])
         self.v = float(volts[-1])
@@ -155,6 +166,8 @@ def _verify(
         clamped = int(np.count_nonzero((v < lo_v) | (v > hi_v)))
         v = np.clip(v, lo_v, hi_v)
         t, x = bench.play(v)
+        if bench.last_truth is not None:
+            x = bench.last_truth  # a sensor delay is not an error of the position: score where the stage is
         if k == 0:
             continue  # one unrecorded warm-up scan after the model is switched in
         k0 = n_move + per
@@ -181,14 +194,24 @@ def _worst(rows: Sequence[dict[str, Any]], inside_only: bool = True) -> dict[str
 
 
 def _injected_parts(specs: Sequence[str]) -> dict[str, dict[str, float]]:
-    """``{effect: {parameter: value}}`` of the injected specs that have a runtime part."""
+    """``{effect: {parameter: value}}`` of the injected specs that have a runtime part or are the
+    sensor path."""
     out: dict[str, dict[str, float]] = {}
+    known = {**PART_EFFECTS, **SENSOR_EFFECTS}
     for text in specs:
         head, value = text.split("=", 1)
         effect, _, name = head.partition(".")
-        if effect in PART_EFFECTS and name in PART_EFFECTS[effect]:
+        sensor_ok = effect not in SENSOR_EFFECTS or _is_sensor_side(text, specs)
+        if effect in known and name in known[effect] and sensor_ok:
             out.setdefault(effect, {})[name] = float(value)
     return out
+
+
+def _is_sensor_side(text: str, specs: Sequence[str]) -> bool:
+    """Whether the spec ``text`` is an effect of the readback only (hil_sim's delay ``at: sensor``,
+    its default)."""
+    effect = text.split("=", 1)[0].partition(".")[0]
+    return effect in SENSOR_EFFECTS and f"{effect}.at=drive" not in specs
 
 
 def run_case(
@@ -219,7 +242,9 @@ def run_case(
     base = load_config(path)
     rate = base.sample_rate_hz
     frame = default_frame(base, axis, reduced=reduced)
-    bench = StageBench(_stage(path, specs, axis, seed), rate)
+    sensor_side = [x for x in specs if _is_sensor_side(x, specs)]
+    truth = _stage(path, [x for x in specs if x not in sensor_side], axis, seed) if sensor_side else None
+    bench = StageBench(_stage(path, specs, axis, seed), rate, truth=truth)
     exps = bench.play_frame(frame, axis, base.service.ramp_rate_v_per_s)
     step = on_step or (lambda _s: None)
     step("frame")
@@ -242,8 +267,7 @@ def run_case(
         out["findings"] = [f["effect"] for f in doc["findings"]]
         out["adoption"] = {"adopted": list(adoption.adopted), "skipped": list(adoption.skipped)}
         if adoption.effects:
-            parts = Parts.from_effects(adoption.effects)
-            refit = _dynamic(experiments_through_parts(exps, parts), base, axis)
+            refit = _dynamic(experiments_through(exps, adoption.effects), base, axis)
             extended = extended_config(refit, axis, adoption)
             out["extended"] = {"rows": _verify(bench, extended, axis, points, loops)}
         else:
@@ -252,7 +276,7 @@ def run_case(
         injected = _injected_parts(specs)
         if injected:
             # the same refit with the injected values: what the runtime parts do when the finding is right
-            refit = _dynamic(experiments_through_parts(exps, Parts.from_effects(injected)), base, axis)
+            refit = _dynamic(experiments_through(exps, injected), base, axis)
             oracle = extended_config(refit, axis, Adoption(injected))
             out["injected"] = {"rows": _verify(bench, oracle, axis, points, loops)}
             step("injected verified")
