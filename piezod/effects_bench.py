@@ -9,13 +9,17 @@ baseline alone is at its self-consistency floor and what remains is the effect's
    stepped on the stage in process (deterministic, independent of machine load);
 2. **baseline**: the dynamic model calibrated on the frame (what ``piezod calibrate`` writes on
    this stage);
-3. **extended**: the audit (:func:`piezod.audit.run_audit`) of the same frame, its material
-   findings mapped to runtime parts (:func:`piezod.extensions.adopt_findings`), the dynamic model
-   refitted with those parts fixed (the frame seen through the parts' exact inverse), the parts
-   around it (:class:`piezod.model.parts.PartsAxisModel`);
+3. **extended**: the audit (:func:`piezod.audit.run_audit`) of the same frame for the candidates
+   ``piezod calibrate`` audits (those a runtime part or the sensor path can take), its material
+   findings mapped to runtime parts and the sensor path (:func:`piezod.extensions.adopt_findings`),
+   the dynamic model refitted with them fixed (the frame's readback aligned through the sensor
+   path, then seen through the parts' exact inverse), the parts around it
+   (:class:`piezod.model.parts.PartsAxisModel`);
 4. both verified by online-corrected triangles at the frame's verification points
    (:func:`piezod.stagecal.verification_points`; one warm-up loop, then ``loops`` recorded),
-   scored by :func:`piezod.linearity.experiment_linearity`;
+   scored by :func:`piezod.linearity.experiment_linearity` on where the stage is: the readback,
+   or for an effect of the readback only (hil_sim's ``delay`` at the sensor) the same stage
+   without it stepped alongside (a readback delay is not an error of the position);
 5. the floor: the baseline calibrated and verified the same way on the stage without the effect.
 
 What is left of an effect's error with a model is its worst metric over the points minus the
@@ -28,7 +32,6 @@ floor with the baseline already is reported as "below resolution" (nothing to re
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -258,9 +261,10 @@ def run_case(
         out["findings"], out["adoption"] = [], {"adopted": [], "skipped": []}
         out["extended"] = out["baseline"]
     else:
-        options = AuditOptions(folds=folds, refit_cv=False)
-        if audit_effects:
-            options = dataclasses.replace(options, effects=tuple(audit_effects))
+        # the candidates piezod calibrate audits its frame for: those a runtime part or the sensor
+        # path can take (the others could not be adopted)
+        effects = tuple(audit_effects) if audit_effects else (*PART_EFFECTS, *SENSOR_EFFECTS)
+        options = AuditOptions(folds=folds, refit_cv=False, effects=effects)
         doc = result_json(run_audit(exps, [], options=options))
         step("audit")
         adoption: Adoption = adopt_findings(doc["findings"])
