@@ -50,12 +50,22 @@ from piezod.errors import CalibrationError, ModelError
 from piezod.fitstats import FitResult, solve_linear
 from piezod.model.dynamic import MAX_TOTAL_CREEP
 from piezod.model.family import CREEP_DRIVERS, CreepSpectrum, FamilyParams
+from piezod.model.gplay import (
+    GeneralisedPlayParams,
+    basis_features,
+    gplay_forward,
+    gplay_rest_state,
+    play_outputs,
+)
 from piezod.model.params import HysteresisParams
 from piezod.model.play import PlayParams, PlayState, play_forward
 
 F64 = NDArray[np.float64]
 
-LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "coleman-hodgdon")
+LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play", "coleman-hodgdon")
+#: Relay-centre nodes of the generalised play law's density (its centre dependence is piecewise
+#: linear between them: 3 nodes allow a density that bends once over the recorded span).
+GP_NODES = 3
 #: Longest drive lag the fit considers (s).
 _MAX_LAG_S = 0.05
 
@@ -96,6 +106,31 @@ def _play_features(data: DynamicCalibrationData, thresholds: F64) -> F64:
         p = blk[:, -1]
     out[:, 1:] = plays[:, data.grid_index].T
     return out
+
+
+def default_nodes(data: DynamicCalibrationData, count: int = GP_NODES) -> F64:
+    """Relay-centre nodes evenly over the recorded voltage span (generalised play law)."""
+    v = data.grid_voltage_v[data.compared]
+    lo, hi = float(np.min(v)), float(np.max(v))
+    if not hi > lo:
+        raise CalibrationError("the recordings span no voltage: nothing to fit a hysteresis law to")
+    return np.linspace(lo, hi, max(2, count))
+
+
+def _gplay_features(data: DynamicCalibrationData, thresholds: F64, nodes: F64) -> tuple[F64, F64, F64]:
+    """``[V, H_{0,0}, ..., H_{p,K-1}]`` at the grid samples from rest, their rest values, and the
+    voltage-creep scale per column (the rest slope at 0 V each column contributes)."""
+    v = data.hysteresis_voltage_v
+    rest = data.rest_voltage_v
+    plays, _ = play_outputs(thresholds, v, PlayState(rest, np.full(thresholds.size, rest), 0.0))
+    idx = data.grid_index
+    f = np.column_stack([v[idx], basis_features(v[idx], plays[:, idx], nodes)])
+    f_rest = np.concatenate(
+        [[rest], basis_features(np.array([rest]), np.full((thresholds.size, 1), rest), nodes)[0]]
+    )
+    hat0 = np.array([np.interp(0.0, nodes, np.eye(nodes.size)[k]) for k in range(nodes.size)])
+    slope = np.concatenate([[1.0], np.tile(hat0, thresholds.size + 1)])
+    return f, f_rest, slope
 
 
 def default_thresholds(data: DynamicCalibrationData, count: int, spacing: str = "uniform") -> F64:
@@ -473,10 +508,11 @@ def session_positions(
         dev = _Deviations(data, np.asarray(params.creep.taus_s))
     h = params.hysteresis
     v = data.hysteresis_voltage_v
-    if isinstance(h, PlayParams):
+    if isinstance(h, GeneralisedPlayParams):
+        xh_all, _ = gplay_forward(h, v, gplay_rest_state(h, data.rest_voltage_v))
+    elif isinstance(h, PlayParams):
         state = PlayState(data.rest_voltage_v, np.full(h.r.size, data.rest_voltage_v), 0.0)
         xh_all, _ = play_forward(h, v, state)
-        xh_all = xh_all - 0.0
     else:
         from piezod.model.ode import HysteresisState, hysteresis_step
 
@@ -487,7 +523,8 @@ def session_positions(
     total = params.creep.total_creep
     kappa = params.stiffness_pct_per_um / 200.0
     if params.creep_driver == "voltage":
-        v_grid = v[data.grid_index] if isinstance(h, PlayParams) else data.grid_voltage_v
+        played = isinstance(h, PlayParams | GeneralisedPlayParams)
+        v_grid = v[data.grid_index] if played else data.grid_voltage_v
         slope = params.law_slope_um_per_v
         e = dev(v_grid, data.rest_voltage_v)
         xc = xh_grid[data.compared] + slope * (total * v_grid[data.compared] + e @ params.creep.weights)
@@ -500,7 +537,9 @@ def session_positions(
     return out
 
 
-def _rest_position(h: HysteresisParams | PlayParams, v: float) -> float:
+def _rest_position(h: HysteresisParams | PlayParams | GeneralisedPlayParams, v: float) -> float:
+    if isinstance(h, GeneralisedPlayParams):
+        return gplay_rest_state(h, v).position_um
     if isinstance(h, PlayParams):
         return h.b_um_per_v * h.total_weight * v
     return h.b_um_per_v * v
@@ -518,6 +557,7 @@ def fit_family(
     skip_s: float = 0.0,
     creep_driver: str = "position",
     thresholds: F64 | None = None,
+    nodes: F64 | None = None,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -543,8 +583,10 @@ def fit_family(
     creep_driver
         ``position`` or ``voltage``: what the fitted creep spectrum follows.
     thresholds
-        Play half-widths (V) of the Prandtl-Ishlinskii law (default :func:`default_thresholds`
-        with ``plays`` plays).
+        Play half-widths (V) of the Prandtl-Ishlinskii and generalised play laws (default
+        :func:`default_thresholds` with ``plays`` plays).
+    nodes
+        Relay-centre nodes (V) of the generalised play law (default :func:`default_nodes`).
 
     Raises
     ------
@@ -563,8 +605,25 @@ def fit_family(
     t0 = time.perf_counter()
     s = _Session(data, taus, mask, skip_s)
     rest_v = data.rest_voltage_v
+    hyst: HysteresisParams | PlayParams | GeneralisedPlayParams
     try:
-        if law == "prandtl-ishlinskii":
+        if law == "generalised-play":
+            r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
+            c = default_nodes(data) if nodes is None else np.asarray(nodes, np.float64)
+            f_grid, f_rest, slope = _gplay_features(data, r, c)
+            theta, w, kappa, tau, rms, it = _alternate(
+                s, f_grid, f_rest, regularisation, slope_of_theta=slope if voltage else None
+            )
+            mu = theta[1:].reshape(r.size + 1, c.size).copy()
+            mu[0] += theta[0]
+            used = np.flatnonzero(mu[1:].max(axis=1) > 0.0)
+            used = used if used.size else np.array([0])
+            hyst = GeneralisedPlayParams(
+                tuple(map(float, r[used])),
+                tuple(map(float, c)),
+                tuple(tuple(map(float, row)) for row in np.vstack([mu[:1], mu[1:][used]])),
+            )
+        elif law == "prandtl-ishlinskii":
             r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
             plays = r.size
             f_grid = _play_features(data, r)
@@ -580,7 +639,7 @@ def fit_family(
             used = np.flatnonzero(theta[1:] > 0.0)
             used = used if used.size else np.array([0])
             weights = theta[1:][used] / b
-            hyst: HysteresisParams | PlayParams = PlayParams(
+            hyst = PlayParams(
                 b, float(theta[0] / b), tuple(map(float, r[used])), tuple(map(float, weights))
             )
         else:
@@ -770,7 +829,14 @@ def family_model_config(params: FamilyParams) -> FamilyModelConfig:
         "stiffness_pct_per_um": params.stiffness_pct_per_um,
         "creep_driver": params.creep_driver,
     }
-    if isinstance(h, PlayParams):
+    if isinstance(h, GeneralisedPlayParams):
+        fields.update(
+            # full precision: a rounded node moves every play's density (6 digits cost 0.3 nm)
+            gp_thresholds_v=list(h.thresholds_v),
+            gp_nodes_v=list(h.nodes_v),
+            gp_density=[list(row) for row in h.density],
+        )
+    elif isinstance(h, PlayParams):
         fields.update(
             pi_rho0=h.rho0,
             pi_thresholds_v=[float(f"{r:.6g}") for r in h.thresholds_v],
