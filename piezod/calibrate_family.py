@@ -30,6 +30,7 @@ experiments. There is no default model.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -46,7 +47,7 @@ from piezod.calibrate_dynamic import (
 )
 from piezod.config import FamilyModelConfig
 from piezod.errors import CalibrationError, ModelError
-from piezod.fitstats import solve_linear
+from piezod.fitstats import FitResult, solve_linear
 from piezod.model.dynamic import MAX_TOTAL_CREEP
 from piezod.model.family import CREEP_DRIVERS, CreepSpectrum, FamilyParams
 from piezod.model.gplay import (
@@ -192,31 +193,38 @@ def default_taus(data: DynamicCalibrationData, per_decade: int = 2, tau_min_s: f
 # ---------------------------------------------------------------------------------------------- fit
 
 
-@dataclass(frozen=True, eq=False)
-class FamilyFit:
-    """A fitted member of the family.
+@dataclass(frozen=True, eq=False, kw_only=True)
+class FamilyFit(FitResult):
+    """A fitted member of the family: the shared :class:`~piezod.fitstats.FitResult` (training
+    residuals, ``n``, ``dof``, AIC/BIC, the held-out RMS) and the model's parameters.
+
+    The family's fit is an alternation of regularised linear problems, not one Jacobian at a
+    solution: it computes no parameter standard errors (:attr:`has_errors` is false); ``cost``
+    is half the training sum of squares (the creep spectrum's regularisation not included),
+    ``nfev`` counts alternations and joint Gauss-Newton steps.
 
     Attributes
     ----------
     params
         The frozen model parameters.
-    rms_um
-        RMS residual on the experiments it was fitted to (um, offsets removed per experiment).
-    heldout_rms_um
-        RMS prediction error on the held-out experiments (um), or nan when none were held out.
-    iterations
-        Alternations until convergence.
     """
 
     params: FamilyParams
-    rms_um: float
-    heldout_rms_um: float
-    iterations: int
 
     @property
     def law(self) -> str:
         """The hysteresis law."""
         return self.params.law
+
+    @property
+    def rms_um(self) -> float:
+        """RMS residual on the experiments it was fitted to (um, offsets removed per experiment)."""
+        return self.residual_rms_um
+
+    @property
+    def iterations(self) -> int:
+        """Alternations and joint Gauss-Newton steps until convergence."""
+        return self.nfev
 
 
 class _Session:
@@ -504,12 +512,26 @@ def _joint_refine(
     return theta, w, kappa, tau, rms, it
 
 
-def _heldout(s: _Session, params: FamilyParams) -> float:
-    if not s.test_rows.any():
-        return math.nan
+def _result(s: _Session, params: FamilyParams, iterations: int, n_coefficients: int, t0: float) -> FamilyFit:
+    """The fit's result: residuals on the training rows, RMS on the held-out ones."""
     x = session_positions(s.data, params, s.dev)
-    resid = _centre(s.data, x) - s.yc
-    return float(np.sqrt(np.mean(resid[s.test_rows] ** 2)))
+    resid = s.yc - _centre(s.data, x)
+    train = resid[s.train_rows]
+    held = resid[s.test_rows]
+    n = int(train.size)
+    n_offsets = int(np.unique(np.repeat(np.arange(s.data.n_experiments), s.data.counts)[s.train_rows]).size)
+    return FamilyFit(
+        params=params,
+        residuals_um=train,
+        cost=0.5 * float(train @ train),
+        n=n,
+        dof=n - n_coefficients - n_offsets,
+        nfev=iterations,
+        success=True,
+        message="converged",
+        seconds=time.perf_counter() - t0,
+        heldout_rms_um=float(np.sqrt(np.mean(held**2))) if held.size else math.nan,
+    )
 
 
 def session_positions(
@@ -628,6 +650,7 @@ def fit_family(
     mask = np.ones(data.n_experiments, dtype=bool) if train is None else np.asarray(train, dtype=bool)
     if not mask.any():
         raise CalibrationError("no experiment left to fit")
+    t0 = time.perf_counter()
     s = _Session(data, taus, mask, skip_s)
     rest_v = data.rest_voltage_v
     hyst: HysteresisParams | PlayParams | GeneralisedPlayParams
@@ -636,7 +659,7 @@ def fit_family(
             r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
             c = default_nodes(data) if nodes is None else np.asarray(nodes, np.float64)
             f_grid, f_rest, slope = _gplay_features(data, r, c)
-            theta, w, kappa, tau, rms, it = _alternate(
+            theta, w, kappa, tau, _, it = _alternate(
                 s,
                 f_grid,
                 f_rest,
@@ -657,7 +680,7 @@ def fit_family(
             r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
             plays = r.size
             f_grid = _play_features(data, r)
-            theta, w, kappa, tau, rms, it = _alternate(
+            theta, w, kappa, tau, _, it = _alternate(
                 s,
                 f_grid,
                 np.full(plays + 1, rest_v),
@@ -702,7 +725,7 @@ def fit_family(
                 alpha = float(alpha_per_v)
             y = _hysteresis_unit(data, alpha)
             f_grid = np.column_stack([data.grid_voltage_v, y])
-            theta, w, kappa, tau, rms, it = _alternate(
+            theta, w, kappa, tau, _, it = _alternate(
                 s, f_grid, np.array([rest_v, 0.0]), regularisation, slope_of_theta=ch_slope
             )
             b, delta = float(theta[0]), float(theta[1])
@@ -717,7 +740,9 @@ def fit_family(
         )
     except ModelError as exc:
         raise CalibrationError(f"family fit ({law}): {exc}") from exc
-    return FamilyFit(params, rms, _heldout(s, params), it)
+    # theta, the creep weights, kappa and the lag (and Coleman-Hodgdon's alpha when searched)
+    n_coefficients = theta.size + taus.size + 2 + int(law == "coleman-hodgdon" and alpha_per_v is None)
+    return _result(s, params, it, n_coefficients, t0)
 
 
 @dataclass(frozen=True, eq=False)

@@ -29,8 +29,9 @@ from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.model.gplay import GeneralisedPlayParams
 from piezod.model.params import HysteresisParams, ThesisParams
-from piezod.model.parts import Parts
+from piezod.model.parts import PART_EFFECTS, Parts
 from piezod.model.play import PlayParams
+from piezod.model.sensor import SensorPath
 
 AxisName = Literal["x", "y", "z"]
 
@@ -169,7 +170,7 @@ class FamilyModelConfig(StrictModel):
         )
 
 
-PartEffect = Literal["polarity", "thermal", "stiffness", "saturation", "drift"]
+PartEffect = Literal["polarity", "thermal", "stiffness", "saturation", "drift", "delay"]
 
 
 class AxisConfig(StrictModel):
@@ -192,17 +193,24 @@ class AxisConfig(StrictModel):
     extensions: dict[PartEffect, dict[str, float]] | None = Field(
         default=None,
         description="runtime parts around the model (the audit's findings, piezod.model.parts): "
-        "{effect id: {parameter: value}} with the names of piezod.model.registry",
+        "{effect id: {parameter: value}} with the names of piezod.model.registry; delay is the "
+        "sensor path (the readback's delay and lag, piezod.model.sensor): the analysis aligns the "
+        "readback with it, the drive is unchanged",
     )
 
     def parts(self) -> Parts:
-        """The runtime parts of :attr:`extensions`."""
-        return Parts.from_effects(dict(self.extensions or {}))
+        """The runtime parts of :attr:`extensions` (the drive side)."""
+        return Parts.from_effects({k: v for k, v in (self.extensions or {}).items() if k in PART_EFFECTS})
+
+    def sensor_path(self) -> SensorPath:
+        """The sensor path of :attr:`extensions` (identity when none)."""
+        return SensorPath.from_effects({str(k): v for k, v in (self.extensions or {}).items()})
 
     @model_validator(mode="after")
     def _check_limits(self) -> AxisConfig:
         try:
             self.parts()
+            self.sensor_path()
         except ModelError as exc:
             raise ValueError(f"extensions: {exc}") from exc
         if not self.voltage_min_v < self.voltage_max_v:

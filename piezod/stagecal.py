@@ -26,6 +26,7 @@ from piezod.calibrate import calibrate, calibrated_config, result_json
 from piezod.config import AxisName, ScannerConfig
 from piezod.errors import CalibrationError, PiezodError
 from piezod.linearity import linearity
+from piezod.model.sensor import SensorPath
 from piezod.model.thesis import scan_range_um
 from piezod.recording import Experiment, read_experiments
 from piezod.service.engine import Engine, Segment
@@ -268,8 +269,10 @@ def verify(
     *,
     lines: int = 4,
     progress: Progress | None = None,
+    sensor: SensorPath | None = None,
 ) -> list[dict[str, Any]]:
-    """Scan each point online-corrected; nonlinearity and length error from the sensor readback.
+    """Scan each point online-corrected; nonlinearity and length error from the sensor readback
+    (aligned through the axis's sensor path ``sensor``: a readback delay is not a position error).
 
     A model that was just switched in starts from a state adopted from the previous one (the
     dynamic model's creep memory spans decades), so one unrecorded warm-up scan at the first
@@ -340,7 +343,7 @@ def verify(
             )
             rows.append(row)
             continue
-        nl, le = worker.linearity(path, "x")
+        nl, le = worker.linearity(path, "x", sensor)
         row.update(nonlinearity_pct=nl, length_error_pct=le)
         rows.append(row)
     return rows
@@ -437,9 +440,7 @@ def choose_for_experiments(
         alpha = dyn.alpha_per_v
         spectrum = CreepSpectrum(tuple(map(float, dyn.taus_s)), tuple(map(float, dyn.weights)))
         others["dynamic"] = FamilyParams(dyn.hysteresis, spectrum)
-    choice = cf.choose_model(
-        data, others=others, alpha_per_v=alpha, adoptable_drivers=REALTIME_CREEP_DRIVERS
-    )
+    choice = cf.choose_model(data, others=others, alpha_per_v=alpha, adoptable_drivers=REALTIME_CREEP_DRIVERS)
     report: dict[str, Any] = {
         "chosen": choice.chosen,
         "held_out_experiments": list(choice.holdout),
@@ -503,11 +504,13 @@ def audit_and_extend(
     """
     from piezod.audit import AuditOptions, run_audit
     from piezod.audit import result_json as audit_json
-    from piezod.extensions import adopt_findings, experiments_through_parts, extended_config
-    from piezod.model.parts import PART_EFFECTS, Parts
+    from piezod.extensions import adopt_findings, experiments_through, extended_config
+    from piezod.model.parts import PART_EFFECTS
+    from piezod.model.sensor import SENSOR_EFFECTS
 
-    # only the effects a runtime part can take: the others could not be adopted (piezod audit tries all)
-    options = AuditOptions(folds=folds, refit_cv=False, effects=tuple(PART_EFFECTS))
+    # only the effects a runtime part or the sensor path can take: the others could not be
+    # adopted (piezod audit tries all)
+    options = AuditOptions(folds=folds, refit_cv=False, effects=(*PART_EFFECTS, *SENSOR_EFFECTS))
     doc = audit_json(run_audit(experiments, [], options=options))
     adoption = adopt_findings(doc["findings"])
     report: dict[str, Any] = {
@@ -520,9 +523,8 @@ def audit_and_extend(
     if not adoption.effects:
         report["text"] = adoption.summary()
         return ThesisFit(report, chosen.config, chosen.fit_error_pct)
-    parts = Parts.from_effects(adoption.effects)
     redone = choose_for_experiments(
-        experiments_through_parts(experiments, parts), axis, base, ramp_v_per_s, rest_voltage_v
+        experiments_through(experiments, adoption.effects), axis, base, ramp_v_per_s, rest_voltage_v
     )
     report["heldout_rms_um"]["extended"] = redone.fit_error_pct
     if redone.fit_error_pct < chosen.fit_error_pct:
@@ -551,8 +553,13 @@ def _audit_here(
     return audit_and_extend(exps, axis, chosen, base, ramp_v_per_s, rest_voltage_v)
 
 
-def _linearity_here(path: Path, axis: AxisName) -> tuple[float, float]:
-    e = linearity(read_experiments([path], axis=axis)).experiments[0]
+def _linearity_here(path: Path, axis: AxisName, sensor: SensorPath | None = None) -> tuple[float, float]:
+    exps = read_experiments([path], axis=axis)
+    if sensor is not None:
+        from piezod.extensions import experiments_through_sensor
+
+        exps = experiments_through_sensor(exps, sensor)
+    e = linearity(exps).experiments[0]
     return float(e.nonlinearity_pct), float(e.length_error_pct)
 
 
@@ -631,9 +638,12 @@ class AnalysisWorker:
             _audit_here, frame_path, axis, chosen, base, ramp_v_per_s, rest_voltage_v
         ).result()
 
-    def linearity(self, path: Path, axis: AxisName = "x") -> tuple[float, float]:
-        """(nonlinearity %, length error %) of the first experiment of ``axis`` in ``path``."""
-        return self._pool.submit(_linearity_here, path, axis).result()
+    def linearity(
+        self, path: Path, axis: AxisName = "x", sensor: SensorPath | None = None
+    ) -> tuple[float, float]:
+        """(nonlinearity %, length error %) of the first experiment of ``axis`` in ``path`` (the
+        readback aligned through ``sensor``, the axis's sensor path, when given)."""
+        return self._pool.submit(_linearity_here, path, axis, sensor).result()
 
     def synth_frame(self, path: Path) -> None:
         """Write a synthetic 12-experiment calibration session (for benchmarks) to ``path``."""
