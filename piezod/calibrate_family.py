@@ -611,7 +611,7 @@ def fit_family(
             r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
             c = default_nodes(data) if nodes is None else np.asarray(nodes, np.float64)
             f_grid, f_rest, slope = _gplay_features(data, r, c)
-            theta, w, kappa, tau, rms, it = _alternate(
+            theta, w, kappa, tau, _, it = _alternate(
                 s, f_grid, f_rest, regularisation, slope_of_theta=slope if voltage else None
             )
             mu = theta[1:].reshape(r.size + 1, c.size).copy()
