@@ -678,10 +678,6 @@ def calibrate(
 
 def result_json(result: CalibrationResult, *, inputs: Sequence[str] = ()) -> dict[str, Any]:
     """The JSON document of ``piezod calibrate --json`` (keys: docs/formats.md)."""
-    corr = {
-        a: {b: float(result.correlations[i, j]) for j, b in enumerate(result.free)}
-        for i, a in enumerate(result.free)
-    }
     return {
         "params": result.values,
         "stderr": dict(result.stderr),
@@ -706,20 +702,9 @@ def result_json(result: CalibrationResult, *, inputs: Sequence[str] = ()) -> dic
             }
             for e in result.experiments
         ],
-        "correlations": corr,
-        "condition_number": result.condition_number,
-        "free": list(result.free),
-        "fixed": list(result.fixed),
-        "at_bounds": list(result.at_bounds),
-        "n": result.n,
+        **result.statistics_json(),
         "n_experiments": len(result.experiments),
-        "cost": result.cost,
         "loss": result.loss,
-        "nfev": result.nfev,
-        "success": result.success,
-        "message": result.message,
-        "seconds": result.seconds,
-        "warnings": list(result.warnings),
         "inputs": list(inputs),
     }
 

@@ -644,10 +644,6 @@ def _finite(value: float) -> float | None:
 
 def result_json(result: DynamicCalibrationResult, *, inputs: Sequence[str] = ()) -> dict[str, Any]:
     """The JSON document of a dynamic calibration (keys of docs/formats.md, plus more)."""
-    corr = {
-        a: {b: float(result.correlations[i, j]) for j, b in enumerate(result.free)}
-        for i, a in enumerate(result.free)
-    }
     p = result.params
     return {
         "model": "dynamic",
@@ -686,20 +682,9 @@ def result_json(result: DynamicCalibrationResult, *, inputs: Sequence[str] = ())
             }
             for e in result.experiments
         ],
-        "correlations": corr,
-        "condition_number": result.condition_number,
-        "free": list(result.free),
-        "fixed": list(result.fixed),
-        "at_bounds": list(result.at_bounds),
-        "n": result.n,
+        **result.statistics_json(),
         "n_experiments": len(result.experiments),
-        "cost": result.cost,
-        "nfev": result.nfev,
         "simulations": result.simulations,
-        "success": result.success,
-        "message": result.message,
-        "seconds": result.seconds,
-        "warnings": list(result.warnings),
         "inputs": list(inputs),
     }
 

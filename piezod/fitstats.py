@@ -17,6 +17,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -247,6 +248,27 @@ class FitResult:
     at_bounds: tuple[str, ...] = ()
     condition_number: float = math.nan
     heldout_rms_um: float = math.nan
+
+    def statistics_json(self) -> dict[str, Any]:
+        """The shared part of a fit's JSON document (keys of docs/formats.md): the parameter
+        statistics, ``n``, ``cost`` and the solver status."""
+        return {
+            "correlations": {
+                a: {b: float(self.correlations[i, j]) for j, b in enumerate(self.free)}
+                for i, a in enumerate(self.free)
+            },
+            "condition_number": self.condition_number,
+            "free": list(self.free),
+            "fixed": list(self.fixed),
+            "at_bounds": list(self.at_bounds),
+            "n": self.n,
+            "cost": self.cost,
+            "nfev": self.nfev,
+            "success": self.success,
+            "message": self.message,
+            "seconds": self.seconds,
+            "warnings": list(self.warnings),
+        }
 
     @property
     def has_errors(self) -> bool:
