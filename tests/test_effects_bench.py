@@ -89,6 +89,18 @@ def test_polarity_is_found_adopted_and_corrected_online() -> None:
     assert length["extended"] <= TARGET_FRACTION * length["baseline"], s
 
 
+def test_a_sensor_delay_is_corrected_by_aligning_the_readback() -> None:
+    """hil_sim's delay at the sensor (realistic): the model calibrated on the raw readback puts the
+    stage off; calibrated on the readback aligned through the sensor path (injected value) it does
+    not, scored where the stage is. The drive has no delay part: the sensor path changes the fit only."""
+    case = run_case(realistic_specs("delay"), loops=2, audit_effects=("delay",))
+    s = score(case, _floor()["baseline"]["worst"], resolution_pct=0.01)
+    for m in ("nonlinearity_pct", "length_error_pct"):
+        left = s["left"][m]
+        assert left["baseline"] > 0.02, s  # the calibration's bias, not the readback's lateness
+        assert left["injected"] <= TARGET_FRACTION * left["baseline"], s
+
+
 _KNOWN = {
     "stiffness": "the audit does not name stiffness on the reduced frame (held-out gain 1.30 +- 0.16, "
     "not 2 standard errors above 1); the stiffness part removes it with the injected value",
