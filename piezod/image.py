@@ -7,9 +7,11 @@ position sensor, metadata ``position_sensor: no``) and, from a microscope, the h
 turning points cut it into half periods: the *traces* (target increasing) and the *retraces*.
 Trace ``k`` and the retrace after it are image line ``k`` (the slow axis steps at the start of each
 trace). Pixel ``j`` of a line of ``N`` pixels covers ``[x0 + j R / N, x0 + (j + 1) R / N)`` of the
-fast coordinate, ``x0 = offset - R / 2``; its value is the mean of the samples inside (empty pixels,
-at most a few at very high pixel counts, are interpolated along the line). Both images are stored
-left to right in x.
+fast coordinate, ``x0 = offset - R / 2``; on the commanded grid its value is the mean over the
+pixel of the line's profile interpolated linearly between its samples (where in the pixel an edge
+lies stays in the image at any sample rate), on the measured grid the mean of the samples inside
+(empty pixels, at most a few at very high pixel counts, are interpolated along the line). Both
+images are stored left to right in x.
 
 * ``grid="commanded"``: the fast coordinate is the commanded target: the image the microscope
   shows (distorted where the scanner is not linear).
@@ -227,6 +229,27 @@ def raster_samples(rec: Recording) -> RasterSamples:
     )
 
 
+def _box_means(x: F64, v: F64, edges: F64) -> F64:
+    """Mean over each ``[edges[j], edges[j + 1])`` of the profile interpolated linearly between the
+    points ``(x, v)`` (``x`` increasing); NaN where a box holds no part of ``[x[0], x[-1]]``."""
+    dx = np.diff(x)
+    cum = np.concatenate(([0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * dx)))
+
+    def integral(b: F64) -> F64:
+        b = np.clip(b, x[0], x[-1])
+        i = np.clip(np.searchsorted(x, b, side="right") - 1, 0, x.size - 2)
+        h = b - x[i]
+        slope = (v[i + 1] - v[i]) / np.where(dx[i] > 0, dx[i], 1.0)
+        out: F64 = cum[i] + v[i] * h + 0.5 * slope * h * h
+        return out
+
+    lo, hi = np.clip(edges[:-1], x[0], x[-1]), np.clip(edges[1:], x[0], x[-1])
+    width = hi - lo
+    with np.errstate(invalid="ignore", divide="ignore"):
+        means: F64 = np.where(width > 0, (integral(edges[1:]) - integral(edges[:-1])) / width, np.nan)
+    return means
+
+
 def assemble(
     coord_um: F64,
     values: F64,
@@ -234,8 +257,16 @@ def assemble(
     direction: NDArray[np.int8],
     lines: int,
     geo: Geometry,
+    *,
+    profile: bool = False,
 ) -> tuple[F64, F64]:
     """Trace and retrace images: the mean of ``values`` in every (line, pixel) bin of ``coord_um``.
+
+    With ``profile`` (a coordinate monotonic within every half line: the commanded grid) a pixel
+    is the mean over its width of the profile interpolated linearly between the samples: a sharp
+    edge then leaves the pixel it falls in at the level that says where in the pixel it lies,
+    whatever the samples' phase in the pixel (the plain mean of the samples inside a pixel of a
+    few samples puts it up to half a sample spacing off). Without, the mean of the samples inside.
 
     Returns
     -------
@@ -246,6 +277,7 @@ def assemble(
     n_px = geo.pixels
     p = np.floor((coord_um - geo.x0_um) / geo.pixel_um).astype(np.int64)
     ok = (line >= 0) & (p >= 0) & (p < n_px) & np.isfinite(values)
+    edges = geo.x0_um + geo.pixel_um * np.arange(n_px + 1, dtype=np.float64)
     out = []
     for d in (1, -1):
         s = ok & (direction == d)
@@ -255,6 +287,18 @@ def assemble(
         tot = np.bincount(flat, weights=values[s], minlength=size)
         with np.errstate(invalid="ignore", divide="ignore"):
             img = (tot / cnt).reshape(lines, n_px)
+        if profile:
+            whole = (line >= 0) & (direction == d) & np.isfinite(values)
+            for r in range(lines):
+                k = np.flatnonzero(whole & (line == r))
+                if k.size < 2:
+                    continue
+                order = np.argsort(coord_um[k], kind="stable")
+                xs, vs = coord_um[k][order], values[k][order]
+                if np.any(np.diff(xs) <= 0):
+                    continue  # not monotonic: keep the sample means
+                box = _box_means(xs, vs, edges)
+                img[r] = np.where(np.isfinite(box), box, img[r])
         cols = np.arange(n_px)
         for r in range(lines):
             row = img[r]
@@ -364,7 +408,9 @@ def images(
     out = []
     for grid, coord in grids.items():
         for name, (values, unit, scale) in chans.items():
-            tr, re = assemble(coord, values, rs.line, rs.direction, rs.lines, geo)
+            tr, re = assemble(
+                coord, values, rs.line, rs.direction, rs.lines, geo, profile=grid == "commanded"
+            )
             out.append(ImagePair(name, unit, scale, grid, tr, re, geo))
     return out
 

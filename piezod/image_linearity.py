@@ -18,11 +18,30 @@ their known positions ``k P`` on the sample, and regressed on their pixel positi
 3. Within a line and family, successive flanks are numbered by their gap in units of the local
    period (a missing line - the same gap in every line of a 1D pattern - is a gap of two).
 4. The true position ``k P`` is regressed on the commanded position ``xi`` of the flank with one
-   intercept per (line, family) - the unknown position of the sample - and one common slope ``g``
-   (as :mod:`piezod.linearity` regresses the sensor position on the target). One pass drops flanks
-   whose residual exceeds five robust standard deviations (dust the width test missed).
-5. (4.14) ``x'_R = g R``, (4.15) ``e_l = (x'_R - R) / R``, (4.16) ``e_rel = sigma / x'_R``, ``sigma``
-   the residual standard deviation (``n - groups - 1`` degrees of freedom).
+   intercept per (line, family) - the unknown position of the sample - and one common slope; one
+   pass drops flanks whose residual exceeds five robust standard deviations (dust the width test
+   missed).
+5. The metric weighs the line as the sensor path does. Flanks are uniform in *true* position, the
+   sensor's samples of a linear scan uniform in *time* (in commanded position): on a curved
+   response a straight-line fit through the flanks and one through the samples give different
+   slopes (by up to a few tenths of a percent on an uncorrected scan, where both are right about
+   their own points). So the flanks are not the regression's points: they give the true position
+   as a function of the commanded one, ``x(xi) = k P`` (:func:`position_map`: a Legendre series of
+   degree <= 6 shared by all lines, one intercept per line and family, fitted to all flanks; one
+   pass drops outliers of it), which is resampled uniformly in commanded position (a quarter pixel
+   apart), as the samples are, over the stretches the image sees (:func:`seen_spans`: from the
+   lines' first flank to their last, less the stretches more than half a period from any flank -
+   the missing line).
+6. (4.14)-(4.16) of that map by :func:`piezod.linearity.branch_linearity`, the sensor path's own
+   regression: ``x'_R = g R``, ``e_l = (x'_R - R) / R``, ``e_rel = sigma / x'_R`` (``sigma`` of
+   the smooth map: the flanks' own scatter, the sample's edge roughness, is not the scanner's).
+   The sensor figure this reproduces is the sensor path over the same stretches
+   (:func:`window_linearity`); over the whole lines the sensor also sees the line ends no flank
+   covers, and everywhere the position's structure finer than the flank spacing (half a period),
+   which the image cannot resolve.
+7. The standard uncertainty of the length error from the flank-position noise: the slope of step
+   6 is linear in the map's coefficients, whose covariance is that of the fit (the flanks'
+   scatter about it taken independent).
 
 The local pitch error along the line, ``P / dxi - 1`` for successive flanks of a family, is the
 picture of the nonlinearity (:func:`plot_pitch_error`): positive where the scanner moves farther
@@ -41,6 +60,7 @@ from numpy.typing import NDArray
 
 from piezod.errors import RecordingError
 from piezod.image import F64, Geometry, level
+from piezod.linearity import BranchLinearity, branch_linearity
 
 _WIDTH_TOLERANCE = 0.35
 _OUTLIER_SIGMAS = 5.0
@@ -93,7 +113,16 @@ class ImageLinearity:
     sigma_um
         Residual standard deviation (um).
     nonlinearity_pct, length_error_pct
-        (4.16) and (4.15) in %.
+        (4.16) and (4.15) in %, of the map resampled uniformly in commanded position (as the
+        sensor's samples).
+    length_error_unc_pct
+        Standard uncertainty of ``length_error_pct`` from the flank-position noise (the spread of
+        the lines' own slopes); NaN with fewer than three lines.
+    flank_length_error_pct
+        (4.15) of the straight-line fit through the flanks themselves (weighted by true position;
+        for comparison).
+    windows
+        ``(line, lo, hi)``: the commanded stretches (um) of every line the metric covers.
     """
 
     direction: int
@@ -107,6 +136,9 @@ class ImageLinearity:
     sigma_um: float
     nonlinearity_pct: float
     length_error_pct: float
+    length_error_unc_pct: float = math.nan
+    flank_length_error_pct: float = math.nan
+    windows: tuple[tuple[int, float, float], ...] = ()
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready dict."""
@@ -122,6 +154,9 @@ class ImageLinearity:
             "sigma_um": self.sigma_um,
             "nonlinearity_pct": self.nonlinearity_pct,
             "length_error_pct": self.length_error_pct,
+            "length_error_unc_pct": self.length_error_unc_pct,
+            "flank_length_error_pct": self.flank_length_error_pct,
+            "windows_um": [[lo, hi] for _, lo, hi in self.windows],
         }
 
 
@@ -153,6 +188,7 @@ def _crossings(profile: F64, xs: F64) -> tuple[F64, F64]:
     s = d - 0.5 * (lo + hi)
     # Two plateaus on one tilted line: p = a + b x + c [upper]; the mid level a + b x + c / 2 does
     # not lean with the pattern's asymmetry (a missing line) as a plain line fit does.
+    step = float(hi - lo)
     for _ in range(2):
         upper = (s > 0).astype(np.float64)
         far = ok & (np.abs(s) > 0.25 * (hi - lo))
@@ -161,17 +197,24 @@ def _crossings(profile: F64, xs: F64) -> tuple[F64, F64]:
         a = np.column_stack((np.ones(int(far.sum())), xs[far], upper[far]))
         c0, c1, c2 = np.linalg.lstsq(a, p[far], rcond=None)[0]
         s = p - (c0 + c1 * xs + 0.5 * c2)
+        step = abs(float(c2))
         if c2 < 0:
             s = -s
-    return _schmitt(s, xs, _HYSTERESIS * (hi - lo))
+    return _schmitt(s, xs, _HYSTERESIS * (hi - lo), step)
 
 
-def _schmitt(s: F64, xs: F64, band: float) -> tuple[F64, F64]:
+def _schmitt(s: F64, xs: F64, band: float, step: float) -> tuple[F64, F64]:
     """Zero crossings of ``s`` that complete a transition from below ``-band`` to above ``+band``
     (rising) or back (falling), at the last zero crossing before the far level is reached.
 
     A spike in a plateau (the z loop's overshoot where the z piezo reverses, a speck of dust) that
     does not reach the other level makes no flank; a noisy edge makes one, not several.
+
+    Where is the flank within its pixels: a pixel is the mean over its width, so a sharp edge
+    leaves one pixel at an intermediate level, and a straight line between pixel centres puts
+    the crossing up to ~0.1 pixel off, by an amount that changes with the edge's phase in the
+    pixel grid - along an image line, a slope error of up to ~0.1 % on a 20 um line. The
+    pixels conserve the area under the profile, so the edge is found from it (:func:`_by_area`).
     """
     level = np.where(s > band, 1, np.where(s < -band, -1, 0))
     idx = np.flatnonzero(level != 0)
@@ -192,7 +235,36 @@ def _schmitt(s: F64, xs: F64, band: float) -> tuple[F64, F64]:
     ok = np.isfinite(a) & np.isfinite(b) & (a != b)
     i, rising, a, b = i[ok], rising[ok], a[ok], b[ok]
     x: F64 = xs[i] + a / (a - b) * (xs[i + 1] - xs[i])
+    x = _by_area(s, xs, i, rising, x, step)
     return x[rising], x[~rising]
+
+
+def _by_area(s: F64, xs: F64, i: NDArray[np.intp], rising: NDArray[np.bool_], x: F64, step: float) -> F64:
+    """Edge positions from the area of the profile around the crossings between ``i`` and ``i + 1``.
+
+    In a window of ``2 m`` pixels around the crossing, each pixel's fraction on the low side
+    (``1/2 - s / step`` on a rising edge) summed, times the pixel width, from the window's
+    left boundary: exact for a sharp edge and for any edge profile symmetric about its middle,
+    whatever its phase in the pixel grid. ``m`` (1-3) stays below a third of the distance
+    between crossings; a window that leaves the line or meets a missing value keeps ``x``.
+    """
+    if i.size == 0 or not step > 0 or xs.size < 4:
+        return x
+    dx = float(xs[1] - xs[0])
+    gap = float(np.median(np.diff(np.sort(x)))) / abs(dx) if x.size > 1 else float(xs.size)
+    m = int(np.clip(gap // 3, 1, 3))
+    offs = np.arange(-m + 1, m + 1)
+    j = i[:, None] + offs[None, :]
+    inside = (j[:, 0] >= 0) & (j[:, -1] < s.size)
+    jj = np.clip(j, 0, s.size - 1)
+    v = s[jj]
+    low = np.where(rising[:, None], 0.5 - v / step, 0.5 + v / step)
+    ok = inside & np.isfinite(v).all(axis=1)
+    area = xs[jj[:, 0]] - 0.5 * dx + dx * low.sum(axis=1)
+    # the area of a pixel beyond the plateaus (noise, a spike) must not move the edge out of its pixel
+    ok &= np.abs(area - x) <= abs(dx)
+    out: F64 = np.where(ok, area, x)
+    return out
 
 
 class _Spacing:
@@ -311,8 +383,120 @@ def _regress(x: F64, xi: F64, group: NDArray[np.int64]) -> tuple[float, F64, int
     return g, xc - g * xic, int(ids.size)
 
 
+@dataclass(frozen=True, slots=True)
+class PositionMap:
+    """The true position as a function of the commanded one along the lines of an image, from its flanks.
+
+    ``x(xi) = c_group + sum_j a_j L_j(u)``, ``u = (xi - centre) / half`` (Legendre polynomials
+    ``L_1 .. L_degree``), one intercept per (line, family), the shape shared by all lines (every
+    line scans alike; what differs between lines - drift, the sample's position - is the
+    intercepts').
+
+    Attributes
+    ----------
+    centre, half
+        Scaling of ``u`` (um).
+    coef
+        ``a_1 .. a_degree`` (um).
+    cov
+        Their covariance from the flanks' scatter about the fit (um^2).
+    noise_um
+        The flanks' scatter about the fit (edge roughness and detection; um rms).
+    window
+        ``(lo, hi)``: the commanded span the metric covers (um): from the lines' first flank to
+        their last (medians over the lines).
+    used, dropped
+        Flanks fitted and flanks dropped as outliers of the fit.
+    """
+
+    centre: float
+    half: float
+    coef: F64
+    cov: F64
+    noise_um: float
+    window: tuple[float, float]
+    used: int
+    dropped: int
+
+    def basis(self, xi_um: F64) -> F64:
+        """``L_1 .. L_degree`` at ``xi_um``, shape ``(n, degree)``."""
+        from numpy.polynomial import legendre
+
+        u = (np.asarray(xi_um, dtype=np.float64) - self.centre) / self.half
+        out: F64 = np.asarray(legendre.legvander(u, self.coef.size)[:, 1:], dtype=np.float64)
+        return out
+
+    def __call__(self, xi_um: F64) -> F64:
+        """The map (um, up to a constant)."""
+        out: F64 = self.basis(xi_um) @ self.coef
+        return out
+
+
+def _demean(a: F64, inv: NDArray[np.intp], cnt: F64) -> F64:
+    if a.ndim == 1:
+        out: F64 = a - (np.bincount(inv, a) / cnt)[inv]
+        return out
+    return np.column_stack([_demean(a[:, j], inv, cnt) for j in range(a.shape[1])])
+
+
+def position_map(fl: Flanks, pitch_um: float, pixel_um: float) -> PositionMap:
+    """Fit the :class:`PositionMap` to the flanks (``k P`` at their commanded positions).
+
+    The degree follows the flanks per line (both families): ``min(6, n - 3)``, at least 2. One pass
+    drops flanks beyond five robust standard deviations of the fit (never tighter than a fifth of
+    a pixel: positions are found to a fraction of a pixel) and refits.
+
+    Raises
+    ------
+    RecordingError
+        Too few flanks for the fit.
+    """
+    group = fl.line * 2 + (fl.family > 0)
+    x = fl.k.astype(np.float64) * pitch_um
+    per_line = float(np.median(np.bincount(np.unique(fl.line, return_inverse=True)[1])))
+    degree = int(min(6, max(2, per_line - 3)))
+    lo_all, hi_all = float(fl.xi_um.min()), float(fl.xi_um.max())
+    centre, half = 0.5 * (lo_all + hi_all), max(0.5 * (hi_all - lo_all), 1e-9)
+    firsts = [float(fl.xi_um[fl.line == r].min()) for r in np.unique(fl.line)]
+    lasts = [float(fl.xi_um[fl.line == r].max()) for r in np.unique(fl.line)]
+    window = (float(np.median(firsts)), float(np.median(lasts)))
+    keep = np.ones(x.size, dtype=bool)
+    for attempt in range(2):
+        ids, inv = np.unique(group[keep], return_inverse=True)
+        cnt = np.bincount(inv).astype(np.float64)
+        probe = PositionMap(centre, half, np.zeros(degree), np.zeros((degree, degree)), 0.0, window, 0, 0)
+        a = _demean(probe.basis(fl.xi_um[keep]), inv, cnt)
+        b = _demean(x[keep], inv, cnt)
+        dof = int(keep.sum()) - ids.size - degree
+        if dof < 2:
+            raise RecordingError(
+                f"too few flanks ({int(keep.sum())}) for the position map of degree {degree}"
+            )
+        coef, *_ = np.linalg.lstsq(a, b, rcond=None)
+        resid = b - a @ coef
+        if attempt == 1:
+            break
+        mad = max(float(np.median(np.abs(resid - np.median(resid)))) * 1.4826, 0.2 * pixel_um)
+        bad = np.abs(resid - np.median(resid)) > _OUTLIER_SIGMAS * mad
+        if not bad.any() or keep.sum() - bad.sum() < ids.size + degree + 3:
+            break
+        keep[np.flatnonzero(keep)[bad]] = False
+    noise2 = float(resid @ resid) / dof
+    cov = np.asarray(noise2 * np.linalg.pinv(a.T @ a), dtype=np.float64)
+    return PositionMap(
+        centre=centre,
+        half=half,
+        coef=np.asarray(coef, dtype=np.float64),
+        cov=cov,
+        noise_um=math.sqrt(noise2),
+        window=window,
+        used=int(keep.sum()),
+        dropped=int(x.size - keep.sum()),
+    )
+
+
 def image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) -> ImageLinearity:
-    """(4.14)-(4.16) of one image of a line pattern of pitch ``pitch_um``.
+    """(4.14)-(4.16) of one image of a line pattern of pitch ``pitch_um`` (see the module docstring).
 
     Raises
     ------
@@ -335,40 +519,101 @@ def image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) 
             f"{name} image: {per_group:g} flanks per line and family; the linearity needs at least four "
             f"(a range of several periods of the {pitch_um:g} um reference)"
         )
+    # the straight line through the flanks themselves (weighted by true position), for comparison
     x = fl.k.astype(np.float64) * pitch_um
-    g, r, ng = _regress(x, fl.xi_um, group)
-    keep = np.ones(x.size, dtype=bool)
-    # flank positions are quantised to a fraction of a pixel: no tighter outlier band than that
+    g, r, _ = _regress(x, fl.xi_um, group)
     mad = max(float(np.median(np.abs(r - np.median(r)))) * 1.4826, 0.2 * geo.pixel_um)
-    if mad > 0:
-        keep = np.abs(r - np.median(r)) <= _OUTLIER_SIGMAS * mad
-        if keep.sum() >= 6 and not keep.all():
-            g, r, ng = _regress(x[keep], fl.xi_um[keep], group[keep])
-    n = int(keep.sum())
-    dof = n - ng - 1
-    if dof < 1:
-        raise RecordingError(f"{name} image: too few flanks ({n}) for the linearity regression")
-    sigma = math.sqrt(float(r @ r) / dof)
-    measured = g * geo.range_um
+    keep = np.abs(r - np.median(r)) <= _OUTLIER_SIGMAS * mad
+    if keep.sum() >= 6 and not keep.all():
+        g, r, _ = _regress(x[keep], fl.xi_um[keep], group[keep])
     if not 0.5 < g < 2.0:
         raise RecordingError(
             f"{name} image: the flanks do not follow a line pattern of pitch {pitch_um:g} um "
             f"(slope {g:.3g}): "
             "a wrong --pitch-um, or not a pattern of lines across this axis"
         )
+    try:
+        pm = position_map(fl, pitch_um, geo.pixel_um)
+    except RecordingError as exc:
+        raise RecordingError(f"{name} image: {exc.reason}") from None
+    lo, hi = pm.window
+    if not hi - lo > 2.0 * pitch_um:
+        raise RecordingError(f"{name} image: the flanks span {hi - lo:.3g} um of the lines: too little")
+    spans = seen_spans(fl.xi_um, pitch_um, lo, hi)
+    # the map uniformly in commanded position, as the samples of a linear scan
+    step = 0.25 * geo.pixel_um
+    q = np.concatenate([np.linspace(a, b, max(2, math.ceil((b - a) / step) + 1)) for a, b in spans])
+    br = branch_linearity(direction, pm(q), q, np.zeros(q.size, dtype=np.int64), geo.range_um)
+    # the slope of that straight line is a linear function of the map's coefficients
+    w = (q - q.mean()) / float((q - q.mean()) @ (q - q.mean()))
+    lin = w @ pm.basis(q)
+    slope_sd = math.sqrt(max(float(lin @ pm.cov @ lin), 0.0))
+    lines = np.unique(fl.line)
     return ImageLinearity(
         direction=direction,
         pitch_um=pitch_um,
-        flanks=n,
-        dropped=int(x.size - n),
-        lines=int(np.unique(fl.line).size),
-        slope=g,
+        flanks=pm.used,
+        dropped=pm.dropped,
+        lines=int(lines.size),
+        slope=br.slope,
         nominal_range_um=geo.range_um,
-        measured_range_um=measured,
-        sigma_um=sigma,
-        nonlinearity_pct=100.0 * sigma / measured,
-        length_error_pct=100.0 * (measured - geo.range_um) / geo.range_um,
+        measured_range_um=br.measured_range_um,
+        sigma_um=br.sigma_um,
+        nonlinearity_pct=br.nonlinearity_pct,
+        length_error_pct=br.length_error_pct,
+        length_error_unc_pct=100.0 * slope_sd,
+        flank_length_error_pct=100.0 * (g - 1.0),
+        windows=tuple((int(r_), a, b) for r_ in lines for a, b in spans),
     )
+
+
+def seen_spans(xi_um: F64, pitch_um: float, lo: float, hi: float) -> list[tuple[float, float]]:
+    """The commanded stretches of ``[lo, hi]`` within half a period of a flank (of any line).
+
+    Between the flanks the map is interpolated; where the pattern shows none for longer (a missing
+    line: no flank over two periods of one family, one and a half of both) the image does not see
+    the position, and neither metric counts it.
+    """
+    x = np.unique(xi_um[(xi_um >= lo - pitch_um) & (xi_um <= hi + pitch_um)])
+    spans: list[tuple[float, float]] = []
+    for a, b in zip(np.maximum(x - 0.5 * pitch_um, lo), np.minimum(x + 0.5 * pitch_um, hi), strict=True):
+        if b <= a:
+            continue
+        if spans and a <= spans[-1][1]:
+            spans[-1] = (spans[-1][0], max(spans[-1][1], float(b)))
+        else:
+            spans.append((float(a), float(b)))
+    return spans
+
+
+def window_linearity(
+    t_s: F64,
+    target_um: F64,
+    position_um: F64,
+    line: NDArray[np.int64],
+    direction: NDArray[np.int8],
+    lin: ImageLinearity,
+) -> BranchLinearity:
+    """The sensor path's (4.14)-(4.16) of the same branch over the image metric's windows.
+
+    The samples of ``lin.direction`` in every image line the image metric covers, whose commanded
+    position lies inside that line's window, regressed by :func:`piezod.linearity.branch_linearity`
+    - the image metric's own regression, on the same commanded span, weighted alike (uniform in
+    time). ``position_um`` is the sensor (or, on the simulator, the hidden true position).
+
+    Raises
+    ------
+    RecordingError
+        No samples in the windows (the recording is not the image's).
+    """
+    sel = np.zeros(t_s.size, dtype=bool)
+    for r, lo, hi in lin.windows:
+        sel |= (line == r) & (direction == lin.direction) & (target_um >= lo) & (target_um <= hi)
+    sel &= np.isfinite(position_um)
+    name = "trace" if lin.direction > 0 else "retrace"
+    if not sel.any():
+        raise RecordingError(f"{name}: no position samples inside the image metric's windows")
+    return branch_linearity(lin.direction, position_um[sel], target_um[sel], line[sel], lin.nominal_range_um)
 
 
 def slow_geometry(geo: Geometry, lines: int, row_slow_um: F64 | None = None) -> Geometry:
@@ -490,11 +735,15 @@ def plot_pitch_error(
 __all__ = [
     "Flanks",
     "ImageLinearity",
+    "PositionMap",
     "find_flanks",
     "image_linearity",
     "pitch_error",
     "plot_pitch_error",
+    "position_map",
+    "seen_spans",
     "sensor_slow_linearity",
     "slow_geometry",
     "slow_image_linearity",
+    "window_linearity",
 ]

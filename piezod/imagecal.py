@@ -213,7 +213,7 @@ def flank_events(
     rs = raster_samples(rec)
     if rs.z_voltage_v is None:
         raise RecordingError("no 'z_voltage' column: the recording carries no height channel", rec.path)
-    tr, re = assemble(rs.target_um, rs.z_voltage_v, rs.line, rs.direction, rs.lines, geo)
+    tr, re = assemble(rs.target_um, rs.z_voltage_v, rs.line, rs.direction, rs.lines, geo, profile=True)
     # (half-line order, direction) -> flanks; half lines in time order: trace 0, retrace 0, trace 1, ...
     groups: list[tuple[int, int, F64, NDArray[np.int64], NDArray[np.int8], F64, F64, F64]] = []
     for d, img in ((1, tr), (-1, re)):

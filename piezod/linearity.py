@@ -315,27 +315,60 @@ def _lines(
 def _branch(
     d: int, x: F64, xi: F64, line: NDArray[np.intp], nominal: float, scale: float, exp: Experiment
 ) -> BranchLinearity:
+    try:
+        return branch_linearity(d, x, xi, line, nominal, scale)
+    except RecordingError as exc:
+        raise RecordingError(f"experiment {exp.describe()}: {exc.reason}", exp.path, exp.first_line) from None
+
+
+def branch_linearity(
+    direction: int, x: F64, xi: F64, line: NDArray[np.integer[Any]], nominal: float, scale: float = 1.0
+) -> BranchLinearity:
+    """(4.14)-(4.16) of one branch: ``x`` regressed on ``xi`` with one intercept per ``line``.
+
+    The one regression of the sensor path (:func:`experiment_linearity`) and of the image path
+    (:func:`piezod.image_linearity.image_linearity`, on the position map it reconstructs from the
+    flanks): both weigh the points as given - the samples of a linear scan, uniform in time.
+
+    Parameters
+    ----------
+    direction
+        +1 trace, -1 retrace.
+    x
+        Position (um).
+    xi
+        Nominal coordinate (um): the commanded position or the pixel coordinate.
+    line
+        Line of every point (one intercept each).
+    nominal
+        Nominal range ``R`` (um).
+    scale
+        ``R`` per commanded um (``x'_R = g R / scale``).
+
+    Raises
+    ------
+    RecordingError
+        Too few points for the regression.
+    """
     ids, inv = np.unique(line, return_inverse=True)
     n_lines = ids.size
     n = x.size
     if n < n_lines + 3:
-        name = "trace" if d > 0 else "retrace"
-        raise RecordingError(
-            f"experiment {exp.describe()}: too few {name} samples ({n}) for the linearity regression",
-            exp.path,
-            exp.first_line,
-        )
+        name = "trace" if direction > 0 else "retrace"
+        raise RecordingError(f"too few {name} samples ({n}) for the linearity regression")
     cnt = np.bincount(inv).astype(np.float64)
     xc = x - (np.bincount(inv, x) / cnt)[inv]
     xic = xi - (np.bincount(inv, xi) / cnt)[inv]
     sxx = float(xic @ xic)
+    if not sxx > 0:
+        raise RecordingError("the nominal coordinate does not vary within the lines")
     g = float(xic @ xc) / sxx
     r = xc - g * xic
     sigma = math.sqrt(float(r @ r) / (n - n_lines - 1))
     # g is measured um per target um; x'_R of (4.14) is g times the commanded span, compared with R.
     measured = g * nominal / scale
     return BranchLinearity(
-        direction=d,
+        direction=direction,
         n=n,
         lines=n_lines,
         slope=g,

@@ -213,20 +213,51 @@ def verification_points(
     r_fast = min(0.5 * (r_lo + r_hi), 0.8 * ax.slew_rate_v_per_s / (2.0 * f_fast) / 2.0)
     pts.append(VerifyPoint(um(r_fast, f_fast), f_fast, 0.0, False, "10x faster"))
     # Offsets beyond the frame's: half-range scans pushed out to 1.8x the largest offset.
-    off_v = 1.8 * max(abs(o_hi - centre), abs(o_lo - centre), 0.1 * (ax.voltage_max_v - ax.voltage_min_v))
+    frame_off = max(abs(o_hi - centre), abs(o_lo - centre), 0.1 * (ax.voltage_max_v - ax.voltage_min_v))
+    off_v = 1.8 * frame_off
     r_off = min(r_lo, 2.0 * (0.5 * (ax.voltage_max_v - ax.voltage_min_v) - off_v) * 0.9)
     if r_off > 0:
         for sign in (-1.0, 1.0):
-            pts.append(
-                VerifyPoint(
-                    um(r_off, 1.0),
-                    1.0,
-                    round(sign * off_v * b, 2),
-                    False,
-                    f"offset {sign * off_v:+.0f} V beyond frame",
-                )
-            )
+            off_um, at_v = _offset_um(config, axis, centre, sign * off_v, um(r_off, 1.0), b, 1.2 * frame_off)
+            pts.append(VerifyPoint(um(r_off, 1.0), 1.0, off_um, False, f"offset {at_v:+.0f} V beyond frame"))
     return pts
+
+
+def _offset_um(
+    config: ScannerConfig,
+    axis: AxisName,
+    centre_v: float,
+    off_v: float,
+    range_um: float,
+    b: float,
+    least_v: float,
+) -> tuple[float, float]:
+    """The centre (um) of a verification scan ``off_v`` from the voltage centre, and that offset (V).
+
+    The offset is a *voltage*: the axis's own model (the one being verified) says where the stage
+    rests there, relative to where it rests at the centre -- the thesis model's ``b`` says it
+    wrongly for a loop much wider or narrower than the thesis law's (its centre then needs more
+    voltage than the amplifier has, and the scan clamps). The periodic plan still checks the scan
+    with the thesis model, so the offset shrinks (down to ``least_v``, still beyond the frame)
+    until that check passes; where it never does, the thesis model places it as before.
+    """
+    from piezod.errors import RangeUnreachableError, SafetyError
+    from piezod.service.axes import _plan, axis_model
+
+    ax = config.axes[axis]
+    model = axis_model(ax)
+    thesis = ax.thesis.params()
+    zero = model.position(model.rest(centre_v))
+    v = off_v
+    while abs(v) >= least_v:
+        off_um = round(float(model.position(model.rest(centre_v + v)) - zero), 2)
+        try:
+            _plan(thesis, range_um, 1.0, off_um, ax.voltage_min_v, ax.voltage_max_v)
+        except (RangeUnreachableError, SafetyError):
+            v *= 0.9
+            continue
+        return off_um, v
+    return round(off_v * b, 2), off_v
 
 
 def verify(

@@ -16,7 +16,7 @@ from hil_sim.stage import StageConfig
 from piezod.config import config_dir, default_sim_config_path
 from piezod.errors import RecordingError
 from piezod.image import images, raster_samples
-from piezod.image_linearity import find_flanks, image_linearity
+from piezod.image_linearity import find_flanks, image_linearity, window_linearity
 from piezod.linearity import experiment_linearity
 from piezod.recording import Recording, read_recording, split_experiments
 
@@ -71,7 +71,7 @@ def test_z_feedback_follows_the_surface_with_its_bandwidth() -> None:
 # ---------------------------------------------------------------------- images (synthetic, offline)
 
 
-def _synthetic(nonlinear: float, *, lines: int = 6, pixels: int = 200) -> Recording:
+def _synthetic(nonlinear: float, *, lines: int = 6, pixels: int = 200, cubic: float = 0.0) -> Recording:
     """A raster recording of the line pattern with a known fast-axis distortion and a sensor."""
     fs, f, r = 5000.0, 2.0, 20.0
     n_half = int(fs / f / 2)
@@ -79,7 +79,7 @@ def _synthetic(nonlinear: float, *, lines: int = 6, pixels: int = 200) -> Record
     tgt = np.concatenate([np.concatenate((ramp, -ramp)) for _ in range(lines)] + [np.array([-r / 2])])
     t = np.arange(tgt.size) / fs
     u = tgt / (r / 2)
-    pos = tgt * 1.01 + nonlinear * (r / 2) * (1 - u**2)  # +1 % length, a bow
+    pos = tgt * 1.01 + nonlinear * (r / 2) * (1 - u**2) + cubic * (r / 2) * u**3  # +1 % length, a bow
     line = np.repeat(np.arange(lines), 2 * n_half)
     y = np.concatenate((-r / 2 + r * line / max(lines - 1, 1), [r / 2]))
     h = get_sample("line-3um").height(pos, y)
@@ -95,17 +95,52 @@ def _synthetic(nonlinear: float, *, lines: int = 6, pixels: int = 200) -> Record
     )
 
 
-@pytest.mark.parametrize("bow", [0.0, 0.002])
-def test_image_metrics_reproduce_the_sensor_metrics(bow: float) -> None:
-    rec = _synthetic(bow)
+@pytest.mark.parametrize(("bow", "cubic"), [(0.0, 0.0), (0.002, 0.0), (0.05, 0.02)])
+def test_image_metrics_reproduce_the_sensor_metrics(bow: float, cubic: float) -> None:
+    # (0.05, 0.02): 0.5 um of bow and 0.2 um of S (0.7 % non-linearity, an uncorrected scan's order):
+    # flanks are uniform in true position, the sensor's samples in time; a straight line through
+    # the flanks reads +2.43 % where the samples give +2.19 %. The image metric resamples the
+    # flanks' position map uniformly in commanded position and regresses it as the sensor path does.
+    rec = _synthetic(bow, cubic=cubic)
     pair = next(p for p in images(rec) if p.grid == "commanded")
     assert pair.trace.shape == (6, 200) and np.isfinite(pair.trace).all()
     sensor = experiment_linearity(split_experiments(rec)[0])
+    rs = raster_samples(rec)
     for d, img, br in ((1, pair.trace, sensor.trace), (-1, pair.retrace, sensor.retrace)):
         im = image_linearity(img, pair.geometry, 3.0, d)
-        assert im.length_error_pct == pytest.approx(br.length_error_pct, abs=0.05)
-        assert im.nonlinearity_pct == pytest.approx(br.nonlinearity_pct, abs=0.05)
-    assert sensor.trace.length_error_pct == pytest.approx(1.0, abs=0.05)
+        same = window_linearity(rs.t_s, rs.target_um, rs.position_um, rs.line, rs.direction, im)
+        assert im.length_error_pct == pytest.approx(same.length_error_pct, abs=0.05)
+        assert im.nonlinearity_pct == pytest.approx(same.nonlinearity_pct, abs=0.05)
+        # the stretches the image sees cover most of the line
+        assert same.n > 0.7 * br.n
+        assert im.length_error_pct == pytest.approx(br.length_error_pct, abs=0.05 if bow < 0.01 else 0.1)
+        if cubic:  # the flanks' own straight line weighs the curvature otherwise
+            assert abs(im.flank_length_error_pct - same.length_error_pct) > 0.15
+        # the edge roughness (3 nm rms) is the uncertainty's noise
+        assert 0.002 < im.length_error_unc_pct < 0.05
+    assert sensor.trace.length_error_pct == pytest.approx(1.0 + 60 * cubic, abs=0.01)  # u^3: slope 3/5
+
+
+def test_flanks_are_found_to_a_fraction_of_the_sample_spacing() -> None:
+    # a sample every 16 nm, pixels of 100 nm: wherever an edge falls in its pixel, the pixel's
+    # area places it (a straight line between pixel centres was up to 8 nm off)
+    import dataclasses
+
+    smooth = dataclasses.replace(get_sample("line-3um"), roughness_nm_rms=0.0)
+    rec = _synthetic(0.0)
+    rec = dataclasses.replace(rec, z_voltage_v=smooth.height(rec.position_um, _rows_y(rec)) / 0.024)
+    pair = next(p for p in images(rec) if p.grid == "commanded")
+    fl = find_flanks(pair.trace, pair.geometry)
+    true = fl.xi_um * 1.01 - 0.75  # edges at k P +- P / 4 on the stretched scan
+    err = true - np.round(true / 1.5) * 1.5
+    assert np.abs(err[fl.line != 4]).max() < 0.002  # um (line 4 passes the particle's flank)
+
+
+def _rows_y(rec: Recording) -> np.ndarray:
+    lines = 6
+    n_half = (rec.t_s.size - 1) // (2 * lines)
+    line = np.repeat(np.arange(lines), 2 * n_half)
+    return np.concatenate((-10.0 + 20.0 * line / (lines - 1), [10.0]))
 
 
 def test_flanks_skip_the_particle_and_number_across_the_missing_line() -> None:
@@ -208,11 +243,14 @@ def test_piezod_image_writes_gwy_files_that_gwyfile_opens(scans: dict[str, Path]
     bare = gwyfile.load(str(tmp_path / "nosensor.gwy"))
     assert not any("measured" in str(bare[k]) for k in bare if k.endswith("/data/title"))
     assert (tmp_path / "corrected-pitch-error.png").stat().st_size > 1000
-    # where a sensor exists, the image reproduces the sensor's figures of the same scan
-    img, sen = res[0]["image_linearity"], res[0]["sensor_linearity"]
+    # where a sensor exists, the image reproduces the sensor's figures of the same scan: over the
+    # same commanded span by the same regression, and (a corrected, straight scan) over the whole lines
+    img, sen = res[0]["image_linearity"], res[0]["sensor_window_linearity"]
+    whole = res[0]["sensor_linearity"]
     for b in ("trace", "retrace"):
         assert abs(img[b]["length_error_pct"] - sen[b]["length_error_pct"]) <= 0.05
         assert abs(img[b]["nonlinearity_pct"] - sen[b]["nonlinearity_pct"]) <= 0.05
+        assert abs(img[b]["length_error_pct"] - whole[b]["length_error_pct"]) <= 0.05
     # the uncorrected scan without a sensor: its distortion from the image alone
     assert res[1]["image_linearity"]["trace"]["length_error_pct"] > 2.0
     assert "sensor_linearity" not in res[1]

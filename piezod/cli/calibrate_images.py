@@ -26,8 +26,8 @@ from piezod.calibrate_dynamic import fit_dynamic
 from piezod.cli._common import board_url, human_stream, scanner_config_path, with_microscope, write_json
 from piezod.config import MicroscopeSection, ScannerConfig, dump_config, load_config
 from piezod.errors import CalibrationError, PiezodError
-from piezod.image import images
-from piezod.image_linearity import image_linearity
+from piezod.image import images, raster_samples
+from piezod.image_linearity import image_linearity, window_linearity
 from piezod.imagecal import (
     default_image_frame,
     drop_outlier_flanks,
@@ -43,25 +43,67 @@ from piezod.linearity import experiment_linearity
 from piezod.recording import read_recording, split_experiments
 
 
-def _image_metrics(path: Path, pitch_um: float) -> dict[str, float]:
+def _worse(d: dict[str, dict[str, float]]) -> dict[str, float]:
+    """The worse of trace and retrace: the larger non-linearity, the length error of larger magnitude
+    (with its uncertainty when it has one)."""
+    tr, rt = d["trace"], d["retrace"]
+    le = max((tr, rt), key=lambda b: abs(b["length_error_pct"]))
+    out = {
+        "nonlinearity_pct": max(tr["nonlinearity_pct"], rt["nonlinearity_pct"]),
+        "length_error_pct": le["length_error_pct"],
+    }
+    if "length_error_unc_pct" in le:
+        out["length_error_unc_pct"] = le["length_error_unc_pct"]
+    return out
+
+
+def _verify_here(path: Path, pitch_um: float, truth: Path | None, rate_hz: float) -> dict[str, Any]:
+    """Image metrics of a verification scan and, on the simulator, the hidden truth's: over the image
+    metric's windows by the same regression (:func:`piezod.image_linearity.window_linearity`), and
+    over the whole lines by the sensor path (:func:`piezod.linearity.experiment_linearity`)."""
+    out: dict[str, Any] = {}
     rec = read_recording(path)
     pair = next(p for p in images(rec) if p.grid == "commanded" and p.channel == "z_voltage")
-    tr = image_linearity(pair.trace, pair.geometry, pitch_um, 1)
-    rt = image_linearity(pair.retrace, pair.geometry, pitch_um, -1)
-    worse_nl = max(tr.nonlinearity_pct, rt.nonlinearity_pct)
-    worse_le = max((tr.length_error_pct, rt.length_error_pct), key=abs)
-    return {"nonlinearity_pct": worse_nl, "length_error_pct": worse_le}
-
-
-def _truth_metrics(path: Path, truth_log: Path, rate_hz: float) -> dict[str, float]:
-    rec = with_truth(read_recording(path), read_truth_log(truth_log), rate_hz)
-    exp = next(e for e in split_experiments(rec) if e.axis in (None, "x"))
-    lin = experiment_linearity(exp)
-    # the worse of trace and retrace, as the image metrics report it
-    return {
-        "nonlinearity_pct": max(lin.trace.nonlinearity_pct, lin.retrace.nonlinearity_pct),
-        "length_error_pct": max((lin.trace.length_error_pct, lin.retrace.length_error_pct), key=abs),
+    lins = {}
+    try:
+        for name, img, d in (("trace", pair.trace, 1), ("retrace", pair.retrace, -1)):
+            lins[name] = image_linearity(img, pair.geometry, pitch_um, d)
+    except PiezodError as exc:
+        out["image_error"] = str(exc)
+        lins = {}
+    if lins:
+        per = {
+            k: {
+                "nonlinearity_pct": v.nonlinearity_pct,
+                "length_error_pct": v.length_error_pct,
+                "length_error_unc_pct": v.length_error_unc_pct,
+            }
+            for k, v in lins.items()
+        }
+        out["image"] = {**_worse(per), "branches": per}
+    if truth is None:
+        return out
+    true_rec = with_truth(rec, read_truth_log(truth), rate_hz)
+    if lins:
+        rs = raster_samples(true_rec)
+        per = {}
+        for k, v in lins.items():
+            b = window_linearity(rs.t_s, rs.target_um, rs.position_um, rs.line, rs.direction, v)
+            per[k] = {"nonlinearity_pct": b.nonlinearity_pct, "length_error_pct": b.length_error_pct}
+        out["truth"] = {**_worse(per), "branches": per}
+    # a recording with a gap (samples lost on a loaded machine) splits into experiments: the longest
+    exp = max((e for e in split_experiments(true_rec) if e.axis in (None, "x")), key=lambda e: e.t_s.size)
+    try:
+        lin = experiment_linearity(exp)
+    except PiezodError as exc:
+        out["truth_whole_lines_error"] = str(exc)
+        return out
+    per = {
+        k: {"nonlinearity_pct": b.nonlinearity_pct, "length_error_pct": b.length_error_pct}
+        for k, b in (("trace", lin.trace), ("retrace", lin.retrace))
     }
+    out["truth_whole_lines"] = {**_worse(per), "branches": per}
+    return out
 
 
 def _fit_here(
@@ -136,17 +178,6 @@ def _fit_here(
         },
     }
     return calibrated, summary
-
-
-def _verify_here(path: Path, pitch_um: float, truth: Path | None, rate_hz: float) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    try:
-        out["image"] = _image_metrics(path, pitch_um)
-    except PiezodError as exc:
-        out["image_error"] = str(exc)
-    if truth is not None:
-        out["truth"] = _truth_metrics(path, truth, rate_hz)
-    return out
 
 
 def _scan_with_retry(engine: Any, scans: list[Any], out_dir: Path, say: Any, **kw: Any) -> list[Path]:
@@ -292,25 +323,38 @@ def run_from_images(args: argparse.Namespace) -> int:
 
 
 def format_rows(rows: list[dict[str, Any]]) -> str:
-    """The verification table: image metrics beside the hidden truth."""
+    """The verification table: image metrics beside the hidden truth.
+
+    Each figure is the worse of trace and retrace. ``truth`` is the true position over the image
+    metric's windows by the same regression (what the image measures); ``truth whole`` the sensor
+    path over the whole lines (the ends no flank covers included); ``+-`` the image's standard
+    uncertainty from the flank-position noise.
+    """
     head = (
         f"{'model':<8} {'range um':>8} {'f Hz':>6} {'off um':>6} {'frame':>7}  "
-        f"{'image nonlin %':>14} {'image len %':>11}  {'truth nonlin %':>14} {'truth len %':>11}  what"
+        f"{'image nonlin %':>14} {'image len %':>16}  {'truth nonlin %':>14} {'truth len %':>11}  "
+        f"{'truth whole len %':>17}  what"
     )
     lines = [head]
     for r in rows:
         im = r.get("image", {})
         tr = r.get("truth", {})
+        tw = r.get("truth_whole_lines", {})
 
         def f(d: dict[str, float], k: str, fmt: str) -> str:
             v = d.get(k)
             return format(v, fmt) if v is not None and np.isfinite(v) else "-"
 
+        le = f(im, "length_error_pct", "+.3f")
+        unc = im.get("length_error_unc_pct")
+        if le != "-" and unc is not None and np.isfinite(unc):
+            le += f" +-{unc:.3f}"
         lines.append(
             f"{r['model']:<8} {r['range_um']:8.4g} {r['line_rate_hz']:6.3g} {r['offset_um']:6.3g} "
             f"{r['frame']:>7}  "
-            f"{f(im, 'nonlinearity_pct', '14.3f')} {f(im, 'length_error_pct', '+11.3f')}  "
-            f"{f(tr, 'nonlinearity_pct', '14.3f')} {f(tr, 'length_error_pct', '+11.3f')}  {r['what']}"
+            f"{f(im, 'nonlinearity_pct', '14.3f')} {le:>16}  "
+            f"{f(tr, 'nonlinearity_pct', '14.3f')} {f(tr, 'length_error_pct', '+11.3f')}  "
+            f"{f(tw, 'length_error_pct', '+17.3f')}  {r['what']}"
         )
     return "\n".join(lines)
 

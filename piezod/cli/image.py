@@ -26,6 +26,7 @@ from piezod.image_linearity import (
     plot_pitch_error,
     sensor_slow_linearity,
     slow_image_linearity,
+    window_linearity,
 )
 from piezod.linearity import linearity
 from piezod.recording import read_experiments, read_recording
@@ -42,7 +43,8 @@ def register(sub: Any) -> None:
             "height_linear, one constant sensitivity) on the commanded grid and, when the board had a "
             "position sensor, on the measured positions. Writes DIR/NAME.gwy (all images, with the scan's "
             "metadata) and PNGs. With --pitch-um, the non-linearity and length error (4.14)-(4.16) from "
-            "the flanks of a line pattern of that pitch, beside the sensor's figures when there is one."
+            "the flanks of a line pattern of that pitch, beside the sensor's figures when there is one "
+            "(over the image metric's windows by the same regression, and over the whole lines)."
         ),
     )
     p.add_argument("recordings", nargs="+", metavar="REC.csv", help="raster recordings (piezod scan)")
@@ -165,8 +167,9 @@ def run(args: argparse.Namespace) -> int:
                     continue
                 raise
             entry["image_linearity"] = {k: v.as_dict() for k, v in branches.items()}
-            line = "  image  (flanks):  " + "  ".join(
-                f"{k} nonlin {v.nonlinearity_pct:.4f} % length {v.length_error_pct:+.4f} %"
+            line = "  image (flanks):           " + "  ".join(
+                f"{k} nonlin {v.nonlinearity_pct:.4f} % length {v.length_error_pct:+.4f} "
+                f"+- {v.length_error_unc_pct:.4f} %"
                 for k, v in branches.items()
             )
             print(line, file=say)
@@ -183,8 +186,25 @@ def run(args: argparse.Namespace) -> int:
                     },
                 }
                 tr, rt = exp.trace, exp.retrace
+                rs = raster_samples(rec)
+                same = {
+                    k: window_linearity(rs.t_s, rs.target_um, rs.position_um, rs.line, rs.direction, v)
+                    for k, v in branches.items()
+                }
+                entry["sensor_window_linearity"] = {
+                    k: {"nonlinearity_pct": b.nonlinearity_pct, "length_error_pct": b.length_error_pct}
+                    for k, b in same.items()
+                }
                 print(
-                    f"  sensor (samples): trace nonlin {tr.nonlinearity_pct:.4f} % length "
+                    "  sensor (image's windows): "
+                    + "  ".join(
+                        f"{k} nonlin {b.nonlinearity_pct:.4f} % length {b.length_error_pct:+.4f} %"
+                        for k, b in same.items()
+                    ),
+                    file=say,
+                )
+                print(
+                    f"  sensor (whole lines):     trace nonlin {tr.nonlinearity_pct:.4f} % length "
                     f"{tr.length_error_pct:+.4f} %  retrace nonlin {rt.nonlinearity_pct:.4f} % "
                     f"length {rt.length_error_pct:+.4f} %",
                     file=say,
