@@ -388,11 +388,11 @@ def plot_effects(result: dict[str, Any], path: str | Path) -> Path:
         ext = [r["left"][m]["extended"] for r in rows]
         inj = [r["left"][m].get("injected", np.nan) for r in rows]
         ax.bar(xs - 0.27, base, 0.27, label="baseline (dynamic model)")
-        ax.bar(xs, ext, 0.27, label="extended (audit findings as runtime parts)")
-        ax.bar(xs + 0.27, inj, 0.27, label="runtime parts with the injected value")
+        ax.bar(xs, ext, 0.27, label="extended (audit findings as runtime parts / sensor path)")
+        ax.bar(xs + 0.27, inj, 0.27, label="parts / sensor path with the injected value")
         ax.set_xticks(xs, names, rotation=30, ha="right")
         ax.set_ylabel(f"{label} left above the no-effect floor (%)")
-        ax.set_title(f"{label}: worst online-corrected scan inside the frame")
+        ax.set_title(f"{label}: worst online-corrected scan inside the frame", fontsize=10)
         ax.legend(fontsize=8)
     fig.suptitle(
         "Error each hil_sim effect leaves after online correction (built-in stage + one effect, "

@@ -336,6 +336,10 @@ def verify(
             row["retried_after"] = [f"{f.source}/{f.code}: {f.message}" for f in engine.status().faults[-3:]]
             engine.wait_healthy()
             engine.stop()
+            # recordings are never overwritten: the spoilt one stays, the retry gets its own
+            path = directory / f"{name}-retry.csv"
+            req = req.model_copy(update={"name": f"{name}-retry"})
+            row["recording"] = str(path)
             state = _scan_once(engine, req, path, pt, i, len(points), n_lines, progress)
         if state != "idle":
             row.update(

@@ -23,14 +23,19 @@ def test_findings_map_to_parts_and_the_rest_is_named() -> None:
         [
             {"effect": "stiffness", "params": {"sensitivity_pct_per_um": -0.16}},
             {"effect": "delay", "params": {"delay_s": 0.0158, "lag_time_constant_s": 0.0}},
+            {"effect": "resonance", "params": {"f0_hz": 665.0, "q": 10.0}},
             {"effect": "saturation", "params": {"x_sat_um": 2.0}},  # outside the physical range
             {"effect": "drift", "params": {"rate_nm_per_s": None}},
         ]
     )
-    assert adoption.effects == {"stiffness": {"sensitivity_pct_per_um": -0.16}}
+    assert adoption.effects == {
+        "stiffness": {"sensitivity_pct_per_um": -0.16},
+        "delay": {"delay_s": 0.0158, "lag_time_constant_s": 0.0},
+    }
     text = adoption.summary()
     assert "adopted stiffness: sensitivity_pct_per_um = -0.16" in text
-    assert "not adopted delay: a pure delay needs targets ahead" in text
+    assert "adopted delay: delay_s = 0.0158, lag_time_constant_s = 0 (sensor path" in text
+    assert "not adopted resonance: no runtime part" in text
     assert "not adopted saturation" in text and "not adopted drift: no finite value" in text
     assert adopt_findings([]).summary().startswith("no material finding")
 

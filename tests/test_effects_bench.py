@@ -18,6 +18,7 @@ from piezod.effects_bench import (
 )
 from piezod.model.parts import PART_EFFECTS
 from piezod.model.registry import REGISTRY
+from piezod.model.sensor import SENSOR_EFFECTS
 
 
 def test_realistic_specs_sit_inside_the_registry_ranges() -> None:
@@ -89,12 +90,31 @@ def test_polarity_is_found_adopted_and_corrected_online() -> None:
     assert length["extended"] <= TARGET_FRACTION * length["baseline"], s
 
 
+def test_a_sensor_delay_is_corrected_by_aligning_the_readback() -> None:
+    """hil_sim's delay at the sensor (realistic): the model calibrated on the raw readback puts the
+    stage off; calibrated on the readback aligned through the sensor path (injected value) it does
+    not, scored where the stage is. The drive has no delay part: the sensor path changes the fit only."""
+    case = run_case(realistic_specs("delay"), loops=2, audit_effects=("delay",))
+    s = score(case, _floor()["baseline"]["worst"], resolution_pct=0.01)
+    for m in ("nonlinearity_pct", "length_error_pct"):
+        left = s["left"][m]
+        assert left["baseline"] > 0.02, s  # the calibration's bias, not the readback's lateness
+        assert left["injected"] <= TARGET_FRACTION * left["baseline"], s
+
+
+class TargetMissedError(AssertionError):
+    """The extended model leaves more than 1/3 of the baseline's error (the known xfails: only this)."""
+
+
 _KNOWN = {
-    "stiffness": "the audit does not name stiffness on the reduced frame (held-out gain 1.30 +- 0.16, "
-    "not 2 standard errors above 1); the stiffness part removes it with the injected value",
-    "saturation": "the audit does not name saturation on this frame (the saturation part removes it "
-    "with the injected value)",
-    "delay": "no runtime part for a pure delay, and the audit does not name it on this frame",
+    "stiffness": "the audit does not name stiffness on the reduced frame (held-out gain 1.30 +- 0.16, not 2 "
+    "jackknife standard errors above 1; a paired block test gives z = 3.1 but loses a hidden resonance); "
+    "the stiffness part removes it with the injected value",
+    "saturation": "the audit's saturation candidate explains nothing on the reduced, centred frame (held-out "
+    "gain 0.998: the baseline's hysteresis shape absorbs the odd compression); the saturation part removes "
+    "it with the injected value",
+    "delay": "the audit's delay candidate (d = 0.53 ms) has held-out gain 1.13 +- 0.14 on the reduced frame, "
+    "not 2 standard errors above 1; the sensor path removes it with the injected value",
 }
 
 
@@ -102,7 +122,9 @@ _KNOWN = {
 @pytest.mark.parametrize(
     "effect",
     [
-        pytest.param(e, marks=pytest.mark.xfail(strict=True, reason=_KNOWN[e])) if e in _KNOWN else e
+        pytest.param(e, marks=pytest.mark.xfail(strict=True, raises=TargetMissedError, reason=_KNOWN[e]))
+        if e in _KNOWN
+        else e
         for e in ("drift", "thermal", "stiffness", "polarity", "resonance", "delay", "saturation")
     ],
 )
@@ -111,11 +133,14 @@ def test_the_extended_model_removes_what_the_effect_causes(effect: str) -> None:
     result = run_effects_bench([effect])
     print(format_table(result))
     (row,) = result["rows"]
-    assert row["met"] or row["below_resolution"], row["left"]
-    if effect in PART_EFFECTS and not row["below_resolution"]:
-        # the runtime part with the injected value removes it too
+    if (effect in PART_EFFECTS or effect in SENSOR_EFFECTS) and not row["below_resolution"]:
+        # the runtime part (or the sensor path) with the injected value removes it (checked first:
+        # an xfail below must be the audit's, not the correction's)
         for m in ("nonlinearity_pct", "length_error_pct"):
-            assert row["left"][m]["injected"] <= TARGET_FRACTION * row["left"][m]["baseline"] + 0.005
+            left = row["left"][m]
+            assert left["injected"] <= TARGET_FRACTION * left["baseline"] + 0.005, row["left"]
+    if not (row["met"] or row["below_resolution"]):
+        raise TargetMissedError(f"{effect}: {row['findings']} found, left {row['left']}")
 
 
 def test_bench_effects_refuses_an_unknown_effect(capsys: pytest.CaptureFixture[str]) -> None:

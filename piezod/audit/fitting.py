@@ -369,32 +369,6 @@ def gain_with_se(before: HeldOut, after: HeldOut, blocks: int = JACKKNIFE_BLOCKS
     return gain, se
 
 
-def paired_z(before: HeldOut, after: HeldOut, blocks: int = JACKKNIFE_BLOCKS) -> float:
-    """How many standard errors the held-out squared error drops, ``z`` of a paired block test.
-
-    The comparison of predictive accuracy of Diebold and Mariano (J. Bus. Econ. Stat. 13, 1995)
-    with a batch-means variance: the loss differentials ``d_i = SS_before_i - SS_after_i`` of
-    ``blocks`` contiguous blocks of the held-out samples (the same samples before and after, so
-    the data common to both cancels; contiguous blocks keep the residuals' correlation in time
-    inside a block), ``z = mean(d) / SE(mean(d))``. Its variance is the null's (the
-    differentials' scatter): the jackknife of the gain *ratio* (:func:`gain_with_se`) also
-    measures how unevenly a real effect spreads over the blocks (large where the fast or large
-    scans sit), so as a test it doubts exactly the effects that are there (stiffness on the
-    reduced calibration frame: gain 1.30 +- 0.16, z = 3.1). ``nan`` without two blocks; ``inf``
-    (or ``-inf``) when every block gains (loses) the same.
-    """
-    if before.residual.size != after.residual.size or after.residual.size == 0:
-        return math.nan
-    d = before.block_ss(blocks) - after.block_ss(blocks)
-    if d.size < 2:
-        return math.nan
-    mean = float(np.mean(d))
-    se = float(np.std(d, ddof=1)) / math.sqrt(d.size)
-    if se == 0.0:
-        return 0.0 if mean == 0.0 else math.copysign(math.inf, mean)
-    return mean / se
-
-
 def folds_of(n_segments: int, k: int) -> list[NDArray[np.bool_]]:
     """Interleaved folds over segments (segment ``s`` is in fold ``s % k``)."""
     k = max(2, min(k, n_segments))
