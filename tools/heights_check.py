@@ -56,12 +56,13 @@ def _scan(engine: Engine, request: ScanRequest, path: Path) -> None:
 
 
 def _true_z(rs_t: np.ndarray, truth: Path, rate: float) -> np.ndarray:
+    """The true z extension at the samples the truth log holds (every 10th), NaN elsewhere: at a
+    step the extension moves within a sample or two, which no interpolation between logged
+    samples follows."""
     idx, z = read_truth_log(truth, "z_um")
     k = np.rint(rs_t * rate).astype(np.int64)
-    out = np.full(k.size, np.nan)
-    inside = (k >= idx[0]) & (k <= idx[-1])
-    out[inside] = np.interp(k[inside].astype(np.float64), idx.astype(np.float64), z)
-    return out
+    pos = np.clip(np.searchsorted(idx, k), 0, idx.size - 1)
+    return np.where(idx[pos] == k, z[pos], np.nan)
 
 
 def main(argv: list[str] | None = None) -> int:
