@@ -1,6 +1,6 @@
 """Rate-independent hysteresis laws of the simulated stage (hil_sim's own implementations).
 
-Three laws, chosen per axis in the ``simulation:`` section:
+Four laws, chosen per axis in the ``simulation:`` section:
 
 ``coleman-hodgdon``
     The ODE ``dx/dV = alpha sgn(dV) (b V - x) + u`` (thesis eq. 2.21), stepped exactly for a
@@ -19,7 +19,12 @@ Three laws, chosen per axis in the ``simulation:`` section:
     that close but are not congruent. Neither law the controller fits: the held-out stage
     ``configs/sim-preisach-stage.yaml`` uses it to check generality.
 
-Both are evaluated over whole blocks with state carried across blocks; a block split anywhere
+``bouc-wen``
+    A rate-independent Bouc-Wen law (:class:`BoucWenParams`): a Duhem-type ODE in the voltage
+    whose relaxation rate depends on the direction and on the sign of the hysteretic part. Not a
+    law the controller fits: the second held-out stage ``configs/sim-boucwen-stage.yaml``.
+
+All are evaluated over whole blocks with state carried across blocks; a block split anywhere
 gives the same samples (the play operator is exact at the sample instants for a voltage that is
 monotone between samples). The Coleman-Hodgdon step is an independent copy of the closed form
 used by the host (``tests/test_stage.py`` checks that both agree).
@@ -451,13 +456,111 @@ def _zero(rho0: float, width_v: float, asymmetry: float, saturation_v: float) ->
     return preisach_rest_state(PreisachParams(1.0, rho0, width_v, asymmetry, saturation_v), 0.0).hyst_v
 
 
+# ---------------------------------------------------------------------------------------------
+# Bouc-Wen (rate independent, n = 1), the second held-out law
+
+
+@dataclass(frozen=True, slots=True)
+class BoucWenParams:
+    """A rate-independent Bouc-Wen law (exponent 1), the held-out law of ``sim-boucwen-stage``.
+
+    ``x = b (V - h)`` with the hysteretic voltage ``h`` obeying
+    ``dh = A dV - beta |dV| h - gamma dV |h|`` (the Bouc-Wen form used for piezo stacks). Along a
+    monotone run ``h`` relaxes exponentially towards ``+-A / (beta + gamma)`` at a rate that
+    depends on the direction *and* on the sign of ``h`` (``beta + gamma`` or ``beta - gamma``),
+    so the loop shape is neither a sum of plays nor the Coleman-Hodgdon ODE; repeated minor
+    loops do not close exactly (no wiping-out memory).
+
+    Attributes
+    ----------
+    b_um_per_v
+        Sensitivity (um/V), > 0.
+    a
+        ``A``, in (0, 1).
+    beta_per_v, gamma_per_v
+        ``beta > |gamma|`` (1/V); the branch stays increasing (``2 A beta / (beta + gamma) < 1``).
+    """
+
+    b_um_per_v: float
+    a: float
+    beta_per_v: float
+    gamma_per_v: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.b_um_per_v) and self.b_um_per_v > 0.0):
+            raise SimModelError(f"b_um_per_v must be finite and > 0, got {self.b_um_per_v!r}")
+        if not 0.0 < self.a < 1.0:
+            raise SimModelError(f"bouc-wen A must lie in (0, 1), got {self.a!r}")
+        if not (math.isfinite(self.beta_per_v) and self.beta_per_v > abs(self.gamma_per_v)):
+            raise SimModelError("bouc-wen needs beta_per_v > |gamma_per_v|")
+        if not 2.0 * self.a * self.beta_per_v / (self.beta_per_v + self.gamma_per_v) < 1.0:
+            raise SimModelError("bouc-wen branch would run backwards: need 2 A beta / (beta + gamma) < 1")
+
+
+@dataclass(frozen=True, slots=True)
+class BoucWenState:
+    """Voltage of the last sample (V) and the hysteretic voltage ``h`` (V)."""
+
+    voltage_v: float
+    h_v: float
+
+
+def boucwen_rest_state(params: BoucWenParams, voltage_v: float = 0.0) -> BoucWenState:
+    """Relaxed at ``voltage_v``: ``h = 0`` (the demagnetised state, ``x = b V``)."""
+    return BoucWenState(float(voltage_v), 0.0)
+
+
+def _bw_rising(params: BoucWenParams, dv: NDArray[np.float64], h0: float) -> NDArray[np.float64]:
+    """``h`` after rising by ``dv >= 0`` from ``h0`` (closed form, one sign change of ``h`` at most)."""
+    a, kp, km = params.a, params.beta_per_v + params.gamma_per_v, params.beta_per_v - params.gamma_per_v
+    if h0 >= 0.0:
+        out: NDArray[np.float64] = a / kp + (h0 - a / kp) * np.exp(-kp * dv)
+        return out
+    d0 = math.log1p(-h0 * km / a) / km  # where h crosses 0
+    below = a / km + (h0 - a / km) * np.exp(-km * np.minimum(dv, d0))
+    above = -(a / kp) * np.expm1(-kp * np.maximum(dv - d0, 0.0))
+    return np.where(dv <= d0, below, above)
+
+
+def boucwen_step(
+    params: BoucWenParams, voltage_v: ArrayLike, state: BoucWenState
+) -> tuple[NDArray[np.float64], BoucWenState]:
+    """Advance the Bouc-Wen law through a block (exact for a voltage monotone between samples).
+
+    A falling run is a rising run of ``(-V, -h)`` (the law is odd), so both use one closed form.
+    """
+    v = np.asarray(voltage_v, dtype=np.float64)
+    if v.ndim != 1:
+        raise SimModelError(f"voltage_v must be 1-D, got shape {v.shape}")
+    if v.size == 0:
+        return np.empty(0), state
+    h = np.empty_like(v)
+    v0, h0 = state.voltage_v, state.h_v
+    starts, dirs = _runs(v, v0)
+    bounds = np.append(starts, v.size)
+    for k, direction in enumerate(dirs):
+        seg = v[bounds[k] : bounds[k + 1]]
+        if direction == 0:
+            h[bounds[k] : bounds[k + 1]] = h0
+        else:
+            sgn = 1.0 if direction > 0 else -1.0
+            h[bounds[k] : bounds[k + 1]] = sgn * _bw_rising(params, sgn * (seg - v0), sgn * h0)
+        v0, h0 = float(seg[-1]), float(h[bounds[k + 1] - 1])
+    x = params.b_um_per_v * (v - h)
+    return x, BoucWenState(v0, h0)
+
+
 __all__ = [
+    "BoucWenParams",
+    "BoucWenState",
     "CHParams",
     "CHState",
     "PIParams",
     "PIState",
     "PreisachParams",
     "PreisachState",
+    "boucwen_rest_state",
+    "boucwen_step",
     "ch_rest_state",
     "ch_step",
     "pi_rest_state",

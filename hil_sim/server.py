@@ -3,7 +3,9 @@
 ``python -m hil_sim`` (or ``piezod sim``) opens a pty (raw mode, non-blocking master), prints
 ONE line on stdout -- the slave path, or the ``--link`` symlink -- and serves until SIGTERM /
 SIGINT (exit 0). Simulated time follows the monotonic wall clock: a ``select`` loop with a short
-tick feeds the host's bytes to the board and calls :meth:`Board.advance`.
+tick feeds the host's bytes to the board and calls :meth:`Board.advance`. When this process was
+not scheduled for longer than :data:`STALL_WARN_S`, the bytes waiting are fed as of the stall's
+start (a board's receiver runs beside its clock), and the stall is logged.
 
 - ``--link PATH`` keeps a symlink ``PATH -> /dev/pts/N`` (like ``/dev/serial/by-id``).
 - SIGUSR1 simulates an unplug: the master is closed (the host sees EIO / hang-up), the link
@@ -49,6 +51,8 @@ DEFAULT_TICK_S = 0.002
 """Longest wait of the select loop (s): the granularity of simulated time without host traffic."""
 DEFAULT_UNPLUG_S = 2.0
 _READ_CHUNK = 1 << 16
+#: A loop iteration this late is logged (s): the simulated board could not read or report meanwhile.
+STALL_WARN_S = 0.05
 _MAX_READ_PER_STEP = 1 << 20
 _MAX_BACKLOG = 8 << 20
 _DEFAULT_FIFO_DEPTH: int = BoardConfig().fifo_depth_samples
@@ -235,6 +239,8 @@ class SimServer:
         self._stop_signal: int | None = None
         self._unplug_requested = False
         self._replug_at: float | None = None
+        self._last_step: float | None = None
+        self._last_work = 0.0
 
     @property
     def public_path(self) -> str:
@@ -306,15 +312,31 @@ class SimServer:
             time.sleep(self.tick_s)
             readable = []
         ready = set(readable)
+        t_step = self.clock()
+        arrival: float | None = None
+        if self._last_step is not None and t_step - self._last_step > STALL_WARN_S:
+            # A real board's receiver runs beside its clock; this process was not scheduled (or busy):
+            # what waits in the pty may have come at any time since the last step, so it is taken in
+            # at the earliest, before the clock catches up. Otherwise a starved simulator would
+            # report underruns a board would not have had, as if the host had fallen behind.
+            arrival = self._last_step + self.tick_s
+            log.warning(
+                "simulator loop stalled %.0f ms, %.0f ms of it its own work: input taken in as of the "
+                "stall's start",
+                1e3 * (t_step - self._last_step),
+                1e3 * self._last_work,
+            )
+        self._last_step = t_step
         for port in ports:
             data = port.poll(ready)
             if data:
-                self.board.feed(data, self.clock())
+                self.board.feed(data, self.clock() if arrival is None else arrival)
         now = self.clock()
         self.board.advance(now)
         out = self.board.data_to_send()
         for port in ports:
             port.write(out)
+        self._last_work = self.clock() - t_step
         if self._unplug_requested:
             self._unplug_requested = False
             if self._replug_at is None:

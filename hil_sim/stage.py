@@ -77,12 +77,16 @@ from hil_sim.effects import (
 from hil_sim.errors import SimConfigError as ConfigError
 from hil_sim.errors import SimModelError as ModelError
 from hil_sim.hysteresis import (
+    BoucWenParams,
+    BoucWenState,
     CHParams,
     CHState,
     PIParams,
     PIState,
     PreisachParams,
     PreisachState,
+    boucwen_rest_state,
+    boucwen_step,
     ch_rest_state,
     ch_step,
     pi_rest_state,
@@ -95,9 +99,9 @@ from hil_sim.hysteresis import (
 #: Axis names of a scanner.
 AxisName = Literal["x", "y", "z"]
 #: Hysteresis laws of an axis.
-HysteresisLaw = Literal["coleman-hodgdon", "prandtl-ishlinskii", "preisach"]
-HysteresisParams = CHParams | PIParams | PreisachParams
-HysteresisState = CHState | PIState | PreisachState
+HysteresisLaw = Literal["coleman-hodgdon", "prandtl-ishlinskii", "preisach", "bouc-wen"]
+HysteresisParams = CHParams | PIParams | PreisachParams | BoucWenParams
+HysteresisState = CHState | PIState | PreisachState | BoucWenState
 
 
 class ScannerLike(Protocol):
@@ -182,6 +186,9 @@ class StageAxisConfig(_SimModel):
     preisach_saturation_v: float = Field(
         default=300.0, gt=0, le=1e4, description="preisach: voltage beyond which no relay switches (V)"
     )
+    bw_a: float | None = Field(default=None, gt=0, lt=1.0, description="bouc-wen: A (fraction of dV into h)")
+    bw_beta_per_v: float | None = Field(default=None, gt=0, lt=1.0, description="bouc-wen: beta (1/V)")
+    bw_gamma_per_v: float = Field(default=0.0, gt=-1.0, lt=1.0, description="bouc-wen: gamma (1/V)")
     creep_pct_per_decade: float = Field(
         default=1.5, ge=0, le=20, description="creep per decade of time (% of the motion)"
     )
@@ -207,6 +214,15 @@ class StageAxisConfig(_SimModel):
         elif self.law == "preisach":
             if self.pi_rho0 is None or self.preisach_width_v is None:
                 raise ValueError("law preisach needs pi_rho0 and preisach_width_v")
+        elif self.law == "bouc-wen":
+            if self.bw_a is None or self.bw_beta_per_v is None:
+                raise ValueError("law bouc-wen needs bw_a and bw_beta_per_v")
+            if not self.bw_beta_per_v > abs(self.bw_gamma_per_v):
+                raise ValueError("law bouc-wen needs bw_beta_per_v > |bw_gamma_per_v|")
+            if not 2.0 * self.bw_a * self.bw_beta_per_v / (self.bw_beta_per_v + self.bw_gamma_per_v) < 1.0:
+                raise ValueError(
+                    "law bouc-wen needs 2 bw_a beta / (beta + gamma) < 1 (else branches run backwards)"
+                )
         elif self.pi_rho0 is None or self.pi_span_v is None:
             raise ValueError("law prandtl-ishlinskii needs pi_rho0 and pi_span_v")
         return self
@@ -226,6 +242,9 @@ class StageAxisConfig(_SimModel):
                 self.preisach_asymmetry,
                 self.preisach_saturation_v,
             )
+        if self.law == "bouc-wen":
+            assert self.bw_a is not None and self.bw_beta_per_v is not None
+            return BoucWenParams(self.b_um_per_v, self.bw_a, self.bw_beta_per_v, self.bw_gamma_per_v)
         assert self.pi_rho0 is not None and self.pi_span_v is not None
         return PIParams.from_shape(
             self.b_um_per_v, self.pi_rho0, self.pi_span_v, self.pi_operators, self.pi_decay_v
@@ -630,6 +649,8 @@ def _relaxed(params: HysteresisParams, voltage_v: float) -> HysteresisState:
         return ch_rest_state(params, voltage_v)
     if isinstance(params, PreisachParams):
         return preisach_rest_state(params, voltage_v)
+    if isinstance(params, BoucWenParams):
+        return boucwen_rest_state(params, voltage_v)
     return pi_rest_state(params, voltage_v)
 
 
@@ -649,6 +670,9 @@ def _hysteresis_block(
     if isinstance(params, PreisachParams):
         assert isinstance(state, PreisachState)
         return preisach_step(params, v, state)
+    if isinstance(params, BoucWenParams):
+        assert isinstance(state, BoucWenState)
+        return boucwen_step(params, v, state)
     assert isinstance(state, PIState)
     return pi_step(params, v, state)
 

@@ -33,7 +33,7 @@ FloatArray = NDArray[np.float64]
 #: Per-sample inverse of the richest runtime model (issue 9), ns per sample and axis.
 TARGET_MODEL_NS_PER_SAMPLE = 150.0
 #: The richest runtime model of :func:`bench_models` (the one the 150 ns target is about).
-RICHEST_MODEL = "family/prandtl-ishlinskii/voltage-creep+parts"
+RICHEST_MODEL = "family/generalised-play/voltage-creep+parts"
 #: The targets of docs/formats.md, section 5.
 TARGET_NS_PER_SAMPLE = 50.0
 TARGET_RATIO = 0.3
@@ -98,14 +98,16 @@ def _time_interleaved(
 def bench_models() -> dict[str, Any]:
     """The axis models timed by :func:`axis_model_costs` (the family members at realistic sizes).
 
-    The family members carry a drive lag, 16 play operators (or Coleman-Hodgdon), a creep spectrum
-    of 19 relaxation times from 0.1 ms to 1e5 s and the stiffness map; :data:`RICHEST_MODEL` adds
+    The family members carry a drive lag, 16 play operators (or Coleman-Hodgdon, or the generalised
+    play law with 32 plays over 3 relay-centre nodes), a creep spectrum of 19 relaxation times from
+    0.1 ms to 1e5 s and the stiffness map; :data:`RICHEST_MODEL` (the generalised play law) adds
     voltage-driven creep and every runtime part (:mod:`piezod.model.parts`: polarity, thermal,
     stiffness, saturation, drift).
     """
     from piezod.model.axis_model import DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
     from piezod.model.dynamic import DynamicParams
     from piezod.model.family import CreepSpectrum, FamilyParams
+    from piezod.model.gplay import GeneralisedPlayParams
     from piezod.model.params import HysteresisParams
     from piezod.model.parts import Parts, PartsAxisModel
     from piezod.model.play import PlayParams
@@ -114,6 +116,14 @@ def bench_models() -> dict[str, Any]:
     shape = np.exp(-np.arange(16) / 6.0)
     pi = PlayParams.uniform(0.115, 0.45, 320.0, 16, 0.55 * shape / shape.sum())
     ch = HysteresisParams(3e-3, 0.115, 0.072)
+    # generalised play law at a fitted size: 32 plays, density over 3 relay-centre nodes
+    gshape = np.exp(-np.arange(32) / 12.0)
+    gw = 0.115 * 0.55 * gshape / gshape.sum()
+    gp = GeneralisedPlayParams(
+        tuple(float(x) for x in 160.0 * np.arange(1, 33) / 33),
+        (-230.0, 0.0, 230.0),
+        ((0.046, 0.052, 0.058), *((0.9 * w, w, 1.15 * w) for w in map(float, gw))),
+    )
     return {
         "thesis": ThesisAxisModel(MEDIUM_TUBE_TABLE_3_3, 0.01, 0.0),
         "dynamic": DynamicAxisModel(DynamicParams(3e-3, 0.115, 0.072, 1.5)),
@@ -125,8 +135,16 @@ def bench_models() -> dict[str, Any]:
         "family/prandtl-ishlinskii/voltage-creep": FamilyAxisModel(
             FamilyParams(pi, creep, 2e-4, 0.05, "voltage")
         ),
-        RICHEST_MODEL: PartsAxisModel(
+        "family/generalised-play": FamilyAxisModel(FamilyParams(gp, creep, 2e-4, 0.05)),
+        "family/generalised-play/voltage-creep": FamilyAxisModel(
+            FamilyParams(gp, creep, 2e-4, 0.05, "voltage")
+        ),
+        "family/prandtl-ishlinskii/voltage-creep+parts": PartsAxisModel(
             FamilyAxisModel(FamilyParams(pi, creep, 2e-4, 0.05, "voltage")),
+            Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
+        ),
+        RICHEST_MODEL: PartsAxisModel(
+            FamilyAxisModel(FamilyParams(gp, creep, 2e-4, 0.05, "voltage")),
             Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
         ),
     }

@@ -79,7 +79,7 @@ from piezod import __version__
 from piezod.calibrate_data import CalibrationData, prepare
 from piezod.config import AxisConfig, ScannerConfig, ThesisModelConfig, calibrated_notes
 from piezod.errors import CalibrationError, ModelError
-from piezod.fitstats import FitResult, fit_warnings, parameter_statistics
+from piezod.fitstats import FitResult, fit_warnings, parameter_statistics, solve_linear
 from piezod.model.params import ThesisParams
 from piezod.recording import Experiment
 
@@ -283,7 +283,7 @@ def auto_start(data: CalibrationData, *, fixed: Mapping[str, float] | None = Non
             else:
                 cols.append(delta * dd * ff * vh)
             A = np.column_stack(cols)
-            sol, *_ = np.linalg.lstsq(A, target, rcond=None)
+            sol, _ = solve_linear(A, target)
             r = float(np.sum((A @ sol - target) ** 2))
             if r < best_rss:
                 a2 = fixed.get("a2_per_v", float(sol[2]) if sol.size > 2 else 0.0)

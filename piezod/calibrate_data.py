@@ -311,6 +311,30 @@ def _sample_interval(e: Experiment) -> float:
     return dt
 
 
+def _sample_period(v: F64, per_loop: float, *, rel: float = 0.03, probes: int = 4096) -> int:
+    """The whole number of samples after which the voltage ``v`` repeats, near ``per_loop``.
+
+    The waveform inference refines a triangle's turning times by straight lines through its
+    halves; a periodic waveform whose halves are not straight (a triangle seen through a static
+    map with a kink, as the runtime polarity part maps the commanded voltage) comes out with a
+    period off by a fraction of a percent, which puts the reconstructed settling loops out of
+    phase with the recorded ones. The lag ``L`` within ``rel`` of ``per_loop`` at which
+    ``v[i + L]`` matches ``v[i]`` best (over at most ``probes`` samples ``i``) is the period the
+    waveform was generated with; ``round(per_loop)`` wins ties.
+    """
+    n = v.size
+    centre = round(per_loop)
+    width = max(2, math.ceil(rel * per_loop))
+    lags = [lag for lag in range(centre - width, centre + width + 1) if 2 <= lag < n]
+    if not lags or centre >= n:
+        return centre
+    lags.sort(key=lambda lag: abs(lag - centre))
+    m = n - max(lags)
+    idx = np.arange(0, m, max(1, m // probes))
+    cost = [float(np.mean((v[idx + lag] - v[idx]) ** 2)) for lag in lags]
+    return lags[int(np.argmin(cost))]
+
+
 def prepare_dynamic(
     experiments: Sequence[Experiment],
     *,
@@ -374,8 +398,10 @@ def prepare_dynamic(
         freq = float(info.frequency_hz) if periodic else math.nan
         if periodic:
             per_loop = 1.0 / (freq * dt)
+            loop = _sample_period(v, per_loop)
+            if loop != round(per_loop):
+                per_loop, freq = float(loop), 1.0 / (loop * dt)
             stride = max(1, math.floor(per_loop / max_samples_per_loop))
-            loop = round(per_loop)
         else:
             per_loop = math.nan
             stride = max(1, math.ceil(n / max_samples_per_experiment))

@@ -75,7 +75,7 @@ from piezod.config import (
     calibrated_notes,
 )
 from piezod.errors import CalibrationError, ModelError
-from piezod.fitstats import FitResult, fit_warnings, parameter_statistics
+from piezod.fitstats import FitResult, fit_warnings, parameter_statistics, solve_linear
 from piezod.model.dynamic import (
     MAX_TOTAL_CREEP,
     DynamicParams,
@@ -267,7 +267,7 @@ def _linear_b_delta(data: DynamicCalibrationData, col_b: F64, col_d: F64) -> tup
     """Least squares of ``x = b col_b + delta col_d + c_e``: (rss, b, delta)."""
     A = _centre(data, np.column_stack([col_b, col_d]))
     x = _centre(data, data.position_um)
-    sol, *_ = np.linalg.lstsq(A, x, rcond=None)
+    sol, _ = solve_linear(A, x)
     r = A @ sol - x
     return float(r @ r), float(sol[0]), float(sol[1])
 

@@ -30,6 +30,7 @@ experiments. There is no default model.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -46,15 +47,25 @@ from piezod.calibrate_dynamic import (
 )
 from piezod.config import FamilyModelConfig
 from piezod.errors import CalibrationError, ModelError
-from piezod.fitstats import solve_linear
+from piezod.fitstats import FitResult, solve_linear
 from piezod.model.dynamic import MAX_TOTAL_CREEP
 from piezod.model.family import CREEP_DRIVERS, CreepSpectrum, FamilyParams
+from piezod.model.gplay import (
+    GeneralisedPlayParams,
+    basis_features,
+    gplay_forward,
+    gplay_rest_state,
+    play_outputs,
+)
 from piezod.model.params import HysteresisParams
 from piezod.model.play import PlayParams, PlayState, play_forward
 
 F64 = NDArray[np.float64]
 
-LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "coleman-hodgdon")
+LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play", "coleman-hodgdon")
+#: Relay-centre nodes of the generalised play law's density (its centre dependence is piecewise
+#: linear between them: 3 nodes allow a density that bends once over the recorded span).
+GP_NODES = 3
 #: Longest drive lag the fit considers (s).
 _MAX_LAG_S = 0.05
 
@@ -97,6 +108,31 @@ def _play_features(data: DynamicCalibrationData, thresholds: F64) -> F64:
     return out
 
 
+def default_nodes(data: DynamicCalibrationData, count: int = GP_NODES) -> F64:
+    """Relay-centre nodes evenly over the recorded voltage span (generalised play law)."""
+    v = data.grid_voltage_v[data.compared]
+    lo, hi = float(np.min(v)), float(np.max(v))
+    if not hi > lo:
+        raise CalibrationError("the recordings span no voltage: nothing to fit a hysteresis law to")
+    return np.linspace(lo, hi, max(2, count))
+
+
+def _gplay_features(data: DynamicCalibrationData, thresholds: F64, nodes: F64) -> tuple[F64, F64, F64]:
+    """``[V, H_{0,0}, ..., H_{p,K-1}]`` at the grid samples from rest, their rest values, and the
+    voltage-creep scale per column (the rest slope at 0 V each column contributes)."""
+    v = data.hysteresis_voltage_v
+    rest = data.rest_voltage_v
+    plays, _ = play_outputs(thresholds, v, PlayState(rest, np.full(thresholds.size, rest), 0.0))
+    idx = data.grid_index
+    f = np.column_stack([v[idx], basis_features(v[idx], plays[:, idx], nodes)])
+    f_rest = np.concatenate(
+        [[rest], basis_features(np.array([rest]), np.full((thresholds.size, 1), rest), nodes)[0]]
+    )
+    hat0 = np.array([np.interp(0.0, nodes, np.eye(nodes.size)[k]) for k in range(nodes.size)])
+    slope = np.concatenate([[1.0], np.tile(hat0, thresholds.size + 1)])
+    return f, f_rest, slope
+
+
 def default_thresholds(data: DynamicCalibrationData, count: int, spacing: str = "uniform") -> F64:
     """Play half-widths up to half the recorded voltage span.
 
@@ -132,31 +168,38 @@ def default_taus(data: DynamicCalibrationData, per_decade: int = 2, tau_min_s: f
 # ---------------------------------------------------------------------------------------------- fit
 
 
-@dataclass(frozen=True, eq=False)
-class FamilyFit:
-    """A fitted member of the family.
+@dataclass(frozen=True, eq=False, kw_only=True)
+class FamilyFit(FitResult):
+    """A fitted member of the family: the shared :class:`~piezod.fitstats.FitResult` (training
+    residuals, ``n``, ``dof``, AIC/BIC, the held-out RMS) and the model's parameters.
+
+    The family's fit is an alternation of regularised linear problems, not one Jacobian at a
+    solution: it computes no parameter standard errors (:attr:`has_errors` is false); ``cost``
+    is half the training sum of squares (the creep spectrum's regularisation not included),
+    ``nfev`` counts alternations and joint Gauss-Newton steps.
 
     Attributes
     ----------
     params
         The frozen model parameters.
-    rms_um
-        RMS residual on the experiments it was fitted to (um, offsets removed per experiment).
-    heldout_rms_um
-        RMS prediction error on the held-out experiments (um), or nan when none were held out.
-    iterations
-        Alternations until convergence.
     """
 
     params: FamilyParams
-    rms_um: float
-    heldout_rms_um: float
-    iterations: int
 
     @property
     def law(self) -> str:
         """The hysteresis law."""
         return self.params.law
+
+    @property
+    def rms_um(self) -> float:
+        """RMS residual on the experiments it was fitted to (um, offsets removed per experiment)."""
+        return self.residual_rms_um
+
+    @property
+    def iterations(self) -> int:
+        """Alternations and joint Gauss-Newton steps until convergence."""
+        return self.nfev
 
 
 class _Session:
@@ -425,12 +468,26 @@ def _joint_refine(
     return theta, w, kappa, tau, rms, it
 
 
-def _heldout(s: _Session, params: FamilyParams) -> float:
-    if not s.test_rows.any():
-        return math.nan
+def _result(s: _Session, params: FamilyParams, iterations: int, n_coefficients: int, t0: float) -> FamilyFit:
+    """The fit's result: residuals on the training rows, RMS on the held-out ones."""
     x = session_positions(s.data, params, s.dev)
-    resid = _centre(s.data, x) - s.yc
-    return float(np.sqrt(np.mean(resid[s.test_rows] ** 2)))
+    resid = s.yc - _centre(s.data, x)
+    train = resid[s.train_rows]
+    held = resid[s.test_rows]
+    n = int(train.size)
+    n_offsets = int(np.unique(np.repeat(np.arange(s.data.n_experiments), s.data.counts)[s.train_rows]).size)
+    return FamilyFit(
+        params=params,
+        residuals_um=train,
+        cost=0.5 * float(train @ train),
+        n=n,
+        dof=n - n_coefficients - n_offsets,
+        nfev=iterations,
+        success=True,
+        message="converged",
+        seconds=time.perf_counter() - t0,
+        heldout_rms_um=float(np.sqrt(np.mean(held**2))) if held.size else math.nan,
+    )
 
 
 def session_positions(
@@ -451,10 +508,11 @@ def session_positions(
         dev = _Deviations(data, np.asarray(params.creep.taus_s))
     h = params.hysteresis
     v = data.hysteresis_voltage_v
-    if isinstance(h, PlayParams):
+    if isinstance(h, GeneralisedPlayParams):
+        xh_all, _ = gplay_forward(h, v, gplay_rest_state(h, data.rest_voltage_v))
+    elif isinstance(h, PlayParams):
         state = PlayState(data.rest_voltage_v, np.full(h.r.size, data.rest_voltage_v), 0.0)
         xh_all, _ = play_forward(h, v, state)
-        xh_all = xh_all - 0.0
     else:
         from piezod.model.ode import HysteresisState, hysteresis_step
 
@@ -465,7 +523,8 @@ def session_positions(
     total = params.creep.total_creep
     kappa = params.stiffness_pct_per_um / 200.0
     if params.creep_driver == "voltage":
-        v_grid = v[data.grid_index] if isinstance(h, PlayParams) else data.grid_voltage_v
+        played = isinstance(h, PlayParams | GeneralisedPlayParams)
+        v_grid = v[data.grid_index] if played else data.grid_voltage_v
         slope = params.law_slope_um_per_v
         e = dev(v_grid, data.rest_voltage_v)
         xc = xh_grid[data.compared] + slope * (total * v_grid[data.compared] + e @ params.creep.weights)
@@ -478,7 +537,9 @@ def session_positions(
     return out
 
 
-def _rest_position(h: HysteresisParams | PlayParams, v: float) -> float:
+def _rest_position(h: HysteresisParams | PlayParams | GeneralisedPlayParams, v: float) -> float:
+    if isinstance(h, GeneralisedPlayParams):
+        return gplay_rest_state(h, v).position_um
     if isinstance(h, PlayParams):
         return h.b_um_per_v * h.total_weight * v
     return h.b_um_per_v * v
@@ -496,6 +557,7 @@ def fit_family(
     skip_s: float = 0.0,
     creep_driver: str = "position",
     thresholds: F64 | None = None,
+    nodes: F64 | None = None,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -521,8 +583,10 @@ def fit_family(
     creep_driver
         ``position`` or ``voltage``: what the fitted creep spectrum follows.
     thresholds
-        Play half-widths (V) of the Prandtl-Ishlinskii law (default :func:`default_thresholds`
-        with ``plays`` plays).
+        Play half-widths (V) of the Prandtl-Ishlinskii and generalised play laws (default
+        :func:`default_thresholds` with ``plays`` plays).
+    nodes
+        Relay-centre nodes (V) of the generalised play law (default :func:`default_nodes`).
 
     Raises
     ------
@@ -538,14 +602,32 @@ def fit_family(
     mask = np.ones(data.n_experiments, dtype=bool) if train is None else np.asarray(train, dtype=bool)
     if not mask.any():
         raise CalibrationError("no experiment left to fit")
+    t0 = time.perf_counter()
     s = _Session(data, taus, mask, skip_s)
     rest_v = data.rest_voltage_v
+    hyst: HysteresisParams | PlayParams | GeneralisedPlayParams
     try:
-        if law == "prandtl-ishlinskii":
+        if law == "generalised-play":
+            r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
+            c = default_nodes(data) if nodes is None else np.asarray(nodes, np.float64)
+            f_grid, f_rest, slope = _gplay_features(data, r, c)
+            theta, w, kappa, tau, _, it = _alternate(
+                s, f_grid, f_rest, regularisation, slope_of_theta=slope if voltage else None
+            )
+            mu = theta[1:].reshape(r.size + 1, c.size).copy()
+            mu[0] += theta[0]
+            used = np.flatnonzero(mu[1:].max(axis=1) > 0.0)
+            used = used if used.size else np.array([0])
+            hyst = GeneralisedPlayParams(
+                tuple(map(float, r[used])),
+                tuple(map(float, c)),
+                tuple(tuple(map(float, row)) for row in np.vstack([mu[:1], mu[1:][used]])),
+            )
+        elif law == "prandtl-ishlinskii":
             r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
             plays = r.size
             f_grid = _play_features(data, r)
-            theta, w, kappa, tau, rms, it = _alternate(
+            theta, w, kappa, tau, _, it = _alternate(
                 s,
                 f_grid,
                 np.full(plays + 1, rest_v),
@@ -557,7 +639,7 @@ def fit_family(
             used = np.flatnonzero(theta[1:] > 0.0)
             used = used if used.size else np.array([0])
             weights = theta[1:][used] / b
-            hyst: HysteresisParams | PlayParams = PlayParams(
+            hyst = PlayParams(
                 b, float(theta[0] / b), tuple(map(float, r[used])), tuple(map(float, weights))
             )
         else:
@@ -590,7 +672,7 @@ def fit_family(
                 alpha = float(alpha_per_v)
             y = _hysteresis_unit(data, alpha)
             f_grid = np.column_stack([data.grid_voltage_v, y])
-            theta, w, kappa, tau, rms, it = _alternate(
+            theta, w, kappa, tau, _, it = _alternate(
                 s, f_grid, np.array([rest_v, 0.0]), regularisation, slope_of_theta=ch_slope
             )
             b, delta = float(theta[0]), float(theta[1])
@@ -605,7 +687,9 @@ def fit_family(
         )
     except ModelError as exc:
         raise CalibrationError(f"family fit ({law}): {exc}") from exc
-    return FamilyFit(params, rms, _heldout(s, params), it)
+    # theta, the creep weights, kappa and the lag (and Coleman-Hodgdon's alpha when searched)
+    n_coefficients = theta.size + taus.size + 2 + int(law == "coleman-hodgdon" and alpha_per_v is None)
+    return _result(s, params, it, n_coefficients, t0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -745,7 +829,14 @@ def family_model_config(params: FamilyParams) -> FamilyModelConfig:
         "stiffness_pct_per_um": params.stiffness_pct_per_um,
         "creep_driver": params.creep_driver,
     }
-    if isinstance(h, PlayParams):
+    if isinstance(h, GeneralisedPlayParams):
+        fields.update(
+            # full precision: a rounded node moves every play's density (6 digits cost 0.3 nm)
+            gp_thresholds_v=list(h.thresholds_v),
+            gp_nodes_v=list(h.nodes_v),
+            gp_density=[list(row) for row in h.density],
+        )
+    elif isinstance(h, PlayParams):
         fields.update(
             pi_rho0=h.rho0,
             pi_thresholds_v=[float(f"{r:.6g}") for r in h.thresholds_v],

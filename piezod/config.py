@@ -27,9 +27,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from piezod.errors import ConfigError, ModelError
 from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
+from piezod.model.gplay import GeneralisedPlayParams
 from piezod.model.params import HysteresisParams, ThesisParams
-from piezod.model.parts import Parts
+from piezod.model.parts import PART_EFFECTS, Parts
 from piezod.model.play import PlayParams
+from piezod.model.sensor import SensorPath
 
 AxisName = Literal["x", "y", "z"]
 
@@ -95,11 +97,15 @@ class FamilyModelConfig(StrictModel):
     """Parameters of the model family (``model: family``), see :mod:`piezod.model.family`.
 
     ``law: coleman-hodgdon`` needs ``alpha_per_v`` and ``u_um_per_v``; ``law: prandtl-ishlinskii``
-    needs ``pi_rho0``, ``pi_thresholds_v`` and ``pi_weights``. The creep spectrum is a list of
-    non-negative weights on relaxation times. ``piezod calibrate`` writes this section.
+    needs ``pi_rho0``, ``pi_thresholds_v`` and ``pi_weights``; ``law: generalised-play`` (a
+    Preisach law, :mod:`piezod.model.gplay`) needs ``gp_thresholds_v``, ``gp_nodes_v`` and
+    ``gp_density`` (its ``b_um_per_v`` is the rest slope at 0 V, for information). The creep
+    spectrum is a list of non-negative weights on relaxation times. ``piezod calibrate`` writes this section.
     """
 
-    law: Literal["coleman-hodgdon", "prandtl-ishlinskii"] = Field(description="hysteresis law")
+    law: Literal["coleman-hodgdon", "prandtl-ishlinskii", "generalised-play"] = Field(
+        description="hysteresis law"
+    )
     b_um_per_v: float = Field(gt=0, lt=100.0, description="sensitivity b of the hysteresis law (um/V)")
     alpha_per_v: float | None = Field(default=None, gt=0, lt=1.0, description="coleman-hodgdon: alpha (1/V)")
     u_um_per_v: float | None = Field(default=None, gt=0, lt=100.0, description="coleman-hodgdon: u (um/V)")
@@ -107,6 +113,12 @@ class FamilyModelConfig(StrictModel):
     pi_thresholds_v: list[float] = Field(default=[], description="prandtl-ishlinskii: play half-widths (V)")
     pi_weights: list[float] = Field(
         default=[], description="prandtl-ishlinskii: play weights (fractions of b)"
+    )
+    gp_thresholds_v: list[float] = Field(default=[], description="generalised-play: play half-widths (V)")
+    gp_nodes_v: list[float] = Field(default=[], description="generalised-play: relay-centre nodes (V)")
+    gp_density: list[list[float]] = Field(
+        default=[],
+        description="generalised-play: density (um/V) per row (reversible part, then one per play) and node",
     )
     creep_taus_s: list[float] = Field(description="creep relaxation times (s), ascending")
     creep_weights: list[float] = Field(description="creep weights (fractions of the hysteretic motion)")
@@ -124,6 +136,8 @@ class FamilyModelConfig(StrictModel):
             raise ValueError("law coleman-hodgdon needs alpha_per_v and u_um_per_v")
         if self.law == "prandtl-ishlinskii" and self.pi_rho0 is None:
             raise ValueError("law prandtl-ishlinskii needs pi_rho0, pi_thresholds_v and pi_weights")
+        if self.law == "generalised-play" and not (self.gp_nodes_v and self.gp_density):
+            raise ValueError("law generalised-play needs gp_thresholds_v, gp_nodes_v and gp_density")
         try:
             self.params()
         except ModelError as exc:
@@ -132,8 +146,14 @@ class FamilyModelConfig(StrictModel):
 
     def params(self) -> FamilyParams:
         """The frozen model parameter object."""
-        hyst: HysteresisParams | PlayParams
-        if self.law == "coleman-hodgdon":
+        hyst: HysteresisParams | PlayParams | GeneralisedPlayParams
+        if self.law == "generalised-play":
+            hyst = GeneralisedPlayParams(
+                tuple(self.gp_thresholds_v),
+                tuple(self.gp_nodes_v),
+                tuple(tuple(row) for row in self.gp_density),
+            )
+        elif self.law == "coleman-hodgdon":
             assert self.alpha_per_v is not None and self.u_um_per_v is not None
             hyst = HysteresisParams(self.alpha_per_v, self.b_um_per_v, self.u_um_per_v)
         else:
@@ -150,7 +170,7 @@ class FamilyModelConfig(StrictModel):
         )
 
 
-PartEffect = Literal["polarity", "thermal", "stiffness", "saturation", "drift"]
+PartEffect = Literal["polarity", "thermal", "stiffness", "saturation", "drift", "delay"]
 
 
 class AxisConfig(StrictModel):
@@ -173,17 +193,24 @@ class AxisConfig(StrictModel):
     extensions: dict[PartEffect, dict[str, float]] | None = Field(
         default=None,
         description="runtime parts around the model (the audit's findings, piezod.model.parts): "
-        "{effect id: {parameter: value}} with the names of piezod.model.registry",
+        "{effect id: {parameter: value}} with the names of piezod.model.registry; delay is the "
+        "sensor path (the readback's delay and lag, piezod.model.sensor): the analysis aligns the "
+        "readback with it, the drive is unchanged",
     )
 
     def parts(self) -> Parts:
-        """The runtime parts of :attr:`extensions`."""
-        return Parts.from_effects(dict(self.extensions or {}))
+        """The runtime parts of :attr:`extensions` (the drive side)."""
+        return Parts.from_effects({k: v for k, v in (self.extensions or {}).items() if k in PART_EFFECTS})
+
+    def sensor_path(self) -> SensorPath:
+        """The sensor path of :attr:`extensions` (identity when none)."""
+        return SensorPath.from_effects({str(k): v for k, v in (self.extensions or {}).items()})
 
     @model_validator(mode="after")
     def _check_limits(self) -> AxisConfig:
         try:
             self.parts()
+            self.sensor_path()
         except ModelError as exc:
             raise ValueError(f"extensions: {exc}") from exc
         if not self.voltage_min_v < self.voltage_max_v:

@@ -9,13 +9,17 @@ baseline alone is at its self-consistency floor and what remains is the effect's
    stepped on the stage in process (deterministic, independent of machine load);
 2. **baseline**: the dynamic model calibrated on the frame (what ``piezod calibrate`` writes on
    this stage);
-3. **extended**: the audit (:func:`piezod.audit.run_audit`) of the same frame, its material
-   findings mapped to runtime parts (:func:`piezod.extensions.adopt_findings`), the dynamic model
-   refitted with those parts fixed (the frame seen through the parts' exact inverse), the parts
-   around it (:class:`piezod.model.parts.PartsAxisModel`);
+3. **extended**: the audit (:func:`piezod.audit.run_audit`) of the same frame for the candidates
+   ``piezod calibrate`` audits (those a runtime part or the sensor path can take), its material
+   findings mapped to runtime parts and the sensor path (:func:`piezod.extensions.adopt_findings`),
+   the dynamic model refitted with them fixed (the frame's readback aligned through the sensor
+   path, then seen through the parts' exact inverse), the parts around it
+   (:class:`piezod.model.parts.PartsAxisModel`);
 4. both verified by online-corrected triangles at the frame's verification points
    (:func:`piezod.stagecal.verification_points`; one warm-up loop, then ``loops`` recorded),
-   scored by :func:`piezod.linearity.experiment_linearity`;
+   scored by :func:`piezod.linearity.experiment_linearity` on where the stage is: the readback,
+   or for an effect of the readback only (hil_sim's ``delay`` at the sensor) the same stage
+   without it stepped alongside (a readback delay is not an error of the position);
 5. the floor: the baseline calibrated and verified the same way on the stage without the effect.
 
 What is left of an effect's error with a model is its worst metric over the points minus the
@@ -28,7 +32,6 @@ floor with the baseline already is reported as "below resolution" (nothing to re
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -40,10 +43,11 @@ from numpy.typing import NDArray
 
 from piezod import calibrate_dynamic as cd
 from piezod.config import AxisName, ScannerConfig, default_sim_config_path, load_config
-from piezod.extensions import Adoption, adopt_findings, experiments_through_parts, extended_config
+from piezod.extensions import Adoption, adopt_findings, experiments_through, extended_config
 from piezod.linearity import experiment_linearity
-from piezod.model.parts import PART_EFFECTS, Parts
+from piezod.model.parts import PART_EFFECTS
 from piezod.model.registry import REGISTRY
+from piezod.model.sensor import SENSOR_EFFECTS
 from piezod.recording import Experiment
 from piezod.service.axes import axis_model
 from piezod.stagecal import Frame, VerifyPoint, default_frame, verification_points
@@ -76,10 +80,17 @@ class StageBench:
         Sample rate.
     keep_history
         Keep every voltage played (:attr:`history`), to replay the stage's past through a model.
+    truth
+        The same stage without its sensor-side effects, stepped alongside: where the stage really
+        is (:attr:`last_truth`, the last block's), when the readback is delayed.
     """
 
-    def __init__(self, stage: Any, rate_hz: float, *, keep_history: bool = True) -> None:
+    def __init__(
+        self, stage: Any, rate_hz: float, *, keep_history: bool = True, truth: Any | None = None
+    ) -> None:
         self.stage = stage
+        self.truth = truth
+        self.last_truth: F64 | None = None
         self.rate_hz = rate_hz
         self.dt = 1.0 / rate_hz
         self.t = 0.0
@@ -90,6 +101,9 @@ class StageBench:
     def play(self, volts: F64) -> tuple[F64, F64]:
         chunks = range(0, volts.size, 1 << 16)
         xs = [self.stage.sense(self.stage.step(volts[i : i + (1 << 16)], self.dt)) for i in chunks]
+        if self.truth is not None:
+            true = [self.truth.sense(self.truth.step(volts[i : i + (1 << 16)], self.dt)) for i in chunks]
+            self.last_truth = np.concatenate(true).astype(np.float64)
         t: F64 = self.t + self.dt * np.arange(1, volts.size + 1, dtype=np.float64)
         self.t = float(t[-1])
         self.v = float(volts[-1])
@@ -155,6 +169,8 @@ def _verify(
         clamped = int(np.count_nonzero((v < lo_v) | (v > hi_v)))
         v = np.clip(v, lo_v, hi_v)
         t, x = bench.play(v)
+        if bench.last_truth is not None:
+            x = bench.last_truth  # a sensor delay is not an error of the position: score where the stage is
         if k == 0:
             continue  # one unrecorded warm-up scan after the model is switched in
         k0 = n_move + per
@@ -181,14 +197,24 @@ def _worst(rows: Sequence[dict[str, Any]], inside_only: bool = True) -> dict[str
 
 
 def _injected_parts(specs: Sequence[str]) -> dict[str, dict[str, float]]:
-    """``{effect: {parameter: value}}`` of the injected specs that have a runtime part."""
+    """``{effect: {parameter: value}}`` of the injected specs that have a runtime part or are the
+    sensor path."""
     out: dict[str, dict[str, float]] = {}
+    known = {**PART_EFFECTS, **SENSOR_EFFECTS}
     for text in specs:
         head, value = text.split("=", 1)
         effect, _, name = head.partition(".")
-        if effect in PART_EFFECTS and name in PART_EFFECTS[effect]:
+        sensor_ok = effect not in SENSOR_EFFECTS or _is_sensor_side(text, specs)
+        if effect in known and name in known[effect] and sensor_ok:
             out.setdefault(effect, {})[name] = float(value)
     return out
+
+
+def _is_sensor_side(text: str, specs: Sequence[str]) -> bool:
+    """Whether the spec ``text`` is an effect of the readback only (hil_sim's delay ``at: sensor``,
+    its default)."""
+    effect = text.split("=", 1)[0].partition(".")[0]
+    return effect in SENSOR_EFFECTS and f"{effect}.at=drive" not in specs
 
 
 def run_case(
@@ -219,7 +245,9 @@ def run_case(
     base = load_config(path)
     rate = base.sample_rate_hz
     frame = default_frame(base, axis, reduced=reduced)
-    bench = StageBench(_stage(path, specs, axis, seed), rate)
+    sensor_side = [x for x in specs if _is_sensor_side(x, specs)]
+    truth = _stage(path, [x for x in specs if x not in sensor_side], axis, seed) if sensor_side else None
+    bench = StageBench(_stage(path, specs, axis, seed), rate, truth=truth)
     exps = bench.play_frame(frame, axis, base.service.ramp_rate_v_per_s)
     step = on_step or (lambda _s: None)
     step("frame")
@@ -233,17 +261,17 @@ def run_case(
         out["findings"], out["adoption"] = [], {"adopted": [], "skipped": []}
         out["extended"] = out["baseline"]
     else:
-        options = AuditOptions(folds=folds, refit_cv=False)
-        if audit_effects:
-            options = dataclasses.replace(options, effects=tuple(audit_effects))
+        # the candidates piezod calibrate audits its frame for: those a runtime part or the sensor
+        # path can take (the others could not be adopted)
+        effects = tuple(audit_effects) if audit_effects else (*PART_EFFECTS, *SENSOR_EFFECTS)
+        options = AuditOptions(folds=folds, refit_cv=False, effects=effects)
         doc = result_json(run_audit(exps, [], options=options))
         step("audit")
         adoption: Adoption = adopt_findings(doc["findings"])
         out["findings"] = [f["effect"] for f in doc["findings"]]
         out["adoption"] = {"adopted": list(adoption.adopted), "skipped": list(adoption.skipped)}
         if adoption.effects:
-            parts = Parts.from_effects(adoption.effects)
-            refit = _dynamic(experiments_through_parts(exps, parts), base, axis)
+            refit = _dynamic(experiments_through(exps, adoption.effects), base, axis)
             extended = extended_config(refit, axis, adoption)
             out["extended"] = {"rows": _verify(bench, extended, axis, points, loops)}
         else:
@@ -252,7 +280,7 @@ def run_case(
         injected = _injected_parts(specs)
         if injected:
             # the same refit with the injected values: what the runtime parts do when the finding is right
-            refit = _dynamic(experiments_through_parts(exps, Parts.from_effects(injected)), base, axis)
+            refit = _dynamic(experiments_through(exps, injected), base, axis)
             oracle = extended_config(refit, axis, Adoption(injected))
             out["injected"] = {"rows": _verify(bench, oracle, axis, points, loops)}
             step("injected verified")

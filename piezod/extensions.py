@@ -3,7 +3,9 @@
 The audit (:mod:`piezod.audit`) names effects with their parameters in the names of the effect
 registry (:mod:`piezod.model.registry`). Those with a runtime part (:mod:`piezod.model.parts`:
 polarity, thermal, stiffness, saturation, drift) go into the axis's ``extensions:`` section, which
-the daemon's inverse applies; the others are reported as not (yet) correctable at run time, with
+the daemon's inverse applies; a ``delay`` goes there as the axis's sensor path
+(:mod:`piezod.model.sensor`: the readback's delay and lag, which the analysis undoes, the drive
+unchanged); the others are reported as not (yet) correctable at run time, with
 the reason. The written YAML says in a comment which finding became which parameter.
 """
 
@@ -21,12 +23,11 @@ import numpy as np
 from piezod.config import ScannerConfig, dump_config, load_config
 from piezod.errors import ConfigError, ModelError
 from piezod.model.parts import PART_EFFECTS, Parts
+from piezod.model.sensor import SENSOR_EFFECTS, SensorPath
 from piezod.recording import Experiment
 
 #: Why a registry effect has no runtime part.
 NO_PART_REASON: dict[str, str] = {
-    "delay": "a pure delay needs targets ahead of the sample (the drive lag is the family model's "
-    "lag_time_constant_s, fitted by piezod calibrate)",
     "resonance": "no runtime part (the scan's turning points ring; lower the line rate)",
     "creep": "the creep spectrum is the calibration's (piezod calibrate fits it)",
     "asymmetry": "no runtime part yet",
@@ -71,6 +72,21 @@ def adopt_findings(findings: Sequence[Mapping[str, Any]]) -> Adoption:
     for f in findings:
         effect = str(f["effect"])
         params = {str(k): v for k, v in dict(f.get("params") or {}).items()}
+        if effect in SENSOR_EFFECTS:
+            names = SENSOR_EFFECTS[effect]
+            vals = {n: float(params.get(n) or 0.0) for n in names}
+            try:
+                SensorPath.from_effects({effect: vals})
+            except ModelError as exc:
+                skipped.append(f"{effect}: {exc}")
+                continue
+            effects[effect] = vals
+            adopted.append(
+                f"{effect}: "
+                + ", ".join(f"{k} = {v:.6g}" for k, v in vals.items())
+                + " (sensor path: the readback is aligned, the drive unchanged)"
+            )
+            continue
         if effect not in PART_EFFECTS:
             skipped.append(f"{effect}: {NO_PART_REASON.get(effect, 'no runtime part')}")
             continue
@@ -120,6 +136,41 @@ def experiments_through_parts(experiments: Sequence[Experiment], parts: Parts) -
     ]
 
 
+def experiments_through_sensor(experiments: Sequence[Experiment], path: SensorPath) -> list[Experiment]:
+    """The experiments with the stage's position in place of the readback (:meth:`SensorPath.align`;
+    the rows whose ``t + d`` is past an experiment's end are dropped)."""
+    if path.identity:
+        return list(experiments)
+    out = []
+    for e in experiments:
+        t, x = path.align(np.asarray(e.t_s, dtype=np.float64), np.asarray(e.position_um, dtype=np.float64))
+        n = t.size
+        if n < 2:
+            raise ModelError(f"experiment {e.describe()}: shorter than the sensor delay {path.delay_s:g} s")
+        out.append(
+            dataclasses.replace(
+                e,
+                t_s=t,
+                voltage_v=np.asarray(e.voltage_v, dtype=np.float64)[:n],
+                position_um=x,
+                target_um=None if e.target_um is None else e.target_um[:n],
+                line_numbers=None if e.line_numbers is None else e.line_numbers[:n],
+            )
+        )
+    return out
+
+
+def experiments_through(
+    experiments: Sequence[Experiment], effects: Mapping[str, Mapping[str, float]]
+) -> list[Experiment]:
+    """The experiments as the model inside the adopted ``effects`` sees them: the readback aligned
+    through the sensor path (the last link of the chain), then through the parts' exact inverse."""
+    aligned = experiments_through_sensor(experiments, SensorPath.from_effects(effects))
+    return experiments_through_parts(
+        aligned, Parts.from_effects({k: v for k, v in effects.items() if k in PART_EFFECTS})
+    )
+
+
 def write_extended_config(
     base: str | Path, axis: str, findings: Sequence[Mapping[str, Any]], out: str | Path, source: str
 ) -> Adoption:
@@ -158,7 +209,9 @@ __all__ = [
     "NO_PART_REASON",
     "Adoption",
     "adopt_findings",
+    "experiments_through",
     "experiments_through_parts",
+    "experiments_through_sensor",
     "extended_config",
     "write_extended_config",
 ]

@@ -1,10 +1,12 @@
 """The one fit-result type and the statistics every least-squares fit of piezod shares.
 
-:class:`FitResult` is what every calibration fit returns (``piezod.calibrate.CalibrationResult``,
-``piezod.calibrate_dynamic.DynamicCalibrationResult`` are subclasses adding their model's
-parameters and per-experiment summaries): parameter standard errors, covariance and
-correlations, residuals and their RMS, the condition number, the parameters on a bound, ``n``
-and ``dof``. :func:`parameter_statistics` computes that block from the Jacobian at the solution
+:class:`FitResult` is what every least-squares fit returns: the calibrations
+(``piezod.calibrate.CalibrationResult``, ``piezod.calibrate_dynamic.DynamicCalibrationResult``,
+``piezod.calibrate_family.FamilyFit``) and the audit (``piezod.audit.fitting.Fit``) are
+subclasses adding their model's parameters and summaries: residuals and their RMS, cost, ``n``,
+``dof``, AIC and BIC, and where the fit computes them parameter standard errors, covariance
+and correlations, the condition number, the parameters on a bound, the held-out RMS.
+:func:`parameter_statistics` computes that block from the Jacobian at the solution
 (the nonlinear fits, and the audit through :func:`jacobian_covariance`), :func:`solve_linear`
 is the linear least-squares path (bounded, optionally regularised).
 """
@@ -173,52 +175,61 @@ def parameter_statistics(
     )
 
 
+_NO_MATRIX: F64 = np.zeros((0, 0))
+
+
 @dataclass(frozen=True, eq=False, kw_only=True)
 class FitResult:
-    """What every least-squares fit returns (values in the units of the parameter names).
+    """What every least-squares fit of piezod returns, the calibrations' and the audit's alike.
 
-    Subclasses add the fitted model (``params``, ``values``: name -> fitted value) and their
-    per-experiment summaries.
+    Like :class:`scipy.optimize.OptimizeResult` or lmfit's ``MinimizerResult``: the residuals
+    and the solver's status always, the parameter statistics where the fit computes them (a
+    fit that does not has an empty :attr:`stderr` and :attr:`has_errors` false), held-out
+    figures where the fit held data out. Subclasses add the fitted model (``params``;
+    ``values``: name -> fitted value where the parameters are named) and their summaries:
+    ``piezod.calibrate.CalibrationResult``, ``piezod.calibrate_dynamic.DynamicCalibrationResult``,
+    ``piezod.calibrate_family.FamilyFit``, ``piezod.audit.fitting.Fit``.
 
     Attributes
     ----------
-    stderr
-        Standard error per parameter name (0 for held ones; inf when undetermined).
-    covariance
-        Covariance matrix of the free parameters (order of ``free``).
-    correlations
-        Correlation matrix of the free parameters (order of ``free``).
-    free, fixed
-        Names of the fitted and of the held parameters.
-    at_bounds
-        Free parameters that ended on a bound (their standard errors are not meaningful).
-    condition_number
-        Condition number of the column-normalised Jacobian of the free parameters.
     residuals_um
-        Measured minus fitted position per compared sample (um).
+        Measured minus fitted position per compared sample (um; for the audit after projecting
+        out the nuisance terms).
     cost
-        The solver's cost at the solution.
+        The solver's cost at the solution (scipy's convention: half the sum of squares it
+        minimised, robust loss applied where the fit uses one).
     n
         Number of compared samples.
     dof
-        Degrees of freedom of the residual variance (``n`` minus every fitted coefficient).
+        Degrees of freedom of the residual variance (``n`` minus every fitted coefficient,
+        nuisance terms such as per-experiment offsets included).
     nfev
-        Model evaluations.
+        Model evaluations (or solver iterations, for fits that say so).
     success, message
         Solver status.
     seconds
         Wall time of the fit.
     warnings
         Things the user should know (undetermined or bounded parameters, ...).
+    stderr
+        Standard error per parameter name (0 for held ones; inf when undetermined; empty when
+        the fit does not compute them).
+    covariance
+        Covariance matrix of the free parameters (order of ``free``; shape ``(0, 0)`` when not
+        computed).
+    correlations
+        Correlation matrix of the free parameters (same order and shape).
+    free, fixed
+        Names of the fitted and of the held parameters.
+    at_bounds
+        Free parameters that ended on a bound (their standard errors are not meaningful).
+    condition_number
+        Condition number of the column-normalised Jacobian of the free parameters (nan when not
+        computed).
+    heldout_rms_um
+        RMS prediction error on data the fit did not see (um), nan when none was held out.
     """
 
-    stderr: Mapping[str, float]
-    covariance: F64
-    correlations: F64
-    free: tuple[str, ...]
-    fixed: tuple[str, ...]
-    at_bounds: tuple[str, ...]
-    condition_number: float
     residuals_um: F64
     cost: float
     n: int
@@ -226,14 +237,47 @@ class FitResult:
     nfev: int
     success: bool
     message: str
-    seconds: float
+    seconds: float = 0.0
     warnings: tuple[str, ...] = field(default=())
+    stderr: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    covariance: F64 = field(default_factory=lambda: _NO_MATRIX)
+    correlations: F64 = field(default_factory=lambda: _NO_MATRIX)
+    free: tuple[str, ...] = ()
+    fixed: tuple[str, ...] = ()
+    at_bounds: tuple[str, ...] = ()
+    condition_number: float = math.nan
+    heldout_rms_um: float = math.nan
+
+    @property
+    def has_errors(self) -> bool:
+        """Whether the fit computed parameter standard errors."""
+        return bool(self.stderr)
+
+    @property
+    def rss(self) -> float:
+        """Residual sum of squares (um^2)."""
+        r = self.residuals_um
+        return float(r @ r)
 
     @property
     def residual_rms_um(self) -> float:
         """RMS of :attr:`residuals_um` (um)."""
-        r = self.residuals_um
-        return float(np.sqrt(np.mean(r * r))) if r.size else math.nan
+        return math.sqrt(self.rss / self.n) if self.n else math.nan
+
+    @property
+    def n_coefficients(self) -> int:
+        """Fitted coefficients, nuisance terms included (``n - dof``)."""
+        return self.n - self.dof
+
+    @property
+    def aic(self) -> float:
+        """Akaike information criterion ``n ln(RSS / n) + 2 k``, ``k`` = :attr:`n_coefficients`."""
+        return self.n * math.log(max(self.rss, 1e-300) / self.n) + 2.0 * self.n_coefficients
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion ``n ln(RSS / n) + k ln n``, ``k`` = :attr:`n_coefficients`."""
+        return self.n * math.log(max(self.rss, 1e-300) / self.n) + self.n_coefficients * math.log(self.n)
 
 
 def solve_linear(
@@ -246,9 +290,10 @@ def solve_linear(
 ) -> tuple[F64, float]:
     """Bounded, optionally Tikhonov-regularised linear least squares ``min |A c - y|^2 + |R c|^2``.
 
-    The one linear least-squares path of the calibrations (and of the audit's linear
-    sub-problems): :func:`scipy.optimize.lsq_linear` (trust-region reflective) on the stacked
-    system.
+    The one linear least-squares path of the calibrations and of the audit:
+    :func:`scipy.optimize.lsq_linear` (trust-region reflective) on the stacked, column-scaled
+    system; without bounds and regularisation the column-scaled :func:`numpy.linalg.lstsq` that
+    ``lsq_linear`` starts from (and returns) in that case.
 
     Parameters
     ----------
@@ -286,6 +331,12 @@ def solve_linear(
         )
         c[free] = sub
         return c, float(np.sqrt(np.mean((a @ c - y) ** 2)))
+    if lower is None and upper is None and ridge is None:
+        # what lsq_linear does first (and returns) for an unbounded problem, without its overhead
+        scale = np.linalg.norm(a, axis=0)
+        scale[scale == 0.0] = 1.0
+        sol_u: F64 = np.linalg.lstsq(a / scale, y, rcond=-1)[0] / scale
+        return sol_u, float(np.sqrt(np.mean((a @ sol_u - y) ** 2)))
     if ridge is not None:
         a_full = np.vstack([a, ridge])
         y_full = np.concatenate([y, np.zeros(ridge.shape[0])])

@@ -26,6 +26,7 @@ from piezod.calibrate import calibrate, calibrated_config, result_json
 from piezod.config import AxisName, ScannerConfig
 from piezod.errors import CalibrationError, PiezodError
 from piezod.linearity import linearity
+from piezod.model.sensor import SensorPath
 from piezod.model.thesis import scan_range_um
 from piezod.recording import Experiment, read_experiments
 from piezod.service.engine import Engine, Segment
@@ -212,20 +213,51 @@ def verification_points(
     r_fast = min(0.5 * (r_lo + r_hi), 0.8 * ax.slew_rate_v_per_s / (2.0 * f_fast) / 2.0)
     pts.append(VerifyPoint(um(r_fast, f_fast), f_fast, 0.0, False, "10x faster"))
     # Offsets beyond the frame's: half-range scans pushed out to 1.8x the largest offset.
-    off_v = 1.8 * max(abs(o_hi - centre), abs(o_lo - centre), 0.1 * (ax.voltage_max_v - ax.voltage_min_v))
+    frame_off = max(abs(o_hi - centre), abs(o_lo - centre), 0.1 * (ax.voltage_max_v - ax.voltage_min_v))
+    off_v = 1.8 * frame_off
     r_off = min(r_lo, 2.0 * (0.5 * (ax.voltage_max_v - ax.voltage_min_v) - off_v) * 0.9)
     if r_off > 0:
         for sign in (-1.0, 1.0):
-            pts.append(
-                VerifyPoint(
-                    um(r_off, 1.0),
-                    1.0,
-                    round(sign * off_v * b, 2),
-                    False,
-                    f"offset {sign * off_v:+.0f} V beyond frame",
-                )
-            )
+            off_um, at_v = _offset_um(config, axis, centre, sign * off_v, um(r_off, 1.0), b, 1.2 * frame_off)
+            pts.append(VerifyPoint(um(r_off, 1.0), 1.0, off_um, False, f"offset {at_v:+.0f} V beyond frame"))
     return pts
+
+
+def _offset_um(
+    config: ScannerConfig,
+    axis: AxisName,
+    centre_v: float,
+    off_v: float,
+    range_um: float,
+    b: float,
+    least_v: float,
+) -> tuple[float, float]:
+    """The centre (um) of a verification scan ``off_v`` from the voltage centre, and that offset (V).
+
+    The offset is a *voltage*: the axis's own model (the one being verified) says where the stage
+    rests there, relative to where it rests at the centre -- the thesis model's ``b`` says it
+    wrongly for a loop much wider or narrower than the thesis law's (its centre then needs more
+    voltage than the amplifier has, and the scan clamps). The periodic plan still checks the scan
+    with the thesis model, so the offset shrinks (down to ``least_v``, still beyond the frame)
+    until that check passes; where it never does, the thesis model places it as before.
+    """
+    from piezod.errors import RangeUnreachableError, SafetyError
+    from piezod.service.axes import _plan, axis_model
+
+    ax = config.axes[axis]
+    model = axis_model(ax)
+    thesis = ax.thesis.params()
+    zero = model.position(model.rest(centre_v))
+    v = off_v
+    while abs(v) >= least_v:
+        off_um = round(float(model.position(model.rest(centre_v + v)) - zero), 2)
+        try:
+            _plan(thesis, range_um, 1.0, off_um, ax.voltage_min_v, ax.voltage_max_v)
+        except (RangeUnreachableError, SafetyError):
+            v *= 0.9
+            continue
+        return off_um, v
+    return round(off_v * b, 2), off_v
 
 
 def verify(
@@ -237,8 +269,10 @@ def verify(
     *,
     lines: int = 4,
     progress: Progress | None = None,
+    sensor: SensorPath | None = None,
 ) -> list[dict[str, Any]]:
-    """Scan each point online-corrected; nonlinearity and length error from the sensor readback.
+    """Scan each point online-corrected; nonlinearity and length error from the sensor readback
+    (aligned through the axis's sensor path ``sensor``: a readback delay is not a position error).
 
     A model that was just switched in starts from a state adopted from the previous one (the
     dynamic model's creep memory spans decades), so one unrecorded warm-up scan at the first
@@ -309,7 +343,7 @@ def verify(
             )
             rows.append(row)
             continue
-        nl, le = worker.linearity(path, "x")
+        nl, le = worker.linearity(path, "x", sensor)
         row.update(nonlinearity_pct=nl, length_error_pct=le)
         rows.append(row)
     return rows
@@ -406,9 +440,7 @@ def choose_for_experiments(
         alpha = dyn.alpha_per_v
         spectrum = CreepSpectrum(tuple(map(float, dyn.taus_s)), tuple(map(float, dyn.weights)))
         others["dynamic"] = FamilyParams(dyn.hysteresis, spectrum)
-    choice = cf.choose_model(
-        data, others=others, alpha_per_v=alpha, adoptable_drivers=REALTIME_CREEP_DRIVERS
-    )
+    choice = cf.choose_model(data, others=others, alpha_per_v=alpha, adoptable_drivers=REALTIME_CREEP_DRIVERS)
     report: dict[str, Any] = {
         "chosen": choice.chosen,
         "held_out_experiments": list(choice.holdout),
@@ -472,11 +504,13 @@ def audit_and_extend(
     """
     from piezod.audit import AuditOptions, run_audit
     from piezod.audit import result_json as audit_json
-    from piezod.extensions import adopt_findings, experiments_through_parts, extended_config
-    from piezod.model.parts import PART_EFFECTS, Parts
+    from piezod.extensions import adopt_findings, experiments_through, extended_config
+    from piezod.model.parts import PART_EFFECTS
+    from piezod.model.sensor import SENSOR_EFFECTS
 
-    # only the effects a runtime part can take: the others could not be adopted (piezod audit tries all)
-    options = AuditOptions(folds=folds, refit_cv=False, effects=tuple(PART_EFFECTS))
+    # only the effects a runtime part or the sensor path can take: the others could not be
+    # adopted (piezod audit tries all)
+    options = AuditOptions(folds=folds, refit_cv=False, effects=(*PART_EFFECTS, *SENSOR_EFFECTS))
     doc = audit_json(run_audit(experiments, [], options=options))
     adoption = adopt_findings(doc["findings"])
     report: dict[str, Any] = {
@@ -489,9 +523,8 @@ def audit_and_extend(
     if not adoption.effects:
         report["text"] = adoption.summary()
         return ThesisFit(report, chosen.config, chosen.fit_error_pct)
-    parts = Parts.from_effects(adoption.effects)
     redone = choose_for_experiments(
-        experiments_through_parts(experiments, parts), axis, base, ramp_v_per_s, rest_voltage_v
+        experiments_through(experiments, adoption.effects), axis, base, ramp_v_per_s, rest_voltage_v
     )
     report["heldout_rms_um"]["extended"] = redone.fit_error_pct
     if redone.fit_error_pct < chosen.fit_error_pct:
@@ -520,8 +553,13 @@ def _audit_here(
     return audit_and_extend(exps, axis, chosen, base, ramp_v_per_s, rest_voltage_v)
 
 
-def _linearity_here(path: Path, axis: AxisName) -> tuple[float, float]:
-    e = linearity(read_experiments([path], axis=axis)).experiments[0]
+def _linearity_here(path: Path, axis: AxisName, sensor: SensorPath | None = None) -> tuple[float, float]:
+    exps = read_experiments([path], axis=axis)
+    if sensor is not None:
+        from piezod.extensions import experiments_through_sensor
+
+        exps = experiments_through_sensor(exps, sensor)
+    e = linearity(exps).experiments[0]
     return float(e.nonlinearity_pct), float(e.length_error_pct)
 
 
@@ -600,9 +638,12 @@ class AnalysisWorker:
             _audit_here, frame_path, axis, chosen, base, ramp_v_per_s, rest_voltage_v
         ).result()
 
-    def linearity(self, path: Path, axis: AxisName = "x") -> tuple[float, float]:
-        """(nonlinearity %, length error %) of the first experiment of ``axis`` in ``path``."""
-        return self._pool.submit(_linearity_here, path, axis).result()
+    def linearity(
+        self, path: Path, axis: AxisName = "x", sensor: SensorPath | None = None
+    ) -> tuple[float, float]:
+        """(nonlinearity %, length error %) of the first experiment of ``axis`` in ``path`` (the
+        readback aligned through ``sensor``, the axis's sensor path, when given)."""
+        return self._pool.submit(_linearity_here, path, axis, sensor).result()
 
     def synth_frame(self, path: Path) -> None:
         """Write a synthetic 12-experiment calibration session (for benchmarks) to ``path``."""

@@ -208,6 +208,8 @@ class RealDaemon:
                     self.proc.wait()
         finally:
             if self.sim is not None:
+                # kept beside the daemon's log: a failure's evidence is on both sides of the link
+                (self.tmp / "sim.log").write_text(self.sim.stderr_text(), encoding="utf-8")
                 self.sim.close()
             self.notify.close()
         # SIGTERM must stop the daemon (ramp to safe, flush, exit): a hang is a failure, not a kill

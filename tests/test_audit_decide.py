@@ -210,6 +210,33 @@ def test_candidates_that_change_nothing_gain_one_within_their_error() -> None:
         assert not c.eligible
 
 
+def test_the_eligibility_test_is_the_paired_block_test() -> None:
+    from piezod.audit.fitting import HeldOut, gain_with_se, paired_z
+
+    rng = np.random.default_rng(2)
+    before = rng.normal(0.0, 2.0, 5000)
+    rows = np.ones(5000, dtype=bool)
+
+    def held(r: np.ndarray) -> HeldOut:
+        return HeldOut(float(np.sqrt(np.mean(r**2))), r, rows)
+
+    # a gain that sits in four of ten blocks (the fast scans) is a gain: the null's scatter sets
+    # the test, not the spread of the effect over the blocks (which the ratio's jackknife measures)
+    local = before.copy()
+    local[:2000] = before[:2000] / 2.0
+    g, se = gain_with_se(held(before), held(local))
+    assert paired_z(held(before), held(local)) > 2.0 > (g - 1.0) / se
+    # two equally good predictions differ by noise alone: z > 2 about as often as a t test with
+    # 9 degrees of freedom says (3.8 %), not more
+    zs = []
+    for _ in range(300):
+        a, b = before + rng.normal(0.0, 0.5, 5000), before + rng.normal(0.0, 0.5, 5000)
+        zs.append(paired_z(held(a), held(b)))
+    assert np.mean(np.array(zs) > 2.0) < 0.07
+    assert paired_z(held(before), held(before)) == 0.0
+    assert paired_z(held(before), held(before / 2.0)) > 10.0
+
+
 def test_gain_standard_error_is_a_block_jackknife() -> None:
     from piezod.audit.fitting import HeldOut, gain_with_se
 

@@ -37,6 +37,7 @@ from piezod.audit.fitting import Problem, folds_of, heldout_cv
 from piezod.audit.projection import Projector
 from piezod.audit.residuals import noise_floor
 from piezod.calibrate import model_positions, prepare
+from piezod.fitstats import FitResult
 from piezod.model.ode import HysteresisState, hysteresis_step
 from piezod.model.params import HysteresisParams, ThesisParams
 
@@ -182,6 +183,17 @@ def test_every_candidate_contains_the_baseline(effect: str, small_frame: tuple) 
 def test_baseline_fit_reaches_the_noise_on_clean_data(small_frame: tuple) -> None:  # type: ignore[type-arg]
     _, _, fit = small_frame
     assert fit.rms_um == pytest.approx(0.005, rel=0.1)
+
+
+def test_the_audit_fit_is_the_shared_fit_result(small_frame: tuple) -> None:  # type: ignore[type-arg]
+    """Projected residual, dof = n - (free parameters + nuisance terms), BIC from the shared type."""
+    model, geo, fit = small_frame
+    assert isinstance(fit, FitResult) and not fit.has_errors
+    k = int(model.free().sum()) + Problem(model, geo, geo.data.fit_mask).n_nuisance(fit.p)
+    assert fit.k == k == fit.n - fit.dof and fit.n == fit.residual.size
+    assert fit.rss == pytest.approx(float(fit.residual @ fit.residual))
+    assert fit.cost == pytest.approx(0.5 * fit.rss)
+    assert fit.bic == pytest.approx(fit.n * math.log(fit.rss / fit.n) + k * math.log(fit.n))
 
 
 def test_chord_cross_validation_agrees_with_refits() -> None:

@@ -78,3 +78,53 @@ def test_solve_linear_honours_bounds() -> None:
     c, rms = solve_linear(a, y)
     np.testing.assert_allclose(c, [1.0, -0.5], atol=1e-9)
     assert rms == pytest.approx(0.0, abs=1e-9)
+
+
+def _check_common(res: FitResult) -> None:
+    """The part every fit fills: residuals, n, dof, cost and the information criteria agree."""
+    assert isinstance(res, FitResult)
+    r = res.residuals_um
+    assert res.n == r.size and 0 < res.n_coefficients < res.n
+    assert res.rss == pytest.approx(float(r @ r)) and res.residual_rms_um == pytest.approx(
+        np.sqrt(np.mean(r**2))
+    )
+    k, n = res.n_coefficients, res.n
+    assert res.bic == pytest.approx(n * np.log(res.rss / n) + k * np.log(n))
+    assert res.aic == pytest.approx(n * np.log(res.rss / n) + 2 * k)
+
+
+def test_family_fit_returns_the_shared_result() -> None:
+    """FamilyFit: training residuals of the returned parameters, held-out RMS, no standard errors."""
+    from hil_sim.session import calibration_plan, run_session
+    from hil_sim.stage import StageConfig, resolve_stage
+    from piezod.calibrate_family import (
+        FamilyFit,
+        _centre,
+        _Session,
+        default_taus,
+        fit_family,
+        holdout_mask,
+        session_positions,
+    )
+    from piezod.simulator import session_experiments
+
+    path = resolve_stage("pi-stage")
+    assert path is not None
+    plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=1, settle_cycles=1)
+    sess = run_session(
+        StageConfig.from_file(path), plan, sample_rate_hz=500.0, axis="x", voltage_limits_v=(-230.0, 230.0)
+    )
+    data = prepare_dynamic(session_experiments(sess), max_samples_per_loop=64, slew_rate_v_per_s=2000.0)
+    train = holdout_mask(data.n_experiments, 3)
+    res = fit_family(data, "coleman-hodgdon", alpha_per_v=3e-3, train=train)
+    assert isinstance(res, FamilyFit)
+    _check_common(res)
+    assert not res.has_errors and res.covariance.shape == (0, 0)
+    assert res.cost == pytest.approx(0.5 * res.rss) and res.rms_um == res.residual_rms_um
+    s = _Session(data, np.asarray(res.params.creep.taus_s), train)
+    resid = s.yc - _centre(data, session_positions(data, res.params, s.dev))
+    np.testing.assert_allclose(res.residuals_um, resid[s.train_rows], atol=1e-12)
+    assert res.heldout_rms_um == pytest.approx(float(np.sqrt(np.mean(resid[s.test_rows] ** 2))))
+    # theta (V, hysteresis unit), a weight per relaxation time, kappa, the lag; an offset per experiment
+    assert res.dof == res.n - (2 + default_taus(data).size + 2) - int(train.sum())
+    assert np.isnan(fit_family(data, "coleman-hodgdon", alpha_per_v=3e-3).heldout_rms_um)

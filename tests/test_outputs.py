@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 from fake_engine import running_api
+from real_daemon import DAEMON_NICE, _nice
 
 from hil_sim.server import spawn_sim
 from piezod.calibrate import calibrated_config, fit, prepare
@@ -36,6 +37,10 @@ from piezod.synth import random_params, random_plan, synth_session
 
 
 def _piezod(*args: str, cwd: Path, timeout_s: float = 300.0) -> subprocess.CompletedProcess[str]:
+    """Run ``piezod``; a streaming command (``scan --sim``: the simulator stands in for a board
+    with its own clock) at the daemon's priority, as the real-daemon tests run it, so that a
+    machine saturated by other jobs does not starve the stream."""
+    streaming = args[:1] == ("scan",)
     return subprocess.run(
         [sys.executable, "-m", "piezod", *args],
         cwd=cwd,
@@ -43,6 +48,7 @@ def _piezod(*args: str, cwd: Path, timeout_s: float = 300.0) -> subprocess.Compl
         text=True,
         timeout=timeout_s,
         check=False,
+        preexec_fn=_nice(DAEMON_NICE) if streaming else None,
     )
 
 
@@ -270,3 +276,78 @@ def test_the_repository_cites_only_what_it_contains() -> None:
     assert "Kai Dirscherl" in formats and "2000" in formats
     for heading in ("recording format", "Command-line contract", "JSON keys"):
         assert heading in formats
+
+
+@pytest.mark.parametrize("config", ["sim-pi-microscope-calibrated.yaml", "sim-stage-calibrated.yaml"])
+def test_the_recording_names_the_parameters_of_the_model_in_use(config: str) -> None:
+    """``model_params`` is the section of the model that corrects (it was the thesis section for a
+    family model before)."""
+    from piezod.service.recorder import scan_metadata
+
+    cfg = load_config(default_sim_config_path().parent / config)
+    fast = cfg.axes["x"]
+    request = ScanRequest(range_um=10.0, line_rate_hz=1.0, lines=2)
+    meta = scan_metadata(cfg, request, cfg.sample_rate_hz, True, ("x",), fast.model)
+    assert meta["model"] == fast.model != "thesis"
+    section = getattr(fast, fast.model)
+    assert json.loads(str(meta["model_params"])) == section.model_dump(mode="json")
+    off = scan_metadata(
+        cfg, request.model_copy(update={"correction": False}), cfg.sample_rate_hz, True, ("x",), "none"
+    )
+    assert off["model"] == off["correction"] == "none" and "model_params" not in off
+
+
+def test_the_audit_report_and_plots_say_what_the_decision_did() -> None:
+    """Tried: an audit of a frame with a hidden delay. Held: every finding is eligible and the
+    first is the one marked '>' (a non-eligible candidate was finding 2 before); the held-out panel
+    colours findings green and only them (it coloured them opposite); gains on a linear axis (a
+    symlog axis read -10^0, 0, 10^0); every panel labelled; the loops figure shows every
+    experiment (3 of 10 before) and says so; no per-experiment panel of one point."""
+    from test_audit_decide import MID, small_session
+
+    from piezod.audit import run_audit
+    from piezod.audit.plots import _gains, _loops, _prediction, _pyplot, _residuals, _structure, _summary
+    from piezod.audit.report import print_summary
+
+    result = run_audit(small_session({"delay": MID["delay"]}, 21))
+    assert result.findings and result.findings[0].effect == "delay"
+    assert all(f.eligible for f in result.findings)
+    out = io.StringIO()
+    print_summary(result, out)
+    marked = [
+        line.split()[0] for line in out.getvalue().splitlines() if " >" in line and "finding" not in line
+    ]
+    assert marked == ["delay"]
+    eligible_first = max((c for c in result.rounds[0] if c.eligible), key=lambda c: c.gain)
+    assert eligible_first.effect == result.findings[0].effect
+
+    plt = _pyplot()
+    from matplotlib.colors import to_hex
+
+    gains = _gains(plt, result)
+    bars = gains.axes[0]
+    assert bars.get_yscale() == "linear" and gains.axes[1].get_yscale() != "symlog"
+    green = [p for p in bars.patches if to_hex(p.get_facecolor()) == to_hex("tab:green")]
+    assert len(green) == len(result.findings)
+    n = result.data.n_experiments
+    loops = _loops(plt, result)
+    shown = [a for a in loops.axes if a.get_visible()]
+    assert len(shown) == min(n, 16)
+    if n <= 16:
+        assert f"all {n} experiments" in loops._suptitle.get_text()
+    figures = {
+        "gains": gains,
+        "summary": _summary(plt, result),
+        "residuals": _residuals(plt, result),
+        "structure": _structure(plt, result),
+        "prediction": _prediction(plt, result),
+    }
+    for name, fig in figures.items():
+        for a in fig.axes:
+            if a.get_visible():
+                assert a.get_ylabel() and a.get_title(), name
+    for a in figures["structure"].axes:
+        if a.get_visible() and a.get_title().startswith("per experiment"):
+            assert all(len(line.get_xdata()) >= 3 for line in a.get_lines() if line.get_marker() == "o")
+    for fig in list(map(plt.figure, plt.get_fignums())):
+        plt.close(fig)

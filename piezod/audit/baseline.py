@@ -32,6 +32,7 @@ from piezod.audit.data import AuditData
 from piezod.audit.projection import Projector
 from piezod.calibrate import PARAM_NAMES, auto_start, prepare
 from piezod.errors import CalibrationError
+from piezod.fitstats import solve_linear
 from piezod.model.ode import HysteresisState, hysteresis_step, relaxed_state
 from piezod.model.params import HysteresisParams, ThesisParams
 from piezod.recording import Experiment
@@ -453,7 +454,7 @@ def ode_start(data: AuditData) -> tuple[OdeBase, F64]:
         proj = Projector(data.segment[rows], (decay[rows] * first)[:, None])
         a = proj(np.column_stack((v[rows], g[rows])))
         yp = proj(y)
-        coef, *_ = np.linalg.lstsq(a.T @ a, a.T @ yp, rcond=None)
+        coef, _ = solve_linear(a, yp)
         r = float(np.sum((a @ coef - yp) ** 2))
         b, delta = float(coef[0]), float(coef[1])
         u = b - alpha * delta

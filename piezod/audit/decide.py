@@ -66,6 +66,7 @@ from piezod.audit.fitting import (
     gain_with_se,
     heldout_cv,
     heldout_validate,
+    paired_z,
 )
 from piezod.audit.outside import Outside
 from piezod.audit.outside import check as check_outside
@@ -107,7 +108,8 @@ class AuditOptions:
     cv_nfev
         Evaluation budget of every cross-validation refit.
     gain_sigmas
-        A candidate's held-out gain must exceed 1 by this many standard errors.
+        A candidate's held-out squared error must drop by more than this many standard errors
+        (:func:`piezod.audit.fitting.paired_z`, the paired block test).
     """
 
     folds: int = 5
@@ -680,8 +682,12 @@ def _try(
     explained = (current_ho.rms_um**2 - ho.rms_um**2) / excess if excess > 0 else math.inf
     if not why and explained < opts.explain_min:
         why = f"explains only {100.0 * explained:.2g} % of the held-out variance above the noise"
-    if not why and math.isfinite(se) and gain - 1.0 <= opts.gain_sigmas * se:
-        why = f"gain {gain:.4g} +- {se:.2g} not {opts.gain_sigmas:g} standard errors above 1"
+    z = paired_z(current_ho, ho)
+    if not why and not math.isnan(z) and z <= opts.gain_sigmas:
+        why = (
+            f"gain {gain:.4g} +- {se:.2g}: the held-out error drops by {z:.2g} standard errors "
+            f"(paired block test), not more than {opts.gain_sigmas:g}"
+        )
     eligible = bic_delta < -opts.bic_min and gain >= opts.gain_min and not why
     return CandidateResult(
         effect=cand.effect,

@@ -104,7 +104,7 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
         on.append("alpha_per_v")  # b = u, no loop opening: alpha has no effect
     prob = Problem(model, geo, rows)
     jac = jacobian(prob, p, free, central=True)
-    cov = jacobian_covariance(jac, fit.rss, max(fit.n - fit.k, 1))
+    cov = jacobian_covariance(jac, fit.rss, max(fit.dof, 1))
     corr = np.nan_to_num(np.abs(cov.corr - np.eye(cov.corr.shape[0])), nan=1.0)
     max_corr = float(corr.max()) if corr.size else 0.0
     bad = list(dict.fromkeys(on))

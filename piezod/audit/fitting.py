@@ -11,6 +11,7 @@ evaluated on the held-out segments with only their nuisance parameters fitted th
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -21,6 +22,7 @@ from piezod.audit.baseline import Geometry
 from piezod.audit.candidates import AuditModel, Candidate
 from piezod.audit.projection import Projector
 from piezod.errors import ModelError
+from piezod.fitstats import FitResult
 
 F64 = NDArray[np.float64]
 
@@ -28,9 +30,13 @@ F64 = NDArray[np.float64]
 JACKKNIFE_BLOCKS = 10
 
 
-@dataclass(frozen=True, eq=False)
-class Fit:
-    """A fitted model.
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Fit(FitResult):
+    """A fitted model: the shared :class:`~piezod.fitstats.FitResult` (the projected residual,
+    ``n``, ``dof`` = ``n`` minus the free parameters and the nuisance terms, BIC) and the model.
+
+    The audit's fits compute no standard errors at the solution (the degeneracy check does,
+    :mod:`piezod.audit.degenerate`); ``cost`` is half the residual sum of squares.
 
     Attributes
     ----------
@@ -38,38 +44,25 @@ class Fit:
         The model.
     p
         Internal parameters.
-    rss
-        Residual sum of squares (um^2) over the fitted rows.
-    n
-        Fitted rows.
-    k
-        Free parameters, nuisance terms included (for the BIC).
-    nfev
-        Model evaluations.
-    success
-        Solver status.
-    residual
-        Projected residual (measured minus model) of the fitted rows.
     """
 
     model: AuditModel
     p: F64
-    rss: float
-    n: int
-    k: int
-    nfev: int
-    success: bool
-    residual: F64
 
     @property
     def rms_um(self) -> float:
         """RMS residual."""
-        return math.sqrt(self.rss / max(self.n, 1))
+        return self.residual_rms_um
 
     @property
-    def bic(self) -> float:
-        """Bayesian information criterion ``n ln(RSS / n) + k ln n`` (Gaussian noise)."""
-        return self.n * math.log(max(self.rss, 1e-300) / self.n) + self.k * math.log(self.n)
+    def k(self) -> int:
+        """Free parameters, nuisance terms included (for the BIC)."""
+        return self.n_coefficients
+
+    @property
+    def residual(self) -> F64:
+        """Projected residual (measured minus model) of the fitted rows."""
+        return self.residuals_um
 
 
 class Problem:
@@ -134,21 +127,25 @@ class Problem:
         mask = self.model.free() if free is None else free
         lo, hi = self.model.bounds()
         start_nfev = self.nfev
+        t0 = time.perf_counter()
         p_fit, r, success = levenberg_marquardt(
             self, np.asarray(p0, dtype=np.float64), mask, lo, hi, max_nfev
         )
         if not np.all(np.isfinite(r)):
             raise ModelError(f"the model {'+'.join(('baseline', *self.model.effects))} is not finite")
         k = int(mask.sum()) + self.n_nuisance(p_fit)
+        rss = float(r @ r)
         return Fit(
             model=self.model,
             p=p_fit,
-            rss=float(r @ r),
+            residuals_um=r,
+            cost=0.5 * rss,
             n=int(r.size),
-            k=k,
+            dof=int(r.size) - k,
             nfev=self.nfev - start_nfev,
             success=success,
-            residual=r,
+            message="converged" if success else "stopped: iteration or evaluation budget spent",
+            seconds=time.perf_counter() - t0,
         )
 
 
@@ -370,6 +367,32 @@ def gain_with_se(before: HeldOut, after: HeldOut, blocks: int = JACKKNIFE_BLOCKS
         return gain, math.nan
     se = math.sqrt((loo.size - 1) / loo.size * float(np.sum((loo - loo.mean()) ** 2)))
     return gain, se
+
+
+def paired_z(before: HeldOut, after: HeldOut, blocks: int = JACKKNIFE_BLOCKS) -> float:
+    """How many standard errors the held-out squared error drops, ``z`` of a paired block test.
+
+    The comparison of predictive accuracy of Diebold and Mariano (J. Bus. Econ. Stat. 13, 1995)
+    with a batch-means variance: the loss differentials ``d_i = SS_before_i - SS_after_i`` of
+    ``blocks`` contiguous blocks of the held-out samples (the same samples before and after, so
+    the data common to both cancels; contiguous blocks keep the residuals' correlation in time
+    inside a block), ``z = mean(d) / SE(mean(d))``. Its variance is the null's (the
+    differentials' scatter): the jackknife of the gain *ratio* (:func:`gain_with_se`) also
+    measures how unevenly a real effect spreads over the blocks (large where the fast or large
+    scans sit), so as a test it doubts exactly the effects that are there (stiffness on the
+    reduced calibration frame: gain 1.30 +- 0.16, z = 3.1). ``nan`` without two blocks; ``inf``
+    (or ``-inf``) when every block gains (loses) the same.
+    """
+    if before.residual.size != after.residual.size or after.residual.size == 0:
+        return math.nan
+    d = before.block_ss(blocks) - after.block_ss(blocks)
+    if d.size < 2:
+        return math.nan
+    mean = float(np.mean(d))
+    se = float(np.std(d, ddof=1)) / math.sqrt(d.size)
+    if se == 0.0:
+        return 0.0 if mean == 0.0 else math.copysign(math.inf, mean)
+    return mean / se
 
 
 def folds_of(n_segments: int, k: int) -> list[NDArray[np.bool_]]:

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod.audit.residuals import noise_floor
+from piezod.fitstats import solve_linear
 from piezod.recording import Experiment
 
 F64 = NDArray[np.float64]
@@ -297,7 +298,7 @@ def _hold_fit(tt: F64, x: F64, with_line: bool, taus: F64) -> tuple[float, F64, 
             if with_line:
                 cols.append(tt)
             a = np.column_stack(cols)
-            coef = np.asarray(np.linalg.lstsq(a, x, rcond=None)[0], dtype=np.float64)
+            coef, _ = solve_linear(a, x)
             r = x - a @ coef
             rss = float(r @ r)
             if best is None or rss < best[0]:

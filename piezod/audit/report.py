@@ -194,7 +194,8 @@ def legend(opts: AuditOptions) -> str:
     """The eligibility rule as the code applies it (:func:`piezod.audit.decide._try`)."""
     return (
         f"(* eligible: BIC falls by more than {opts.bic_min:g}, held-out gain >= {opts.gain_min:g} and "
-        f"more than {opts.gain_sigmas:g} standard errors above 1, explains >= {100 * opts.explain_min:g} % "
+        f"its held-out error down by more than {opts.gain_sigmas:g} standard errors (paired block "
+        f"test), explains >= {100 * opts.explain_min:g} % "
         "of the held-out variance above the noise, parameters physically plausible; > the eligible "
         "candidate with the largest gain: finding 1, the cause)"
     )

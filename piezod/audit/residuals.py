@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod.audit.data import AuditData
+from piezod.fitstats import solve_linear
 
 F64 = NDArray[np.float64]
 
@@ -111,7 +112,7 @@ def experiment_structure(
         if has_dir:
             cols.append(s - s.mean())
         a = np.column_stack(cols)
-        coef, *_ = np.linalg.lstsq(a, ri[ok], rcond=None)
+        coef, _ = solve_linear(a, ri[ok])
         rms[i] = math.sqrt(float(np.mean(ri[ok] ** 2)))
         slope[i] = coef[1] * 1e3
         gain[i] = coef[2]

@@ -50,6 +50,21 @@ def add_json_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", metavar="F", help="write machine-readable results to F ('-' = stdout)")
 
 
+def add_reading_options(parser: argparse.ArgumentParser) -> None:
+    """``--encoding`` and ``--allow-truncated-tail``: how the recordings are read
+    (:func:`piezod.recording.read_experiments`)."""
+    parser.add_argument(
+        "--encoding",
+        metavar="NAME",
+        help="text encoding of the recordings (default: detected; UTF-8, else Windows-1252/Latin-1)",
+    )
+    parser.add_argument(
+        "--allow-truncated-tail",
+        action="store_true",
+        help="drop an unterminated last line (crash while writing)",
+    )
+
+
 def add_port_options(parser: argparse.ArgumentParser, *, required: bool = False) -> None:
     """Add the mutually exclusive ``--sim`` / ``--port URL`` pair."""
     group = parser.add_mutually_exclusive_group(required=required)

@@ -7,7 +7,14 @@ from pathlib import Path
 from typing import Any
 
 from piezod.audit import EFFECTS, AuditOptions, print_summary, result_json, run_audit
-from piezod.cli._common import add_json_option, human_stream, input_file, positive_int, write_json
+from piezod.cli._common import (
+    add_json_option,
+    add_reading_options,
+    human_stream,
+    input_file,
+    positive_int,
+    write_json,
+)
 from piezod.errors import PiezodError
 from piezod.progress import progress_bar
 from piezod.recording import AXES, Experiment, read_experiments
@@ -71,16 +78,7 @@ def register(sub: Any) -> None:
         action="store_true",
         help="a few Gauss-Newton steps from the full fit per fold instead of a refit (faster, optimistic)",
     )
-    p.add_argument(
-        "--encoding",
-        metavar="NAME",
-        help="text encoding of the recordings (default: detected; UTF-8, else Windows-1252/Latin-1)",
-    )
-    p.add_argument(
-        "--allow-truncated-tail",
-        action="store_true",
-        help="drop an unterminated last line (crash while writing)",
-    )
+    add_reading_options(p)
     p.set_defaults(func=run)
 
 

@@ -7,6 +7,7 @@ for any other waveform (:mod:`piezod.calibrate_any` chooses and says which).
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,7 @@ from piezod.calibrate_dynamic import DynamicCalibrationResult
 from piezod.cli._common import (
     add_json_option,
     add_port_options,
+    add_reading_options,
     human_stream,
     input_file,
     nonneg_int,
@@ -85,16 +87,7 @@ def register(sub: Any) -> None:
         metavar="N",
         help="keep every k-th sample so that a loop has at most N (0 = all; default 2048)",
     )
-    p.add_argument(
-        "--encoding",
-        metavar="NAME",
-        help="text encoding of the recordings (default: detected; UTF-8, else Windows-1252/Latin-1)",
-    )
-    p.add_argument(
-        "--allow-truncated-tail",
-        action="store_true",
-        help="drop an unterminated last line (crash while writing)",
-    )
+    add_reading_options(p)
     add_port_options(p)
     stage = p.add_argument_group("on the stage (--sim / --port)")
     stage.add_argument(
@@ -209,9 +202,7 @@ def _print_dynamic(result: DynamicCalibrationResult, axis: str, out: Any) -> Non
         f"{result.nfev} evaluations, {result.seconds:.2f} s",
         file=out,
     )
-    for k in DYNAMIC_PARAM_NAMES:
-        tag = "  (fixed)" if k in result.fixed else ""
-        print(f"  {k:<20} = {getattr(result.params, k):<12.6g} +- {result.stderr[k]:.3g}{tag}", file=out)
+    _print_parameters(result, DYNAMIC_PARAM_NAMES, 20, out)
     print(f"  {'experiment':<28} {'kind':>9} {'range V':>8} {'range um':>9} {'fit err %':>9}", file=out)
     for e in result.experiments:
         lay = e.layout
@@ -220,12 +211,37 @@ def _print_dynamic(result: DynamicCalibrationResult, axis: str, out: Any) -> Non
             f"{e.fit_error_pct:9.4f}",
             file=out,
         )
+    _print_footer(result, out, strong_correlations=False)
+
+
+def _print_parameters(
+    result: CalibrationResult | DynamicCalibrationResult, names: Sequence[str], width: int, out: Any
+) -> None:
+    """One line per parameter: value, standard error, held or not."""
+    for k in names:
+        tag = "  (fixed)" if k in result.fixed else ""
+        print(f"  {k:<{width}} = {getattr(result.params, k):<12.6g} +- {result.stderr[k]:.3g}{tag}", file=out)
+
+
+def _print_footer(
+    result: CalibrationResult | DynamicCalibrationResult, out: Any, *, strong_correlations: bool
+) -> None:
+    """The worst experiment, the condition number, (strong correlations,) the fit's warnings."""
     w = result.worst
     print(
         f"worst fit error {w.fit_error_pct:.4f} % ({w.label}); "
         f"condition number {result.condition_number:.3g}",
         file=out,
     )
+    if strong_correlations:
+        strong = [
+            f"{a}/{b} {result.correlations[i, j]:+.3f}"
+            for i, a in enumerate(result.free)
+            for j, b in enumerate(result.free)
+            if j > i and abs(result.correlations[i, j]) > 0.95
+        ]
+        if strong:
+            print("strong correlations: " + ", ".join(strong), file=out)
     for msg in result.warnings:
         print(f"note: {msg}", file=out)
 
@@ -236,9 +252,7 @@ def _print_summary(result: CalibrationResult, axis: str, out: Any) -> None:
         f"{result.nfev} evaluations, {result.seconds:.2f} s",
         file=out,
     )
-    for k in PARAM_NAMES:
-        tag = "  (fixed)" if k in result.fixed else ""
-        print(f"  {k:<12} = {getattr(result.params, k):<12.6g} +- {result.stderr[k]:.3g}{tag}", file=out)
+    _print_parameters(result, PARAM_NAMES, 12, out)
     print(
         f"  {'experiment':<28} {'range V':>8} {'offs V':>7} {'f Hz':>7} {'range um':>9} {'fit err %':>9}",
         file=out,
@@ -249,19 +263,4 @@ def _print_summary(result: CalibrationResult, axis: str, out: Any) -> None:
             f"{e.range_um:9.3f} {e.fit_error_pct:9.4f}",
             file=out,
         )
-    w = result.worst
-    print(
-        f"worst fit error {w.fit_error_pct:.4f} % ({w.label}); "
-        f"condition number {result.condition_number:.3g}",
-        file=out,
-    )
-    strong = [
-        f"{a}/{b} {result.correlations[i, j]:+.3f}"
-        for i, a in enumerate(result.free)
-        for j, b in enumerate(result.free)
-        if j > i and abs(result.correlations[i, j]) > 0.95
-    ]
-    if strong:
-        print("strong correlations: " + ", ".join(strong), file=out)
-    for msg in result.warnings:
-        print(f"note: {msg}", file=out)
+    _print_footer(result, out, strong_correlations=True)

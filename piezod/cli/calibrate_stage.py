@@ -116,8 +116,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 header=(
                     f"calibrated on the stage by piezod calibrate ({frame_summary(frame)}); "
                     f"model: {calibrated.axes[axis].model} ({chosen}: best held-out prediction), "
-                    "the thesis and dynamic parameters kept beside it"
-                    + extra
+                    "the thesis and dynamic parameters kept beside it" + extra
                 ),
             )
             print(f"-> {out}", file=say)
@@ -144,7 +143,8 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 )
                 for model in models:
                     engine.set_axis_model(axis, calibrated.axes[axis].model_copy(update={"model": model}))
-                    rows += verify(engine, points, recdir, model, worker)
+                    sensor = calibrated.axes[axis].sensor_path()
+                    rows += verify(engine, points, recdir, model, worker, sensor=sensor)
                 print(format_table(rows), file=say)
                 report["verification"] = rows
                 report["verification_summary"] = summary(rows)

@@ -8,6 +8,7 @@ from typing import Any
 
 from piezod.cli._common import (
     add_json_option,
+    add_reading_options,
     human_stream,
     input_file,
     nonneg_float,
@@ -38,16 +39,7 @@ def register(sub: Any) -> None:
         "--overscan", type=nonneg_float, metavar="O", help="overscan fraction (default: from the file)"
     )
     p.add_argument("--axis", choices=AXES, help="only this axis")
-    p.add_argument(
-        "--encoding",
-        metavar="NAME",
-        help="text encoding of the recordings (default: detected; UTF-8, else Windows-1252/Latin-1)",
-    )
-    p.add_argument(
-        "--allow-truncated-tail",
-        action="store_true",
-        help="drop an unterminated last line (crash while writing)",
-    )
+    add_reading_options(p)
     p.set_defaults(func=run)
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import queue
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Protocol
 
 import numpy as np
@@ -18,6 +18,7 @@ import numpy.typing as npt
 from firmware_proto import (
     Capabilities,
     CodeArray,
+    Endpoint,
     ErrorKind,
     Fault,
     FaultCode,
@@ -29,6 +30,7 @@ from piezod.errors import (
     LinkError,
     ProtocolError,
 )
+from piezod.link.seqwatch import missing_frames
 
 log = logging.getLogger("piezod.link.session")
 
@@ -282,6 +284,60 @@ class LinkCounters:
     def crc_errors(self) -> int:
         """CRC errors detected on both sides."""
         return self.crc_errors_host + self.crc_errors_board
+
+
+#: The counts :class:`LinkCounters` derives from the decode errors rather than keeps.
+_DERIVED = frozenset({"decode_errors", "crc_errors_host", "decode_errors_by_kind", "fault_frames"})
+
+
+class LinkTally:
+    """The session's running counts, keyed by the names of :class:`LinkCounters`' fields (an unknown
+    name cannot be tallied), with the endpoint counts of retired connections folded in (:meth:`fold`);
+    :meth:`snapshot` is the counters."""
+
+    __slots__ = ("decode_kinds", "fault_frames", "n")
+
+    def __init__(self) -> None:
+        self.n: dict[str, int] = {f.name: 0 for f in fields(LinkCounters) if f.name not in _DERIVED}
+        self.decode_kinds: dict[str, int] = {}
+        self.fault_frames: dict[str, int] = {}
+
+    def add(self, name: str, count: int = 1) -> int:
+        """Count ``count`` more of ``name`` (a :class:`LinkCounters` field); returns the new total."""
+        self.n[name] += count  # KeyError for a name LinkCounters does not have
+        return self.n[name]
+
+    def fold(self, endpoint: Endpoint) -> None:
+        """Add a connection's endpoint counts (frames, bytes, retransmissions, decode errors, losses)."""
+        es, ds = endpoint.stats, endpoint.decoder_stats
+        for name, count in (
+            ("frames_sent", es.frames_sent),
+            ("bytes_sent", es.bytes_sent),
+            ("retransmits", es.retransmits),
+            ("request_timeouts", es.timeouts),
+            ("stray_replies", es.stray_replies),
+            ("frames_received", ds.frames_ok),
+            ("bytes_received", ds.bytes_in),
+            ("frames_lost_rx", missing_frames(endpoint)),
+        ):
+            self.add(name, count)
+        for kind in ErrorKind:
+            self.decode_kinds[kind.value] = self.decode_kinds.get(kind.value, 0) + ds.count(kind)
+
+    def snapshot(self, live: Endpoint | None = None) -> LinkCounters:
+        """The counters, with the live connection's endpoint (if any) counted too."""
+        t = LinkTally()
+        t.n, t.decode_kinds, t.fault_frames = dict(self.n), dict(self.decode_kinds), dict(self.fault_frames)
+        if live is not None:
+            t.fold(live)
+        kinds = t.decode_kinds
+        return LinkCounters(
+            **t.n,
+            decode_errors=sum(kinds.values()),
+            crc_errors_host=kinds.get(ErrorKind.BAD_CRC.value, 0),
+            decode_errors_by_kind={k: v for k, v in kinds.items() if v},
+            fault_frames=t.fault_frames,
+        )
 
 
 class Subscribable(Protocol):

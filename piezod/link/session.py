@@ -36,7 +36,6 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any
 
@@ -51,7 +50,6 @@ from firmware_proto import (
     CodeArray,
     Configure,
     DecodeError,
-    ErrorKind,
     Fault,
     FaultCode,
     FaultFlags,
@@ -94,6 +92,7 @@ from piezod.link.events import (
     LinkDown,
     LinkEvent,
     LinkLost,
+    LinkTally,
     LinkUp,
     Reconnected,
     SensorBlock,
@@ -121,37 +120,6 @@ _BOARD_COUNTERS = (
     ("index_gaps", "index_gaps"),
     ("overflows", "overflows"),
 )
-
-
-@dataclass(slots=True)
-class _Tally:
-    samples_frames_sent: int = 0
-    sample_rows_sent: int = 0
-    heartbeats_sent: int = 0
-    status_frames: int = 0
-    sensor_frames: int = 0
-    sensor_rows: int = 0
-    sensor_rows_lost: int = 0
-    sensor_rows_lost_unexplained: int = 0
-    sensor_gaps: int = 0
-    sensor_rows_duplicate: int = 0
-    unexpected_frames: int = 0
-    link_downs: int = 0
-    reconnects: int = 0
-    callback_errors: int = 0
-    board: dict[str, int] = field(default_factory=lambda: {name: 0 for _, name in _BOARD_COUNTERS})
-    watchdogs: int = 0
-    fault_frames: dict[str, int] = field(default_factory=dict)
-    # from retired connections
-    frames_sent: int = 0
-    bytes_sent: int = 0
-    retransmits: int = 0
-    request_timeouts: int = 0
-    stray_replies: int = 0
-    frames_received: int = 0
-    bytes_received: int = 0
-    decode_kinds: dict[str, int] = field(default_factory=dict)
-    frames_missing: int = 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -229,7 +197,7 @@ class BoardSession:
         self._conn: _Connection | None = None
         self._generation = 0
         self._subscribers: list[Subscriber] = []
-        self._tally = _Tally()
+        self._tally = LinkTally()
         self._closing = False
         self._closed_event = threading.Event()
         self._dead: LinkError | None = None
@@ -366,7 +334,7 @@ class BoardSession:
                 cb(event)
             except Exception:
                 with self._lock:
-                    self._tally.callback_errors += 1
+                    self._tally.add("callback_errors")
                 log.exception("link event subscriber %r failed on %s", cb, type(event).__name__)
 
     def _emit_all(self, events: list[LinkEvent]) -> None:
@@ -414,63 +382,11 @@ class BoardSession:
     def counters(self) -> LinkCounters:
         """A snapshot of :class:`LinkCounters`."""
         with self._lock:
-            t = self._tally
-            kinds = dict(t.decode_kinds)
-            frames_sent, bytes_sent = t.frames_sent, t.bytes_sent
-            retrans, timeouts, strays = t.retransmits, t.request_timeouts, t.stray_replies
-            frames_rx, bytes_rx = t.frames_received, t.bytes_received
-            lost_rx = t.frames_missing
-            if self._conn is not None:
-                lost_rx += missing_frames(self._conn.endpoint)
-                es, ds = self._conn.endpoint.stats, self._conn.endpoint.decoder_stats
-                frames_sent += es.frames_sent
-                bytes_sent += es.bytes_sent
-                retrans += es.retransmits
-                timeouts += es.timeouts
-                strays += es.stray_replies
-                frames_rx += ds.frames_ok
-                bytes_rx += ds.bytes_in
-                for kind in ErrorKind:
-                    kinds[kind.value] = kinds.get(kind.value, 0) + ds.count(kind)
-            return LinkCounters(
-                frames_sent=frames_sent,
-                bytes_sent=bytes_sent,
-                samples_frames_sent=t.samples_frames_sent,
-                sample_rows_sent=t.sample_rows_sent,
-                heartbeats_sent=t.heartbeats_sent,
-                retransmits=retrans,
-                request_timeouts=timeouts,
-                frames_received=frames_rx,
-                bytes_received=bytes_rx,
-                decode_errors=sum(kinds.values()),
-                crc_errors_host=kinds.get(ErrorKind.BAD_CRC.value, 0),
-                decode_errors_by_kind={k: v for k, v in kinds.items() if v},
-                frames_lost_rx=lost_rx,
-                status_frames=t.status_frames,
-                sensor_frames=t.sensor_frames,
-                sensor_rows=t.sensor_rows,
-                sensor_rows_lost=t.sensor_rows_lost,
-                sensor_rows_lost_unexplained=t.sensor_rows_lost_unexplained,
-                sensor_gaps=t.sensor_gaps,
-                sensor_rows_duplicate=t.sensor_rows_duplicate,
-                unexpected_frames=t.unexpected_frames,
-                stray_replies=strays,
-                link_downs=t.link_downs,
-                reconnects=t.reconnects,
-                callback_errors=t.callback_errors,
-                crc_errors_board=t.board["crc_errors_board"],
-                frames_dropped_board=t.board["frames_dropped_board"],
-                underruns=t.board["underruns"],
-                clamped_samples=t.board["clamped_samples"],
-                index_gaps=t.board["index_gaps"],
-                overflows=t.board["overflows"],
-                watchdogs=t.watchdogs,
-                fault_frames=dict(t.fault_frames),
-            )
+            return self._tally.snapshot(None if self._conn is None else self._conn.endpoint)
 
     def _losses_now(self) -> int:
         """Frames from the board known lost so far: dropped by the decoder or missing by ``seq``."""
-        total = sum(self._tally.decode_kinds.values()) + self._tally.frames_missing
+        total = sum(self._tally.decode_kinds.values()) + self._tally.n["frames_lost_rx"]
         if self._conn is not None:
             total += self._conn.endpoint.decoder_stats.errors + missing_frames(self._conn.endpoint)
         return total
@@ -527,18 +443,7 @@ class BoardSession:
             if conn.retired:
                 return
             conn.retired = True
-            t = self._tally
-            es, ds = conn.endpoint.stats, conn.endpoint.decoder_stats
-            t.frames_sent += es.frames_sent
-            t.bytes_sent += es.bytes_sent
-            t.retransmits += es.retransmits
-            t.request_timeouts += es.timeouts
-            t.stray_replies += es.stray_replies
-            t.frames_received += ds.frames_ok
-            t.bytes_received += ds.bytes_in
-            for kind in ErrorKind:
-                t.decode_kinds[kind.value] = t.decode_kinds.get(kind.value, 0) + ds.count(kind)
-            t.frames_missing += missing_frames(conn.endpoint)
+            self._tally.fold(conn.endpoint)
             conn.endpoint = new_endpoint(self.settings)
             conn.alive = False
             conn.wake.set()
@@ -577,7 +482,7 @@ class BoardSession:
             conn.requests.clear()
             closing = self._closing or not conn.established  # a failed handshake raises in _connect
             if not closing:
-                self._tally.link_downs += 1
+                self._tally.add("link_downs")
                 self._down_since = time.monotonic()
                 self._link_broke_in_run = self._sensor_next is not None
             self._cond.notify_all()
@@ -646,7 +551,7 @@ class BoardSession:
                 timeout=wait,
             )
             status = self._status if conn is not None and conn.got_status else None
-            self._tally.reconnects += 1
+            self._tally.add("reconnects")
             down = time.monotonic() - (self._down_since or time.monotonic())
             self._down_since = None
         flags = status.fault_flags if status is not None else FaultFlags.NONE
@@ -791,7 +696,7 @@ class BoardSession:
                 data = conn.endpoint.data_to_send()
                 if not data and now - conn.last_tx >= hb and conn.hello_done:
                     conn.endpoint.send(Heartbeat(time_us=int(now * 1e6) & ((1 << 64) - 1)), now)
-                    self._tally.heartbeats_sent += 1
+                    self._tally.add("heartbeats_sent")
                     data = conn.endpoint.data_to_send()
             for req, err in failed:
                 req.error = err
@@ -829,7 +734,7 @@ class BoardSession:
                     self._last_played_seen = max(self._last_played_seen or 0, msg.index)
                 out.append(BoardFault(now, msg))
             else:
-                self._tally.unexpected_frames += 1
+                self._tally.add("unexpected_frames")
         elif isinstance(ev, DecodeError):
             out.append(DecodeFailure(now, ev.kind, ev.detail, ev.wire_size))
         elif isinstance(ev, Acked | Nacked):
@@ -890,7 +795,7 @@ class BoardSession:
         self._status_time = now
         self._status_count += 1
         conn.got_status = True
-        self._tally.status_frames += 1
+        self._tally.add("status_frames")
         raw = {src: int(getattr(st, src)) for src, _ in _BOARD_COUNTERS}
         if self._board_raw is not None:
             for src, dst in _BOARD_COUNTERS:
@@ -898,13 +803,12 @@ class BoardSession:
                 if delta > _U32 // 2:  # the counter went down: the board restarted
                     delta = raw[src]
                 if delta:
-                    self._tally.board[dst] += delta
-                    out.append(BoardCounter(now, src, delta, self._tally.board[dst]))
+                    out.append(BoardCounter(now, src, delta, self._tally.add(dst, delta)))
         self._board_raw = raw
         raised = st.fault_flags & ~self._flags_seen
         if raised:
             if raised & FaultFlags.WATCHDOG:
-                self._tally.watchdogs += 1
+                self._tally.add("watchdogs")
             out.append(FaultFlagsRaised(now, FaultFlags(raised), st))
         self._flags_seen = st.fault_flags
         was_running = prev is not None and prev.state == BoardState.RUNNING
@@ -920,8 +824,8 @@ class BoardSession:
 
     def _on_sensor(self, msg: Sensor, now: float, out: list[LinkEvent]) -> None:
         n = msg.n_samples
-        self._tally.sensor_frames += 1
-        self._tally.sensor_rows += n
+        self._tally.add("sensor_frames")
+        self._tally.add("sensor_rows", n)
         errors = self._loss_pos
         nxt = self._sensor_next
         if nxt is not None:
@@ -929,7 +833,7 @@ class BoardSession:
                 missing = -(-(msg.first_index - nxt) // msg.stride)
                 self._count_gap(nxt, missing, errors > self._sensor_err_mark, now, out)
             elif msg.first_index < nxt:
-                self._tally.sensor_rows_duplicate += min(n, -(-(nxt - msg.first_index) // msg.stride))
+                self._tally.add("sensor_rows_duplicate", min(n, -(-(nxt - msg.first_index) // msg.stride)))
         self._sensor_next = msg.first_index + n * msg.stride
         self._sensor_stride = msg.stride
         self._sensor_err_mark = errors
@@ -938,13 +842,13 @@ class BoardSession:
                 SensorBlock(now, msg.first_index, msg.stride, msg.codes, self._adc_scale, self._adc_offset)
             )
         else:
-            self._tally.unexpected_frames += 1
+            self._tally.add("unexpected_frames")
 
     def _count_gap(self, index: int, missing: int, explained: bool, now: float, out: list[LinkEvent]) -> None:
-        self._tally.sensor_gaps += 1
-        self._tally.sensor_rows_lost += missing
+        self._tally.add("sensor_gaps")
+        self._tally.add("sensor_rows_lost", missing)
         if not explained:
-            self._tally.sensor_rows_lost_unexplained += missing
+            self._tally.add("sensor_rows_lost_unexplained", missing)
             log.error("sensor rows %d.. (%d rows) lost without a detected frame error", index, missing)
         out.append(SensorGap(now, index, missing, explained))
 
@@ -1159,8 +1063,8 @@ class BoardSession:
             if conn is None or not conn.alive:
                 raise LinkClosedError(f"{self.url}: the link is down")
             seq = conn.endpoint.send(msg, time.monotonic())
-            self._tally.samples_frames_sent += 1
-            self._tally.sample_rows_sent += msg.n_samples
+            self._tally.add("samples_frames_sent")
+            self._tally.add("sample_rows_sent", msg.n_samples)
         conn.wake.set()
         return seq
 

@@ -347,6 +347,8 @@ class Streamer:
         self._inflight: deque[tuple[int, npt.NDArray[np.int16]]] = deque()
         self._next_index = 0
         self._sent_hw = 0
+        self._status_at = 0.0
+        self._status_gap_s = 0.0
         self._run: RunRecord | None = None
         self._status_mark = 0
         self._credit = 0
@@ -627,6 +629,10 @@ class Streamer:
         return self._run.start_index if self._run is not None else 0
 
     def _on_status(self, st: Status, st_time: float, now: float, *, new: bool) -> bool:
+        if new:
+            # a long gap before the STATUS that reports an underrun: the board (or the link) was silent
+            self._status_gap_s = st_time - self._status_at if self._status_at else 0.0
+            self._status_at = st_time
         w = st.write_index
         credit = st.credit_limit
         if credit > self._credit:
@@ -705,11 +711,12 @@ class Streamer:
         run.ended_by = how
         if how in ("underrun", "watchdog", "link", "limit_violation", "error"):
             log.warning(
-                "run from index %d ended by %s (last played %s, %d sent)",
+                "run from index %d ended by %s (last played %s, %d sent; STATUS frames %.0f ms apart before)",
                 run.start_index,
                 how,
                 run.last_played_index,
                 run.samples_sent,
+                1e3 * self._status_gap_s,
             )
 
     def _staged_restart(self) -> None:

@@ -256,6 +256,54 @@ class Transport(ABC):
         return f"<{type(self).__name__} {self.url}{' closed' if self.closed else ''}>"
 
 
+class InFlight:
+    """The read / write calls in progress on a transport, so that :meth:`close` releases the
+    handle only when none is (thread-safe; shared by the transports that own a handle).
+
+    Parameters
+    ----------
+    url
+        For messages.
+    """
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.closed = False
+        self._count = 0
+        self._idle = threading.Condition()
+
+    def enter(self) -> None:
+        """A call begins.
+
+        Raises
+        ------
+        LinkClosedError
+            The transport is closed.
+        """
+        with self._idle:
+            if self.closed:
+                raise LinkClosedError(f"{self.url}: transport closed")
+            self._count += 1
+
+    def leave(self) -> None:
+        """A call ended."""
+        with self._idle:
+            self._count -= 1
+            self._idle.notify_all()
+
+    def close(self, timeout_s: float, wake: Callable[[], None] | None = None) -> bool:
+        """Mark the transport closed, ``wake`` blocked calls, wait (at most ``timeout_s``) until none
+        is in progress; False when it was closed already."""
+        with self._idle:
+            if self.closed:
+                return False
+            self.closed = True
+            if wake is not None:
+                wake()
+            self._idle.wait_for(lambda: self._count == 0, timeout=timeout_s)
+        return True
+
+
 class FdTransport(Transport):
     """A transport over a non-blocking POSIX file descriptor (tty, pty or socket), ``select`` based.
 
@@ -288,38 +336,24 @@ class FdTransport(Transport):
         os.set_blocking(fd, False)
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
-        self._closed = False
-        self._close_lock = threading.Lock()
-        self._users = 0  # read / write calls in progress: the fd is closed only when none is
-        self._idle = threading.Condition(self._close_lock)
+        self._inflight = InFlight(url)  # the fd is closed only when no read / write is in progress
 
     @property
     def closed(self) -> bool:
-        return self._closed
+        return self._inflight.closed
 
     def fileno(self) -> int:
         """The file descriptor."""
         return self._fd
 
-    def _enter(self) -> None:
-        with self._close_lock:
-            if self._closed:
-                raise LinkClosedError(f"{self.url}: transport closed")
-            self._users += 1
-
-    def _leave(self) -> None:
-        with self._close_lock:
-            self._users -= 1
-            self._idle.notify_all()
-
     def read(self, max_bytes: int = READ_CHUNK) -> bytes:
-        self._enter()
+        self._inflight.enter()
         try:
             try:
                 ready, _, _ = select.select([self._fd, self._wake_r], [], [], self.read_timeout_s)
             except (OSError, ValueError) as exc:
                 raise map_error(exc, self.url, "read") from exc
-            if self._closed:
+            if self._inflight.closed:
                 raise LinkClosedError(f"{self.url}: transport closed")
             if self._fd not in ready:
                 return b""
@@ -333,17 +367,17 @@ class FdTransport(Transport):
                 raise LinkClosedError(f"{self.url}: read failed: end of stream (peer closed / hangup)")
             return data
         finally:
-            self._leave()
+            self._inflight.leave()
 
     def write(self, data: bytes) -> None:
         if not data:
             return
-        self._enter()
+        self._inflight.enter()
         try:
             view = memoryview(data)
             deadline = time.monotonic() + self.write_timeout_s
             while view:
-                if self._closed:
+                if self._inflight.closed:
                     raise LinkClosedError(f"{self.url}: transport closed")
                 try:
                     n = os.write(self._fd, view)
@@ -364,16 +398,15 @@ class FdTransport(Transport):
                 except (OSError, ValueError) as exc:
                     raise map_error(exc, self.url, "write") from exc
         finally:
-            self._leave()
+            self._inflight.leave()
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):
+            os.write(self._wake_w, b"x")
 
     def close(self) -> None:
-        with self._close_lock:
-            if self._closed:
-                return
-            self._closed = True
-            with contextlib.suppress(OSError):
-                os.write(self._wake_w, b"x")
-            self._idle.wait_for(lambda: self._users == 0, timeout=self.write_timeout_s + 1.0)
+        if not self._inflight.close(self.write_timeout_s + 1.0, self._wake):
+            return
         try:
             if self._on_close is not None:
                 self._on_close()
@@ -556,6 +589,7 @@ __all__ = [
     "DEFAULT_WRITE_TIMEOUT_S",
     "READ_CHUNK",
     "FdTransport",
+    "InFlight",
     "LinkUrl",
     "PyserialTransport",
     "Transport",

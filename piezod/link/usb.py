@@ -24,7 +24,6 @@ import array
 import contextlib
 import errno
 import os
-import threading
 from typing import Any
 
 import usb.backend
@@ -36,6 +35,7 @@ from piezod.link.transport import (
     DEFAULT_READ_TIMEOUT_S,
     DEFAULT_WRITE_TIMEOUT_S,
     READ_CHUNK,
+    InFlight,
     LinkUrl,
     Transport,
     map_error,
@@ -91,36 +91,23 @@ class UsbTransport(Transport):
         self.interface = interface
         self.ep_out = ep_out
         self.ep_in = ep_in
-        self._closed = False
         self._buf = array.array("B", bytes(READ_CHUNK))
-        self._busy = 0  # transfers in progress: the handle is released only when none is
-        self._idle = threading.Condition()
+        self._inflight = InFlight(url)  # the handle is released only when no transfer is in progress
 
     @property
     def closed(self) -> bool:
-        return self._closed
+        return self._inflight.closed
 
     def _error(self, exc: BaseException, what: str) -> LinkError:
         if isinstance(exc, usb.core.USBTimeoutError):
             return LinkTimeoutError(f"{self.url}: {what} timed out: {exc}")
         code = getattr(exc, "errno", None)
-        if self._closed or code in _USB_CLOSED_ERRNOS or "no such device" in str(exc).lower():
+        if self._inflight.closed or code in _USB_CLOSED_ERRNOS or "no such device" in str(exc).lower():
             return LinkClosedError(f"{self.url}: {what} failed: {exc}")
         return map_error(exc, self.url, what)
 
-    def _enter(self) -> None:
-        with self._idle:
-            if self._closed:
-                raise LinkClosedError(f"{self.url}: transport closed")
-            self._busy += 1
-
-    def _leave(self) -> None:
-        with self._idle:
-            self._busy -= 1
-            self._idle.notify_all()
-
     def read(self, max_bytes: int = READ_CHUNK) -> bytes:
-        self._enter()
+        self._inflight.enter()
         try:
             buf = self._buf if max_bytes >= len(self._buf) else array.array("B", bytes(max_bytes))
             try:
@@ -131,28 +118,25 @@ class UsbTransport(Transport):
                 raise self._error(exc, "bulk read") from exc
             return buf[:n].tobytes()
         finally:
-            self._leave()
+            self._inflight.leave()
 
     def write(self, data: bytes) -> None:
         if not data:
             return
-        self._enter()
+        self._inflight.enter()
         try:
             n = self.device.write(self.ep_out, data, max(1, round(self.write_timeout_s * 1000)))
         except Exception as exc:
             raise self._error(exc, "bulk write") from exc
         finally:
-            self._leave()
+            self._inflight.leave()
         if n != len(data):
             raise LinkTimeoutError(f"{self.url}: bulk write accepted {n} of {len(data)} bytes")
 
     def close(self) -> None:
         """Release the interface once the transfers in progress ended (they time out by themselves)."""
-        with self._idle:
-            if self._closed:
-                return
-            self._closed = True
-            self._idle.wait_for(lambda: self._busy == 0, timeout=self.write_timeout_s + 1.0)
+        if not self._inflight.close(self.write_timeout_s + 1.0):
+            return
         with contextlib.suppress(Exception):
             usb.util.release_interface(self.device, self.interface)
         with contextlib.suppress(Exception):

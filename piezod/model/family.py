@@ -48,6 +48,7 @@ from scipy.signal import lfilter
 from piezod.errors import ModelError
 from piezod.model import kernels
 from piezod.model.dynamic import MAX_TOTAL_CREEP, _creep_forward, _creep_inverse, discretise
+from piezod.model.gplay import GeneralisedPlayParams, gplay_forward, gplay_rest_state, gplay_state_at
 from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
 from piezod.model.params import HysteresisParams
 from piezod.model.play import (
@@ -60,7 +61,7 @@ from piezod.model.play import (
 )
 
 F64 = NDArray[np.float64]
-HysteresisLaw = HysteresisParams | PlayParams
+HysteresisLaw = HysteresisParams | PlayParams | GeneralisedPlayParams
 CREEP_DRIVERS = ("position", "voltage")
 #: Creep drivers whose per-sample inverse fits the streaming budget (<= 150 ns per sample and axis,
 #: ``piezod bench inverse``): both, since the voltage-driven loop is compiled (:mod:`piezod.model.kernels`).
@@ -147,8 +148,9 @@ class FamilyParams:
     Attributes
     ----------
     hysteresis
-        The rate-independent law: Coleman-Hodgdon (:class:`HysteresisParams`) or
-        Prandtl-Ishlinskii (:class:`PlayParams`).
+        The rate-independent law: Coleman-Hodgdon (:class:`HysteresisParams`),
+        Prandtl-Ishlinskii (:class:`PlayParams`) or the generalised play (Preisach) law
+        (:class:`piezod.model.gplay.GeneralisedPlayParams`).
     creep
         The creep spectrum (elements of zero weight are dropped).
     lag_time_constant_s
@@ -178,13 +180,18 @@ class FamilyParams:
 
     @property
     def law(self) -> str:
-        """``coleman-hodgdon`` or ``prandtl-ishlinskii``."""
+        """``coleman-hodgdon``, ``prandtl-ishlinskii`` or ``generalised-play``."""
+        if isinstance(self.hysteresis, GeneralisedPlayParams):
+            return "generalised-play"
         return "prandtl-ishlinskii" if isinstance(self.hysteresis, PlayParams) else "coleman-hodgdon"
 
     @property
     def law_slope_um_per_v(self) -> float:
-        """``s``: the law's rest slope (um/V), the scale of voltage-driven creep."""
+        """``s``: the law's rest slope (um/V; at 0 V for the generalised play law), the scale of
+        voltage-driven creep."""
         h = self.hysteresis
+        if isinstance(h, GeneralisedPlayParams):
+            return h.b_um_per_v
         return h.b_um_per_v * (h.total_weight if isinstance(h, PlayParams) else 1.0)
 
     @property
@@ -195,9 +202,7 @@ class FamilyParams:
     @property
     def static_sensitivity_um_per_v(self) -> float:
         """Slope of the rest position over the voltage near 0 V (um/V)."""
-        h = self.hysteresis
-        total = h.total_weight if isinstance(h, PlayParams) else 1.0
-        return h.b_um_per_v * total * (1.0 + self.creep.total_creep)
+        return self.law_slope_um_per_v * (1.0 + self.creep.total_creep)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -246,6 +251,8 @@ def _static_inverse(params: FamilyParams, x: F64) -> F64:
 
 
 def _law_rest(h: HysteresisLaw, v: float) -> LawState:
+    if isinstance(h, GeneralisedPlayParams):
+        return gplay_rest_state(h, v)
     return play_rest_state(h, v) if isinstance(h, PlayParams) else relaxed_state(h, v)
 
 
@@ -279,7 +286,9 @@ def family_adopt_state(params: FamilyParams, voltage_v: float, position_um: floa
         xh = xc / (1.0 + params.creep.total_creep)
     h = params.hysteresis
     law: LawState
-    if isinstance(h, PlayParams):
+    if isinstance(h, GeneralisedPlayParams):
+        law = _gplay_adopt(h, v, xh)
+    elif isinstance(h, PlayParams):
         spread = float(h.w @ h.r)
         c = 0.0 if spread == 0.0 else (xh / h.b_um_per_v - h.total_weight * v) / spread
         law = play_state_at(h, v, v + float(np.clip(c, -1.0, 1.0)) * h.r)
@@ -289,6 +298,18 @@ def family_adopt_state(params: FamilyParams, voltage_v: float, position_um: floa
     return FamilyState(
         v, v, law, np.zeros(len(params.creep.taus)), xc, float(_static(params, np.array([xc]))[0])
     )
+
+
+def _gplay_adopt(h: GeneralisedPlayParams, v: float, xh: float) -> PlayState:
+    """Plays at ``v + c r``, ``c`` in [-1, 1], reaching ``xh`` (bisection: the position grows with ``c``)."""
+    lo, hi = -1.0, 1.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if gplay_state_at(h, v, v + mid * h.r).position_um < xh:
+            lo = mid
+        else:
+            hi = mid
+    return gplay_state_at(h, v, v + 0.5 * (lo + hi) * h.r)
 
 
 def _lag_coefficient(params: FamilyParams, dt_s: float) -> float:
@@ -332,7 +353,10 @@ def family_forward(
     h = params.hysteresis
     xh: F64
     law: LawState
-    if isinstance(h, PlayParams):
+    if isinstance(h, GeneralisedPlayParams):
+        assert isinstance(state.law, PlayState)
+        xh, law = gplay_forward(h, vc, state.law)
+    elif isinstance(h, PlayParams):
         assert isinstance(state.law, PlayState)
         xh, law = play_forward(h, vc, state.law)
     else:
@@ -385,13 +409,28 @@ def family_inverse(
     h = params.hysteresis
     vc: F64
     law: LawState
-    if isinstance(h, PlayParams):
+    if isinstance(h, GeneralisedPlayParams):
+        assert isinstance(state.law, PlayState)
+        vc, law = _gplay_inverse(h, xh, state.law)
+    elif isinstance(h, PlayParams):
         assert isinstance(state.law, PlayState)
         vc, law = play_inverse(h, xh, state.law)
     else:
         assert isinstance(state.law, HysteresisState)
         vc, law = hysteresis_inverse_step(h, xh, state.law)
     return _lag_inverse(params, vc, xc, x, dt_s, state, law, e_end)
+
+
+def _gplay_inverse(h: GeneralisedPlayParams, xh: F64, state: PlayState) -> tuple[F64, PlayState]:
+    """The generalised play law's exact inverse: the compiled walk without creep."""
+    plays = np.array(state.plays_v, dtype=np.float64)
+    vc = np.empty(xh.size)
+    none = np.empty(0)
+    u, x_end = kernels.gpi_loop(
+        xh, h.r, h.c, h.mu, h.zero, 0.0, none, 0.0, none, none, none, plays, state.voltage_v,
+        state.position_um, vc,
+    )
+    return vc, PlayState(u, plays, x_end)
 
 
 def _lag_inverse(
@@ -446,7 +485,15 @@ def _voltage_creep_inverse(
     vc = np.empty(xc.size)
     h = params.hysteresis
     law: LawState
-    if isinstance(h, PlayParams):
+    if isinstance(h, GeneralisedPlayParams):
+        assert isinstance(state.law, PlayState)
+        plays = np.array(state.law.plays_v, dtype=np.float64)
+        u, xh = kernels.gpi_loop(
+            xc, h.r, h.c, h.mu, h.zero, g, wa, wb, disc.a, ob0, e, plays,
+            state.drive_v, state.law.position_um, vc,
+        )
+        law = PlayState(u, plays, xh)
+    elif isinstance(h, PlayParams):
         assert isinstance(state.law, PlayState)
         plays = np.array(state.law.plays_v, dtype=np.float64)
         u, xh = kernels.pi_loop(

@@ -209,6 +209,180 @@ def _ch_loop(
     return u_prev, xh
 
 
+def _gmu(mu: F64, c: F64, row: int, q: float) -> float:
+    """Density ``mu_row(q)``: linear between the nodes, constant beyond them."""
+    k_last = c.shape[0] - 1
+    if q <= c[0]:
+        return float(mu[row, 0])
+    if q >= c[k_last]:
+        return float(mu[row, k_last])
+    k = 0
+    while c[k + 1] <= q:
+        k += 1
+    t = (q - c[k]) / (c[k + 1] - c[k])
+    return float(mu[row, k] + t * (mu[row, k + 1] - mu[row, k]))
+
+
+def _gcurv(mu: F64, c: F64, row: int, u: float, shift: float, sigma: float) -> float:
+    """``d mu_row / dq`` on the segment the play of ``row`` (at ``q = u - shift``) moves into."""
+    k_last = c.shape[0] - 1
+    for k in range(k_last):
+        lo, hi = c[k] + shift, c[k + 1] + shift
+        inside = (lo <= u < hi) if sigma > 0.0 else (lo < u <= hi)
+        if inside:
+            return float((mu[row, k + 1] - mu[row, k]) / (c[k + 1] - c[k]))
+    return 0.0
+
+
+def _gknot(c: F64, u: float, shift: float, sigma: float, eps: float) -> float:
+    """The next voltage (beyond ``eps``) where a play moving with ``u`` (offset ``shift``) crosses a node."""
+    best = math.inf if sigma > 0.0 else -math.inf
+    for k in range(c.shape[0]):
+        v = c[k] + shift
+        if sigma > 0.0:
+            if u + eps < v < best:
+                best = v
+        elif best < v < u - eps:
+            best = v
+    return best
+
+
+def _gval(mu: F64, c: F64, row: int, q: float) -> float:
+    """``G_row(q) = int_{c_0}^{q} mu_row`` (piecewise quadratic)."""
+    k_last = c.shape[0] - 1
+    if q <= c[0]:
+        return float(mu[row, 0] * (q - c[0]))
+    acc = 0.0
+    for k in range(k_last):
+        w = c[k + 1] - c[k]
+        if q < c[k + 1]:
+            t = q - c[k]
+            return float(acc + mu[row, k] * t + 0.5 * (mu[row, k + 1] - mu[row, k]) / w * t * t)
+        acc += 0.5 * (mu[row, k] + mu[row, k + 1]) * w
+    return float(acc + mu[row, k_last] * (q - c[k_last]))
+
+
+def _gpiece(mu: F64, c: F64, r: F64, plays: F64, u: float, sigma: float) -> tuple[float, float, float]:
+    """The piece of ``H_state`` starting at ``u`` in direction ``sigma``: slope, curvature, end (knot).
+
+    Knots closer than ``eps`` (a few hundred rounding units) count as passed, and the curvature is
+    taken just past them, so rounding at a knot (``(u - r) + r != u``) cannot stall the walk.
+    """
+    eps = 1e-13 * (1.0 + abs(u))
+    ahead = u + sigma * 2.0 * eps
+    slope = _gmu(mu, c, 0, u)
+    curv = _gcurv(mu, c, 0, ahead, 0.0, sigma)
+    knot = _gknot(c, u, 0.0, sigma, eps)
+    for i in range(plays.shape[0]):
+        shift = sigma * r[i]
+        edge = plays[i] + shift
+        if sigma * (edge - u) <= eps:
+            slope += _gmu(mu, c, i + 1, u - shift)
+            curv += _gcurv(mu, c, i + 1, ahead, shift, sigma)
+            k = _gknot(c, u, shift, sigma, eps)
+            if sigma * (k - knot) < 0.0:
+                knot = k
+        elif sigma * (edge - knot) < 0.0:
+            knot = edge
+    return slope, curv, knot
+
+
+def _gxh(mu: F64, c: F64, zero: F64, plays: F64, u: float) -> float:
+    """``x_h`` of the state ``(u, plays)``."""
+    acc = _gval(mu, c, 0, u) - zero[0]
+    for i in range(plays.shape[0]):
+        acc += _gval(mu, c, i + 1, plays[i]) - zero[i + 1]
+    return float(acc)
+
+
+def _gsettle(r: F64, plays: F64, u: float, sigma: float) -> None:
+    """The plays after a monotone run in direction ``sigma`` that ended at ``u`` (in place)."""
+    for i in range(plays.shape[0]):
+        if sigma > 0.0:
+            lo = u - r[i]
+            if plays[i] < lo:
+                plays[i] = lo
+        else:
+            hi = u + r[i]
+            if plays[i] > hi:
+                plays[i] = hi
+
+
+def _gpi_loop(
+    xc: F64,
+    r: F64,
+    c: F64,
+    mu: F64,
+    zero: F64,
+    g: float,
+    wa: F64,
+    wb: float,
+    a: F64,
+    ob0: F64,
+    e: F64,
+    plays: F64,
+    u_prev: float,
+    xh: float,
+    out: F64,
+) -> tuple[float, float]:
+    """Generalised play (Preisach) law + voltage creep: ``out[j] = V_c``; ``e``, ``plays`` updated in place.
+
+    The left side ``H_state(u) + g u`` is piecewise quadratic in ``u`` along a monotone run (a
+    piece ends where a play engages or a moving play crosses a density node). The current piece
+    (its start, value, slope, curvature and end) is kept from sample to sample, so a sample that
+    stays on it costs ``O(1)`` besides the creep: one quadratic, solved from the piece's start in
+    its stable form (no accumulation of rounding along the piece). Crossing a knot or reversing
+    settles the plays and computes the next piece (``O(p K)``). With no creep elements and
+    ``g = 0`` it is the law's own exact inverse.
+    """
+    n = xc.shape[0]
+    m = e.shape[0]
+    max_pieces = 4 * (plays.shape[0] + 1) * (c.shape[0] + 1) + 8
+    have = False
+    ps, u0, f0, b0, cv, kn = 0.0, u_prev, 0.0, 0.0, 0.0, 0.0
+    f_cur = xh + g * u_prev
+    for j in range(n):
+        mem = 0.0
+        for i in range(m):
+            mem += wa[i] * e[i]
+        y = xc[j] - mem - wb * u_prev
+        u = u_prev
+        if y != f_cur:
+            sigma = 1.0 if y > f_cur else -1.0
+            if not have or sigma != ps:
+                if have:
+                    _gsettle(r, plays, u_prev, ps)
+                u0 = u_prev
+                f0 = _gxh(mu, c, zero, plays, u0) + g * u0
+                b0, cv, kn = _gpiece(mu, c, r, plays, u0, sigma)
+                b0 += g
+                ps = sigma
+                have = True
+            for _ in range(max_pieces):
+                t = sigma * (y - f0)
+                q = 0.5 * sigma * cv
+                disc = b0 * b0 + 4.0 * q * t
+                d = 2.0 * t / (b0 + math.sqrt(disc)) if disc >= 0.0 else math.inf
+                if d <= sigma * (kn - u0):
+                    u = u0 + sigma * d
+                    break
+                u0 = kn
+                _gsettle(r, plays, u0, sigma)
+                f0 = _gxh(mu, c, zero, plays, u0) + g * u0
+                b0, cv, kn = _gpiece(mu, c, r, plays, u0, sigma)
+                b0 += g
+                u = u0
+            f_cur = y
+        du = u - u_prev
+        for i in range(m):
+            e[i] = a[i] * e[i] - ob0[i] * du
+        out[j] = u
+        u_prev = u
+    if have:
+        _gsettle(r, plays, u_prev, ps)
+        xh = _gxh(mu, c, zero, plays, u_prev)
+    return u_prev, xh
+
 Loop = Callable[..., tuple[float, float]]
 
 
@@ -226,6 +400,15 @@ def _jit(fn: Any) -> Any:
 ch_solve = cast(Callable[..., float], _jit(_ch_solve_py))
 pi_loop = cast(Loop, _jit(_pi_loop))
 ch_loop = cast(Loop, _jit(_ch_loop))
+# _gpi_loop calls these by their global names, resolved when it compiles
+_gmu = _jit(_gmu)
+_gcurv = _jit(_gcurv)
+_gknot = _jit(_gknot)
+_gval = _jit(_gval)
+_gpiece = _jit(_gpiece)
+_gxh = _jit(_gxh)
+_gsettle = _jit(_gsettle)
+gpi_loop = cast(Loop, _jit(_gpi_loop))
 
 _warm = False
 
@@ -238,7 +421,12 @@ def warm_up() -> None:
     one = np.zeros(1)
     pi_loop(one, 1.0, 0.5, one, one, 0.1, one, 0.0, one, one, np.zeros(1), np.zeros(1), 0.0, 0.0, np.empty(1))
     ch_loop(one, 1.0, 1e-3, 0.5, 0.1, one, 0.0, one, one, np.zeros(1), 0.0, 0.0, np.empty(1))
+    nodes, dens = np.array([-1.0, 1.0]), np.ones((2, 2))
+    gpi_loop(
+        one, one, nodes, dens, np.zeros(2), 0.1, one, 0.0, one, one, np.zeros(1), np.zeros(1), 0.0, 0.0,
+        np.empty(1),
+    )
     _warm = True
 
 
-__all__ = ["ch_loop", "ch_solve", "pi_loop", "warm_up"]
+__all__ = ["ch_loop", "ch_solve", "gpi_loop", "pi_loop", "warm_up"]

@@ -18,9 +18,11 @@ quadratic formula, divide by the thermal scale, the model's own inverse, divide 
 voltages by ``1 + p / 100``. A target the saturation cannot reach (``|x_q| >= x_sat``) is
 clipped just inside it; the axis's voltage limits then clamp as for any unreachable target.
 
-Not a part (yet): the audit's ``delay`` (a pure delay needs targets ahead of the sample being
-computed; the drive lag is a part of the family model), ``resonance`` and ``creep`` (the
-family's creep spectrum is fitted by calibration).
+Not a part: the audit's ``delay``, which the readback shows alike wherever it sits, is the axis's
+*sensor path* (:mod:`piezod.model.sensor`: undone in the analysis, the drive unchanged); a pure
+delay at the drive would need targets ahead of the sample being computed (the drive *lag* is a
+part of the family model). Not yet: ``resonance``; ``creep`` is the calibration's (the family's
+spectrum).
 """
 
 from __future__ import annotations

@@ -20,36 +20,27 @@ by the driver and again by :meth:`~piezod.link.board.Board.limit` for any board 
 reported as a fault); ``stop()`` holds; a fault, a lost link and shutdown ramp the
 outputs to the safe values (the board also ramps by itself when the host's heartbeat stops).
 
-The jobs live in :mod:`piezod.service.jobs`, the recorder in :mod:`piezod.service.recorder`.
-This module is still over 800 lines (about 1000): the engine's public control surface (scan,
-change, move, stop, programs, status, recordings, faults), the recording lifecycle and the scan's
-line / frame events (called from the recorder thread) share one lock and one job state; the
-shadow engine that checks a scan before it starts stays next to it. The next seam, when the
-image events settle: the per-frame image writing (``_write_images_here``) into its own module.
+The jobs live in :mod:`piezod.service.jobs`, the recorder and the recording header in
+:mod:`piezod.service.recorder`, the scan's line / frame events and per-frame images in
+:mod:`piezod.service.scan_events`, the fault log in :mod:`piezod.service.faults`, the check of a
+scan's start on copies of the axis drivers in :mod:`piezod.service.shadow`.
 """
 
 from __future__ import annotations
 
-import copy
-import hashlib
-import json
 import logging
 import math
 import stat
-import subprocess
-import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, cast
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from firmware_proto import NO_INDEX
 from piezod.config import AxisConfig, AxisName, ScannerConfig, calibrated_axes
 from piezod.errors import (
     EngineStateError,
@@ -61,19 +52,15 @@ from piezod.errors import (
 )
 from piezod.link.board import Board, open_board
 from piezod.link.session import (
-    BoardFault,
-    HostLimitFault,
     LinkDown,
     LinkEvent,
     LinkLost,
     LinkSettings,
-    Reconnected,
-    SensorGap,
 )
 from piezod.link.streamer import MatchedBlock
 from piezod.service.axes import AxisDriver, PeriodicPlan
+from piezod.service.faults import FaultLog, FaultSource, link_event_fault
 from piezod.service.jobs import (
-    MAX_CHECK_SAMPLES,
     MAX_MOVE_S,
     Chunk,
     HoldJob,
@@ -84,7 +71,8 @@ from piezod.service.jobs import (
     ScanJob,
     Segment,
 )
-from piezod.service.recorder import Recorder, TargetRing
+from piezod.service.recorder import Recorder, TargetRing, scan_metadata
+from piezod.service.scan_events import ScanEvents
 from piezod.service.schemas import (
     EngineState,
     FaultInfo,
@@ -96,63 +84,17 @@ from piezod.service.schemas import (
     ScanRequest,
     Status,
 )
+from piezod.service.shadow import check_scan_start
 from piezod.service.sync import SyncSchedule
 from piezod.service.tracking import SensitivityTracker
-from piezod.trajectory import SETTLE_LINES, RasterTrajectory, Trajectory
+from piezod.trajectory import RasterTrajectory, Trajectory
 
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
-FaultSource = Literal["board", "host", "link"]
 
 #: A block computation slower than this (s) is logged with its cause.
 SLOW_BLOCK_S = 0.05
-#: Faults of one (source, code) closer together than this (s) are counted, not listed again.
-FAULT_REPEAT_S = 1.0
-
-
-class _ShadowEngine:
-    """What a job needs of the engine, on copies of its axis drivers: to try a job without effect."""
-
-    def __init__(self, engine: Engine) -> None:
-        self.rate_hz = engine.rate_hz
-        self.render_index = 0
-        self._engine = engine
-        with engine._lock:
-            self.drivers = {name: copy.deepcopy(d) for name, d in engine.drivers.items()}
-        self.clamped = dict.fromkeys(self.drivers, 0)
-        self.sync_schedule = SyncSchedule(history=0)  # a trial's sync events go nowhere
-
-    def label_id(self, name: str) -> int:
-        return -1
-
-    def set_label_note(self, ident: int, note: str | None) -> None:
-        pass
-
-    def label_names(self, ids: NDArray[np.int64]) -> NDArray[np.str_]:
-        return np.full(ids.shape, "", dtype=str)
-
-    def plans_for(self, trajectory: Trajectory) -> dict[str, PeriodicPlan | None]:
-        return self._engine.plans_for(trajectory)
-
-    def tracked_scale(self, axis: str) -> float:
-        return self._engine.tracked_scale(axis)
-
-    def drive(self, driver: AxisDriver, out: Any) -> FloatArray:
-        if out.clamped:
-            self.clamped[driver.name] += int(out.clamped)
-        volts: FloatArray = out.voltage_v
-        return volts
-
-    def chunk(self, volts: FloatArray, targets: FloatArray | None) -> Chunk:
-        n = volts.shape[1]
-        return Chunk(
-            volts,
-            np.full(volts.shape, np.nan) if targets is None else targets,
-            np.full(n, -1, dtype=np.int64),
-            np.zeros(n, dtype=np.int8),
-            np.zeros(n, dtype=bool),
-        )
 
 
 class Engine:
@@ -192,13 +134,8 @@ class Engine:
         )
         self.recording_dir.mkdir(parents=True, exist_ok=True)
         self.settings = settings or LinkSettings.from_config(config)
-        self.on_fault = on_fault
-        #: Called with every line / frame event of a scan (the API's event hub).
-        self.on_scan_event = on_scan_event
-        #: Write the trace / retrace images beside every finished recording with a height channel.
-        self.write_images = write_images
-        self._scans: dict[int, _RecordingScan] = {}
-        self._image_procs: list[subprocess.Popen[bytes]] = []
+        #: The scan's line / frame events (to ``on_scan_event``) and per-frame images.
+        self.scan_events = ScanEvents(on_scan_event, write_images)
         self.drivers: dict[str, AxisDriver] = {
             name: AxisDriver(name, axis, self.rate_hz) for name, axis in config.axes.items()
         }
@@ -207,9 +144,8 @@ class Engine:
         self._queue: deque[Job] = deque()
         self._state: EngineState = "starting"
         self._t0 = time.monotonic()
-        self._faults: deque[FaultInfo] = deque(maxlen=200)
-        self._fault_last: dict[tuple[str, str], float] = {}
-        self._fault_counts: dict[tuple[str, str], int] = {}
+        #: The last faults (to ``on_fault``).
+        self.faults = FaultLog(self._t0, on_fault)
         self._fault_latched = False
         self._index = 0
         self._ring = TargetRing(len(self.drivers), max(1 << 16, int(self.rate_hz * 8)))
@@ -347,14 +283,7 @@ class Engine:
                 self._recorder.join(timeout=10.0)
                 board.close(ramp_to_safe=True)
             finally:
-                with self._lock:
-                    procs, self._image_procs = list(self._image_procs), []
-                for proc in procs:  # images being written are finished (or ended after 30 s)
-                    try:
-                        proc.wait(timeout=30.0)
-                    except subprocess.TimeoutExpired:
-                        proc.kill()
-                        proc.wait()
+                self.scan_events.finish(timeout_s=30.0)
 
     # -- the block source (streamer thread) ------------------------------------------------------
 
@@ -418,14 +347,7 @@ class Engine:
 
     def chunk(self, volts: FloatArray, targets: FloatArray | None) -> Chunk:
         """A chunk without scan lines (hold, move, ramp)."""
-        n = volts.shape[1]
-        return Chunk(
-            volts,
-            np.full(volts.shape, np.nan) if targets is None else targets,
-            np.full(n, -1, dtype=np.int64),
-            np.zeros(n, dtype=np.int8),
-            np.zeros(n, dtype=bool),
-        )
+        return Chunk.unlined(volts, targets)
 
     def drive(self, driver: AxisDriver, out: Any) -> FloatArray:
         """Account for clamping (a fault) and return the voltages."""
@@ -505,7 +427,7 @@ class Engine:
             underruns=underruns,
             crc_errors=crc,
             frames_dropped=dropped,
-            faults=list(self._faults)[-20:],
+            faults=self.faults.recent(20),
             last_line=self._last_line,
             position_um={n: d.position_um for n, d in self.drivers.items()} if known else {},
             voltage_v={n: d.voltage_v for n, d in self.drivers.items()} if known else {},
@@ -514,6 +436,10 @@ class Engine:
             calibrated=not self._uncalibrated,
             uncalibrated_axes=self._uncalibrated,
         )
+
+    def trajectory_for(self, request: ScanRequest) -> Trajectory:
+        """The scan path a request asks for (the raster today; a new path is selected here)."""
+        return RasterTrajectory.from_request(request, self.rate_hz)
 
     def check_scan(self, request: ScanRequest) -> None:
         """Refuse a scan the stage cannot do (with the reason).
@@ -524,41 +450,14 @@ class Engine:
         limits there (an offset that drives an axis into its limits while the creep settles) is
         refused with the numbers instead of being clamped while it runs.
         """
-        trajectory = RasterTrajectory.from_request(request, self.rate_hz)
-        self._check_scan_start(request, trajectory, self.plans_for(trajectory))
-
-    def _check_scan_start(
-        self, request: ScanRequest, trajectory: Trajectory, plans: dict[str, PeriodicPlan | None]
-    ) -> None:
-        shadow = _ShadowEngine(self)
-        job = ScanJob(cast(Engine, shadow), request, trajectory.restarted(), plans)
-        lines_s = (SETTLE_LINES + 2 + 1) / max(request.line_rate_hz, 1e-9)
-        budget = min(int(self.rate_hz * lines_s) + 1, MAX_CHECK_SAMPLES)
-        block = max(1, round(self.rate_hz * self.config.service.block_ms / 1000.0))
-        total = rendered = 0
-        while not job.done and (job._move is not None or rendered < budget) and total < MAX_CHECK_SAMPLES:
-            in_move = job._move is not None
-            m = job.render(cast(Engine, shadow), block).volts.shape[1]
-            total += m
-            if not in_move:
-                rendered += m
-            if m == 0 and not job.done:
-                break
-        bad = {axis: n for axis, n in shadow.clamped.items() if n}
-        if bad:
-            axis, n = next(iter(bad.items()))
-            lo, hi = self.drivers[axis].limits
-            raise SafetyError(
-                f"axis {axis}: the start of this scan (range {request.range_um:g} um, offset "
-                f"({request.offset_x_um:g}, {request.offset_y_um:g}) um) would drive {n} samples beyond the "
-                f"voltage limits [{lo:g}, {hi:g}] V while the stage settles; reduce the offset or the range"
-            )
+        trajectory = self.trajectory_for(request)
+        check_scan_start(self, request, trajectory, self.plans_for(trajectory))
 
     def start_scan(self, request: ScanRequest, *, path: Path | None = None) -> Status:
         """Start a scan; recorded to ``path`` or to the recording directory."""
-        trajectory = RasterTrajectory.from_request(request, self.rate_hz)
+        trajectory = self.trajectory_for(request)
         plans = self.plans_for(trajectory)  # the heavy parts, outside the lock
-        self._check_scan_start(request, trajectory, plans)
+        check_scan_start(self, request, trajectory, plans)
         with self._lock:
             if self._state not in ("idle",):
                 raise EngineStateError(f"cannot start a scan while {self._state}")
@@ -760,38 +659,12 @@ class Engine:
     ) -> None:
         self._next_recording += 1
         ident = self._next_recording
-        meta: dict[str, object] = {
-            "scanner": self.config.name,
-            "range_um": request.range_um,
-            "line_rate_hz": request.line_rate_hz,
-            "lines": request.lines,
-            "offset_x_um": request.offset_x_um,
-            "offset_y_um": request.offset_y_um,
-            "rotation_deg": request.rotation_deg,
-            "overscan": request.overscan,
-            "sample_rate_hz": self.rate_hz,
-            "pixels": request.pixels,
-            "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "config_sha256": hashlib.sha256(self.config.model_dump_json().encode()).hexdigest(),
-        }
-        fast = self.config.axes["x"]
-        if request.correction:
-            section = fast.dynamic if fast.model == "dynamic" and fast.dynamic is not None else fast.thesis
-            meta["model"] = fast.model
-            meta["model_params"] = json.dumps(section.model_dump(mode="json"), sort_keys=True)
-        else:
-            meta["model"] = "none"
         mic = self.config.microscope
-        if mic is not None or not self.position_sensor:
-            meta["position_sensor"] = "yes" if self.position_sensor else "no"
-        if mic is not None:
-            meta["z_monitor_ratio"] = mic.z_monitor_ratio
         z_ratio = None if mic is None else mic.z_monitor_ratio
         axes = tuple(a for a, plan in plans.items() if plan is not None) or ("x",)
         axes = tuple(a for a in axes if mic is None or a != "z")
-        meta["correction"] = self.correction_label(axes) if request.correction else "none"
-        uncal = [a for a in axes if a not in calibrated_axes(self.config)]
-        meta["calibrated"] = "no (axes " + ", ".join(uncal) + ")" if uncal else "yes"
+        correction = self.correction_label(axes) if request.correction else "none"
+        meta = scan_metadata(self.config, request, self.rate_hz, self.position_sensor, axes, correction)
         if path is not None or request.name:
             if path is None:
                 name = request.name or ""
@@ -813,8 +686,7 @@ class Engine:
         assert path is not None
         self._recording_id = ident
         self._recording_name = path.name
-        with self._lock:
-            self._scans[ident] = _RecordingScan(path, request.lines, request.frames, z_ratio is not None)
+        self.scan_events.begin(ident, path, request.lines, request.frames, z_ratio is not None)
 
     def _discard_recording(self) -> None:
         if self._recording_id >= 0:
@@ -888,87 +760,6 @@ class Engine:
             names = np.array([*self._labels, ""], dtype=str)
         return names[np.where(ids >= 0, ids, len(names) - 1)]
 
-    # -- line / frame events and per-frame images (recorder thread) --------------------------------
-
-    def _publish(self, event: ScanEvent) -> None:
-        if self.on_scan_event is not None:
-            try:
-                self.on_scan_event(event)
-            except Exception:  # a listener must not stop the recorder
-                log.exception("scan event listener failed")
-
-    def scan_line_done(self, ident: int, line: int, direction: int) -> None:
-        """The recorder finished trace (``direction`` +1) or retrace (-1) ``line`` of recording ``ident``."""
-        with self._lock:
-            scan = self._scans.get(ident)
-        if scan is None or line < 0:
-            return
-        frame, in_frame = divmod(line, scan.lines)
-        scan.last_line = line
-        name = scan.path.name
-        self._publish(
-            ScanEvent(
-                kind="line",
-                recording=name,
-                frame=frame,
-                lines=scan.lines,
-                line=in_frame,
-                direction="trace" if direction > 0 else "retrace",
-            )
-        )
-        last_frame = scan.frames > 0 and frame == scan.frames - 1
-        if direction < 0 and in_frame == scan.lines - 1 and not last_frame:
-            self._publish(ScanEvent(kind="frame", recording=name, frame=frame, lines=scan.lines))
-
-    def recording_closed(self, ident: int) -> None:
-        """The recorder closed recording ``ident``: its last frame is done; its images are written
-        (in a worker process: image assembly must not hold the GIL of the streaming threads)."""
-        with self._lock:
-            scan = self._scans.pop(ident, None)
-        if scan is None or scan.last_line < 0:
-            return
-        frame = scan.last_line // scan.lines
-        if not (self.write_images and scan.height):
-            self._publish(ScanEvent(kind="frame", recording=scan.path.name, frame=frame, lines=scan.lines))
-            return
-        # a child process of its own (``piezod image``): image assembly must not hold the GIL of the
-        # streaming threads, and a plain child is simple to wait for or end at shutdown
-        cmd = [sys.executable, "-m", "piezod", "image", str(scan.path), "--out", str(scan.path.parent)]
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        with self._lock:
-            self._image_procs.append(proc)
-
-        def wait() -> None:
-            _, err = proc.communicate()
-            with self._lock:
-                if proc in self._image_procs:
-                    self._image_procs.remove(proc)
-            files: list[str] = []
-            error = None
-            if proc.returncode == 0:
-                stem = scan.path.stem
-                files = sorted(
-                    f.name
-                    for f in scan.path.parent.iterdir()
-                    if f.name == f"{stem}.gwy" or (f.name.startswith(f"{stem}-") and f.suffix == ".png")
-                )
-            else:
-                lines = err.decode(errors="replace").strip().splitlines()
-                error = lines[-1] if lines else f"piezod image exited with {proc.returncode}"
-                log.warning("images of %s: %s", scan.path.name, error)
-            self._publish(
-                ScanEvent(
-                    kind="frame",
-                    recording=scan.path.name,
-                    frame=frame,
-                    lines=scan.lines,
-                    images=files,
-                    image_error=error,
-                )
-            )
-
-        threading.Thread(target=wait, name="piezod-images", daemon=True).start()
-
     def set_line_linearity(self, value: LineLinearity, corrected: bool) -> None:
         """Called by the recorder when a line of the fast axis completes (feeds the tracker)."""
         if not self.position_sensor:
@@ -985,59 +776,16 @@ class Engine:
         return 1.0 if tracker is None else tracker.scale
 
     def fault(self, source: FaultSource, code: str, message: str, index: int | None = None) -> None:
-        """Record a fault (and tell the listener); repeats of one kind within a second are counted only."""
-        now = time.monotonic() - self._t0
-        key = (source, code)
-        self._fault_counts[key] = self._fault_counts.get(key, 0) + 1
-        last = self._fault_last.get(key)
-        if last is not None and now - last < FAULT_REPEAT_S:
-            return
-        self._fault_last[key] = now
-        info = FaultInfo(time_s=now, source=source, code=code, message=message, index=index)
-        self._faults.append(info)
-        log.warning("fault %s/%s: %s", source, code, message)
-        if self.on_fault is not None:
-            self.on_fault(info)
+        """Record a fault (and tell ``on_fault``); repeats of one kind within a second are counted only."""
+        self.faults.add(source, code, message, index)
 
     def _on_link_event(self, ev: LinkEvent) -> None:
-        if isinstance(ev, BoardFault):
-            index = None if ev.fault.index == NO_INDEX else int(ev.fault.index)
-            self.fault("board", ev.code.name, str(ev.fault), index)
-        elif isinstance(ev, HostLimitFault):
-            self.fault(
-                "host",
-                "LIMIT",
-                f"{ev.count} samples of axis {ev.axis} clamped (worst {ev.worst_v:.4g} V)",
-                ev.first_index,
-            )
-        elif isinstance(ev, LinkDown | LinkLost):
+        if isinstance(ev, LinkDown | LinkLost):
             with self._lock:
                 self._state = "disconnected"
-            self.fault("link", type(ev).__name__.upper(), str(ev.error))
-        elif isinstance(ev, Reconnected):
-            self.fault(
-                "link",
-                "RECONNECTED",
-                f"board back after {ev.downtime_s:.1f} s (watchdog fired: {ev.watchdog_fired})",
-            )
-        elif isinstance(ev, SensorGap) and not ev.explained:
-            self.fault(
-                "link",
-                "SENSOR_GAP",
-                f"{ev.missing_rows} sensor rows missing at {ev.expected_index}",
-                ev.expected_index,
-            )
-
-
-@dataclass(eq=False)
-class _RecordingScan:
-    """What the line / frame events of one recording need."""
-
-    path: Path
-    lines: int
-    frames: int
-    height: bool
-    last_line: int = -1
+        fault = link_event_fault(ev)
+        if fault is not None:
+            self.fault(*fault)
 
 
 __all__ = ["Engine", "FaultSource", "Segment"]

@@ -70,6 +70,18 @@ class Chunk:
     label: int = -1
     corrected: bool = False
 
+    @classmethod
+    def unlined(cls, volts: FloatArray, targets: FloatArray | None) -> Chunk:
+        """A chunk without scan lines (hold, move, ramp): no line, no direction, ``record`` false."""
+        n = volts.shape[1]
+        return cls(
+            volts,
+            np.full(volts.shape, np.nan) if targets is None else targets,
+            np.full(n, -1, dtype=np.int64),
+            np.zeros(n, dtype=np.int8),
+            np.zeros(n, dtype=bool),
+        )
+
 
 class Job(ABC):
     """Something the engine streams: produces chunks until :attr:`done`."""

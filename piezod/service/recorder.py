@@ -5,10 +5,13 @@ recording (flushed per block), and the linearity of the last complete line of th
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import logging
 import math
 import queue
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -16,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from piezod.config import ScannerConfig, calibrated_axes
 from piezod.errors import (
     PiezodError,
     RecordingError,
@@ -25,6 +29,7 @@ from piezod.recording import RecordingWriter
 from piezod.service.jobs import Chunk
 from piezod.service.schemas import (
     LineLinearity,
+    ScanRequest,
 )
 
 if TYPE_CHECKING:
@@ -33,6 +38,63 @@ if TYPE_CHECKING:
 log = logging.getLogger("piezod.service.engine")
 
 FloatArray = NDArray[np.float64]
+
+
+def scan_metadata(
+    config: ScannerConfig,
+    request: ScanRequest,
+    rate_hz: float,
+    position_sensor: bool,
+    axes: tuple[str, ...],
+    correction: str,
+) -> dict[str, object]:
+    """The header of a scan recording (docs/formats.md): the request, the scanner, the model.
+
+    Parameters
+    ----------
+    config
+        The scanner.
+    request
+        The scan.
+    rate_hz
+        The sample rate.
+    position_sensor
+        Whether positions are measured.
+    axes
+        The recorded (scanned) axes.
+    correction
+        What corrects them (:meth:`piezod.service.engine.Engine.correction_label`, ``none``).
+    """
+    meta: dict[str, object] = {
+        "scanner": config.name,
+        "range_um": request.range_um,
+        "line_rate_hz": request.line_rate_hz,
+        "lines": request.lines,
+        "offset_x_um": request.offset_x_um,
+        "offset_y_um": request.offset_y_um,
+        "rotation_deg": request.rotation_deg,
+        "overscan": request.overscan,
+        "sample_rate_hz": rate_hz,
+        "pixels": request.pixels,
+        "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "config_sha256": hashlib.sha256(config.model_dump_json().encode()).hexdigest(),
+    }
+    fast = config.axes["x"]
+    if request.correction:
+        section = getattr(fast, fast.model)
+        meta["model"] = fast.model
+        meta["model_params"] = json.dumps(section.model_dump(mode="json"), sort_keys=True)
+    else:
+        meta["model"] = "none"
+    mic = config.microscope
+    if mic is not None or not position_sensor:
+        meta["position_sensor"] = "yes" if position_sensor else "no"
+    if mic is not None:
+        meta["z_monitor_ratio"] = mic.z_monitor_ratio
+    meta["correction"] = correction
+    uncal = [a for a in axes if a not in calibrated_axes(config)]
+    meta["calibrated"] = "no (axes " + ", ".join(uncal) + ")" if uncal else "yes"
+    return meta
 
 
 class TargetRing:
@@ -221,7 +283,7 @@ class Recorder(threading.Thread):
             log.info("recording %s closed (%d rows)", rec.path, rec.rows)
             self._finish_line()  # the last retrace ends with the recording
             self._acc.line = -1
-            self.engine.recording_closed(ident)
+            self.engine.scan_events.closed(ident)
 
     def _write(self, block: MatchedBlock, meta: tuple[Any, ...]) -> None:
         targets, line, direction, record, rec_id, label, corrected = meta
@@ -315,7 +377,7 @@ class Recorder(threading.Thread):
         if acc.line < 0 or not acc.target:
             return
         if acc.recording >= 0:
-            self.engine.scan_line_done(acc.recording, acc.line, acc.direction)
+            self.engine.scan_events.line_done(acc.recording, acc.line, acc.direction)
         tgt = np.concatenate(acc.target)
         pos = np.concatenate(acc.position)
         ok = np.isfinite(tgt) & np.isfinite(pos)

@@ -1,0 +1,102 @@
+"""Trying a job without effect: the scan-start check on copies of the engine's axis drivers.
+
+:class:`ShadowEngine` is what a job needs of the :class:`~piezod.service.engine.Engine`, on deep
+copies of its axis drivers (labels, sync events and recordings go nowhere);
+:func:`check_scan_start` renders the start of a scan on it and refuses a scan that would clamp.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import TYPE_CHECKING, Any, cast
+
+import numpy as np
+from numpy.typing import NDArray
+
+from piezod.errors import SafetyError
+from piezod.service.axes import AxisDriver, PeriodicPlan
+from piezod.service.jobs import MAX_CHECK_SAMPLES, Chunk, ScanJob
+from piezod.service.schemas import ScanRequest
+from piezod.service.sync import SyncSchedule
+from piezod.trajectory import SETTLE_LINES, Trajectory
+
+if TYPE_CHECKING:
+    from piezod.service.engine import Engine
+
+FloatArray = NDArray[np.float64]
+
+
+class ShadowEngine:
+    """What a job needs of the engine, on copies of its axis drivers: to try a job without effect."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.rate_hz = engine.rate_hz
+        self.render_index = 0
+        self._engine = engine
+        with engine._lock:
+            self.drivers = {name: copy.deepcopy(d) for name, d in engine.drivers.items()}
+        self.clamped = dict.fromkeys(self.drivers, 0)
+        self.sync_schedule = SyncSchedule(history=0)  # a trial's sync events go nowhere
+
+    def label_id(self, name: str) -> int:
+        return -1
+
+    def set_label_note(self, ident: int, note: str | None) -> None:
+        pass
+
+    def label_names(self, ids: NDArray[np.int64]) -> NDArray[np.str_]:
+        return np.full(ids.shape, "", dtype=str)
+
+    def plans_for(self, trajectory: Trajectory) -> dict[str, PeriodicPlan | None]:
+        return self._engine.plans_for(trajectory)
+
+    def tracked_scale(self, axis: str) -> float:
+        return self._engine.tracked_scale(axis)
+
+    def drive(self, driver: AxisDriver, out: Any) -> FloatArray:
+        if out.clamped:
+            self.clamped[driver.name] += int(out.clamped)
+        volts: FloatArray = out.voltage_v
+        return volts
+
+    def chunk(self, volts: FloatArray, targets: FloatArray | None) -> Chunk:
+        return Chunk.unlined(volts, targets)
+
+
+def check_scan_start(
+    engine: Engine, request: ScanRequest, trajectory: Trajectory, plans: dict[str, PeriodicPlan | None]
+) -> None:
+    """Render the start of a scan (the move to its first point, the settling lines, the first lines)
+    on a :class:`ShadowEngine` of ``engine``; refuse it when any sample would be clamped.
+
+    Raises
+    ------
+    SafetyError
+        With the axis, the number of samples and the limits.
+    """
+    shadow = ShadowEngine(engine)
+    job = ScanJob(cast("Engine", shadow), request, trajectory.restarted(), plans)
+    lines_s = (SETTLE_LINES + 2 + 1) / max(request.line_rate_hz, 1e-9)
+    budget = min(int(engine.rate_hz * lines_s) + 1, MAX_CHECK_SAMPLES)
+    block = max(1, round(engine.rate_hz * engine.config.service.block_ms / 1000.0))
+    total = rendered = 0
+    while not job.done and (job._move is not None or rendered < budget) and total < MAX_CHECK_SAMPLES:
+        in_move = job._move is not None
+        m = job.render(cast("Engine", shadow), block).volts.shape[1]
+        total += m
+        if not in_move:
+            rendered += m
+        if m == 0 and not job.done:
+            break
+    bad = {axis: n for axis, n in shadow.clamped.items() if n}
+    if bad:
+        axis, n = next(iter(bad.items()))
+        lo, hi = engine.drivers[axis].limits
+        raise SafetyError(
+            f"axis {axis}: the start of this scan (range {request.range_um:g} um, offset "
+            f"({request.offset_x_um:g}, {request.offset_y_um:g}) um) would drive {n} samples beyond the "
+            f"voltage limits [{lo:g}, {hi:g}] V while the stage settles; reduce the offset or the range"
+        )
+
+
+__all__ = ["ShadowEngine", "check_scan_start"]
