@@ -69,7 +69,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -79,7 +79,7 @@ from piezod import __version__
 from piezod.calibrate_data import CalibrationData, prepare
 from piezod.config import AxisConfig, ScannerConfig, ThesisModelConfig, calibrated_notes
 from piezod.errors import CalibrationError, ModelError
-from piezod.fitstats import FitResult, fit_warnings, parameter_statistics, solve_linear
+from piezod.fitstats import CalibrationFit, fit_warnings, parameter_statistics, solve_linear
 from piezod.model.params import ThesisParams
 from piezod.recording import Experiment
 
@@ -355,7 +355,7 @@ class ExperimentFit:
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
-class CalibrationResult(FitResult):
+class CalibrationResult(CalibrationFit[ExperimentFit]):
     """Result of :func:`fit`: the shared :class:`~piezod.fitstats.FitResult` (standard errors,
     covariance, correlations, residuals, condition, bounds, ``n``, ``dof``, solver status) and
     the thesis model's parameters.
@@ -370,24 +370,10 @@ class CalibrationResult(FitResult):
         Loss function used.
     """
 
+    param_names: ClassVar[tuple[str, ...]] = PARAM_NAMES
+
     params: ThesisParams
-    experiments: tuple[ExperimentFit, ...]
     loss: str
-
-    @property
-    def values(self) -> dict[str, float]:
-        """Parameter name -> fitted value."""
-        return {k: float(getattr(self.params, k)) for k in PARAM_NAMES}
-
-    @property
-    def fit_error_pct(self) -> float:
-        """Worst experiment's fit error (2.27), in %."""
-        return max(e.fit_error_pct for e in self.experiments)
-
-    @property
-    def worst(self) -> ExperimentFit:
-        """The experiment with the largest fit error."""
-        return max(self.experiments, key=lambda e: e.fit_error_pct)
 
 
 def _free_names(data: CalibrationData, fix: Iterable[str]) -> tuple[tuple[str, ...], set[str], list[str]]:
@@ -678,10 +664,6 @@ def calibrate(
 
 def result_json(result: CalibrationResult, *, inputs: Sequence[str] = ()) -> dict[str, Any]:
     """The JSON document of ``piezod calibrate --json`` (keys: docs/formats.md)."""
-    corr = {
-        a: {b: float(result.correlations[i, j]) for j, b in enumerate(result.free)}
-        for i, a in enumerate(result.free)
-    }
     return {
         "params": result.values,
         "stderr": dict(result.stderr),
@@ -706,20 +688,9 @@ def result_json(result: CalibrationResult, *, inputs: Sequence[str] = ()) -> dic
             }
             for e in result.experiments
         ],
-        "correlations": corr,
-        "condition_number": result.condition_number,
-        "free": list(result.free),
-        "fixed": list(result.fixed),
-        "at_bounds": list(result.at_bounds),
-        "n": result.n,
+        **result.statistics_json(),
         "n_experiments": len(result.experiments),
-        "cost": result.cost,
         "loss": result.loss,
-        "nfev": result.nfev,
-        "success": result.success,
-        "message": result.message,
-        "seconds": result.seconds,
-        "warnings": list(result.warnings),
         "inputs": list(inputs),
     }
 

@@ -58,7 +58,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -75,7 +75,7 @@ from piezod.config import (
     calibrated_notes,
 )
 from piezod.errors import CalibrationError, ModelError
-from piezod.fitstats import FitResult, fit_warnings, parameter_statistics, solve_linear
+from piezod.fitstats import CalibrationFit, fit_warnings, parameter_statistics, solve_linear
 from piezod.model.dynamic import (
     MAX_TOTAL_CREEP,
     DynamicParams,
@@ -362,7 +362,7 @@ class DynamicExperimentFit:
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
-class DynamicCalibrationResult(FitResult):
+class DynamicCalibrationResult(CalibrationFit[DynamicExperimentFit]):
     """Result of :func:`fit_dynamic`: the shared :class:`~piezod.fitstats.FitResult` (standard
     errors, covariance, correlations, residuals, condition, bounds, ``n``, ``dof``, solver
     status) and the dynamic model's parameters.
@@ -377,24 +377,10 @@ class DynamicCalibrationResult(FitResult):
         Runs of the session's ODE + creep for new ``alpha``.
     """
 
+    param_names: ClassVar[tuple[str, ...]] = PARAM_NAMES
+
     params: DynamicParams
-    experiments: tuple[DynamicExperimentFit, ...]
     simulations: int
-
-    @property
-    def values(self) -> dict[str, float]:
-        """Fitted parameter name -> value."""
-        return {k: float(getattr(self.params, k)) for k in PARAM_NAMES}
-
-    @property
-    def fit_error_pct(self) -> float:
-        """Worst experiment's fit error (2.27), in %."""
-        return max(e.fit_error_pct for e in self.experiments)
-
-    @property
-    def worst(self) -> DynamicExperimentFit:
-        """The experiment with the largest fit error."""
-        return max(self.experiments, key=lambda e: e.fit_error_pct)
 
 
 def _to_z(p: DynamicParams) -> F64:
@@ -644,10 +630,6 @@ def _finite(value: float) -> float | None:
 
 def result_json(result: DynamicCalibrationResult, *, inputs: Sequence[str] = ()) -> dict[str, Any]:
     """The JSON document of a dynamic calibration (keys of docs/formats.md, plus more)."""
-    corr = {
-        a: {b: float(result.correlations[i, j]) for j, b in enumerate(result.free)}
-        for i, a in enumerate(result.free)
-    }
     p = result.params
     return {
         "model": "dynamic",
@@ -686,20 +668,9 @@ def result_json(result: DynamicCalibrationResult, *, inputs: Sequence[str] = ())
             }
             for e in result.experiments
         ],
-        "correlations": corr,
-        "condition_number": result.condition_number,
-        "free": list(result.free),
-        "fixed": list(result.fixed),
-        "at_bounds": list(result.at_bounds),
-        "n": result.n,
+        **result.statistics_json(),
         "n_experiments": len(result.experiments),
-        "cost": result.cost,
-        "nfev": result.nfev,
         "simulations": result.simulations,
-        "success": result.success,
-        "message": result.message,
-        "seconds": result.seconds,
-        "warnings": list(result.warnings),
         "inputs": list(inputs),
     }
 

@@ -3,12 +3,14 @@
 :class:`FitResult` is what every least-squares fit returns: the calibrations
 (``piezod.calibrate.CalibrationResult``, ``piezod.calibrate_dynamic.DynamicCalibrationResult``,
 ``piezod.calibrate_family.FamilyFit``) and the audit (``piezod.audit.fitting.Fit``) are
-subclasses adding their model's parameters and summaries: residuals and their RMS, cost, ``n``,
-``dof``, AIC and BIC, and where the fit computes them parameter standard errors, covariance
-and correlations, the condition number, the parameters on a bound, the held-out RMS.
-:func:`parameter_statistics` computes that block from the Jacobian at the solution
-(the nonlinear fits, and the audit through :func:`jacobian_covariance`), :func:`solve_linear`
-is the linear least-squares path (bounded, optionally regularised).
+subclasses adding their model's parameters and summaries (the thesis and dynamic calibrations
+through :class:`CalibrationFit`: named parameters, a summary per experiment). Every result has
+residuals and their RMS, cost, ``n``, ``dof``, AIC and BIC; where the fit computes them,
+parameter standard errors, covariance and correlations, the condition number, the parameters
+on a bound; where it held data out, the held-out RMS. :func:`parameter_statistics` computes
+the statistics from the Jacobian at the solution (the nonlinear fits, and the audit through
+:func:`jacobian_covariance`), :func:`solve_linear` is the linear least-squares path (bounded,
+optionally regularised).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
+from typing import Any, ClassVar, Generic, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -248,6 +251,27 @@ class FitResult:
     condition_number: float = math.nan
     heldout_rms_um: float = math.nan
 
+    def statistics_json(self) -> dict[str, Any]:
+        """The shared part of a fit's JSON document (keys of docs/formats.md): the parameter
+        statistics, ``n``, ``cost`` and the solver status."""
+        return {
+            "correlations": {
+                a: {b: float(self.correlations[i, j]) for j, b in enumerate(self.free)}
+                for i, a in enumerate(self.free)
+            },
+            "condition_number": self.condition_number,
+            "free": list(self.free),
+            "fixed": list(self.fixed),
+            "at_bounds": list(self.at_bounds),
+            "n": self.n,
+            "cost": self.cost,
+            "nfev": self.nfev,
+            "success": self.success,
+            "message": self.message,
+            "seconds": self.seconds,
+            "warnings": list(self.warnings),
+        }
+
     @property
     def has_errors(self) -> bool:
         """Whether the fit computed parameter standard errors."""
@@ -278,6 +302,55 @@ class FitResult:
     def bic(self) -> float:
         """Bayesian information criterion ``n ln(RSS / n) + k ln n``, ``k`` = :attr:`n_coefficients`."""
         return self.n * math.log(max(self.rss, 1e-300) / self.n) + self.n_coefficients * math.log(self.n)
+
+
+class ExperimentSummary(Protocol):
+    """What :class:`CalibrationFit` needs of a per-experiment summary."""
+
+    @property
+    def label(self) -> str: ...
+
+    @property
+    def fit_error_pct(self) -> float: ...
+
+
+ExperimentT = TypeVar("ExperimentT", bound=ExperimentSummary)
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class CalibrationFit(FitResult, Generic[ExperimentT]):
+    """A calibration of named parameters with a summary per experiment (the thesis and the
+    dynamic model's fits).
+
+    Subclasses set :attr:`param_names` and hold the fitted model in ``params`` (one attribute
+    per name).
+
+    Attributes
+    ----------
+    experiments
+        Per-experiment summaries.
+    """
+
+    #: The model's parameter names (attributes of ``params``), in order.
+    param_names: ClassVar[tuple[str, ...]] = ()
+
+    experiments: tuple[ExperimentT, ...]
+
+    @property
+    def values(self) -> dict[str, float]:
+        """Parameter name -> fitted value."""
+        params = getattr(self, "params")  # noqa: B009 - the subclass's model, typed there
+        return {k: float(getattr(params, k)) for k in self.param_names}
+
+    @property
+    def fit_error_pct(self) -> float:
+        """Worst experiment's fit error (2.27), in %."""
+        return max(e.fit_error_pct for e in self.experiments)
+
+    @property
+    def worst(self) -> ExperimentT:
+        """The experiment with the largest fit error."""
+        return max(self.experiments, key=lambda e: e.fit_error_pct)
 
 
 def solve_linear(

@@ -24,6 +24,8 @@ def _check(res: FitResult, n_coefficients_besides: int) -> None:
     assert res.n == res.residuals_um.size and res.dof == res.n - p - n_coefficients_besides
     assert res.residual_rms_um == pytest.approx(float(np.sqrt(np.mean(res.residuals_um**2))))
     assert set(res.values) >= set(res.free)
+    js = res.statistics_json()
+    assert js["n"] == res.n and js["free"] == list(res.free) and set(js["correlations"]) == set(res.free)
 
 
 def test_thesis_fit_returns_the_shared_result() -> None:

@@ -626,3 +626,26 @@ def test_go_back_n_on_a_reported_gap_after_the_guard(config: ScannerConfig) -> N
     assert st.stats.rewinds == 1  # within one round trip: wait
     st._on_status(_running(600, 30, gaps=3), 0.040, 0.040, new=False)
     assert st.stats.rewinds == 2 and st.next_index == 600  # still stuck once the guard is over
+
+
+def test_the_tally_counts_under_the_counters_names_and_snapshots_do_not_alias() -> None:
+    """LinkTally keeps exactly LinkCounters' counts (a name the counters lack is refused); a snapshot
+    is a copy, and a live endpoint is counted in it without being folded into the tally."""
+    from dataclasses import fields
+
+    from piezod.link.events import LinkCounters, LinkTally
+    from piezod.link.seqwatch import new_endpoint
+
+    tally = LinkTally()
+    assert tally.snapshot() == LinkCounters()
+    assert tally.add("sensor_rows", 5) == 5 and tally.add("underruns") == 1
+    with pytest.raises(KeyError):
+        tally.add("sensor_row")
+    tally.fault_frames["UNDERRUN"] = 1
+    snap = tally.snapshot(new_endpoint(LinkSettings()))
+    tally.add("sensor_rows")
+    tally.fault_frames["UNDERRUN"] = 2
+    assert snap.sensor_rows == 5 and snap.underruns == 1 and snap.fault_frames == {"UNDERRUN": 1}
+    assert tally.snapshot().sensor_rows == 6
+    derived = {"decode_errors", "crc_errors_host", "decode_errors_by_kind", "fault_frames"}
+    assert set(tally.n) | derived == {f.name for f in fields(LinkCounters)}
