@@ -66,6 +66,8 @@ LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play", "coleman-hodg
 #: Relay-centre nodes of the generalised play law's density (its centre dependence is piecewise
 #: linear between them: 3 nodes allow a density that bends once over the recorded span).
 GP_NODES = 3
+#: Weight of the generalised play law's penalty on its centre dependence (:func:`_centre_smoothing`).
+GP_CENTRE_SMOOTHING = 0.0
 #: Longest drive lag the fit considers (s).
 _MAX_LAG_S = 0.05
 
@@ -131,6 +133,29 @@ def _gplay_features(data: DynamicCalibrationData, thresholds: F64, nodes: F64) -
     hat0 = np.array([np.interp(0.0, nodes, np.eye(nodes.size)[k]) for k in range(nodes.size)])
     slope = np.concatenate([[1.0], np.tile(hat0, thresholds.size + 1)])
     return f, f_rest, slope
+
+
+def _centre_smoothing(s: _Session, f_grid: F64, rows: int, nodes: int, weight: float) -> F64 | None:
+    """Penalty rows on ``mu_{i,k+1} - mu_{i,k}`` (the generalised play law's centre dependence).
+
+    Each row is scaled by the RMS norm of its features on the training data, so ``weight = 1``
+    makes a density change cost about what the fit gains from that feature: the law stays a
+    Prandtl-Ishlinskii law unless the data show a centre dependence clearly (a record with one
+    excitation, such as the P-885 identification run, cannot tell the two apart and a free
+    density then extrapolates badly to other loops).
+    """
+    if weight <= 0.0:
+        return None
+    fc = _centre(s.data, f_grid[s.data.compared])[s.train_rows]
+    norms = np.linalg.norm(fc, axis=0)
+    out = np.zeros((rows * (nodes - 1), f_grid.shape[1]))
+    for i in range(rows):
+        cols = 1 + i * nodes + np.arange(nodes)
+        scale = math.sqrt(weight) * float(np.sqrt(np.mean(norms[cols] ** 2)))
+        for k in range(nodes - 1):
+            out[i * (nodes - 1) + k, cols[k]] = -scale
+            out[i * (nodes - 1) + k, cols[k + 1]] = scale
+    return out
 
 
 def default_thresholds(data: DynamicCalibrationData, count: int, spacing: str = "uniform") -> F64:
@@ -262,6 +287,7 @@ def _alternate(
     *,
     slope_of_theta: F64 | None = None,
     refine: bool = True,
+    theta_reg: F64 | None = None,
 ) -> tuple[F64, F64, float, float, float, int]:
     """Alternating bounded least squares: ``(theta, w, kappa, tau_lag, rms_train, iterations)``.
 
@@ -279,7 +305,8 @@ def _alternate(
     sv: F64 = np.zeros(f_grid.shape[1]) if slope_of_theta is None else slope_of_theta
     data = s.data
     f = f_grid[data.compared]
-    e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(f_grid.shape[1])]
+    # voltage-driven creep filters the voltage (column 0) only
+    e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(1 if voltage else f_grid.shape[1])]
     n_f, m = f.shape[1], s.taus.size
     w = np.zeros(m)
     kappa = 0.0
@@ -318,7 +345,10 @@ def _alternate(
         dead = norms <= 1e-9 * float(np.max(norms))
         lower[dead] = 0.0
         upper[dead] = 0.0
-        coef, _ = solve_linear(ac, yc + _centre(data, tau * rate)[tr], lower=lower, upper=upper)
+        t_ridge = None if theta_reg is None else np.column_stack([theta_reg, np.zeros(theta_reg.shape[0])])
+        coef, _ = solve_linear(
+            ac, yc + _centre(data, tau * rate)[tr], lower=lower, upper=upper, ridge=t_ridge
+        )
         theta, kappa = coef[:n_f], float(coef[-1])
         xh = f @ theta
         if voltage:
@@ -359,7 +389,9 @@ def _alternate(
             if stall >= 2:
                 break
     if refine:
-        return _joint_refine(s, f_grid, f_rest, lam, best, slope_of_theta=slope_of_theta)
+        return _joint_refine(
+            s, f_grid, f_rest, lam, best, slope_of_theta=slope_of_theta, theta_reg=theta_reg, e_f=e_f
+        )
     return best
 
 
@@ -371,6 +403,8 @@ def _joint_refine(
     start: tuple[F64, F64, float, float, float, int],
     *,
     slope_of_theta: F64 | None = None,
+    theta_reg: F64 | None = None,
+    e_f: list[F64] | None = None,
     max_iter: int = 40,
     tol: float = 1e-6,
 ) -> tuple[F64, F64, float, float, float, int]:
@@ -388,7 +422,9 @@ def _joint_refine(
     sv: F64 = np.zeros(f_grid.shape[1]) if slope_of_theta is None else slope_of_theta
     f = f_grid[data.compared]
     n_f, m = f.shape[1], s.taus.size
-    e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(n_f)]
+    if e_f is None:
+        e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(1 if voltage else n_f)]
+    stacked = None if voltage else np.stack(e_f)
     rates = np.column_stack([_rate(data, f_grid[:, j]) for j in range(n_f)])
     tr = s.train_rows
     reg = s.creep_reg
@@ -404,9 +440,10 @@ def _joint_refine(
             b = slope * (f[:, 0][:, None] + e_f[0])
             rate_cols = rates + total * np.outer(rates[:, 0], sv)
         else:
-            e_x = np.tensordot(theta, np.stack(e_f), axes=1)
+            assert stacked is not None
+            e_x = np.tensordot(theta, stacked, axes=1)
             xc = (1.0 + total) * xh + e_x @ w
-            a = (1.0 + total) * f + np.column_stack([e_f[j] @ w for j in range(n_f)])
+            a = (1.0 + total) * f + (stacked @ w).T
             b = xh[:, None] + e_x
             rate_cols = (1.0 + total) * rates
         rate = rate_cols @ theta
@@ -417,7 +454,10 @@ def _joint_refine(
         x = parts(theta, w, kappa, tau)[0]
         resid = (_centre(data, x) - s.yc)[tr]
         fit = float(resid @ resid)
-        return fit + lam * ridge_scale**2 * float(np.sum((reg @ w) ** 2)), math.sqrt(fit / max(1, resid.size))
+        penalty = lam * ridge_scale**2 * float(np.sum((reg @ w) ** 2))
+        if theta_reg is not None:
+            penalty += float(np.sum((theta_reg @ theta) ** 2))
+        return fit + penalty, math.sqrt(fit / max(1, resid.size))
 
     theta, w, kappa, tau, rms, it = start
     theta, w = theta.copy(), w.copy()
@@ -446,6 +486,10 @@ def _joint_refine(
         target = (s.yc - _centre(data, x))[tr] + jc @ p0
         ridge = np.zeros((reg.shape[0], p0.size))
         ridge[:, n_f : n_f + m] = math.sqrt(lam) * ridge_scale * reg
+        if theta_reg is not None:
+            extra = np.zeros((theta_reg.shape[0], p0.size))
+            extra[:, :n_f] = theta_reg
+            ridge = np.vstack([ridge, extra])
         p, _ = solve_linear(jc, target, lower=lower, upper=upper, ridge=ridge)
         step = 1.0
         accepted = False
@@ -558,6 +602,7 @@ def fit_family(
     creep_driver: str = "position",
     thresholds: F64 | None = None,
     nodes: F64 | None = None,
+    centre_smoothing: float = GP_CENTRE_SMOOTHING,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -587,6 +632,9 @@ def fit_family(
         :func:`default_thresholds` with ``plays`` plays).
     nodes
         Relay-centre nodes (V) of the generalised play law (default :func:`default_nodes`).
+    centre_smoothing
+        Generalised play law: weight of the penalty on density changes between neighbouring
+        centre nodes (:func:`_centre_smoothing`); 0 leaves the centre dependence free.
 
     Raises
     ------
@@ -612,7 +660,12 @@ def fit_family(
             c = default_nodes(data) if nodes is None else np.asarray(nodes, np.float64)
             f_grid, f_rest, slope = _gplay_features(data, r, c)
             theta, w, kappa, tau, _, it = _alternate(
-                s, f_grid, f_rest, regularisation, slope_of_theta=slope if voltage else None
+                s,
+                f_grid,
+                f_rest,
+                regularisation,
+                slope_of_theta=slope if voltage else None,
+                theta_reg=_centre_smoothing(s, f_grid, r.size + 1, c.size, centre_smoothing),
             )
             mu = theta[1:].reshape(r.size + 1, c.size).copy()
             mu[0] += theta[0]

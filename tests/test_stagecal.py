@@ -65,6 +65,25 @@ def test_verification_covers_outside_the_frame() -> None:
     assert any(p.offset_um != 0.0 for p in outside)
 
 
+def test_offset_points_are_a_voltage_placed_by_the_verified_model() -> None:
+    """The offsets beyond the frame sit where the axis's own model rests at that voltage, so a loop
+    shape far from the thesis law's (p885-stage) no longer puts them beyond the amplifier."""
+    from hil_sim.stage import resolve_stage
+    from piezod.service.axes import axis_model
+
+    path = resolve_stage("p885-stage")
+    assert path is not None
+    cfg = load_config(path)
+    model = axis_model(cfg.axes["x"])
+    offsets = [p for p in verification_points(cfg, default_frame(cfg)) if p.why.startswith("offset")]
+    assert len(offsets) == 2
+    for p in offsets:
+        volts = float(p.why.split()[1])
+        assert 0.0 < abs(volts) < cfg.axes["x"].voltage_max_v
+        rest = model.position(model.rest(volts)) - model.position(model.rest(0.0))
+        assert p.offset_um == pytest.approx(rest, rel=0.01)  # the label rounds the voltage to 1 V
+
+
 @pytest.mark.slow
 def test_full_frame(tmp_path: Path) -> None:
     doc = _run(tmp_path, "full")

@@ -78,6 +78,12 @@ def main() -> int:
     ap.add_argument("--json", default=None)
     ap.add_argument("--skip-s", type=float, default=1.0, help="start-up transient left out (s)")
     ap.add_argument("--laws", nargs="+", default=list(LAWS), choices=LAWS, help="laws to fit")
+    ap.add_argument(
+        "--centre-smoothing",
+        type=float,
+        default=None,
+        help="generalised play law: penalty on its centre dependence (default: the calibration's)",
+    )
     ap.add_argument("--plot", default=None, metavar="F.png", help="validation residual of the best member")
     args = ap.parse_args()
     ident_exps, ident = _prepare("identification.csv")
@@ -88,7 +94,8 @@ def main() -> int:
     best: tuple[float, Any] | None = None
     for law, driver in [(law, d) for law in args.laws for d in CREEP_DRIVERS]:
         t0 = time.perf_counter()
-        fit = fit_family(ident, law, plays=args.plays, skip_s=args.skip_s, creep_driver=driver)
+        extra = {} if args.centre_smoothing is None else {"centre_smoothing": args.centre_smoothing}
+        fit = fit_family(ident, law, plays=args.plays, skip_s=args.skip_s, creep_driver=driver, **extra)
         x = session_positions(valid, fit.params)
         keep = settled_rows(valid, args.skip_s)
         xc = _centre(valid, x)[keep]

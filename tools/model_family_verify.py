@@ -73,6 +73,9 @@ def main() -> int:
     ap.add_argument("--loops", type=int, default=4)
     ap.add_argument("--skip-dynamic", action="store_true", help="verify the chosen model only")
     ap.add_argument(
+        "--choice-only", action="store_true", help="stop after the held-out model choice (no verification)"
+    )
+    ap.add_argument(
         "--markdown", default=None, metavar="F.json", help="print the tables of a saved --json run"
     )
     args = ap.parse_args()
@@ -96,6 +99,10 @@ def main() -> int:
     with_dyn = cd.calibrated_config(dyn, axis=axis, base=thesis)
     choice = choose_for_experiments(exps, axis, with_dyn, ramp, base.axes[axis].safe_voltage_v)
     print(choice.report["table"])
+    if args.choice_only:
+        if args.json:
+            Path(args.json).write_text(json.dumps({"stage": str(path), "choice": choice.report}, indent=2))
+        return 0
     calibrated = choice.config
     chosen_kind = calibrated.axes[axis].model
     rows: list[dict[str, Any]] = []
