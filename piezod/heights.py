@@ -14,15 +14,22 @@ height of a line is arbitrary in an image).
 
 from __future__ import annotations
 
+import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
+from piezod.config import AxisConfig, ScannerConfig
+from piezod.errors import CalibrationError
 from piezod.image import F64, RasterSamples, linear_sensitivity
+from piezod.recording import Experiment
 
 _SETTLE_LINES = 1
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,4 +136,96 @@ def plot_height_profiles(
     return path
 
 
-__all__ = ["HeightComparison", "compare_heights", "plot_height_profiles"]
+def z_experiments(rs: RasterSamples, true_um: F64, label: str) -> list[Experiment]:
+    """The z axis's calibration data of a raster recording: one experiment per image line, the
+    recorded z voltage against a measured z extension (a z sensor; on the simulator its truth log),
+    at the samples where the extension is known."""
+    if rs.z_voltage_v is None:
+        raise CalibrationError(f"{label}: no z_voltage column")
+    out = []
+    for ln in range(rs.lines):
+        s = (rs.line == ln) & np.isfinite(true_um)
+        if s.sum() < 32:
+            continue
+        out.append(
+            Experiment(
+                label=f"{label}#{ln}",
+                axis="z",
+                t_s=rs.t_s[s],
+                voltage_v=rs.z_voltage_v[s],
+                position_um=true_um[s],
+            )
+        )
+    if not out:
+        raise CalibrationError(f"{label}: no image line with known z extensions")
+    return out
+
+
+def fit_z_model(
+    experiments: list[Experiment], base: ScannerConfig, *, axis: Literal["x", "y", "z"] = "z"
+) -> tuple[AxisConfig, str, dict[str, float]]:
+    """The z axis's model from z voltage vs measured extension.
+
+    Every law and creep driver of :mod:`piezod.calibrate_family` is fitted on the training lines
+    and scored on the held-out ones (every fourth line); the best is refitted on all (as
+    :func:`piezod.calibrate_family.choose_model` calibrates the lateral axes). A member whose fit
+    fails is left out; when every one fails the dynamic model
+    (:func:`piezod.calibrate_dynamic.fit_dynamic`, fitted on all lines) is the model.
+
+    Returns
+    -------
+    axis_config, chosen, heldout_rms_um
+        The calibrated z axis, the chosen candidate's name, and every family candidate's held-out
+        RMS (um; NaN: its fit failed, the reason in the log).
+
+    Raises
+    ------
+    CalibrationError
+        Too little data, or no model could be fitted.
+    """
+    from piezod.calibrate_data import prepare_dynamic
+    from piezod.calibrate_dynamic import CreepStructure, calibrated_config, fit_dynamic
+    from piezod.calibrate_family import LAWS, family_model_config, fit_family, holdout_mask
+    from piezod.model.family import CREEP_DRIVERS
+
+    ax = base.axes[axis]
+    data = prepare_dynamic(
+        experiments,
+        rest_voltage_v=ax.safe_voltage_v,
+        slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
+        max_samples_per_experiment=2048,
+    )
+    train = holdout_mask(data.n_experiments, 4)
+    heldout: dict[str, float] = {}
+    for law in LAWS:
+        for driver in CREEP_DRIVERS:
+            name = f"family/{law}" + ("/voltage-creep" if driver == "voltage" else "")
+            try:
+                heldout[name] = fit_family(data, law, train=train, creep_driver=driver).heldout_rms_um
+            except CalibrationError as exc:
+                heldout[name] = math.nan
+                _log.warning("z model %s not fitted: %s", name, exc)
+    scored = {k: v for k, v in heldout.items() if math.isfinite(v)}
+    if scored:
+        chosen = min(scored, key=lambda k: scored[k])
+        law = chosen.split("/")[1]
+        driver = "voltage" if chosen.endswith("voltage-creep") else "position"
+        final = fit_family(data, law, creep_driver=driver)
+        return (
+            ax.model_copy(update={"model": "family", "family": family_model_config(final.params)}),
+            chosen,
+            heldout,
+        )
+    # relaxation times beyond ten times what the data spans are not determined by it
+    span_s = float(max(e.t_s[-1] for e in experiments) - min(e.t_s[0] for e in experiments))
+    dyn = fit_dynamic(data, creep=CreepStructure(tau_min_s=1e-3, tau_max_s=max(10.0, 10.0 * span_s)))
+    return calibrated_config(dyn, axis=axis, base=base).axes[axis], "dynamic", heldout
+
+
+__all__ = [
+    "HeightComparison",
+    "compare_heights",
+    "fit_z_model",
+    "plot_height_profiles",
+    "z_experiments",
+]

@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from piezod.config import AxisConfig
 from piezod.errors import RecordingError
 from piezod.model.dynamic import dynamic_forward, dynamic_rest_state
+from piezod.model.family import family_forward, family_rest_state
 from piezod.model.ode import hysteresis_step, relaxed_state
 from piezod.recording import Recording, infer_scan
 
@@ -312,14 +313,21 @@ def assemble(
 def forward_heights(axis: AxisConfig, z_voltage_v: F64, dt_s: float) -> F64:
     """Heights (um) of a recorded z-voltage waveform through the z axis's forward model, from rest.
 
-    The dynamic model (hysteresis ODE + creep operator) when the axis has a ``dynamic`` section,
-    else the hysteresis ODE (2.21) of its thesis parameters (no creep: the thesis's creep law
-    (3.8) holds for periodic scans only, which z is not). The height is relative to the rest
-    position at the first sample's voltage.
+    The model family's forward model when the axis's model is ``family`` (e.g. a z calibrated by
+    :func:`piezod.heights.fit_z_model`), the dynamic model (hysteresis ODE + creep operator) when
+    the axis has a ``dynamic`` section, else the hysteresis ODE (2.21) of its thesis parameters
+    (no creep: the thesis's creep law (3.8) holds for periodic scans only, which z is not). The
+    height is relative to the rest position at the first sample's voltage.
     """
     v = np.asarray(z_voltage_v, dtype=np.float64)
     if v.size == 0:
         return np.zeros(0)
+    if axis.model == "family" and axis.family is not None:
+        fp = axis.family.params()
+        fs = family_rest_state(fp, float(v[0]))
+        xf, _ = family_forward(fp, v, dt_s, fs)
+        out_f: F64 = xf - fs.position_um
+        return out_f
     if axis.dynamic is not None:
         params = axis.dynamic.params()
         st = dynamic_rest_state(params, float(v[0]))

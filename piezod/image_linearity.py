@@ -123,6 +123,10 @@ class ImageLinearity:
         for comparison).
     windows
         ``(line, lo, hi)``: the commanded stretches (um) of every line the metric covers.
+    flank_scatter_um
+        RMS scatter of the flanks about the position map (um): the sample's edge roughness and
+        the detection - the image's counterpart of a sensor's noise, which a sensor's
+        non-linearity includes and this one does not.
     """
 
     direction: int
@@ -139,6 +143,7 @@ class ImageLinearity:
     length_error_unc_pct: float = math.nan
     flank_length_error_pct: float = math.nan
     windows: tuple[tuple[int, float, float], ...] = ()
+    flank_scatter_um: float = math.nan
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready dict."""
@@ -156,7 +161,8 @@ class ImageLinearity:
             "length_error_pct": self.length_error_pct,
             "length_error_unc_pct": self.length_error_unc_pct,
             "flank_length_error_pct": self.flank_length_error_pct,
-            "windows_um": [[lo, hi] for _, lo, hi in self.windows],
+            "flank_scatter_um": self.flank_scatter_um,
+            "windows_um": sorted({(lo, hi) for _, lo, hi in self.windows}),
         }
 
 
@@ -564,6 +570,7 @@ def image_linearity(image: F64, geo: Geometry, pitch_um: float, direction: int) 
         length_error_unc_pct=100.0 * slope_sd,
         flank_length_error_pct=100.0 * (g - 1.0),
         windows=tuple((int(r_), a, b) for r_ in lines for a, b in spans),
+        flank_scatter_um=pm.noise_um,
     )
 
 
