@@ -50,7 +50,7 @@ from piezod.model import kernels
 from piezod.model.dynamic import MAX_TOTAL_CREEP, _creep_forward, _creep_inverse, discretise
 from piezod.model.gplay import GeneralisedPlayParams, gplay_forward, gplay_rest_state, gplay_state_at
 from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
-from piezod.model.params import HysteresisParams
+from piezod.model.params import HysteresisParams, readonly_array
 from piezod.model.play import (
     PlayParams,
     PlayState,
@@ -118,16 +118,12 @@ class CreepSpectrum:
     @cached_property
     def taus_s(self) -> F64:
         """Relaxation times (s)."""
-        a = np.array(self.taus)
-        a.setflags(write=False)
-        return a
+        return readonly_array(self.taus)
 
     @cached_property
     def weights(self) -> F64:
         """Weights."""
-        a = np.array(self.w)
-        a.setflags(write=False)
-        return a
+        return readonly_array(self.w)
 
     @property
     def total_creep(self) -> float:

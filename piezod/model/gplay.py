@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from piezod.errors import ModelError
+from piezod.model.params import readonly_array
 from piezod.model.play import PlayState, _runs
 
 F64 = NDArray[np.float64]
@@ -81,23 +82,17 @@ class GeneralisedPlayParams:
     @cached_property
     def r(self) -> F64:
         """Half-widths (V)."""
-        a = np.array(self.thresholds_v, dtype=np.float64)
-        a.setflags(write=False)
-        return a
+        return readonly_array(self.thresholds_v)
 
     @cached_property
     def c(self) -> F64:
         """Centre nodes (V)."""
-        a = np.array(self.nodes_v, dtype=np.float64)
-        a.setflags(write=False)
-        return a
+        return readonly_array(self.nodes_v)
 
     @cached_property
     def mu(self) -> F64:
         """Density, shape ``(p + 1, K)`` (um/V)."""
-        a = np.array(self.density, dtype=np.float64)
-        a.setflags(write=False)
-        return a
+        return readonly_array(self.density)
 
     @cached_property
     def zero(self) -> F64:

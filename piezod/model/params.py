@@ -5,7 +5,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
 from piezod.errors import ModelError
+
+
+def readonly_array(values: ArrayLike) -> NDArray[np.float64]:
+    """A float64 copy of ``values`` that cannot be written: the array view of a frozen parameter."""
+    a = np.array(values, dtype=np.float64)
+    a.setflags(write=False)
+    return a
 
 
 def _require(cond: bool, what: str) -> None:

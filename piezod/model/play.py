@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from piezod.errors import ModelError
+from piezod.model.params import readonly_array
 
 F64 = NDArray[np.float64]
 
@@ -69,16 +70,12 @@ class PlayParams:
     @cached_property
     def r(self) -> F64:
         """Thresholds as an array (V)."""
-        a = np.array(self.thresholds_v, dtype=np.float64)
-        a.setflags(write=False)
-        return a
+        return readonly_array(self.thresholds_v)
 
     @cached_property
     def w(self) -> F64:
         """Weights as an array."""
-        a = np.array(self.weights, dtype=np.float64)
-        a.setflags(write=False)
-        return a
+        return readonly_array(self.weights)
 
     @property
     def total_weight(self) -> float:
