@@ -114,8 +114,6 @@ class Problem:
         *,
         max_nfev: int | None = None,
         free: NDArray[np.bool_] | None = None,
-        max_iter: int = 60,
-        rtol: float = 1e-10,
     ) -> Fit:
         """Least-squares fit from ``p0`` (parameters outside ``free`` held), see :func:`levenberg_marquardt`.
 
@@ -273,13 +271,13 @@ def fit_candidate(
     cand: Candidate,
     *,
     max_nfev: int | None = None,
-    polish_iter: int = 3,
 ) -> Fit:
-    """Fit ``parent.model + cand`` on ``problem``'s rows: best start, the candidate alone, a joint polish.
+    """Fit ``parent.model + cand`` on ``problem``'s rows: best start, the candidate alone, a joint fit.
 
     The start is the best of the neutral parameters, a linearised (Gauss-Newton) step and the
     candidate's grids; then the candidate's parameters are fitted with the rest held, then all
-    parameters jointly for at most ``polish_iter`` Levenberg-Marquardt iterations.
+    parameters jointly from there (Levenberg-Marquardt to convergence: at most 60 iterations or
+    ``max_nfev`` evaluations).
 
     ``problem.model`` must already be the extended model.
     """
@@ -308,8 +306,8 @@ def fit_candidate(
         (problem.fit(starts[k], free=only, max_nfev=40 * cand.size) for k in dict.fromkeys(picks)),
         key=lambda f: f.rss,
     )
-    # Baseline at its optimum, candidate fitted: a short joint polish moves everything together.
-    return problem.fit(stage1.p, max_nfev=max_nfev, max_iter=polish_iter, rtol=1e-8)
+    # Baseline at its optimum, candidate fitted: the joint fit moves everything together.
+    return problem.fit(stage1.p, max_nfev=max_nfev)
 
 
 @dataclass(frozen=True, eq=False)
