@@ -37,6 +37,7 @@ from firmware_proto import (
     Frame,
     FrameDecoder,
     Hello,
+    Message,
     Samples,
     Sensor,
     Start,
@@ -79,6 +80,8 @@ def _frames(port: Any, want: type, timeout_s: float, dec: FrameDecoder, got: lis
                 got.append(item.msg)
                 if isinstance(item.msg, want):
                     return item.msg
+            else:
+                got.append(item)  # a decode error: kept, so a missing frame says whether bytes were spoilt
     raise AssertionError(f"no {want.__name__} within {timeout_s} s: {[type(m).__name__ for m in got]}")
 
 
@@ -121,7 +124,8 @@ def test_emulated_mcu_plays_a_queued_run_clamps_and_reports_the_underrun(qemu: A
         _frames(port, Status, 5.0, dec, got)
     rows = [m for m in got if isinstance(m, Sensor)]
     indices = np.concatenate([m.first_index + m.stride * np.arange(m.n_samples) for m in rows])
-    np.testing.assert_array_equal(indices, 1000 + np.arange(n))
+    spoilt = [m for m in got if not isinstance(m, Message)]
+    np.testing.assert_array_equal(indices, 1000 + np.arange(n), err_msg=f"decode errors: {spoilt}")
     sensed = np.concatenate([np.asarray(m.codes) for m in rows])
     assert np.corrcoef(codes[:, 0], sensed[:, 0])[0, 1] > 0.99  # the simulated stage follows the DAC
     last = [m for m in got if isinstance(m, Status)][-1]
