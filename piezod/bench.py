@@ -101,7 +101,8 @@ def bench_models() -> dict[str, Any]:
     The family members carry a drive lag, 16 play operators (or Coleman-Hodgdon, or the generalised
     play law with 32 plays over 3 relay-centre nodes, or the Bouc-Wen/Duhem law), a creep spectrum
     of 19 relaxation times from 0.1 ms to 1e5 s and the stiffness map; :data:`RICHEST_MODEL` (the
-    generalised play law) adds voltage-driven creep and every runtime part (:mod:`piezod.model.parts`: polarity, thermal,
+    generalised play law) adds voltage-driven creep and every runtime part
+    (:mod:`piezod.model.parts`: polarity, thermal,
     stiffness, saturation, drift).
     """
     from piezod.model.axis_model import DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
