@@ -99,12 +99,14 @@ def bench_models() -> dict[str, Any]:
     """The axis models timed by :func:`axis_model_costs` (the family members at realistic sizes).
 
     The family members carry a drive lag, 16 play operators (or Coleman-Hodgdon, or the generalised
-    play law with 32 plays over 3 relay-centre nodes), a creep spectrum of 19 relaxation times from
-    0.1 ms to 1e5 s and the stiffness map; :data:`RICHEST_MODEL` (the generalised play law) adds
-    voltage-driven creep and every runtime part (:mod:`piezod.model.parts`: polarity, thermal,
+    play law with 32 plays over 3 relay-centre nodes, or the Bouc-Wen/Duhem law), a creep spectrum
+    of 19 relaxation times from 0.1 ms to 1e5 s and the stiffness map; :data:`RICHEST_MODEL` (the
+    generalised play law) adds voltage-driven creep and every runtime part
+    (:mod:`piezod.model.parts`: polarity, thermal,
     stiffness, saturation, drift).
     """
     from piezod.model.axis_model import DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
+    from piezod.model.boucwen import BoucWenParams
     from piezod.model.dynamic import DynamicParams
     from piezod.model.family import CreepSpectrum, FamilyParams
     from piezod.model.gplay import GeneralisedPlayParams
@@ -124,6 +126,8 @@ def bench_models() -> dict[str, Any]:
         (-230.0, 0.0, 230.0),
         ((0.046, 0.052, 0.058), *((0.9 * w, w, 1.15 * w) for w in map(float, gw))),
     )
+    # the Duhem law with direction- and sign-dependent rates at a fitted size (asymmetric)
+    bw = BoucWenParams(0.098, -0.037, 0.0159, 0.0097, 0.0155, 0.0081, 1.2)
     return {
         "thesis": ThesisAxisModel(MEDIUM_TUBE_TABLE_3_3, 0.01, 0.0),
         "dynamic": DynamicAxisModel(DynamicParams(3e-3, 0.115, 0.072, 1.5)),
@@ -138,6 +142,12 @@ def bench_models() -> dict[str, Any]:
         "family/generalised-play": FamilyAxisModel(FamilyParams(gp, creep, 2e-4, 0.05)),
         "family/generalised-play/voltage-creep": FamilyAxisModel(
             FamilyParams(gp, creep, 2e-4, 0.05, "voltage")
+        ),
+        "family/bouc-wen": FamilyAxisModel(FamilyParams(bw, creep, 2e-4, 0.05)),
+        "family/bouc-wen/voltage-creep": FamilyAxisModel(FamilyParams(bw, creep, 2e-4, 0.05, "voltage")),
+        "family/bouc-wen/voltage-creep+parts": PartsAxisModel(
+            FamilyAxisModel(FamilyParams(bw, creep, 2e-4, 0.05, "voltage")),
+            Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
         ),
         "family/prandtl-ishlinskii/voltage-creep+parts": PartsAxisModel(
             FamilyAxisModel(FamilyParams(pi, creep, 2e-4, 0.05, "voltage")),

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import minimize_scalar
+from scipy.optimize import minimize, minimize_scalar
 
 from piezod.calibrate_dynamic import (
     DynamicCalibrationData,
@@ -53,6 +53,13 @@ from piezod.calibrate_dynamic import (
 from piezod.config import FamilyModelConfig
 from piezod.errors import CalibrationError, ModelError
 from piezod.fitstats import FitResult, solve_linear
+from piezod.model.boucwen import (
+    MIN_SLOPE_FRACTION,
+    BoucWenParams,
+    boucwen_forward,
+    boucwen_rest_state,
+    unit_hysteresis,
+)
 from piezod.model.dynamic import MAX_TOTAL_CREEP
 from piezod.model.family import CREEP_DRIVERS, CreepSpectrum, FamilyParams
 from piezod.model.gplay import (
@@ -67,7 +74,7 @@ from piezod.model.play import PlayParams, PlayState, play_forward
 
 F64 = NDArray[np.float64]
 
-LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play", "coleman-hodgdon")
+LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play", "coleman-hodgdon", "bouc-wen")
 #: Relay-centre nodes of the generalised play law's density (its centre dependence is piecewise
 #: linear between them: 3 nodes allow a density that bends once over the recorded span).
 GP_NODES = 3
@@ -557,7 +564,9 @@ def session_positions(
         dev = _Deviations(data, np.asarray(params.creep.taus_s))
     h = params.hysteresis
     v = data.hysteresis_voltage_v
-    if isinstance(h, GeneralisedPlayParams):
+    if isinstance(h, BoucWenParams):
+        xh_all, _ = boucwen_forward(h, v, boucwen_rest_state(h, data.rest_voltage_v))
+    elif isinstance(h, GeneralisedPlayParams):
         xh_all, _ = gplay_forward(h, v, gplay_rest_state(h, data.rest_voltage_v))
     elif isinstance(h, PlayParams):
         state = PlayState(data.rest_voltage_v, np.full(h.r.size, data.rest_voltage_v), 0.0)
@@ -586,12 +595,95 @@ def session_positions(
     return out
 
 
-def _rest_position(h: HysteresisParams | PlayParams | GeneralisedPlayParams, v: float) -> float:
+def _rest_position(
+    h: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams, v: float
+) -> float:
+    if isinstance(h, BoucWenParams):
+        return boucwen_rest_state(h, v).position_um
     if isinstance(h, GeneralisedPlayParams):
         return gplay_rest_state(h, v).position_um
     if isinstance(h, PlayParams):
         return h.b_um_per_v * h.total_weight * v
     return h.b_um_per_v * v
+
+
+#: Bounds of the Bouc-Wen (Duhem) law's searched rates: relaxation rates (1/V), the ratio of the
+#: recovery rate after a reversal to the saturating rate, and ``amp_down``.
+BW_RATE_BOUNDS = (1e-4, 0.3)
+BW_RATIO_BOUNDS = (0.0, 3.0)
+BW_AMP_BOUNDS = (0.5, 2.0)
+#: Evaluations of the Bouc-Wen rate search: the symmetric grid, then the polish of all five.
+BW_GRID_RATES = 8
+BW_GRID_RATIOS = (0.0, 0.5, 1.0, 2.0)
+BW_POLISH_EVALUATIONS = 80
+
+
+def _bw_unpack(z: F64) -> tuple[tuple[float, float, float, float], float]:
+    """``(rates, amp_down)`` of the search vector ``(log k_up, log k_down, rho_up, rho_down, log amp)``."""
+    k_up, k_down = math.exp(float(z[0])), math.exp(float(z[1]))
+    return (k_up, float(z[2]) * k_up, k_down, float(z[3]) * k_down), math.exp(float(z[4]))
+
+
+def _fit_bouc_wen(
+    s: _Session, lam: float, voltage: bool
+) -> tuple[F64, F64, float, float, int, BoucWenParams, int]:
+    """The Bouc-Wen (Duhem) law by variable projection.
+
+    For given rates the position is linear in ``theta = (b, -c)`` and the creep weights (the
+    features are ``[V, -h]`` with ``h`` the law's hysteretic variable for ``A_up = 1``), so the
+    five nonlinear parameters (the saturating rate per direction, the recovery-to-saturating
+    ratio per direction, ``amp_down``) are searched on the training RMS of the linear fit
+    (:func:`_alternate`, 4 alternations): first a grid over the symmetric law (one rate, one
+    ratio: Coleman-Hodgdon is ratio 1), then a bounded Nelder-Mead polish of all five, then the
+    full alternation and joint refinement at the best rates. ``c`` is then limited so the slope
+    after a reversal stays >= :data:`~piezod.model.boucwen.MIN_SLOPE_FRACTION` of ``b``.
+
+    Returns ``(theta, w, kappa, tau, iterations, law, searched parameters)``.
+    """
+    data = s.data
+    rest = data.rest_voltage_v
+    f_rest = np.array([rest, 0.0])
+    slope = np.array([1.0, 0.0]) if voltage else None
+
+    def features(z: F64) -> F64:
+        rates, amp = _bw_unpack(z)
+        h = unit_hysteresis(rates, amp, data.hysteresis_voltage_v, rest)
+        return np.column_stack([data.grid_voltage_v, -h[data.grid_index]])
+
+    def cost(z: F64) -> float:
+        res = _alternate(s, features(z), f_rest, lam, max_iter=4, slope_of_theta=slope, refine=False)
+        return res[4] if math.isfinite(res[4]) else 1e30
+
+    lo, hi = (math.log(b) for b in BW_RATE_BOUNDS)
+    best_z, best = np.zeros(5), math.inf
+    for lk in np.linspace(lo + 0.2 * (hi - lo), hi - 0.1 * (hi - lo), BW_GRID_RATES):
+        for rho in BW_GRID_RATIOS:
+            z = np.array([lk, lk, rho, rho, 0.0])
+            c = cost(z)
+            if c < best:
+                best_z, best = z, c
+    bounds = [(lo, hi), (lo, hi), BW_RATIO_BOUNDS, BW_RATIO_BOUNDS, tuple(math.log(b) for b in BW_AMP_BOUNDS)]
+    simplex = np.array([best_z] + [best_z + step for step in np.diag([0.3, 0.3, 0.25, 0.25, 0.1])])
+    for row in simplex:
+        for j, (a, b) in enumerate(bounds):
+            row[j] = min(max(row[j], a), b)
+    res = minimize(
+        cost,
+        best_z,
+        method="Nelder-Mead",
+        bounds=bounds,
+        options={"maxfev": BW_POLISH_EVALUATIONS, "initial_simplex": simplex, "xatol": 1e-3, "fatol": 1e-6},
+    )
+    z = np.asarray(res.x) if float(res.fun) < best else best_z
+    rates, amp = _bw_unpack(z)
+    theta, w, kappa, tau, _, it = _alternate(s, features(z), f_rest, lam, slope_of_theta=slope)
+    b, c = float(theta[0]), -float(theta[1])
+    # the slope after a reversal is b + c M (BoucWenParams.min_slope_um_per_v): keep it positive
+    k_us, k_ub, k_ds, k_db = rates
+    m = max(1.0 + k_ub * amp / k_ds, amp + k_db / k_us)
+    c = max(c, -(1.0 - 2.0 * MIN_SLOPE_FRACTION) * b / m)
+    law = BoucWenParams(b, c, *rates, amp)
+    return theta, w, kappa, tau, it + int(res.nfev) + BW_GRID_RATES * len(BW_GRID_RATIOS), law, 5
 
 
 def fit_family(
@@ -658,9 +750,12 @@ def fit_family(
     t0 = time.perf_counter()
     s = _Session(data, taus, mask, skip_s)
     rest_v = data.rest_voltage_v
-    hyst: HysteresisParams | PlayParams | GeneralisedPlayParams
+    hyst: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams
+    searched = 0
     try:
-        if law == "generalised-play":
+        if law == "bouc-wen":
+            theta, w, kappa, tau, it, hyst, searched = _fit_bouc_wen(s, regularisation, voltage)
+        elif law == "generalised-play":
             r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
             c = default_nodes(data) if nodes is None else np.asarray(nodes, np.float64)
             f_grid, f_rest, slope = _gplay_features(data, r, c)
@@ -747,6 +842,8 @@ def fit_family(
         raise CalibrationError(f"family fit ({law}): {exc}") from exc
     # theta, the creep weights, kappa and the lag (and Coleman-Hodgdon's alpha when searched)
     n_coefficients = theta.size + taus.size + 2 + int(law == "coleman-hodgdon" and alpha_per_v is None)
+    if law == "bouc-wen":
+        n_coefficients += searched
     return _result(s, params, it, n_coefficients, t0)
 
 
@@ -887,7 +984,11 @@ def family_model_config(params: FamilyParams) -> FamilyModelConfig:
         "stiffness_pct_per_um": params.stiffness_pct_per_um,
         "creep_driver": params.creep_driver,
     }
-    if isinstance(h, GeneralisedPlayParams):
+    if isinstance(h, BoucWenParams):
+        fields.update(
+            bw_c_um_per_v=h.c_um_per_v, bw_rates_per_v=list(h.rates), bw_amp_down=h.amp_down
+        )
+    elif isinstance(h, GeneralisedPlayParams):
         fields.update(
             # full precision: a rounded node moves every play's density (6 digits cost 0.3 nm)
             gp_thresholds_v=list(h.thresholds_v),

@@ -25,6 +25,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from piezod.errors import ConfigError, ModelError
+from piezod.model.boucwen import BoucWenParams
 from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.model.gplay import GeneralisedPlayParams
@@ -99,11 +100,13 @@ class FamilyModelConfig(StrictModel):
     ``law: coleman-hodgdon`` needs ``alpha_per_v`` and ``u_um_per_v``; ``law: prandtl-ishlinskii``
     needs ``pi_rho0``, ``pi_thresholds_v`` and ``pi_weights``; ``law: generalised-play`` (a
     Preisach law, :mod:`piezod.model.gplay`) needs ``gp_thresholds_v``, ``gp_nodes_v`` and
-    ``gp_density`` (its ``b_um_per_v`` is the rest slope at 0 V, for information). The creep
+    ``gp_density`` (its ``b_um_per_v`` is the rest slope at 0 V, for information); ``law: bouc-wen``
+    (a Duhem law with direction- and sign-dependent rates, :mod:`piezod.model.boucwen`) needs
+    ``bw_c_um_per_v``, ``bw_rates_per_v`` and ``bw_amp_down``. The creep
     spectrum is a list of non-negative weights on relaxation times. ``piezod calibrate`` writes this section.
     """
 
-    law: Literal["coleman-hodgdon", "prandtl-ishlinskii", "generalised-play"] = Field(
+    law: Literal["coleman-hodgdon", "prandtl-ishlinskii", "generalised-play", "bouc-wen"] = Field(
         description="hysteresis law"
     )
     b_um_per_v: float = Field(gt=0, lt=100.0, description="sensitivity b of the hysteresis law (um/V)")
@@ -120,6 +123,15 @@ class FamilyModelConfig(StrictModel):
         default=[],
         description="generalised-play: density (um/V) per row (reversible part, then one per play) and node",
     )
+    bw_c_um_per_v: float | None = Field(
+        default=None, description="bouc-wen: weight c of the hysteretic variable, x_h = b V + c h (um/V)"
+    )
+    bw_rates_per_v: list[float] = Field(
+        default=[],
+        description="bouc-wen: relaxation rates of h (1/V): rising with h > 0, rising with h < 0, "
+        "falling with h < 0, falling with h > 0",
+    )
+    bw_amp_down: float | None = Field(default=None, gt=0, description="bouc-wen: A_down / A_up")
     creep_taus_s: list[float] = Field(description="creep relaxation times (s), ascending")
     creep_weights: list[float] = Field(description="creep weights (fractions of the hysteretic motion)")
     lag_time_constant_s: float = Field(default=0.0, ge=0, le=1.0, description="drive pole (s)")
@@ -136,6 +148,10 @@ class FamilyModelConfig(StrictModel):
             raise ValueError("law coleman-hodgdon needs alpha_per_v and u_um_per_v")
         if self.law == "prandtl-ishlinskii" and self.pi_rho0 is None:
             raise ValueError("law prandtl-ishlinskii needs pi_rho0, pi_thresholds_v and pi_weights")
+        if self.law == "bouc-wen" and (
+            self.bw_c_um_per_v is None or len(self.bw_rates_per_v) != 4 or self.bw_amp_down is None
+        ):
+            raise ValueError("law bouc-wen needs bw_c_um_per_v, bw_rates_per_v (4 rates) and bw_amp_down")
         if self.law == "generalised-play" and not (self.gp_nodes_v and self.gp_density):
             raise ValueError("law generalised-play needs gp_thresholds_v, gp_nodes_v and gp_density")
         try:
@@ -146,8 +162,14 @@ class FamilyModelConfig(StrictModel):
 
     def params(self) -> FamilyParams:
         """The frozen model parameter object."""
-        hyst: HysteresisParams | PlayParams | GeneralisedPlayParams
-        if self.law == "generalised-play":
+        hyst: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams
+        if self.law == "bouc-wen":
+            assert self.bw_c_um_per_v is not None and self.bw_amp_down is not None
+            k = self.bw_rates_per_v
+            hyst = BoucWenParams(
+                self.b_um_per_v, self.bw_c_um_per_v, k[0], k[1], k[2], k[3], self.bw_amp_down
+            )
+        elif self.law == "generalised-play":
             hyst = GeneralisedPlayParams(
                 tuple(self.gp_thresholds_v),
                 tuple(self.gp_nodes_v),

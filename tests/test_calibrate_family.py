@@ -138,3 +138,31 @@ def test_joint_gauss_newton_finishes_what_the_alternation_leaves(monkeypatch: py
     assert refined.rms_um < 0.3 * alternated.rms_um
     assert refined.heldout_rms_um < 0.3 * alternated.heldout_rms_um
     assert refined.heldout_rms_um < 0.006
+
+
+@cache
+def _boucwen_session() -> DynamicCalibrationData:
+    path = resolve_stage("boucwen-stage")
+    assert path is not None
+    stage = StageConfig.from_file(path)
+    plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
+    sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-200.0, 200.0))
+    return prepare_dynamic(session_experiments(sess), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
+
+
+def test_the_duhem_law_is_chosen_on_a_bouc_wen_stage_by_held_out_data() -> None:
+    """boucwen-stage (developed against): the fitted Bouc-Wen/Duhem law predicts held-out
+    experiments far better than any play law or Coleman-Hodgdon, and is chosen."""
+    data = _boucwen_session()
+    choice = choose_model(data, laws=("prandtl-ishlinskii", "coleman-hodgdon", "bouc-wen"), holdout_every=3)
+    assert choice.chosen.startswith("family/bouc-wen"), choice.table()
+    held = choice.heldout_rms_um
+    best_other = min(v for k, v in held.items() if not k.startswith("family/bouc-wen"))
+    assert held[choice.chosen] < 0.5 * best_other, choice.table()
+    fit = choice.fit
+    assert fit is not None
+    section = family_model_config(fit.params)
+    assert section.law == "bouc-wen"
+    np.testing.assert_allclose(
+        session_positions(data, section.params()), session_positions(data, fit.params), atol=1e-6
+    )

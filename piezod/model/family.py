@@ -47,6 +47,14 @@ from scipy.signal import lfilter
 
 from piezod.errors import ModelError
 from piezod.model import kernels
+from piezod.model.boucwen import (
+    BoucWenParams,
+    BoucWenState,
+    boucwen_forward,
+    boucwen_inverse,
+    boucwen_rest_state,
+    boucwen_state_at,
+)
 from piezod.model.dynamic import MAX_TOTAL_CREEP, _creep_forward, _creep_inverse, discretise
 from piezod.model.gplay import GeneralisedPlayParams, gplay_forward, gplay_rest_state, gplay_state_at
 from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
@@ -61,12 +69,12 @@ from piezod.model.play import (
 )
 
 F64 = NDArray[np.float64]
-HysteresisLaw = HysteresisParams | PlayParams | GeneralisedPlayParams
+HysteresisLaw = HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams
 CREEP_DRIVERS = ("position", "voltage")
 #: Creep drivers whose per-sample inverse fits the streaming budget (<= 150 ns per sample and axis,
 #: ``piezod bench inverse``): both, since the voltage-driven loop is compiled (:mod:`piezod.model.kernels`).
 REALTIME_CREEP_DRIVERS = ("position", "voltage")
-LawState = HysteresisState | PlayState
+LawState = HysteresisState | PlayState | BoucWenState
 
 
 @dataclass(frozen=True)
@@ -176,7 +184,9 @@ class FamilyParams:
 
     @property
     def law(self) -> str:
-        """``coleman-hodgdon``, ``prandtl-ishlinskii`` or ``generalised-play``."""
+        """``coleman-hodgdon``, ``prandtl-ishlinskii``, ``generalised-play`` or ``bouc-wen``."""
+        if isinstance(self.hysteresis, BoucWenParams):
+            return "bouc-wen"
         if isinstance(self.hysteresis, GeneralisedPlayParams):
             return "generalised-play"
         return "prandtl-ishlinskii" if isinstance(self.hysteresis, PlayParams) else "coleman-hodgdon"
@@ -186,7 +196,7 @@ class FamilyParams:
         """``s``: the law's rest slope (um/V; at 0 V for the generalised play law), the scale of
         voltage-driven creep."""
         h = self.hysteresis
-        if isinstance(h, GeneralisedPlayParams):
+        if isinstance(h, GeneralisedPlayParams | BoucWenParams):
             return h.b_um_per_v
         return h.b_um_per_v * (h.total_weight if isinstance(h, PlayParams) else 1.0)
 
@@ -247,6 +257,8 @@ def _static_inverse(params: FamilyParams, x: F64) -> F64:
 
 
 def _law_rest(h: HysteresisLaw, v: float) -> LawState:
+    if isinstance(h, BoucWenParams):
+        return boucwen_rest_state(h, v)
     if isinstance(h, GeneralisedPlayParams):
         return gplay_rest_state(h, v)
     return play_rest_state(h, v) if isinstance(h, PlayParams) else relaxed_state(h, v)
@@ -282,7 +294,9 @@ def family_adopt_state(params: FamilyParams, voltage_v: float, position_um: floa
         xh = xc / (1.0 + params.creep.total_creep)
     h = params.hysteresis
     law: LawState
-    if isinstance(h, GeneralisedPlayParams):
+    if isinstance(h, BoucWenParams):
+        law = boucwen_state_at(h, v, xh)
+    elif isinstance(h, GeneralisedPlayParams):
         law = _gplay_adopt(h, v, xh)
     elif isinstance(h, PlayParams):
         spread = float(h.w @ h.r)
@@ -349,7 +363,10 @@ def family_forward(
     h = params.hysteresis
     xh: F64
     law: LawState
-    if isinstance(h, GeneralisedPlayParams):
+    if isinstance(h, BoucWenParams):
+        assert isinstance(state.law, BoucWenState)
+        xh, law = boucwen_forward(h, vc, state.law)
+    elif isinstance(h, GeneralisedPlayParams):
         assert isinstance(state.law, PlayState)
         xh, law = gplay_forward(h, vc, state.law)
     elif isinstance(h, PlayParams):
@@ -405,7 +422,10 @@ def family_inverse(
     h = params.hysteresis
     vc: F64
     law: LawState
-    if isinstance(h, GeneralisedPlayParams):
+    if isinstance(h, BoucWenParams):
+        assert isinstance(state.law, BoucWenState)
+        vc, law = boucwen_inverse(h, xh, state.law)
+    elif isinstance(h, GeneralisedPlayParams):
         assert isinstance(state.law, PlayState)
         vc, law = _gplay_inverse(h, xh, state.law)
     elif isinstance(h, PlayParams):
@@ -481,7 +501,14 @@ def _voltage_creep_inverse(
     vc = np.empty(xc.size)
     h = params.hysteresis
     law: LawState
-    if isinstance(h, GeneralisedPlayParams):
+    if isinstance(h, BoucWenParams):
+        assert isinstance(state.law, BoucWenState)
+        u, hv = kernels.bw_loop(
+            xc, h.b_um_per_v, h.c_um_per_v, h.amp_down, *h.rates, g, wa, wb, disc.a, ob0, e,
+            state.drive_v, state.law.h_v, vc,
+        )
+        law = BoucWenState(u, hv, h.b_um_per_v * u + h.c_um_per_v * hv)
+    elif isinstance(h, GeneralisedPlayParams):
         assert isinstance(state.law, PlayState)
         plays = np.array(state.law.plays_v, dtype=np.float64)
         u, xh = kernels.gpi_loop(
