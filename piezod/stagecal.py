@@ -279,6 +279,7 @@ def verify(
     point's setting precedes the measurements.
     """
     rows: list[dict[str, Any]] = []
+    warm_faults: list[str] = []
     if points:
         first = points[0]
         warm = ScanRequest(
@@ -290,11 +291,11 @@ def verify(
             record=False,
         )
         engine.check_scan(warm)
+        mark = engine.uptime_s
         engine.start_scan(warm)
-        engine.wait_idle((4 + 3) / first.frequency_hz + 10.0)
-        if engine.status().state != "idle":
-            engine.wait_healthy()
-            engine.stop()
+        if engine.wait_idle((4 + 3) / first.frequency_hz + 10.0) != "idle":
+            # the warm-up is not measured, but its fault is reported with the first point
+            warm_faults = _fault_texts(engine.acknowledge_fault(since_s=mark))
     for i, pt in enumerate(points):
         name = f"verify-{model}-{i:02d}"
         n_lines = 1 if pt.frequency_hz < 0.1 else lines  # a 0.02 Hz line takes 50 s
@@ -316,13 +317,13 @@ def verify(
             "what": pt.why,
             "recording": str(path),
         }
-        before = engine.status()
-        if before.state == "fault":
+        if warm_faults:
+            row["faults_before"], warm_faults = warm_faults, []
+        if engine.status().state in ("fault", "disconnected"):
             # An earlier fault (e.g. an underrun while the fit ran) must not silently end the run:
             # it is reported with the next point, cleared, and the verification goes on.
-            row["faults_before"] = [f"{f.source}/{f.code}: {f.message}" for f in before.faults[-3:]]
-            engine.wait_healthy()
-            engine.stop()
+            row["faults_before"] = row.get("faults_before", []) + _fault_texts(engine.acknowledge_fault())
+        mark = engine.uptime_s
         try:
             engine.check_scan(req)
         except PiezodError as exc:
@@ -333,9 +334,8 @@ def verify(
         if state != "idle":
             # A fault (an underrun on a loaded machine, a link hiccup) spoils the measurement, not
             # the correction: report it and measure the point once more.
-            row["retried_after"] = [f"{f.source}/{f.code}: {f.message}" for f in engine.status().faults[-3:]]
-            engine.wait_healthy()
-            engine.stop()
+            # The stage ramped down (the fault's own handling); the table says the point was retried.
+            row["retried_after"] = _fault_texts(engine.acknowledge_fault(since_s=mark))
             # recordings are never overwritten: the spoilt one stays, the retry gets its own
             path = directory / f"{name}-retry.csv"
             req = req.model_copy(update={"name": f"{name}-retry"})
@@ -351,6 +351,11 @@ def verify(
         row.update(nonlinearity_pct=nl, length_error_pct=le)
         rows.append(row)
     return rows
+
+
+def _fault_texts(faults: Sequence[Any]) -> list[str]:
+    """The last faults of the engine's log as ``source/CODE: message`` lines."""
+    return [f"{f.source}/{f.code}: {f.message}" for f in faults[-3:]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -676,6 +681,12 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
         le = "-" if r.get("length_error_pct") is None else f"{r['length_error_pct']:+.3f}"
         inside = "inside" if r["inside_frame"] else "outside"
         what = r["what"] + (f" (skipped: {r['skipped']})" if r.get("skipped") else "")
+        if r.get("retried_after"):
+            what += f" (measured again after a fault: {'; '.join(r['retried_after'])})"
+        if r.get("faults_before"):
+            what += f" (fault before this point, cleared: {'; '.join(r['faults_before'])})"
+        if r.get("placement"):
+            what += f" ({r['placement']})"
         lines.append(
             f"{r['model']:<8} {r['range_um']:9.3g} {r['frequency_hz']:7.3g} {r['offset_um']:9.3g} "
             f"{inside:>7} {nl:>9} {le:>9}  {what}"

@@ -154,6 +154,28 @@ class AxisDriver:
         self._dt_s = 1.0 / sample_rate_hz
         self.model: AxisModel = axis_model(config) if model is None else model
         self._state: Any = self.model.rest(config.safe_voltage_v)
+        self._prime()
+
+    def _prime(self) -> None:
+        """Run every model call the stream makes once, on scratch states, before the model streams.
+
+        A model may prepare itself lazily on its first call with given argument types: the
+        compiled per-sample loops of the family (numba) compile one machine-code version per
+        argument signature, and the frozen parameters' read-only arrays are another signature than
+        the one :func:`piezod.model.kernels.warm_up` compiles. Left to the first block, that
+        compilation (about 1 s, more on a loaded machine) ran in the streaming thread under the
+        engine lock, and the board's FIFO underran at the hand-over from the hold to the first
+        corrected scan. Here it runs where the driver is built (outside the engine lock).
+        """
+        dt = self._dt_s
+        rest = self.model.rest(self.config.safe_voltage_v)
+        x0 = self.model.position(rest)
+        targets = x0 + np.linspace(0.0, 1e-3, 4)
+        volts, after = self.model.inverse(targets, dt, rest)
+        self.model.forward(volts, dt, rest)
+        held = self.model.hold(4, dt, after)
+        adopted = self.model.adopt(self.model.voltage(held), self.model.position(held))
+        self.model.inverse(targets, dt, adopted)
 
     @property
     def state(self) -> Any:
