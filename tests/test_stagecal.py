@@ -176,3 +176,25 @@ def test_the_verified_model_is_ready_before_it_streams(tmp_path: Path) -> None:
     # nothing compiled (or loaded from the cache) once the model streams
     assert doc["streamed"] == doc["ready"], doc
     assert doc["state"] == "idle", doc
+
+
+def test_verification_points_are_checked_with_the_verified_model_over_the_whole_scan() -> None:
+    """p885-stage: the voltage-placed offset points clamp over the whole corrected scan (the plan
+    check passes); the check with the verified model's inverse moves them, says so, and nothing
+    it returns clamps any more."""
+    from hil_sim.stage import resolve_stage
+    from piezod.stagecal import check_points
+
+    path = resolve_stage("p885-stage")
+    assert path is not None
+    cfg = load_config(path)
+    planned = verification_points(cfg, default_frame(cfg))
+    checked = check_points(cfg, planned)
+    assert [p.why for p in checked] == [p.why for p in planned]
+    moved = [p for p in checked if p.note]
+    assert moved and all(p.why.startswith("offset") and "clamped" in p.note for p in moved)
+    for before, after in zip(planned, checked, strict=True):
+        if after.note:
+            assert 0.5 * abs(before.offset_um) <= abs(after.offset_um) < abs(before.offset_um)
+    # checked again: every point plays without clamping, so none is touched
+    assert not [p.note for p in check_points(cfg, checked) if p.note]

@@ -135,7 +135,11 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 print(f"faults while the stage held during the fits (acknowledged): {text}", file=say)
                 report["faults_while_fitting"] = faults
             if not args.no_verify:
-                points = verification_points(calibrated, frame, reduced=reduced, axis=axis)
+                planned = verification_points(calibrated, frame, reduced=reduced, axis=axis)
+                points = worker.check_points(calibrated, planned, axis)
+                for pt in points:
+                    if pt.note:
+                        print(f"verification point '{pt.why}': {pt.note}", file=say)
                 models = [calibrated.axes[axis].model] + (
                     ["dynamic"] if calibrated.axes[axis].model != "dynamic" else []
                 )

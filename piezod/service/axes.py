@@ -16,6 +16,7 @@ Positions are in stage coordinates: the model's absolute position, 0 um at
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -31,6 +32,7 @@ from piezod.model.params import ThesisParams
 from piezod.model.parts import with_parts
 from piezod.model.thesis import effective_sensitivity
 from piezod.scan import slew_limit
+from piezod.trajectory import Trajectory
 
 #: Frequency (Hz) whose creep term moves and holds use before any scan sets one.
 QUASI_STATIC_HZ = 0.1
@@ -271,3 +273,34 @@ class AxisDriver:
             _, state_after = self.model.forward(volts, self._dt_s, self._state)
         self._state = state_after
         return AxisOutput(volts, clamped, slewed)
+
+
+def plan_axes(drivers: Mapping[str, AxisDriver], trajectory: Trajectory) -> dict[str, PeriodicPlan | None]:
+    """The steady loop of each axis the trajectory moves; refuses what the stage cannot do.
+
+    Raises
+    ------
+    RangeUnreachableError, SafetyError
+        With the reason (range beyond the limits, slew rate exceeded, missing axis).
+    """
+    plans: dict[str, PeriodicPlan | None] = {}
+    for name, motion in trajectory.motion().items():
+        if name not in drivers:
+            if motion is not None:
+                raise SafetyError(f"the scan needs axis {name!r}, which the scanner config does not have")
+            continue
+        if motion is None:
+            plans[name] = None
+            continue
+        travel, f = motion.travel_um, motion.frequency_hz
+        d = drivers[name]
+        plan = d.plan(travel, f, motion.center_um)
+        need = d.peak_slew_v_per_s(plan)
+        if need > d.config.slew_rate_v_per_s:
+            raise SafetyError(
+                f"axis {name}: {travel:.4g} um at {f:.4g} Hz needs up to {need:.4g} V/s, above the "
+                f"slew limit {d.config.slew_rate_v_per_s:g} V/s; scan slower or smaller"
+            )
+        plans[name] = plan
+    return plans
+

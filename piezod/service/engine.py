@@ -58,7 +58,7 @@ from piezod.link.session import (
     LinkSettings,
 )
 from piezod.link.streamer import MatchedBlock
-from piezod.service.axes import AxisDriver, PeriodicPlan
+from piezod.service.axes import AxisDriver, PeriodicPlan, plan_axes
 from piezod.service.faults import FaultLog, FaultSource, link_event_fault
 from piezod.service.jobs import (
     MAX_MOVE_S,
@@ -369,26 +369,7 @@ class Engine:
         RangeUnreachableError, SafetyError
             With the reason (range beyond the limits, slew rate exceeded, missing axis).
         """
-        plans: dict[str, PeriodicPlan | None] = {}
-        for name, motion in trajectory.motion().items():
-            if name not in self.drivers:
-                if motion is not None:
-                    raise SafetyError(f"the scan needs axis {name!r}, which the scanner config does not have")
-                continue
-            if motion is None:
-                plans[name] = None
-                continue
-            travel, f = motion.travel_um, motion.frequency_hz
-            d = self.drivers[name]
-            plan = d.plan(travel, f, motion.center_um)
-            need = d.peak_slew_v_per_s(plan)
-            if need > d.config.slew_rate_v_per_s:
-                raise SafetyError(
-                    f"axis {name}: {travel:.4g} um at {f:.4g} Hz needs up to {need:.4g} V/s, above the "
-                    f"slew limit {d.config.slew_rate_v_per_s:g} V/s; scan slower or smaller"
-                )
-            plans[name] = plan
-        return plans
+        return plan_axes(self.drivers, trajectory)
 
     # -- EngineControl ---------------------------------------------------------------------------
 
