@@ -179,6 +179,102 @@ class VerifyPoint:
     offset_um: float
     inside_frame: bool
     why: str
+    #: How :func:`check_points` moved or shrank the point (empty: placed as planned).
+    note: str = ""
+
+
+def check_points(
+    config: ScannerConfig,
+    points: Sequence[VerifyPoint],
+    *,
+    axis: AxisName = "x",
+    lines: int = 4,
+    start_v: float | None = None,
+) -> list[VerifyPoint]:
+    """Check every verification point with the verified model's own inverse over the whole scan.
+
+    The points are played in order as :func:`verify` plays them (one warm-up scan at the first
+    point, then each point: the move to its start, the settling lines and every line at its line
+    rate, the model's creep and loop carried from one scan to the next), rendered by the engine's
+    own scan job on copies of an axis driver of ``config``'s model
+    (:func:`piezod.service.shadow.render_whole_scan`). A point that would clamp a sample to the
+    voltage limits (or that the scan planner refuses) is moved towards the centre (an offset
+    point: 10 % steps, never inside the frame) or shrunk (its range, 10 % steps), and says so in
+    :attr:`VerifyPoint.note`; one that cannot be placed keeps its setting with a note saying it
+    clamps (its figures are then not the model's). The check starts from the stage resting at
+    ``start_v`` (default: the axis's safe voltage).
+    """
+    import copy
+    import dataclasses
+
+    from piezod.errors import RangeUnreachableError, SafetyError
+    from piezod.service.axes import AxisDriver, plan_axes
+    from piezod.service.shadow import ShadowEngine, render_whole_scan
+    from piezod.trajectory import RasterTrajectory
+
+    ax = config.axes[axis]
+    rate = float(config.sample_rate_hz)
+    driver = AxisDriver(axis, ax, rate)
+    driver.reset(ax.safe_voltage_v if start_v is None else start_v)
+    drivers: dict[str, AxisDriver] = {axis: driver}
+    block = 4096
+
+    def clamps(pt: VerifyPoint, n_lines: int) -> tuple[int, dict[str, AxisDriver]]:
+        trial = copy.deepcopy(drivers)
+        req = ScanRequest(
+            range_um=pt.range_um,
+            line_rate_hz=pt.frequency_hz,
+            lines=n_lines,
+            slow_range_um=0.0,
+            offset_x_um=pt.offset_um,
+            record=False,
+        )
+        traj = RasterTrajectory.from_request(req, rate)
+        try:
+            plans = plan_axes(trial, traj)
+        except (RangeUnreachableError, SafetyError):
+            return -1, trial
+        shadow = ShadowEngine(None, drivers=trial, rate_hz=rate)
+        bad = render_whole_scan(shadow, req, traj, plans, block)[axis]
+        return bad, shadow.drivers
+
+    out: list[VerifyPoint] = []
+    for k, pt in enumerate([*points[:1], *points]):
+        warm = k == 0
+        n_lines = 4 if warm else (1 if pt.frequency_hz < 0.1 else lines)
+        cand, notes = pt, []
+        for _ in range(40):
+            bad, after = clamps(cand, n_lines)
+            if bad == 0:
+                break
+            what = "refused by the scan planner" if bad < 0 else f"{bad} samples clamped"
+            if cand.offset_um != 0.0 and abs(cand.offset_um) * 0.9 >= abs(pt.offset_um) * 0.5:
+                nxt = dataclasses.replace(cand, offset_um=round(cand.offset_um * 0.9, 2))
+                notes.append(f"offset {cand.offset_um:+.2f} um: {what}")
+            else:
+                nxt = dataclasses.replace(cand, range_um=round(cand.range_um * 0.9, 2))
+                notes.append(f"range {cand.range_um:g} um: {what}")
+            cand = nxt
+        else:
+            bad = -2
+        if bad == 0:
+            drivers = after
+        if warm:
+            continue
+        note = ""
+        if bad != 0:
+            note = (
+                f"clamps with the verified model even when moved/shrunk ({notes[-1]}): "
+                "its figures are not the model's"
+            )
+            cand = pt
+        elif notes:
+            note = (
+                f"moved/shrunk by the check with the verified model: was range {pt.range_um:g} um, offset "
+                f"{pt.offset_um:+.2f} um ({notes[0]})"
+            )
+        out.append(dataclasses.replace(cand, note=note))
+    return out
 
 
 def verification_points(
@@ -279,6 +375,7 @@ def verify(
     point's setting precedes the measurements.
     """
     rows: list[dict[str, Any]] = []
+    warm_faults: list[str] = []
     if points:
         first = points[0]
         warm = ScanRequest(
@@ -290,11 +387,11 @@ def verify(
             record=False,
         )
         engine.check_scan(warm)
+        mark = engine.uptime_s
         engine.start_scan(warm)
-        engine.wait_idle((4 + 3) / first.frequency_hz + 10.0)
-        if engine.status().state != "idle":
-            engine.wait_healthy()
-            engine.stop()
+        if engine.wait_idle((4 + 3) / first.frequency_hz + 10.0) != "idle":
+            # the warm-up is not measured, but its fault is reported with the first point
+            warm_faults = _fault_texts(engine.acknowledge_fault(since_s=mark))
     for i, pt in enumerate(points):
         name = f"verify-{model}-{i:02d}"
         n_lines = 1 if pt.frequency_hz < 0.1 else lines  # a 0.02 Hz line takes 50 s
@@ -316,13 +413,15 @@ def verify(
             "what": pt.why,
             "recording": str(path),
         }
-        before = engine.status()
-        if before.state == "fault":
+        if pt.note:
+            row["placement"] = pt.note
+        if warm_faults:
+            row["faults_before"], warm_faults = warm_faults, []
+        if engine.status().state in ("fault", "disconnected"):
             # An earlier fault (e.g. an underrun while the fit ran) must not silently end the run:
             # it is reported with the next point, cleared, and the verification goes on.
-            row["faults_before"] = [f"{f.source}/{f.code}: {f.message}" for f in before.faults[-3:]]
-            engine.wait_healthy()
-            engine.stop()
+            row["faults_before"] = row.get("faults_before", []) + _fault_texts(engine.acknowledge_fault())
+        mark = engine.uptime_s
         try:
             engine.check_scan(req)
         except PiezodError as exc:
@@ -333,9 +432,8 @@ def verify(
         if state != "idle":
             # A fault (an underrun on a loaded machine, a link hiccup) spoils the measurement, not
             # the correction: report it and measure the point once more.
-            row["retried_after"] = [f"{f.source}/{f.code}: {f.message}" for f in engine.status().faults[-3:]]
-            engine.wait_healthy()
-            engine.stop()
+            # The stage ramped down (the fault's own handling); the table says the point was retried.
+            row["retried_after"] = _fault_texts(engine.acknowledge_fault(since_s=mark))
             # recordings are never overwritten: the spoilt one stays, the retry gets its own
             path = directory / f"{name}-retry.csv"
             req = req.model_copy(update={"name": f"{name}-retry"})
@@ -348,9 +446,24 @@ def verify(
             rows.append(row)
             continue
         nl, le = worker.linearity(path, "x", sensor)
-        row.update(nonlinearity_pct=nl, length_error_pct=le)
+        limited = [f for f in engine.faults.recent(200) if f.time_s >= mark and f.code == "LIMIT"]
+        if limited:
+            # a clamped scan measures the amplifier's limit, not the model: never its figures
+            row.update(
+                nonlinearity_pct=None,
+                length_error_pct=None,
+                skipped=f"clamped ({limited[-1].message})",
+                clamped_figures={"nonlinearity_pct": nl, "length_error_pct": le},
+            )
+        else:
+            row.update(nonlinearity_pct=nl, length_error_pct=le)
         rows.append(row)
     return rows
+
+
+def _fault_texts(faults: Sequence[Any]) -> list[str]:
+    """The last faults of the engine's log as ``source/CODE: message`` lines."""
+    return [f"{f.source}/{f.code}: {f.message}" for f in faults[-3:]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -567,6 +680,10 @@ def _linearity_here(path: Path, axis: AxisName, sensor: SensorPath | None = None
     return float(e.nonlinearity_pct), float(e.length_error_pct)
 
 
+def _check_points_here(config: ScannerConfig, points: list[VerifyPoint], axis: AxisName) -> list[VerifyPoint]:
+    return check_points(config, points, axis=axis)
+
+
 def _synth_here(path: Path) -> None:
     from piezod.recording import write_recording
     from piezod.synth import MEDIUM_TUBE, calibration_plan, synth_session
@@ -649,6 +766,13 @@ class AnalysisWorker:
         readback aligned through ``sensor``, the axis's sensor path, when given)."""
         return self._pool.submit(_linearity_here, path, axis, sensor).result()
 
+    def check_points(
+        self, config: ScannerConfig, points: Sequence[VerifyPoint], axis: AxisName = "x"
+    ) -> list[VerifyPoint]:
+        """:func:`check_points` in the worker process (a whole-scan rendering must not hold the
+        daemon's GIL)."""
+        return self._pool.submit(_check_points_here, config, list(points), axis).result()
+
     def synth_frame(self, path: Path) -> None:
         """Write a synthetic 12-experiment calibration session (for benchmarks) to ``path``."""
         self._pool.submit(_synth_here, path).result()
@@ -676,6 +800,12 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
         le = "-" if r.get("length_error_pct") is None else f"{r['length_error_pct']:+.3f}"
         inside = "inside" if r["inside_frame"] else "outside"
         what = r["what"] + (f" (skipped: {r['skipped']})" if r.get("skipped") else "")
+        if r.get("retried_after"):
+            what += f" (measured again after a fault: {'; '.join(r['retried_after'])})"
+        if r.get("faults_before"):
+            what += f" (fault before this point, cleared: {'; '.join(r['faults_before'])})"
+        if r.get("placement"):
+            what += f" ({r['placement']})"
         lines.append(
             f"{r['model']:<8} {r['range_um']:9.3g} {r['frequency_hz']:7.3g} {r['offset_um']:9.3g} "
             f"{inside:>7} {nl:>9} {le:>9}  {what}"

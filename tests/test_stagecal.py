@@ -111,3 +111,90 @@ def test_calibration_adopts_an_audit_finding_that_predicts_better() -> None:
     assert any(a.startswith("polarity:") for a in audited.report["adopted"]), audited.report["text"]
     assert audited.fit_error_pct < chosen.fit_error_pct
     assert "polarity" in (audited.config.axes["x"].extensions or {})
+
+
+_HANDOVER = r"""
+import json, sys
+from pathlib import Path
+import numpy as np
+from hil_sim.server import spawn_sim
+from hil_sim.stage import resolve_stage
+from piezod.config import FamilyModelConfig, load_config
+from piezod.model import kernels
+from piezod.model.family import CreepSpectrum
+from piezod.service.engine import Engine
+from piezod.service.schemas import ScanRequest
+
+out = Path(sys.argv[1])
+path = resolve_stage("pi-stage")
+cfg = load_config(path)
+spec = CreepSpectrum.log_spaced(1e-4, 1e4, 2, 0.015 / 2)
+section = FamilyModelConfig(
+    law="prandtl-ishlinskii",
+    b_um_per_v=0.09,
+    pi_rho0=0.45,
+    pi_thresholds_v=list(np.linspace(10.0, 200.0, 20)),
+    pi_weights=list(np.full(20, 0.5 / 20)),
+    creep_driver="voltage",
+    creep_taus_s=list(spec.taus),
+    creep_weights=list(spec.w),
+)
+family = cfg.axes["x"].model_copy(update={"model": "family", "family": section})
+loops = (kernels.pi_loop, kernels.gpi_loop, kernels.ch_loop)
+with spawn_sim(path) as sim:
+    engine = Engine(cfg, sim.path, recording_dir=out)
+    engine.open()
+    try:
+        engine.set_axis_model("x", family)  # the hand-over of piezod calibrate's verification
+        ready = [len(f.signatures) for f in loops]
+        req = ScanRequest(range_um=10.0, line_rate_hz=2.0, lines=2, slow_range_um=0.0, name="v")
+        engine.start_scan(req, path=out / "v.csv")
+        state = engine.wait_idle()
+        streamed = [len(f.signatures) for f in loops]
+        faults = [f"{f.source}/{f.code}" for f in engine.status().faults]
+    finally:
+        engine.close()
+print(json.dumps({"ready": ready, "streamed": streamed, "state": state, "faults": faults}))
+"""
+
+
+def test_the_verified_model_is_ready_before_it_streams(tmp_path: Path) -> None:
+    """The hand-over from the hold to the verification over the real pty: switching the engine to a
+    calibrated family model with voltage-driven creep leaves nothing to prepare in the streaming
+    thread. Its compiled loop got a second machine-code version (the frozen parameters' read-only
+    arrays) on the first block, under the engine lock: the board's FIFO underran, the verification
+    was refused. Run in a fresh interpreter: the loops' versions of this process are not counted.
+    """
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        [sys.executable, "-c", _HANDOVER, str(tmp_path)], capture_output=True, text=True, check=False
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    doc = json.loads(proc.stdout.strip().splitlines()[-1])
+    # nothing compiled (or loaded from the cache) once the model streams
+    assert doc["streamed"] == doc["ready"], doc
+    assert doc["state"] == "idle", doc
+
+
+def test_verification_points_are_checked_with_the_verified_model_over_the_whole_scan() -> None:
+    """p885-stage: the voltage-placed offset points clamp over the whole corrected scan (the plan
+    check passes); the check with the verified model's inverse moves them, says so, and nothing
+    it returns clamps any more."""
+    from hil_sim.stage import resolve_stage
+    from piezod.stagecal import check_points
+
+    path = resolve_stage("p885-stage")
+    assert path is not None
+    cfg = load_config(path)
+    planned = verification_points(cfg, default_frame(cfg))
+    checked = check_points(cfg, planned)
+    assert [p.why for p in checked] == [p.why for p in planned]
+    moved = [p for p in checked if p.note]
+    assert moved and all(p.why.startswith("offset") and "clamped" in p.note for p in moved)
+    for before, after in zip(planned, checked, strict=True):
+        if after.note:
+            assert 0.5 * abs(before.offset_um) <= abs(after.offset_um) < abs(before.offset_um)
+    # checked again: every point plays without clamping, so none is touched
+    assert not [p.note for p in check_points(cfg, checked) if p.note]

@@ -38,7 +38,7 @@ from piezod.effects_bench import StageBench
 from piezod.linearity import experiment_linearity
 from piezod.recording import Experiment
 from piezod.service.axes import AxisDriver
-from piezod.stagecal import choose_for_experiments, default_frame, verification_points
+from piezod.stagecal import check_points, choose_for_experiments, default_frame, verification_points
 
 
 def markdown(result: dict[str, Any]) -> str:
@@ -54,8 +54,10 @@ def markdown(result: dict[str, Any]) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for r in result["rows"]:
+        why = r["why"] + (" (clamped: not the model's)" if r.get("clamped") else "")
+        why += " (moved/shrunk to avoid clamping)" if r.get("placement", "").startswith("moved") else ""
         lines.append(
-            f"| {r['model']} | {r['why']} | {r['range_um']:.1f} | {r['frequency_hz']:g} |"
+            f"| {r['model']} | {why} | {r['range_um']:.1f} | {r['frequency_hz']:g} |"
             f" {r['offset_um']:+.2f} | {r['nonlinearity_pct']:.3f} | {r['length_error_pct']:+.3f} |"
         )
     for key, s in result["summary"].items():
@@ -106,7 +108,12 @@ def main() -> int:
     calibrated = choice.config
     chosen_kind = calibrated.axes[axis].model
     rows: list[dict[str, Any]] = []
-    points = verification_points(calibrated, frame, axis=axis)
+    # placed, then checked with the verified model's own inverse over each whole scan (as piezod
+    # calibrate does): a point that would clamp is moved or shrunk, and says so
+    points = check_points(calibrated, verification_points(calibrated, frame, axis=axis), axis=axis)
+    for pt in points:
+        if pt.note:
+            print(f"verification point '{pt.why}': {pt.note}")
     kinds = [chosen_kind] + (["dynamic"] if chosen_kind != "dynamic" and not args.skip_dynamic else [])
     for kind in kinds:
         cfg = calibrated.axes[axis].model_copy(update={"model": kind, "slew_rate_v_per_s": 1e6})
@@ -151,6 +158,7 @@ def main() -> int:
                     "nonlinearity_pct": float(lin.nonlinearity_pct),
                     "length_error_pct": float(lin.length_error_pct),
                     "clamped": faults,
+                    "placement": pt.note,
                 }
             )
             r = rows[-1]
@@ -162,7 +170,8 @@ def main() -> int:
     summary: dict[str, dict[str, float]] = {}
     for kind in kinds:
         for inside in (True, False):
-            sel = [r for r in rows if r["model"] == kind and r["inside_frame"] == inside]
+            # a clamped scan measures the amplifier's limit, not the model: left out of the summary
+            sel = [r for r in rows if r["model"] == kind and r["inside_frame"] == inside and not r["clamped"]]
             if sel:
                 summary[f"{kind}/{'inside' if inside else 'outside'}"] = {
                     "max_nonlinearity_pct": max(r["nonlinearity_pct"] for r in sel),

@@ -127,17 +127,19 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 report["audit"] = audit_report
             report["frame"] = {"summary": frame_summary(frame), "recording": str(frame_path)}
             rows: list[dict[str, Any]] = []
-            held = engine.status()
-            if held.state == "fault":
+            if engine.status().state in ("fault", "disconnected"):
                 # the frame is recorded; a fault while the stage only held during the fits (an
                 # underrun on a loaded machine) does not spoil it: say so, acknowledge, verify
-                faults = [f"{f.source}/{f.code}: {f.message}" for f in held.faults]
+                faults = [f"{f.source}/{f.code}: {f.message}" for f in engine.acknowledge_fault()]
                 text = "; ".join(faults)
                 print(f"faults while the stage held during the fits (acknowledged): {text}", file=say)
                 report["faults_while_fitting"] = faults
-                engine.stop()
             if not args.no_verify:
-                points = verification_points(calibrated, frame, reduced=reduced, axis=axis)
+                planned = verification_points(calibrated, frame, reduced=reduced, axis=axis)
+                points = worker.check_points(calibrated, planned, axis)
+                for pt in points:
+                    if pt.note:
+                        print(f"verification point '{pt.why}': {pt.note}", file=say)
                 models = [calibrated.axes[axis].model] + (
                     ["dynamic"] if calibrated.axes[axis].model != "dynamic" else []
                 )

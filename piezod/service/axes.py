@@ -16,6 +16,7 @@ Positions are in stage coordinates: the model's absolute position, 0 um at
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -31,6 +32,7 @@ from piezod.model.params import ThesisParams
 from piezod.model.parts import with_parts
 from piezod.model.thesis import effective_sensitivity
 from piezod.scan import slew_limit
+from piezod.trajectory import Trajectory
 
 #: Frequency (Hz) whose creep term moves and holds use before any scan sets one.
 QUASI_STATIC_HZ = 0.1
@@ -154,6 +156,28 @@ class AxisDriver:
         self._dt_s = 1.0 / sample_rate_hz
         self.model: AxisModel = axis_model(config) if model is None else model
         self._state: Any = self.model.rest(config.safe_voltage_v)
+        self._prime()
+
+    def _prime(self) -> None:
+        """Run every model call the stream makes once, on scratch states, before the model streams.
+
+        A model may prepare itself lazily on its first call with given argument types: the
+        compiled per-sample loops of the family (numba) compile one machine-code version per
+        argument signature, and the frozen parameters' read-only arrays are another signature than
+        the one :func:`piezod.model.kernels.warm_up` compiles. Left to the first block, that
+        compilation (about 1 s, more on a loaded machine) ran in the streaming thread under the
+        engine lock, and the board's FIFO underran at the hand-over from the hold to the first
+        corrected scan. Here it runs where the driver is built (outside the engine lock).
+        """
+        dt = self._dt_s
+        rest = self.model.rest(self.config.safe_voltage_v)
+        x0 = self.model.position(rest)
+        targets = x0 + np.linspace(0.0, 1e-3, 4)
+        volts, after = self.model.inverse(targets, dt, rest)
+        self.model.forward(volts, dt, rest)
+        held = self.model.hold(4, dt, after)
+        adopted = self.model.adopt(self.model.voltage(held), self.model.position(held))
+        self.model.inverse(targets, dt, adopted)
 
     @property
     def state(self) -> Any:
@@ -249,3 +273,34 @@ class AxisDriver:
             _, state_after = self.model.forward(volts, self._dt_s, self._state)
         self._state = state_after
         return AxisOutput(volts, clamped, slewed)
+
+
+def plan_axes(drivers: Mapping[str, AxisDriver], trajectory: Trajectory) -> dict[str, PeriodicPlan | None]:
+    """The steady loop of each axis the trajectory moves; refuses what the stage cannot do.
+
+    Raises
+    ------
+    RangeUnreachableError, SafetyError
+        With the reason (range beyond the limits, slew rate exceeded, missing axis).
+    """
+    plans: dict[str, PeriodicPlan | None] = {}
+    for name, motion in trajectory.motion().items():
+        if name not in drivers:
+            if motion is not None:
+                raise SafetyError(f"the scan needs axis {name!r}, which the scanner config does not have")
+            continue
+        if motion is None:
+            plans[name] = None
+            continue
+        travel, f = motion.travel_um, motion.frequency_hz
+        d = drivers[name]
+        plan = d.plan(travel, f, motion.center_um)
+        need = d.peak_slew_v_per_s(plan)
+        if need > d.config.slew_rate_v_per_s:
+            raise SafetyError(
+                f"axis {name}: {travel:.4g} um at {f:.4g} Hz needs up to {need:.4g} V/s, above the "
+                f"slew limit {d.config.slew_rate_v_per_s:g} V/s; scan slower or smaller"
+            )
+        plans[name] = plan
+    return plans
+

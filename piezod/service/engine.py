@@ -58,7 +58,7 @@ from piezod.link.session import (
     LinkSettings,
 )
 from piezod.link.streamer import MatchedBlock
-from piezod.service.axes import AxisDriver, PeriodicPlan
+from piezod.service.axes import AxisDriver, PeriodicPlan, plan_axes
 from piezod.service.faults import FaultLog, FaultSource, link_event_fault
 from piezod.service.jobs import (
     MAX_MOVE_S,
@@ -369,26 +369,7 @@ class Engine:
         RangeUnreachableError, SafetyError
             With the reason (range beyond the limits, slew rate exceeded, missing axis).
         """
-        plans: dict[str, PeriodicPlan | None] = {}
-        for name, motion in trajectory.motion().items():
-            if name not in self.drivers:
-                if motion is not None:
-                    raise SafetyError(f"the scan needs axis {name!r}, which the scanner config does not have")
-                continue
-            if motion is None:
-                plans[name] = None
-                continue
-            travel, f = motion.travel_um, motion.frequency_hz
-            d = self.drivers[name]
-            plan = d.plan(travel, f, motion.center_um)
-            need = d.peak_slew_v_per_s(plan)
-            if need > d.config.slew_rate_v_per_s:
-                raise SafetyError(
-                    f"axis {name}: {travel:.4g} um at {f:.4g} Hz needs up to {need:.4g} V/s, above the "
-                    f"slew limit {d.config.slew_rate_v_per_s:g} V/s; scan slower or smaller"
-                )
-            plans[name] = plan
-        return plans
+        return plan_axes(self.drivers, trajectory)
 
     # -- EngineControl ---------------------------------------------------------------------------
 
@@ -620,6 +601,43 @@ class Engine:
                 return True
             time.sleep(0.05)
         return False
+
+    @property
+    def uptime_s(self) -> float:
+        """Seconds since the engine was created (the ``time_s`` of its faults)."""
+        return time.monotonic() - self._t0
+
+    def acknowledge_fault(self, timeout_s: float = 15.0, *, since_s: float = 0.0) -> list[FaultInfo]:
+        """After a fault: wait until the supervisor has handled it and streams (hold) again, then clear
+        it (:meth:`stop`). Returns the faults logged since ``since_s`` (:attr:`uptime_s`), for the
+        caller to report.
+
+        A fault that ends the streaming run (an underrun) is reported by the link before the
+        supervisor sees the run end and latches the state; clearing it in between was undone by
+        the supervisor a moment later (the next scan was refused: ``cannot start a scan while
+        fault``). This waits for the latched state and the restarted stream first.
+
+        Raises
+        ------
+        EngineStateError
+            If streaming does not run again within ``timeout_s``.
+        """
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self._lock:
+                latched = self._fault_latched and self._state == "fault"
+                settled = latched or self._state in ("idle", "scanning", "moving")
+            if settled and self._board.running and self._board.connected and not self._board.wait_ended(0.0):
+                break
+            if time.monotonic() > deadline:
+                state = self.status().state
+                raise EngineStateError(
+                    f"streaming did not resume within {timeout_s:g} s after the fault (state {state})"
+                )
+            time.sleep(0.05)
+        faults = [f for f in self.faults.recent(200) if f.time_s >= since_s]
+        self.stop()
+        return faults
 
     # -- waiting (piezod scan) -------------------------------------------------------------------
 

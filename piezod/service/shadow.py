@@ -8,13 +8,14 @@ copies of its axis drivers (labels, sync events and recordings go nowhere);
 from __future__ import annotations
 
 import copy
+import math
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
 from piezod.errors import SafetyError
-from piezod.service.axes import AxisDriver, PeriodicPlan
+from piezod.service.axes import AxisDriver, PeriodicPlan, plan_axes
 from piezod.service.jobs import MAX_CHECK_SAMPLES, Chunk, ScanJob
 from piezod.service.schemas import ScanRequest
 from piezod.service.sync import SyncSchedule
@@ -29,14 +30,23 @@ FloatArray = NDArray[np.float64]
 class ShadowEngine:
     """What a job needs of the engine, on copies of its axis drivers: to try a job without effect."""
 
-    def __init__(self, engine: Engine) -> None:
-        self.rate_hz = engine.rate_hz
-        self.render_index = 0
+    def __init__(self, engine: Engine | None, *, drivers: dict[str, AxisDriver] | None = None,
+                 rate_hz: float | None = None) -> None:
         self._engine = engine
-        with engine._lock:
-            self.drivers = {name: copy.deepcopy(d) for name, d in engine.drivers.items()}
+        if engine is not None:
+            self.rate_hz = engine.rate_hz
+            with engine._lock:
+                self.drivers = {name: copy.deepcopy(d) for name, d in engine.drivers.items()}
+        else:
+            # no engine: the given drivers (copied), e.g. to check a scan before any board is there
+            assert drivers is not None and rate_hz is not None
+            self.rate_hz = float(rate_hz)
+            self.drivers = {name: copy.deepcopy(d) for name, d in drivers.items()}
+        self.render_index = 0
         self.clamped = dict.fromkeys(self.drivers, 0)
         self.sync_schedule = SyncSchedule(history=0)  # a trial's sync events go nowhere
+        #: Lowest and highest voltage asked of each axis (before clamping).
+        self.asked_v = {name: (math.inf, -math.inf) for name in self.drivers}
 
     def label_id(self, name: str) -> int:
         return -1
@@ -48,10 +58,12 @@ class ShadowEngine:
         return np.full(ids.shape, "", dtype=str)
 
     def plans_for(self, trajectory: Trajectory) -> dict[str, PeriodicPlan | None]:
-        return self._engine.plans_for(trajectory)
+        if self._engine is not None:
+            return self._engine.plans_for(trajectory)
+        return plan_axes(self.drivers, trajectory)
 
     def tracked_scale(self, axis: str) -> float:
-        return self._engine.tracked_scale(axis)
+        return 1.0 if self._engine is None else self._engine.tracked_scale(axis)
 
     def drive(self, driver: AxisDriver, out: Any) -> FloatArray:
         if out.clamped:
@@ -99,4 +111,24 @@ def check_scan_start(
         )
 
 
-__all__ = ["ShadowEngine", "check_scan_start"]
+def render_whole_scan(
+    shadow: ShadowEngine,
+    request: ScanRequest,
+    trajectory: Trajectory,
+    plans: dict[str, PeriodicPlan | None],
+    block: int,
+) -> dict[str, int]:
+    """Render a whole (finite) scan on ``shadow``: the move to its start, the settling lines and
+    every line, as the engine plays it. Returns the samples clamped per axis; the drivers of
+    ``shadow`` end where the stage would."""
+    job = ScanJob(cast("Engine", shadow), request, trajectory.restarted(), plans)
+    total = 0
+    while not job.done:
+        m = job.render(cast("Engine", shadow), block).volts.shape[1]
+        total += m
+        if m == 0 and not job.done:
+            break
+    return dict(shadow.clamped)
+
+
+__all__ = ["ShadowEngine", "check_scan_start", "render_whole_scan"]
