@@ -344,3 +344,19 @@ def test_slow_axis_linearity_from_the_columns_of_a_2d_grating() -> None:
     lines_only = _posts(xc, yc, pitch, rows=False) + 0.01 * rng.standard_normal(img.shape)
     with pytest.raises(RecordingError):
         slow_image_linearity(lines_only, geo, pitch, 1)
+
+
+def test_images_of_one_frame_are_its_lines_of_the_whole_image() -> None:
+    rec = _synthetic(0.0)
+    rec = dataclasses.replace(rec, metadata={**rec.metadata, "lines": "3"})  # 6 lines: two frames
+    whole = next(p for p in images(rec) if p.grid == "commanded")
+    second = next(p for p in images(rec, frame=1) if p.grid == "commanded")
+    np.testing.assert_array_equal(second.trace, whole.trace[3:])
+    np.testing.assert_array_equal(second.retrace, whole.retrace[3:])
+    with pytest.raises(RecordingError, match=r"frame 2: the recording holds 2 frame\(s\) of 3 lines"):
+        images(rec, frame=2)
+    with pytest.raises(RecordingError, match="lines per frame"):
+        images(
+            dataclasses.replace(rec, metadata={k: v for k, v in rec.metadata.items() if k != "lines"}),
+            frame=0,
+        )
