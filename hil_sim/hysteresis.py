@@ -457,19 +457,21 @@ def _zero(rho0: float, width_v: float, asymmetry: float, saturation_v: float) ->
 
 
 # ---------------------------------------------------------------------------------------------
-# Bouc-Wen (rate independent, n = 1), the second held-out law
+# Bouc-Wen (rate independent, exponent 1 or 2), the held-out laws
 
 
 @dataclass(frozen=True, slots=True)
 class BoucWenParams:
-    """A rate-independent Bouc-Wen law (exponent 1), the held-out law of ``sim-boucwen-stage``.
+    """A rate-independent Bouc-Wen law of exponent 1 or 2 (the held-out laws of the Bouc-Wen presets).
 
     ``x = b (V - h)`` with the hysteretic voltage ``h`` obeying
-    ``dh = A dV - beta |dV| h - gamma dV |h|`` (the Bouc-Wen form used for piezo stacks). Along a
-    monotone run ``h`` relaxes exponentially towards ``+-A / (beta + gamma)`` at a rate that
-    depends on the direction *and* on the sign of ``h`` (``beta + gamma`` or ``beta - gamma``),
-    so the loop shape is neither a sum of plays nor the Coleman-Hodgdon ODE; repeated minor
-    loops do not close exactly (no wiping-out memory).
+    ``dh = A dV - beta |dV| |h|^(n-1) h - gamma dV |h|^n`` (the Bouc-Wen form used for piezo
+    stacks). With ``n = 1`` ``h`` relaxes exponentially along a monotone run towards
+    ``+-A / (beta + gamma)`` at a rate that depends on the direction *and* on the sign of ``h``
+    (``beta + gamma`` or ``beta - gamma``); with ``n = 2`` it follows ``tanh`` (``h`` and ``dV``
+    of one sign) or ``tan`` (opposite signs) towards ``+-sqrt(A / (beta + gamma))``: a sharper
+    knee. Neither is a sum of plays nor the Coleman-Hodgdon ODE; repeated minor loops do not
+    close exactly (no wiping-out memory).
 
     Attributes
     ----------
@@ -478,13 +480,16 @@ class BoucWenParams:
     a
         ``A``, in (0, 1).
     beta_per_v, gamma_per_v
-        ``beta > |gamma|`` (1/V); the branch stays increasing (``2 A beta / (beta + gamma) < 1``).
+        ``beta > |gamma|`` (1/V^n); the branch stays increasing (``2 A beta / (beta + gamma) < 1``).
+    exponent
+        ``n``, 1 or 2.
     """
 
     b_um_per_v: float
     a: float
     beta_per_v: float
     gamma_per_v: float
+    exponent: int = 1
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.b_um_per_v) and self.b_um_per_v > 0.0):
@@ -495,6 +500,8 @@ class BoucWenParams:
             raise SimModelError("bouc-wen needs beta_per_v > |gamma_per_v|")
         if not 2.0 * self.a * self.beta_per_v / (self.beta_per_v + self.gamma_per_v) < 1.0:
             raise SimModelError("bouc-wen branch would run backwards: need 2 A beta / (beta + gamma) < 1")
+        if self.exponent not in (1, 2):
+            raise SimModelError(f"bouc-wen exponent must be 1 or 2, got {self.exponent!r}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -512,6 +519,8 @@ def boucwen_rest_state(params: BoucWenParams, voltage_v: float = 0.0) -> BoucWen
 
 def _bw_rising(params: BoucWenParams, dv: NDArray[np.float64], h0: float) -> NDArray[np.float64]:
     """``h`` after rising by ``dv >= 0`` from ``h0`` (closed form, one sign change of ``h`` at most)."""
+    if params.exponent == 2:
+        return _bw2_rising(params, dv, h0)
     a, kp, km = params.a, params.beta_per_v + params.gamma_per_v, params.beta_per_v - params.gamma_per_v
     if h0 >= 0.0:
         out: NDArray[np.float64] = a / kp + (h0 - a / kp) * np.exp(-kp * dv)
@@ -519,6 +528,20 @@ def _bw_rising(params: BoucWenParams, dv: NDArray[np.float64], h0: float) -> NDA
     d0 = math.log1p(-h0 * km / a) / km  # where h crosses 0
     below = a / km + (h0 - a / km) * np.exp(-km * np.minimum(dv, d0))
     above = -(a / kp) * np.expm1(-kp * np.maximum(dv - d0, 0.0))
+    return np.where(dv <= d0, below, above)
+
+
+def _bw2_rising(params: BoucWenParams, dv: NDArray[np.float64], h0: float) -> NDArray[np.float64]:
+    """Exponent 2: ``dh/dV = A - kp h^2`` for ``h >= 0``, ``A + km h^2`` for ``h < 0``."""
+    a, kp, km = params.a, params.beta_per_v + params.gamma_per_v, params.beta_per_v - params.gamma_per_v
+    s, r = math.sqrt(a / kp), math.sqrt(a * kp)
+    if h0 >= 0.0:
+        # |h| cannot pass s from below; clipping keeps a rounding excess on the fixed point
+        return s * np.tanh(r * dv + math.atanh(min(h0 / s, 1.0 - 1e-15)))
+    q, w = math.sqrt(a / km), math.sqrt(a * km)
+    d0 = -math.atan(h0 / q) / w  # where h crosses 0
+    below = q * np.tan(w * np.minimum(dv, d0) + math.atan(h0 / q))
+    above = s * np.tanh(r * np.maximum(dv - d0, 0.0))
     return np.where(dv <= d0, below, above)
 
 

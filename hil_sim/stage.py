@@ -187,8 +187,9 @@ class StageAxisConfig(_SimModel):
         default=300.0, gt=0, le=1e4, description="preisach: voltage beyond which no relay switches (V)"
     )
     bw_a: float | None = Field(default=None, gt=0, lt=1.0, description="bouc-wen: A (fraction of dV into h)")
-    bw_beta_per_v: float | None = Field(default=None, gt=0, lt=1.0, description="bouc-wen: beta (1/V)")
-    bw_gamma_per_v: float = Field(default=0.0, gt=-1.0, lt=1.0, description="bouc-wen: gamma (1/V)")
+    bw_beta_per_v: float | None = Field(default=None, gt=0, lt=1.0, description="bouc-wen: beta (1/V^n)")
+    bw_gamma_per_v: float = Field(default=0.0, gt=-1.0, lt=1.0, description="bouc-wen: gamma (1/V^n)")
+    bw_exponent: Literal[1, 2] = Field(default=1, description="bouc-wen: exponent n")
     creep_pct_per_decade: float = Field(
         default=1.5, ge=0, le=20, description="creep per decade of time (% of the motion)"
     )
@@ -244,7 +245,9 @@ class StageAxisConfig(_SimModel):
             )
         if self.law == "bouc-wen":
             assert self.bw_a is not None and self.bw_beta_per_v is not None
-            return BoucWenParams(self.b_um_per_v, self.bw_a, self.bw_beta_per_v, self.bw_gamma_per_v)
+            return BoucWenParams(
+                self.b_um_per_v, self.bw_a, self.bw_beta_per_v, self.bw_gamma_per_v, self.bw_exponent
+            )
         assert self.pi_rho0 is not None and self.pi_span_v is not None
         return PIParams.from_shape(
             self.b_um_per_v, self.pi_rho0, self.pi_span_v, self.pi_operators, self.pi_decay_v

@@ -187,10 +187,12 @@ def test_preisach_minor_loops_are_not_congruent() -> None:
 
 
 BOUC_WEN = BoucWenParams(0.1, 0.45, 0.012, 0.004)
+BOUC_WEN_2 = BoucWenParams(0.1, 0.4, 3.2e-4, 1.2e-4, exponent=2)
 
 
-def test_bouc_wen_matches_its_ode_increases_and_blocks_split_anywhere() -> None:
-    rest = boucwen_rest_state(BOUC_WEN)
+@pytest.mark.parametrize("params", [BOUC_WEN, BOUC_WEN_2], ids=["n1", "n2"])
+def test_bouc_wen_matches_its_ode_increases_and_blocks_split_anywhere(params: BoucWenParams) -> None:
+    rest = boucwen_rest_state(params)
     v = np.concatenate(
         [
             np.linspace(0, 180, 500),
@@ -199,12 +201,12 @@ def test_bouc_wen_matches_its_ode_increases_and_blocks_split_anywhere() -> None:
             np.linspace(-60, 120, 400),
         ]
     )
-    x, end = boucwen_step(BOUC_WEN, v, rest)
-    # the closed form against the ODE dh = A dV - beta |dV| h - gamma dV |h| integrated in fine steps
-    a, beta, gamma = BOUC_WEN.a, BOUC_WEN.beta_per_v, BOUC_WEN.gamma_per_v
+    x, end = boucwen_step(params, v, rest)
+    # the closed form against dh = A dV - beta |dV| |h|^(n-1) h - gamma dV |h|^n in fine steps
+    a, beta, gamma, n = params.a, params.beta_per_v, params.gamma_per_v, params.exponent
 
     def dh(hh: float, dv: float) -> float:
-        return a * dv - beta * abs(dv) * hh - gamma * dv * abs(hh)
+        return a * dv - beta * abs(dv) * abs(hh) ** (n - 1) * hh - gamma * dv * abs(hh) ** n
 
     h, hs = 0.0, [0.0]
     for v0, v1 in itertools.pairwise(v):
@@ -216,13 +218,13 @@ def test_bouc_wen_matches_its_ode_increases_and_blocks_split_anywhere() -> None:
             k4 = dh(h + k3, step)
             h += (k1 + 2 * k2 + 2 * k3 + k4) / 6.0
         hs.append(h)
-    np.testing.assert_allclose(x, BOUC_WEN.b_um_per_v * (v - np.array(hs)), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(x, params.b_um_per_v * (v - np.array(hs)), rtol=0, atol=1e-6)
     dv, dx = np.diff(v), np.diff(x)
     moving = np.abs(dv) > 1e-9
     assert np.all(dx[moving] / dv[moving] > 0)
     for cut in (1, 333, 1100, v.size - 1):
-        xa, mid = boucwen_step(BOUC_WEN, v[:cut], rest)
-        xb, last = boucwen_step(BOUC_WEN, v[cut:], mid)
+        xa, mid = boucwen_step(params, v[:cut], rest)
+        xb, last = boucwen_step(params, v[cut:], mid)
         np.testing.assert_allclose(np.concatenate([xa, xb]), x, rtol=0, atol=1e-12)
         assert last.h_v == pytest.approx(end.h_v, abs=1e-12)
     # not a play law: repeated minor loops do not close exactly (no wiping-out memory)
@@ -236,6 +238,8 @@ def test_presets_load_and_are_other_physics() -> None:
     second = StageConfig.from_file(resolve_stage("boucwen-stage") or "")
     assert all(a.law == "bouc-wen" for a in second.axes.values())
     Stage(second).step(np.linspace(0, 50, 30).repeat(3).reshape(30, 3).T, 1e-4)
+    knee = StageConfig.from_file(resolve_stage("knee-holdout-stage") or "")
+    assert all(a.law == "bouc-wen" and a.bw_exponent == 2 for a in knee.axes.values())
     held_out = StageConfig.from_file(resolve_stage("preisach-stage") or "")
     assert all(a.law == "preisach" for a in held_out.axes.values())
     assert held_out.amplifier_lag_s > 0 and held_out.effects.delay is not None
