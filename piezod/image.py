@@ -380,6 +380,7 @@ def images(
     z_axis: AxisConfig | None = None,
     pixels: int | None = None,
     sensitivity_um_per_v: float | None = None,
+    frame: int | None = None,
 ) -> list[ImagePair]:
     """Every image of a raster recording: each height channel on the commanded grid, and on the
     measured grid when the board had a position sensor.
@@ -395,11 +396,16 @@ def images(
         Pixels per line (default: the recording's ``pixels`` metadata, else 256).
     sensitivity_um_per_v
         Constant z sensitivity of ``height_linear`` (default: the best fit to the model heights).
+    frame
+        Only this frame of a multi-frame scan (frame ``k``: image lines ``k L .. k L + L - 1``,
+        ``L`` the recording's ``lines`` metadata); a frame still being recorded gives its lines
+        so far. The heights still run through the whole z-voltage waveform from the recording's
+        first sample (the z model's state carries over from frame to frame). None: every line.
 
     Raises
     ------
     RecordingError
-        Not a raster recording, or no height channel.
+        Not a raster recording, no height channel, or no line of ``frame``.
     """
     geo = geometry(rec, pixels=pixels)
     rs = raster_samples(rec)
@@ -410,17 +416,40 @@ def images(
     chans = height_channels(rs, z_axis, rate, sensitivity_um_per_v)
     if not chans:
         raise RecordingError("no 'z_voltage' column: the recording carries no height channel", rec.path)
+    line, lines = rs.line, rs.lines
+    if frame is not None:
+        line, lines = frame_lines(rec, rs, frame)
     grids = {"commanded": rs.target_um}
     if has_position_sensor(rec):
         grids["measured"] = rs.position_um
     out = []
     for grid, coord in grids.items():
         for name, (values, unit, scale) in chans.items():
-            tr, re = assemble(
-                coord, values, rs.line, rs.direction, rs.lines, geo, profile=grid == "commanded"
-            )
+            tr, re = assemble(coord, values, line, rs.direction, lines, geo, profile=grid == "commanded")
             out.append(ImagePair(name, unit, scale, grid, tr, re, geo))
     return out
+
+
+def frame_lines(rec: Recording, rs: RasterSamples, frame: int) -> tuple[NDArray[np.int64], int]:
+    """The image line of every sample within frame ``frame`` (-1 outside it) and the lines per frame.
+
+    Raises
+    ------
+    RecordingError
+        No ``lines`` metadata, or no line of ``frame`` in the recording.
+    """
+    per = _meta_float(rec, "lines", None)
+    if per is None or not per >= 1 or per != int(per):
+        raise RecordingError("no valid '# lines:' metadata (lines per frame): cannot cut frames", rec.path)
+    n = int(per)
+    frames = -(-rs.lines // n)
+    if frame < 0 or frame * n >= rs.lines:
+        raise RecordingError(
+            f"frame {frame}: the recording holds {frames} frame(s) of {n} lines (0 .. {frames - 1})", rec.path
+        )
+    inside = (rs.line >= frame * n) & (rs.line < (frame + 1) * n)
+    out: NDArray[np.int64] = np.where(inside, rs.line - frame * n, -1).astype(np.int64)
+    return out, n
 
 
 def level(img: F64) -> F64:
@@ -443,6 +472,7 @@ __all__ = [
     "RasterSamples",
     "assemble",
     "forward_heights",
+    "frame_lines",
     "geometry",
     "has_position_sensor",
     "height_channels",

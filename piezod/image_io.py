@@ -15,9 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from piezod.config import AxisConfig
-from piezod.image import F64, ImagePair, images, level
-from piezod.recording import read_recording
+from piezod.image import F64, ImagePair, level
 
 
 def image_metadata(pair: ImagePair, recording_meta: Mapping[str, str], source: str) -> dict[str, str]:
@@ -169,26 +167,3 @@ def write_pair_png(
 
 
 __all__ = ["image_metadata", "model_metadata", "write_gwy", "write_pair_png", "write_png"]
-
-
-def write_recording_images(path: Path, *, z_axis: AxisConfig | None = None, png: bool = True) -> list[Path]:
-    """The trace / retrace images of a finished raster recording, written beside it.
-
-    ``NAME.gwy`` (every image pair, with the metadata) and one PNG per channel and grid
-    (``NAME-CHANNEL-GRID.png``) in the recording's directory; what ``piezod image`` writes. The
-    daemon calls it per finished frame (in a worker process).
-
-    Raises
-    ------
-    RecordingError
-        Not a raster recording with a height channel.
-    """
-    rec = read_recording(path)
-    pairs = images(rec, z_axis=z_axis)
-    stem, out = path.stem, path.parent
-    files = [write_gwy(out / f"{stem}.gwy", pairs, rec.metadata, str(path))]
-    if png:
-        for q in pairs:
-            title = f"{stem}: {q.channel} ({q.grid} grid), {q.geometry.range_um:g} um"
-            files.append(write_png(out / f"{stem}-{q.channel}-{q.grid}.png", q, title))
-    return files

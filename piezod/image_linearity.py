@@ -623,6 +623,57 @@ def window_linearity(
     return branch_linearity(lin.direction, position_um[sel], target_um[sel], line[sel], lin.nominal_range_um)
 
 
+def flank_sampled_linearity(
+    t_s: F64,
+    target_um: F64,
+    position_um: F64,
+    line: NDArray[np.int64],
+    direction: NDArray[np.int8],
+    lin: ImageLinearity,
+    fl: Flanks,
+) -> BranchLinearity:
+    """The sensor path over the image metric's windows, of the position *as the flanks sample it*.
+
+    The diagnosis of an image metric against a sensor (or, on the simulator, the hidden truth):
+    in every image line the sensed position is taken at that line's flanks only (``fl``, as
+    :func:`find_flanks` found them in the image of ``lin``) and interpolated linearly between them,
+    then regressed exactly as :func:`window_linearity` regresses the sensed position itself. It is
+    what a perfect flank metric - flank positions without error, the map through them - would
+    read: its distance from :func:`window_linearity` is the part of the position's structure
+    finer than the flank spacing, which no metric of this reference's flanks can see; its
+    distance from ``lin`` is what the image metric itself adds (flank noise, the smooth map).
+
+    Raises
+    ------
+    RecordingError
+        No samples in the windows, or no line with two flanks in them.
+    """
+    xs: list[F64] = []
+    ys: list[F64] = []
+    ls: list[NDArray[np.int64]] = []
+    for r, lo, hi in lin.windows:
+        fx = np.unique(fl.xi_um[fl.line == r])
+        s = (line == r) & (direction == lin.direction) & np.isfinite(position_um)
+        if fx.size < 2 or s.sum() < 2:
+            continue
+        order = np.argsort(target_um[s], kind="stable")
+        tx, px = target_um[s][order], position_um[s][order]
+        at = np.interp(fx, tx, px)
+        # inside the line's own flanks only: beyond them the interpolation would be a guess
+        q = tx[(tx >= max(lo, fx[0])) & (tx <= min(hi, fx[-1]))]
+        if q.size < 2:
+            continue
+        xs.append(q)
+        ys.append(np.interp(q, fx, at))
+        ls.append(np.full(q.size, r, dtype=np.int64))
+    name = "trace" if lin.direction > 0 else "retrace"
+    if not xs:
+        raise RecordingError(f"{name}: no line with two flanks inside the image metric's windows")
+    return branch_linearity(
+        lin.direction, np.concatenate(ys), np.concatenate(xs), np.concatenate(ls), lin.nominal_range_um
+    )
+
+
 def slow_geometry(geo: Geometry, lines: int, row_slow_um: F64 | None = None) -> Geometry:
     """The geometry of the transposed image: the slow axis as the "fast" coordinate, one pixel per line.
 
@@ -744,6 +795,7 @@ __all__ = [
     "ImageLinearity",
     "PositionMap",
     "find_flanks",
+    "flank_sampled_linearity",
     "image_linearity",
     "pitch_error",
     "plot_pitch_error",

@@ -27,7 +27,7 @@ from piezod.cli._common import board_url, human_stream, scanner_config_path, wit
 from piezod.config import MicroscopeSection, ScannerConfig, dump_config, load_config
 from piezod.errors import CalibrationError, PiezodError
 from piezod.image import images, raster_samples
-from piezod.image_linearity import image_linearity, window_linearity
+from piezod.image_linearity import find_flanks, flank_sampled_linearity, image_linearity, window_linearity
 from piezod.imagecal import (
     default_image_frame,
     drop_outlier_flanks,
@@ -86,11 +86,24 @@ def _verify_here(path: Path, pitch_um: float, truth: Path | None, rate_hz: float
     true_rec = with_truth(rec, read_truth_log(truth), rate_hz)
     if lins:
         rs = raster_samples(true_rec)
-        per = {}
+        per, at_flanks = {}, {}
         for k, v in lins.items():
             b = window_linearity(rs.t_s, rs.target_um, rs.position_um, rs.line, rs.direction, v)
             per[k] = {"nonlinearity_pct": b.nonlinearity_pct, "length_error_pct": b.length_error_pct}
+            # the truth as the flanks sample it: what a perfect flank metric would read
+            img = pair.trace if v.direction > 0 else pair.retrace
+            fl = find_flanks(img, pair.geometry)
+            try:
+                f = flank_sampled_linearity(
+                    rs.t_s, rs.target_um, rs.position_um, rs.line, rs.direction, v, fl
+                )
+            except PiezodError as exc:
+                out["truth_at_flanks_error"] = str(exc)
+                continue
+            at_flanks[k] = {"nonlinearity_pct": f.nonlinearity_pct, "length_error_pct": f.length_error_pct}
         out["truth"] = {**_worse(per), "branches": per}
+        if len(at_flanks) == 2:
+            out["truth_at_flanks"] = {**_worse(at_flanks), "branches": at_flanks}
     # a recording with a gap (samples lost on a loaded machine) splits into experiments: the longest
     exp = max((e for e in split_experiments(true_rec) if e.axis in (None, "x")), key=lambda e: e.t_s.size)
     try:
@@ -327,19 +340,22 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
 
     Each figure is the worse of trace and retrace. ``truth`` is the true position over the image
     metric's windows by the same regression (what the image measures); ``truth whole`` the sensor
-    path over the whole lines (the ends no flank covers included); ``+-`` the image's standard
-    uncertainty from the flank-position noise.
+    path over the whole lines (the ends no flank covers included); ``truth@flanks`` the true
+    position taken at the image's flanks only, linear between them, regressed alike (what a
+    perfect flank metric would read: its distance from ``truth`` is structure finer than the flank
+    spacing); ``+-`` the image's standard uncertainty from the flank-position noise.
     """
     head = (
         f"{'model':<8} {'range um':>8} {'f Hz':>6} {'off um':>6} {'frame':>7}  "
         f"{'image nonlin %':>14} {'image len %':>16}  {'truth nonlin %':>14} {'truth len %':>11}  "
-        f"{'truth whole len %':>17}  what"
+        f"{'truth@flanks len %':>18}  {'truth whole len %':>17}  what"
     )
     lines = [head]
     for r in rows:
         im = r.get("image", {})
         tr = r.get("truth", {})
         tw = r.get("truth_whole_lines", {})
+        tf = r.get("truth_at_flanks", {})
 
         def f(d: dict[str, float], k: str, fmt: str) -> str:
             v = d.get(k)
@@ -354,7 +370,7 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
             f"{r['frame']:>7}  "
             f"{f(im, 'nonlinearity_pct', '14.3f')} {le:>16}  "
             f"{f(tr, 'nonlinearity_pct', '14.3f')} {f(tr, 'length_error_pct', '+11.3f')}  "
-            f"{f(tw, 'length_error_pct', '+17.3f')}  {r['what']}"
+            f"{f(tf, 'length_error_pct', '+18.3f')}  {f(tw, 'length_error_pct', '+17.3f')}  {r['what']}"
         )
     return "\n".join(lines)
 

@@ -62,6 +62,13 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--pitch-um", type=positive_float, metavar="P", help="pitch of the reference: image linearity"
     )
+    p.add_argument(
+        "--frame",
+        type=int,
+        metavar="K",
+        help="only frame K (0, 1, ...) of a multi-frame scan (the recording's 'lines' per frame); "
+        "files NAME-fK.gwy / NAME-fK-*.png",
+    )
     p.add_argument("--no-png", action="store_true", help="write the .gwy files only")
     p.add_argument(
         "--pair",
@@ -138,11 +145,16 @@ def run(args: argparse.Namespace) -> int:
     for path in args.recordings:
         rec = read_recording(path)
         pairs = images(
-            rec, z_axis=z_axis, pixels=args.pixels, sensitivity_um_per_v=args.z_sensitivity_um_per_v
+            rec,
+            z_axis=z_axis,
+            pixels=args.pixels,
+            sensitivity_um_per_v=args.z_sensitivity_um_per_v,
+            frame=args.frame,
         )
-        stem = Path(path).stem
+        stem = Path(path).stem if args.frame is None else f"{Path(path).stem}-f{args.frame}"
         headlines.append(_headline(pairs))
-        files = [str(write_gwy(out_dir / f"{stem}.gwy", pairs, rec.metadata, str(path)))]
+        meta = rec.metadata if args.frame is None else {**rec.metadata, "frame": str(args.frame)}
+        files = [str(write_gwy(out_dir / f"{stem}.gwy", pairs, meta, str(path)))]
         if not args.no_png:
             for q in pairs:
                 title = f"{stem}: {q.channel} ({q.grid} grid), {q.geometry.range_um:g} um"

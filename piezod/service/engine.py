@@ -704,7 +704,11 @@ class Engine:
         assert path is not None
         self._recording_id = ident
         self._recording_name = path.name
-        self.scan_events.begin(ident, path, request.lines, request.frames, z_ratio is not None)
+        # the heights of the per-frame images: the z axis in force now
+        cfg = self.config
+        if "z" in self.drivers:
+            cfg = cfg.model_copy(update={"axes": {**cfg.axes, "z": self.drivers["z"].config}})
+        self.scan_events.begin(ident, path, request.lines, request.frames, z_ratio is not None, cfg)
 
     def _discard_recording(self) -> None:
         if self._recording_id >= 0:
