@@ -218,6 +218,7 @@ def check_points(
     driver.reset(ax.safe_voltage_v if start_v is None else start_v)
     drivers: dict[str, AxisDriver] = {axis: driver}
     block = 4096
+    home = _home_um(config, axis, 0.5 * (ax.voltage_max_v + ax.voltage_min_v))
 
     def clamps(pt: VerifyPoint, n_lines: int) -> tuple[int, dict[str, AxisDriver]]:
         trial = copy.deepcopy(drivers)
@@ -248,8 +249,9 @@ def check_points(
             if bad == 0:
                 break
             what = "refused by the scan planner" if bad < 0 else f"{bad} samples clamped"
-            if cand.offset_um != 0.0 and abs(cand.offset_um) * 0.9 >= abs(pt.offset_um) * 0.5:
-                nxt = dataclasses.replace(cand, offset_um=round(cand.offset_um * 0.9, 2))
+            off, off0 = cand.offset_um - home, pt.offset_um - home
+            if round(off, 2) != 0.0 and abs(off) * 0.9 >= abs(off0) * 0.5:
+                nxt = dataclasses.replace(cand, offset_um=round(home + off * 0.9, 2))
                 notes.append(f"offset {cand.offset_um:+.2f} um: {what}")
             else:
                 nxt = dataclasses.replace(cand, range_um=round(cand.range_um * 0.9, 2))
@@ -293,21 +295,24 @@ def verification_points(
 
     f_mid = float(np.sqrt(f_lo * f_hi))
     b = p.b_um_per_v
+    # Scan centres are positions, and position 0 is where the stage rests at 0 V: on a unipolar
+    # stage (-30 ... +150 V) the frame's centre lies elsewhere, and a scan centred on 0 clamps.
+    home = _home_um(config, axis, centre)
     pts = [
-        VerifyPoint(um(r_lo * 1.1, f_mid), round(f_mid, 2), 0.0, True, "inside: small range"),
-        VerifyPoint(um(0.5 * (r_lo + r_hi), f_mid), round(f_mid, 2), 0.0, True, "inside: mid range"),
-        VerifyPoint(um(r_hi * 0.92, f_hi), f_hi, 0.0, True, "inside: large range, fastest rate"),
+        VerifyPoint(um(r_lo * 1.1, f_mid), round(f_mid, 2), home, True, "inside: small range"),
+        VerifyPoint(um(0.5 * (r_lo + r_hi), f_mid), round(f_mid, 2), home, True, "inside: mid range"),
+        VerifyPoint(um(r_hi * 0.92, f_hi), f_hi, home, True, "inside: large range, fastest rate"),
     ]
     if reduced:
         return pts
     pts += [
-        VerifyPoint(um(r_lo * 1.1, f_lo), f_lo, 0.0, True, "inside: slowest rate"),
-        VerifyPoint(um(0.5 * (r_lo + r_hi), f_lo / 10.0), round(f_lo / 10.0, 4), 0.0, False, "10x slower"),
+        VerifyPoint(um(r_lo * 1.1, f_lo), f_lo, home, True, "inside: slowest rate"),
+        VerifyPoint(um(0.5 * (r_lo + r_hi), f_lo / 10.0), round(f_lo / 10.0, 4), home, False, "10x slower"),
     ]
     # 10x faster: as large as the slew limit allows.
     f_fast = 10.0 * f_hi
     r_fast = min(0.5 * (r_lo + r_hi), 0.8 * ax.slew_rate_v_per_s / (2.0 * f_fast) / 2.0)
-    pts.append(VerifyPoint(um(r_fast, f_fast), f_fast, 0.0, False, "10x faster"))
+    pts.append(VerifyPoint(um(r_fast, f_fast), f_fast, home, False, "10x faster"))
     # Offsets beyond the frame's: half-range scans pushed out to 1.8x the largest offset.
     frame_off = max(abs(o_hi - centre), abs(o_lo - centre), 0.1 * (ax.voltage_max_v - ax.voltage_min_v))
     off_v = 1.8 * frame_off
@@ -319,6 +324,16 @@ def verification_points(
     return pts
 
 
+def _home_um(config: ScannerConfig, axis: AxisName, centre_v: float) -> float:
+    """Where the model rests at the frame's centre voltage, from its rest at 0 V (um; 0 if symmetric)."""
+    from piezod.service.axes import axis_model
+
+    if centre_v == 0.0:
+        return 0.0
+    model = axis_model(config.axes[axis])
+    return round(float(model.position(model.rest(centre_v)) - model.position(model.rest(0.0))), 2)
+
+
 def _offset_um(
     config: ScannerConfig,
     axis: AxisName,
@@ -328,7 +343,7 @@ def _offset_um(
     b: float,
     least_v: float,
 ) -> tuple[float, float]:
-    """The centre (um) of a verification scan ``off_v`` from the voltage centre, and that offset (V).
+    """The centre (um) of a scan ``off_v`` from the voltage centre, and that offset (V).
 
     The offset is a *voltage*: the axis's own model (the one being verified) says where the stage
     rests there, relative to where it rests at the centre -- the thesis model's ``b`` says it
@@ -343,7 +358,7 @@ def _offset_um(
     ax = config.axes[axis]
     model = axis_model(ax)
     thesis = ax.thesis.params()
-    zero = model.position(model.rest(centre_v))
+    zero = model.position(model.rest(0.0))
     v = off_v
     while abs(v) >= least_v:
         off_um = round(float(model.position(model.rest(centre_v + v)) - zero), 2)
@@ -353,7 +368,7 @@ def _offset_um(
             v *= 0.9
             continue
         return off_um, v
-    return round(off_v * b, 2), off_v
+    return round((centre_v + off_v) * b, 2), off_v
 
 
 def verify(

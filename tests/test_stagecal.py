@@ -198,3 +198,26 @@ def test_verification_points_are_checked_with_the_verified_model_over_the_whole_
             assert 0.5 * abs(before.offset_um) <= abs(after.offset_um) < abs(before.offset_um)
     # checked again: every point plays without clamping, so none is touched
     assert not [p.note for p in check_points(cfg, checked) if p.note]
+
+
+def test_verification_points_of_a_unipolar_stage_are_centred_on_the_frame() -> None:
+    """A stack driven -30 ... +150 V: the frame runs around +60 V, so the verification scans are
+    centred where the verified model rests at +60 V, not at position 0 (the rest at 0 V, next to
+    the lower limit, where every inside point clamped); the check can place every inside point."""
+    from piezod.stagecal import check_points
+
+    cfg = load_config(default_sim_config_path())
+    x = cfg.axes["x"].model_copy(update={"voltage_min_v": -30.0, "voltage_max_v": 150.0})
+    uni = cfg.model_copy(update={"axes": {**cfg.axes, "x": x}})
+    frame = default_frame(uni)
+    for sc in frame.scans:
+        assert sc.offset_v - sc.range_v / 2 >= -30.0 and sc.offset_v + sc.range_v / 2 <= 150.0
+    planned = verification_points(uni, frame)
+    b = x.thesis.b_um_per_v
+    inside = [p for p in planned if p.inside_frame]
+    assert inside and all(40.0 * b < p.offset_um < 80.0 * b for p in inside)
+    offsets = sorted(p.offset_um for p in planned if p.why.startswith("offset"))
+    assert offsets[0] < inside[0].offset_um < offsets[-1]
+    checked = check_points(uni, planned[:3])
+    assert not [p.note for p in checked if "clamps" in p.note]
+    assert all(abs(p.offset_um - q.offset_um) < 0.01 for p, q in zip(checked, planned[:3], strict=True))
