@@ -35,6 +35,7 @@ from piezod import calibrate_dynamic as cd
 from piezod.calibrate import calibrate, calibrated_config
 from piezod.config import load_config
 from piezod.effects_bench import StageBench
+from piezod.errors import RangeUnreachableError, SafetyError
 from piezod.linearity import experiment_linearity
 from piezod.recording import Experiment
 from piezod.service.axes import AxisDriver
@@ -123,7 +124,11 @@ def main() -> int:
         # after a model is switched in (its creep memory starts from rest, the stage's does not)
         for k, pt in enumerate([points[0], *points]):
             warm_up = k == 0
-            plan = driver.plan(pt.range_um, pt.frequency_hz, pt.offset_um)
+            try:
+                plan = driver.plan(pt.range_um, pt.frequency_hz, pt.offset_um)
+            except (SafetyError, RangeUnreachableError) as exc:
+                print(f"{kind:<8} {pt.why}: refused by the scan planner ({exc}): no figures")
+                continue
             driver.use_plan(plan)
             lo = pt.offset_um - 0.5 * pt.range_um
             per = max(8, round(rate / pt.frequency_hz))
