@@ -199,3 +199,38 @@ def test_a_fitted_spectrum_with_zero_weights_is_pruned_and_inverts() -> None:
     xf, _ = family_forward(p, v, dt, s0)
     np.testing.assert_allclose(xf, x, atol=1e-9)
     assert FamilyParams(PI, CreepSpectrum((1.0, 2.0), (0.0, 0.0))).creep.total_creep == 0.0
+
+
+def test_the_planner_centres_a_scan_where_the_model_in_use_stands() -> None:
+    """On a unipolar stack whose fitted law is not the thesis law, a scan centred on ``c`` um runs
+    around the voltage at which the family model stands at ``c``, not ``c / b`` of the thesis
+    parameters (those put the centre of a large scan below the amplifier's range and the planner
+    refused it)."""
+    section = FamilyModelConfig(
+        law="prandtl-ishlinskii",
+        b_um_per_v=PI.b_um_per_v,
+        pi_rho0=PI.rho0,
+        pi_thresholds_v=list(PI.thresholds_v),
+        pi_weights=list(PI.weights),
+        creep_taus_s=list(SPEC.taus),
+        creep_weights=list(SPEC.w),
+    )
+    thesis = THESIS.model_copy(update={"b_um_per_v": 0.2})
+    cfg = AxisConfig(
+        voltage_min_v=-30,
+        voltage_max_v=150,
+        slew_rate_v_per_s=1e6,
+        thesis=thesis,
+        model="family",
+        family=section,
+    )
+    d = AxisDriver("x", cfg, 10_000.0)
+    ramp = np.linspace(0.0, 60.0, 4001)[1:]
+    rest = family_rest_state(section.params())
+    centre_um = float(family_forward(section.params(), ramp, 1e-4, rest)[0][-1])
+    assert centre_um / 0.2 < 30.0  # the thesis b would centre it far below 60 V
+    plan = d.plan(16.0, 1.0, centre_um)
+    assert plan.v_center == pytest.approx(60.0, abs=3.0)
+    assert -30.0 <= plan.v_min < plan.v_max <= 150.0
+    probe = d.model.inverse(np.linspace(d.position_um, centre_um, 257)[1:], 1e-4, d.state)[0]
+    assert plan.v_center == pytest.approx(float(probe[-1]), abs=1e-6)

@@ -20,6 +20,9 @@ range changes and a switch of model all carry the state explicitly):
 ``with_plan(kappa, V_C)``
     The model for a periodic scan whose creep term is ``kappa (V - V_C)`` (only the thesis
     model (3.8) needs one; the time-domain models return themselves).
+``centre_voltage(c, dt, state)``
+    The voltage at which the model, moved from ``state``, stands at position ``c``: where the
+    scan planner centres a periodic scan on ``c`` (the thesis model: ``c / b``).
 
 Implementations: :class:`ThesisAxisModel` (ODE (2.21) + the creep term of (3.8)),
 :class:`DynamicAxisModel` (:mod:`piezod.model.dynamic`), :class:`FamilyAxisModel`
@@ -57,6 +60,8 @@ from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresi
 from piezod.model.params import ThesisParams
 
 F64 = NDArray[np.float64]
+#: Samples of the straight move :meth:`AxisModel.centre_voltage` runs the inverse over.
+CENTRE_MOVE_SAMPLES = 256
 
 
 class AxisModel(ABC):
@@ -96,6 +101,19 @@ class AxisModel(ABC):
     def with_plan(self, kappa_um_per_v: float, center_v: float) -> AxisModel:
         """The model for a periodic scan with creep term ``kappa (V - V_C)`` (default: unchanged)."""
         return self
+
+    def centre_voltage(self, center_um: float, dt_s: float, state: Any) -> float:
+        """The voltage at which the model stands at ``center_um`` when moved there from ``state``.
+
+        The default runs the model's own inverse over a straight move (the state is not
+        changed): the positions of a fitted law are defined along the histories it was fitted
+        on, so a voltage read off its rest curve (a stage rested at ``V`` for ever, a state no
+        calibration frame visits) can be far from where its inverse really drives the stage.
+        """
+        start = self.position(state)
+        targets = np.linspace(start, float(center_um), CENTRE_MOVE_SAMPLES + 1)[1:]
+        volts, _ = self.inverse(targets, dt_s, state)
+        return float(volts[-1])
 
 
 @dataclass(frozen=True)
@@ -137,6 +155,10 @@ class ThesisAxisModel(AxisModel):
 
     def with_plan(self, kappa_um_per_v: float, center_v: float) -> ThesisAxisModel:
         return dataclasses.replace(self, kappa_um_per_v=kappa_um_per_v, center_v=center_v)
+
+    def centre_voltage(self, center_um: float, dt_s: float, state: Any) -> float:
+        # the planner's own coordinates (4.12): positions b V around a relaxed loop
+        return float(center_um) / self.params.b_um_per_v
 
 
 @dataclass(frozen=True)

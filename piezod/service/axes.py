@@ -10,7 +10,9 @@ state the per-sample inverse then *is* the closed-form inverse (4.11) of (3.8)
 ODE state carries the transient.
 
 Positions are in stage coordinates: the model's absolute position, 0 um at
-0 V for a relaxed stage; a scan centred on ``c`` um runs around ``V_C = c / b``.
+0 V for a relaxed stage; a scan centred on ``c`` um runs around the voltage at which the model
+in use stands at ``c`` when moved there from its present state
+(:meth:`~piezod.model.axis_model.AxisModel.centre_voltage`; the thesis model: ``V_C = c / b``).
 """
 
 from __future__ import annotations
@@ -71,9 +73,16 @@ class PeriodicPlan:
 
 @lru_cache(maxsize=256)
 def _plan(
-    params: ThesisParams, range_um: float, frequency_hz: float, center_um: float, lo: float, hi: float
+    params: ThesisParams,
+    range_um: float,
+    frequency_hz: float,
+    center_um: float,
+    lo: float,
+    hi: float,
+    center_v: float | None = None,
 ) -> PeriodicPlan:
-    center_v = center_um / params.b_um_per_v
+    if center_v is None:
+        center_v = center_um / params.b_um_per_v
     if not lo < center_v < hi:
         raise SafetyError(
             f"centre {center_um:.6g} um needs {center_v:.6g} V, outside the voltage limits [{lo:g}, {hi:g}] V"
@@ -209,7 +218,13 @@ class AxisDriver:
         SafetyError
             If the centre lies outside the limits.
         """
-        return _plan(self.params, float(range_um), float(frequency_hz), float(center_um), *self.limits)
+        # centred where the model in use stands at center_um (the thesis model: center_um / b);
+        # the loop's reach around that voltage is the thesis law's (4.12)
+        center_v = self.model.centre_voltage(float(center_um), self._dt_s, self._state)
+        if not math.isfinite(center_v):
+            raise SafetyError(f"centre {center_um:.6g} um: the model gives no finite voltage there")
+        lo, hi = self.limits
+        return _plan(self.params, float(range_um), float(frequency_hz), float(center_um), lo, hi, center_v)
 
     def peak_slew_v_per_s(self, plan: PeriodicPlan) -> float:
         """Largest |dV/dt| of the corrected steady loop of ``plan`` (inf if a branch is not monotone).
@@ -247,7 +262,11 @@ class AxisDriver:
 
     def adopt_state(self, other: AxisDriver) -> None:
         """Continue from another driver's last voltage and position (new model, same stage)."""
-        self._state = self.model.adopt(other.voltage_v, other.position_um)
+        self.adopt(other.voltage_v, other.position_um)
+
+    def adopt(self, voltage_v: float, position_um: float) -> None:
+        """Continue from a stage at ``voltage_v`` and ``position_um`` (e.g. as its sensor reads it)."""
+        self._state = self.model.adopt(float(voltage_v), float(position_um))
 
     def hold(self, n: int) -> AxisOutput:
         """Keep the last voltage for ``n`` samples (the model's creep runs on)."""
