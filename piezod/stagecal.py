@@ -325,13 +325,27 @@ def verification_points(
 
 
 def _home_um(config: ScannerConfig, axis: AxisName, centre_v: float) -> float:
-    """Where the model rests at the frame's centre voltage, from its rest at 0 V (um; 0 if symmetric)."""
+    """Where the model stands at the frame's centre voltage, ramped from rest at 0 V (um; 0 if symmetric)."""
     from piezod.service.axes import axis_model
 
     if centre_v == 0.0:
         return 0.0
-    model = axis_model(config.axes[axis])
-    return round(float(model.position(model.rest(centre_v)) - model.position(model.rest(0.0))), 2)
+    return round(_ramped_um(axis_model(config.axes[axis]), centre_v, float(config.sample_rate_hz)), 2)
+
+
+def _ramped_um(model: Any, to_v: float, rate_hz: float, samples: int = 2000) -> float:
+    """The model's position after a straight ramp from rest at 0 V to ``to_v``, from its rest at 0 V.
+
+    The fitted laws are identified along the histories of the calibration frame, which starts
+    with the stage resting at its safe voltage and ramping to the first scan; a state "rested at
+    ``V`` for ever" is one no frame visits, and a law whose density depends on the relay centre
+    can put it far off (on a unipolar stack fitted by the generalised play law, twice the
+    stage's position at its centre voltage).
+    """
+    rest = model.rest(0.0)
+    volts = np.linspace(0.0, float(to_v), samples + 1)[1:]
+    _, after = model.forward(volts, 1.0 / rate_hz, rest)
+    return float(model.position(after) - model.position(rest))
 
 
 def _offset_um(
@@ -346,11 +360,12 @@ def _offset_um(
     """The centre (um) of a scan ``off_v`` from the voltage centre, and that offset (V).
 
     The offset is a *voltage*: the axis's own model (the one being verified) says where the stage
-    rests there, relative to where it rests at the centre -- the thesis model's ``b`` says it
-    wrongly for a loop much wider or narrower than the thesis law's (its centre then needs more
-    voltage than the amplifier has, and the scan clamps). The periodic plan still checks the scan
-    with the thesis model, so the offset shrinks (down to ``least_v``, still beyond the frame)
-    until that check passes; where it never does, the thesis model places it as before.
+    stands there when ramped from rest at 0 V (:func:`_ramped_um`) -- the thesis model's ``b``
+    says it wrongly for a loop much wider or narrower than the thesis law's (its centre then
+    needs more voltage than the amplifier has, and the scan clamps). The periodic plan checks the
+    thesis loop's reach around that voltage, so the offset shrinks (down to ``least_v``, still
+    beyond the frame) until that check passes; where it never does, the thesis model places it
+    as before.
     """
     from piezod.errors import RangeUnreachableError, SafetyError
     from piezod.service.axes import _plan, axis_model
@@ -358,12 +373,12 @@ def _offset_um(
     ax = config.axes[axis]
     model = axis_model(ax)
     thesis = ax.thesis.params()
-    zero = model.position(model.rest(0.0))
+    rate = float(config.sample_rate_hz)
     v = off_v
     while abs(v) >= least_v:
-        off_um = round(float(model.position(model.rest(centre_v + v)) - zero), 2)
+        off_um = round(_ramped_um(model, centre_v + v, rate), 2)
         try:
-            _plan(thesis, range_um, 1.0, off_um, ax.voltage_min_v, ax.voltage_max_v)
+            _plan(thesis, range_um, 1.0, off_um, ax.voltage_min_v, ax.voltage_max_v, center_v=centre_v + v)
         except (RangeUnreachableError, SafetyError):
             v *= 0.9
             continue

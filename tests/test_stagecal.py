@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from piezod.cli import main
@@ -66,8 +67,9 @@ def test_verification_covers_outside_the_frame() -> None:
 
 
 def test_offset_points_are_a_voltage_placed_by_the_verified_model() -> None:
-    """The offsets beyond the frame sit where the axis's own model rests at that voltage, so a loop
-    shape far from the thesis law's (p885-stage) no longer puts them beyond the amplifier."""
+    """The offsets beyond the frame sit where the axis's own model stands when ramped to that voltage
+    from rest at 0 V, so a loop shape far from the thesis law's (p885-stage) no longer puts them
+    beyond the amplifier."""
     from hil_sim.stage import resolve_stage
     from piezod.service.axes import axis_model
 
@@ -80,8 +82,10 @@ def test_offset_points_are_a_voltage_placed_by_the_verified_model() -> None:
     for p in offsets:
         volts = float(p.why.split()[1])
         assert 0.0 < abs(volts) < cfg.axes["x"].voltage_max_v
-        rest = model.position(model.rest(volts)) - model.position(model.rest(0.0))
-        assert p.offset_um == pytest.approx(rest, rel=0.01)  # the label rounds the voltage to 1 V
+        rest = model.rest(0.0)
+        _, after = model.forward(np.linspace(0.0, volts, 2001)[1:], 1.0 / cfg.sample_rate_hz, rest)
+        ramped = model.position(after) - model.position(rest)
+        assert p.offset_um == pytest.approx(ramped, rel=0.01)  # the label rounds the voltage to 1 V
 
 
 @pytest.mark.slow

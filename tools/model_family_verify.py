@@ -96,6 +96,7 @@ def main() -> int:
     t0 = time.perf_counter()
     frame = default_frame(base, axis)
     exps = bench.play_frame(frame, axis, ramp)
+    last_x = float(exps[-1].position_um[-1])
     print(f"frame: {len(exps)} experiments, {bench.t:.0f} s simulated")
     thesis = calibrated_config(calibrate(exps), axis=axis, base=base)
     dyn = cd.calibrate_dynamic(exps, slew_rate_v_per_s=ramp, rest_voltage_v=base.axes[axis].safe_voltage_v)
@@ -119,7 +120,9 @@ def main() -> int:
     for kind in kinds:
         cfg = calibrated.axes[axis].model_copy(update={"model": kind, "slew_rate_v_per_s": 1e6})
         driver = AxisDriver(axis, cfg, rate)
-        driver.reset(bench.v)
+        # as the daemon switches a model in: from the stage's voltage and position (here the sensor's
+        # last reading), not from a rest state at that voltage (one the frame never visits)
+        driver.adopt(bench.v, last_x)
         # as piezod calibrate's verification: one unrecorded warm-up scan at the first point
         # after a model is switched in (its creep memory starts from rest, the stage's does not)
         for k, pt in enumerate([points[0], *points]):
