@@ -102,7 +102,7 @@ class FamilyModelConfig(StrictModel):
     Preisach law, :mod:`piezod.model.gplay`) needs ``gp_thresholds_v``, ``gp_nodes_v`` and
     ``gp_density`` (its ``b_um_per_v`` is the rest slope at 0 V, for information); ``law: bouc-wen``
     (a Duhem law with direction- and sign-dependent rates, :mod:`piezod.model.boucwen`) needs
-    ``bw_c_um_per_v``, ``bw_rates_per_v`` and ``bw_amp_down``. The creep
+    ``bw_c_um_per_v``, ``bw_rates_per_v`` and ``bw_amp_down`` (and ``bw_exponent``, default 1). The creep
     spectrum is a list of non-negative weights on relaxation times. ``piezod calibrate`` writes this section.
     """
 
@@ -132,6 +132,9 @@ class FamilyModelConfig(StrictModel):
         "falling with h < 0, falling with h > 0",
     )
     bw_amp_down: float | None = Field(default=None, gt=0, description="bouc-wen: A_down / A_up")
+    bw_exponent: float = Field(
+        default=1.0, ge=1, le=4, description="bouc-wen: exponent n of the knee (1: exponential, 2: tanh)"
+    )
     creep_taus_s: list[float] = Field(description="creep relaxation times (s), ascending")
     creep_weights: list[float] = Field(description="creep weights (fractions of the hysteretic motion)")
     lag_time_constant_s: float = Field(default=0.0, ge=0, le=1.0, description="drive pole (s)")
@@ -166,9 +169,8 @@ class FamilyModelConfig(StrictModel):
         if self.law == "bouc-wen":
             assert self.bw_c_um_per_v is not None and self.bw_amp_down is not None
             k = self.bw_rates_per_v
-            hyst = BoucWenParams(
-                self.b_um_per_v, self.bw_c_um_per_v, k[0], k[1], k[2], k[3], self.bw_amp_down
-            )
+            c, amp, n = self.bw_c_um_per_v, self.bw_amp_down, self.bw_exponent
+            hyst = BoucWenParams(self.b_um_per_v, c, k[0], k[1], k[2], k[3], amp, n)
         elif self.law == "generalised-play":
             hyst = GeneralisedPlayParams(
                 tuple(self.gp_thresholds_v),

@@ -1,13 +1,15 @@
-"""A Duhem hysteresis law with direction- and sign-dependent rates (generalised Bouc-Wen, exponent 1).
+"""A Duhem hysteresis law with direction- and sign-dependent rates (generalised Bouc-Wen, exponent n).
 
 The hysteretic position is ``x_h = b V + c h`` with the hysteretic variable ``h`` (V) obeying,
-along a monotone voltage run in direction ``sigma`` (``d = |V - V_run start|``)::
+along a monotone voltage run in direction ``sigma`` (``d = |V - V_run start|``, ``u = sigma h``)::
 
-    dh/dd = sigma A_sigma - k h,     k = k_same(sigma)  if sigma h >= 0  (h heads to its saturation)
-                                     k = k_back(sigma)  if sigma h <  0  (h recovers after a reversal)
+    du/dd = A_sigma - sign(u) |k u|^n,   k = k_same(sigma)  if u >= 0  (h heads to its saturation)
+                                         k = k_back(sigma)  if u <  0  (h recovers after a reversal)
 
-with ``A_up = 1`` (the scale of ``h`` is absorbed in ``c``) and ``A_down = amp_down``. Special
-cases:
+with ``A_up = 1`` (the scale of ``h`` is absorbed in ``c``) and ``A_down = amp_down``. The
+exponent ``n`` (Bouc's and Wen's, 1 <= n <= 4) sets how sharp the knee is where a branch bends
+into saturation: ``n = 1`` relaxes exponentially, ``n = 2`` along ``tanh`` / ``tan``, larger
+``n`` more abruptly. For ``n = 1`` (``du/dd = A - k u``) special cases are:
 
 * the Coleman-Hodgdon ODE (2.21): every rate ``alpha``, ``amp_down = 1``, ``c = -alpha delta``;
 * the symmetric rate-independent Bouc-Wen law with exponent 1, ``x = b (V - h')``,
@@ -18,14 +20,18 @@ The four rates and ``amp_down`` let the loop's two branches and its recovery aft
 differ (an asymmetric or direction-dependent Duhem law). Repeated minor loops drift (no
 wiping-out memory), as for any Duhem law.
 
-Along a monotone run ``h`` has a closed form (exponential relaxation, one sign change at most),
-so the forward law is exact per sample for a voltage monotone between samples, and the inverse
-per sample is a scalar increasing equation with at most two pieces, each solved by a bracketed
-Newton iteration (:func:`piezod.model.kernels.bw_loop`, compiled, bounded cost).
+With ``n = 1`` ``h`` has a closed form along a monotone run (exponential relaxation, one sign
+change at most), so the forward law is exact per sample for a voltage monotone between samples,
+and the inverse per sample is a scalar increasing equation with at most two pieces, each solved
+by a bracketed Newton iteration (:func:`piezod.model.kernels.bw_loop`, compiled, bounded cost).
+For other ``n`` the law *is* its per-sample Runge-Kutta discretisation (steps of ``k d <= 0.25``,
+error of order ``(k d)^5`` against the ODE): the inverse solves that same step by a bracketed
+Newton iteration (:func:`piezod.model.kernels.bwn_loop`), so the round trip is exact.
 
-Invertibility: ``h`` stays in ``[-amp_down / k_same_down, 1 / k_same_up]`` once there (the rest
-state ``h = 0`` is), and the slope ``dx_h/dV`` along a run is smallest right after a reversal at
-the far end of that interval; the parameters are refused unless it stays positive there.
+Invertibility: ``h`` stays in ``[-amp_down^(1/n) / k_same_down, 1 / k_same_up]`` once there (the
+rest state ``h = 0`` is), and the slope ``dx_h/dV`` along a run is smallest right after a
+reversal at the far end of that interval; the parameters are refused unless it stays positive
+there.
 """
 
 from __future__ import annotations
@@ -61,6 +67,8 @@ class BoucWenParams:
         (``same``, > 0) or of the other sign (``back``).
     amp_down
         ``A_down / A_up`` (> 0).
+    exponent
+        ``n`` in ``[1, 4]`` (the knee's sharpness; 1: exponential relaxation).
     """
 
     b_um_per_v: float
@@ -70,9 +78,10 @@ class BoucWenParams:
     k_down_same: float
     k_down_back: float
     amp_down: float = 1.0
+    exponent: float = 1.0
 
     def __post_init__(self) -> None:
-        values = (self.b_um_per_v, self.c_um_per_v, *self.rates, self.amp_down)
+        values = (self.b_um_per_v, self.c_um_per_v, *self.rates, self.amp_down, self.exponent)
         if not all(math.isfinite(v) for v in values):
             raise ModelError("bouc-wen parameters must be finite")
         if self.b_um_per_v <= 0.0:
@@ -83,6 +92,8 @@ class BoucWenParams:
             raise ModelError("bouc-wen k_up_back and k_down_back must be >= 0")
         if not self.amp_down > 0.0:
             raise ModelError(f"bouc-wen amp_down must be > 0, got {self.amp_down!r}")
+        if not 1.0 <= self.exponent <= 4.0:
+            raise ModelError(f"bouc-wen exponent must lie in [1, 4], got {self.exponent!r}")
         if self.min_slope_um_per_v < MIN_SLOPE_FRACTION * self.b_um_per_v:
             raise ModelError(
                 f"bouc-wen branch would flatten or run backwards: the slope after a reversal "
@@ -96,8 +107,8 @@ class BoucWenParams:
 
     @property
     def h_range_v(self) -> tuple[float, float]:
-        """The interval ``h`` stays in: ``[-amp_down / k_down_same, 1 / k_up_same]``."""
-        return (-self.amp_down / self.k_down_same, 1.0 / self.k_up_same)
+        """The interval ``h`` stays in: ``[-amp_down^(1/n) / k_down_same, 1 / k_up_same]``."""
+        return (-(self.amp_down ** (1.0 / self.exponent)) / self.k_down_same, 1.0 / self.k_up_same)
 
     @property
     def min_slope_um_per_v(self) -> float:
@@ -105,10 +116,11 @@ class BoucWenParams:
         lo, hi = self.h_range_v
         c = self.c_um_per_v
         if c >= 0.0:
-            # the slope b + c (A - sigma k h) is smallest where h reaches its saturation: b
+            # the slope b + c du/dd is smallest where h reaches its saturation: b
             return self.b_um_per_v
-        up = self.b_um_per_v + c * (1.0 - self.k_up_back * lo)
-        down = self.b_um_per_v + c * (self.amp_down + self.k_down_back * hi)
+        n = self.exponent
+        up = self.b_um_per_v + c * (1.0 + math.pow(self.k_up_back * -lo, n))
+        down = self.b_um_per_v + c * (self.amp_down + math.pow(self.k_down_back * hi, n))
         return min(up, down)
 
     @classmethod
@@ -157,6 +169,35 @@ def _args(p: BoucWenParams) -> tuple[float, ...]:
     return (p.b_um_per_v, p.c_um_per_v, p.amp_down, *p.rates)
 
 
+def _forward_kernel(p: BoucWenParams, v: F64, u0: float, h0: float, out: F64) -> float:
+    """``x_h = b V + c h`` into ``out`` by the exponent's kernel; the last ``h``."""
+    if p.exponent == 1.0:
+        return float(kernels.bw_forward(v, *_args(p), u0, h0, out))
+    return float(kernels.bwn_forward(v, *_args(p), p.exponent, u0, h0, out))
+
+
+def creep_loop(
+    p: BoucWenParams,
+    xc: F64,
+    g: float,
+    wa: F64,
+    wb: float,
+    a: F64,
+    ob0: F64,
+    e: F64,
+    u_prev: float,
+    h: float,
+    out: F64,
+) -> tuple[float, float]:
+    """The compiled inverse of the law plus voltage creep (:func:`piezod.model.kernels.bw_loop` or,
+    for ``n != 1``, :func:`~piezod.model.kernels.bwn_loop`): ``(last V_c, last h)``."""
+    if p.exponent == 1.0:
+        return kernels.bw_loop(xc, *_args(p), g, wa, wb, a, ob0, e, u_prev, h, out)
+    return kernels.bwn_loop(
+        xc, *_args(p), p.exponent, p.min_slope_um_per_v, g, wa, wb, a, ob0, e, u_prev, h, out
+    )
+
+
 def boucwen_forward(
     params: BoucWenParams, voltage_v: ArrayLike, state: BoucWenState
 ) -> tuple[F64, BoucWenState]:
@@ -167,7 +208,7 @@ def boucwen_forward(
     if v.size == 0:
         return np.empty(0), state
     out = np.empty(v.size)
-    h = kernels.bw_forward(v, *_args(params), state.voltage_v, state.h_v, out)
+    h = _forward_kernel(params, v, state.voltage_v, state.h_v, out)
     return out, BoucWenState(float(v[-1]), float(h), float(out[-1]))
 
 
@@ -182,20 +223,25 @@ def boucwen_inverse(
         return np.empty(0), state
     out = np.empty(x.size)
     none = np.empty(0)
-    u, h = kernels.bw_loop(
-        x, *_args(params), 0.0, none, 0.0, none, none, np.empty(0), state.voltage_v, state.h_v, out
-    )
+    u, h = creep_loop(params, x, 0.0, none, 0.0, none, none, np.empty(0), state.voltage_v, state.h_v, out)
     x_end = params.b_um_per_v * float(u) + params.c_um_per_v * float(h)
     return out, BoucWenState(float(u), float(h), x_end)
 
 
 def unit_hysteresis(
-    rates: tuple[float, float, float, float], amp_down: float, voltage_v: ArrayLike, rest_voltage_v: float
+    rates: tuple[float, float, float, float],
+    amp_down: float,
+    voltage_v: ArrayLike,
+    rest_voltage_v: float,
+    exponent: float = 1.0,
 ) -> F64:
     """``h`` along ``voltage_v`` from rest at ``rest_voltage_v`` (a calibration feature)."""
     v = np.ascontiguousarray(voltage_v, dtype=np.float64)
     out = np.empty(v.size)
-    kernels.bw_forward(v, 0.0, 1.0, amp_down, *rates, float(rest_voltage_v), 0.0, out)
+    if exponent == 1.0:
+        kernels.bw_forward(v, 0.0, 1.0, amp_down, *rates, float(rest_voltage_v), 0.0, out)
+    else:
+        kernels.bwn_forward(v, 0.0, 1.0, amp_down, *rates, float(exponent), float(rest_voltage_v), 0.0, out)
     return out
 
 
@@ -206,5 +252,6 @@ __all__ = [
     "boucwen_inverse",
     "boucwen_rest_state",
     "boucwen_state_at",
+    "creep_loop",
     "unit_hysteresis",
 ]

@@ -55,6 +55,7 @@ from piezod.model.boucwen import (
     boucwen_rest_state,
     boucwen_state_at,
 )
+from piezod.model.boucwen import creep_loop as bw_creep_loop
 from piezod.model.dynamic import MAX_TOTAL_CREEP, _creep_forward, _creep_inverse, discretise
 from piezod.model.gplay import GeneralisedPlayParams, gplay_forward, gplay_rest_state, gplay_state_at
 from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
@@ -503,10 +504,7 @@ def _voltage_creep_inverse(
     law: LawState
     if isinstance(h, BoucWenParams):
         assert isinstance(state.law, BoucWenState)
-        u, hv = kernels.bw_loop(
-            xc, h.b_um_per_v, h.c_um_per_v, h.amp_down, *h.rates, g, wa, wb, disc.a, ob0, e,
-            state.drive_v, state.law.h_v, vc,
-        )
+        u, hv = bw_creep_loop(h, xc, g, wa, wb, disc.a, ob0, e, state.drive_v, state.law.h_v, vc)
         law = BoucWenState(u, hv, h.b_um_per_v * u + h.c_um_per_v * hv)
     elif isinstance(h, GeneralisedPlayParams):
         assert isinstance(state.law, PlayState)
