@@ -99,7 +99,8 @@ def bench_models() -> dict[str, Any]:
     """The axis models timed by :func:`axis_model_costs` (the family members at realistic sizes).
 
     The family members carry a drive lag, 16 play operators (or Coleman-Hodgdon, or the generalised
-    play law with 32 plays over 3 relay-centre nodes, or the Bouc-Wen/Duhem law), a creep spectrum
+    play law with 32 plays over 3 relay-centre nodes, or the Bouc-Wen/Duhem law of exponent 1 or 2),
+    a creep spectrum
     of 19 relaxation times from 0.1 ms to 1e5 s and the stiffness map; :data:`RICHEST_MODEL` (the
     generalised play law) adds voltage-driven creep and every runtime part
     (:mod:`piezod.model.parts`: polarity, thermal,
@@ -128,6 +129,8 @@ def bench_models() -> dict[str, Any]:
     )
     # the Duhem law with direction- and sign-dependent rates at a fitted size (asymmetric)
     bw = BoucWenParams(0.098, -0.037, 0.0159, 0.0097, 0.0155, 0.0081, 1.2)
+    # exponent 2 (a sharp knee): the law is its per-sample Runge-Kutta step, inverted by Newton
+    bw2 = BoucWenParams(0.2, -0.07, 0.0234, 0.015, 0.0234, 0.015, 1.0, 2.0)
     return {
         "thesis": ThesisAxisModel(MEDIUM_TUBE_TABLE_3_3, 0.01, 0.0),
         "dynamic": DynamicAxisModel(DynamicParams(3e-3, 0.115, 0.072, 1.5)),
@@ -145,6 +148,8 @@ def bench_models() -> dict[str, Any]:
         ),
         "family/bouc-wen": FamilyAxisModel(FamilyParams(bw, creep, 2e-4, 0.05)),
         "family/bouc-wen/voltage-creep": FamilyAxisModel(FamilyParams(bw, creep, 2e-4, 0.05, "voltage")),
+        "family/bouc-wen-n2": FamilyAxisModel(FamilyParams(bw2, creep, 2e-4, 0.05)),
+        "family/bouc-wen-n2/voltage-creep": FamilyAxisModel(FamilyParams(bw2, creep, 2e-4, 0.05, "voltage")),
         "family/bouc-wen/voltage-creep+parts": PartsAxisModel(
             FamilyAxisModel(FamilyParams(bw, creep, 2e-4, 0.05, "voltage")),
             Parts(-5.0, 1.0, 0.05, 120.0, 0.5),

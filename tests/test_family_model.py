@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from piezod.config import AxisConfig, FamilyModelConfig, ThesisModelConfig
-from piezod.errors import ModelError
+from piezod.errors import ModelError, RangeUnreachableError
 from piezod.model.axis_model import FamilyAxisModel, ThesisAxisModel
 from piezod.model.family import (
     CreepSpectrum,
@@ -201,11 +201,11 @@ def test_a_fitted_spectrum_with_zero_weights_is_pruned_and_inverts() -> None:
     assert FamilyParams(PI, CreepSpectrum((1.0, 2.0), (0.0, 0.0))).creep.total_creep == 0.0
 
 
-def test_the_planner_centres_a_scan_where_the_model_in_use_stands() -> None:
-    """On a unipolar stack whose fitted law is not the thesis law, a scan centred on ``c`` um runs
-    around the voltage at which the family model stands at ``c``, not ``c / b`` of the thesis
-    parameters (those put the centre of a large scan below the amplifier's range and the planner
-    refused it)."""
+def test_the_planner_places_a_scan_by_the_model_in_use() -> None:
+    """On a unipolar stack whose fitted law is not the thesis law, a scan centred on ``c`` um is
+    planned between the turning voltages of the family model's own loop, not around ``c / b`` of
+    the thesis parameters (those put the centre of a large scan below the amplifier's range and
+    the planner refused it); the driver then runs the scan inside the planned voltages."""
     section = FamilyModelConfig(
         law="prandtl-ishlinskii",
         b_um_per_v=PI.b_um_per_v,
@@ -224,13 +224,21 @@ def test_the_planner_centres_a_scan_where_the_model_in_use_stands() -> None:
         model="family",
         family=section,
     )
-    d = AxisDriver("x", cfg, 10_000.0)
+    rate = 10_000.0
+    d = AxisDriver("x", cfg, rate)
     ramp = np.linspace(0.0, 60.0, 4001)[1:]
     rest = family_rest_state(section.params())
-    centre_um = float(family_forward(section.params(), ramp, 1e-4, rest)[0][-1])
+    centre_um = float(family_forward(section.params(), ramp, 1.0 / rate, rest)[0][-1])
     assert centre_um / 0.2 < 30.0  # the thesis b would centre it far below 60 V
-    plan = d.plan(16.0, 1.0, centre_um)
-    assert plan.v_center == pytest.approx(60.0, abs=3.0)
+    plan = d.plan(8.0, 1.0, centre_um)
     assert -30.0 <= plan.v_min < plan.v_max <= 150.0
-    probe = d.model.inverse(np.linspace(d.position_um, centre_um, 257)[1:], 1e-4, d.state)[0]
-    assert plan.v_center == pytest.approx(float(probe[-1]), abs=1e-6)
+    assert plan.v_center > centre_um / 0.2 + 15.0  # not where the thesis b puts it
+    lo = centre_um - 4.0
+    phase = (np.arange(1, 2 * 10_000 + 1) % 10_000) / 10_000
+    tri = lo + 8.0 * np.where(phase < 0.5, 2 * phase, 2 - 2 * phase)
+    targets = np.concatenate([np.linspace(d.position_um, lo, 2001)[1:], tri])
+    volts = np.concatenate([d.corrected(b).voltage_v for b in np.array_split(targets, 10)])[-10_000:]
+    assert float(volts.min()) == pytest.approx(plan.v_min, abs=0.5)
+    assert float(volts.max()) == pytest.approx(plan.v_max, abs=0.5)
+    with pytest.raises(RangeUnreachableError, match="largest reachable"):
+        d.plan(16.0, 1.0, centre_um)

@@ -20,9 +20,9 @@ range changes and a switch of model all carry the state explicitly):
 ``with_plan(kappa, V_C)``
     The model for a periodic scan whose creep term is ``kappa (V - V_C)`` (only the thesis
     model (3.8) needs one; the time-domain models return themselves).
-``centre_voltage(c, dt, state)``
-    The voltage at which the model, moved from ``state``, stands at position ``c``: where the
-    scan planner centres a periodic scan on ``c`` (the thesis model: ``c / b``).
+``loop_voltages(c, r, f, state)``
+    The turning voltages of the model's own periodic scan of range ``r`` centred on ``c``: where
+    the scan planner places it (the thesis model is planned by its closed form (4.12) instead).
 
 Implementations: :class:`ThesisAxisModel` (ODE (2.21) + the creep term of (3.8)),
 :class:`DynamicAxisModel` (:mod:`piezod.model.dynamic`), :class:`FamilyAxisModel`
@@ -60,8 +60,8 @@ from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresi
 from piezod.model.params import ThesisParams
 
 F64 = NDArray[np.float64]
-#: Samples of the straight move :meth:`AxisModel.centre_voltage` runs the inverse over.
-CENTRE_MOVE_SAMPLES = 256
+#: Samples per cycle of the periodic scan :meth:`AxisModel.loop_voltages` runs the inverse over.
+LOOP_SAMPLES = 512
 
 
 class AxisModel(ABC):
@@ -102,18 +102,32 @@ class AxisModel(ABC):
         """The model for a periodic scan with creep term ``kappa (V - V_C)`` (default: unchanged)."""
         return self
 
-    def centre_voltage(self, center_um: float, dt_s: float, state: Any) -> float:
-        """The voltage at which the model stands at ``center_um`` when moved there from ``state``.
+    #: The scan planner places this model's periodic scans with the thesis law (4.12) (only the
+    #: thesis model; the others by :meth:`loop_voltages`).
+    plans_by_thesis: ClassVar[bool] = False
 
-        The default runs the model's own inverse over a straight move (the state is not
-        changed): the positions of a fitted law are defined along the histories it was fitted
-        on, so a voltage read off its rest curve (a stage rested at ``V`` for ever, a state no
-        calibration frame visits) can be far from where its inverse really drives the stage.
+    def loop_voltages(
+        self, center_um: float, range_um: float, frequency_hz: float, state: Any
+    ) -> tuple[float, float]:
+        """Turning voltages ``(v_min, v_max)`` of the model's own periodic scan, from ``state``.
+
+        The model's inverse runs the move to the scan's start and two triangle cycles
+        (:data:`LOOP_SAMPLES` per cycle, creep at the scan's rate; the state is not changed); the
+        second cycle's extremes are returned. The positions of a fitted law are defined along the
+        histories it was fitted on, so a voltage read off its rest curve (a stage rested at ``V``
+        for ever, a state no calibration frame visits) or the thesis law's ``c / b`` can be far
+        from where its inverse really drives the stage: on a unipolar stack the generalised play
+        law and the thesis parameters disagreed by 2x at the frame's centre.
         """
-        start = self.position(state)
-        targets = np.linspace(start, float(center_um), CENTRE_MOVE_SAMPLES + 1)[1:]
-        volts, _ = self.inverse(targets, dt_s, state)
-        return float(volts[-1])
+        per = LOOP_SAMPLES
+        dt = 1.0 / (float(frequency_hz) * per)
+        lo = float(center_um) - 0.5 * float(range_um)
+        move = np.linspace(self.position(state), lo, per // 4 + 1)[1:]
+        phase = (np.arange(1, 2 * per + 1) % per) / per
+        loop = lo + float(range_um) * np.where(phase < 0.5, 2.0 * phase, 2.0 - 2.0 * phase)
+        volts, _ = self.inverse(np.concatenate([move, loop]), dt, state)
+        last = volts[-per:]
+        return float(np.min(last)), float(np.max(last))
 
 
 @dataclass(frozen=True)
@@ -124,6 +138,7 @@ class ThesisAxisModel(AxisModel):
     kappa_um_per_v: float
     center_v: float
     kind: ClassVar[str] = "thesis"
+    plans_by_thesis: ClassVar[bool] = True
 
     def rest(self, voltage_v: float = 0.0) -> HysteresisState:
         return relaxed_state(self.params.hysteresis, voltage_v)
@@ -156,9 +171,6 @@ class ThesisAxisModel(AxisModel):
     def with_plan(self, kappa_um_per_v: float, center_v: float) -> ThesisAxisModel:
         return dataclasses.replace(self, kappa_um_per_v=kappa_um_per_v, center_v=center_v)
 
-    def centre_voltage(self, center_um: float, dt_s: float, state: Any) -> float:
-        # the planner's own coordinates (4.12): positions b V around a relaxed loop
-        return float(center_um) / self.params.b_um_per_v
 
 
 @dataclass(frozen=True)

@@ -249,10 +249,10 @@ class PartsAxisModel(AxisModel):
     def with_plan(self, kappa_um_per_v: float, center_v: float) -> AxisModel:
         return PartsAxisModel(self.inner.with_plan(kappa_um_per_v, center_v), self.parts)
 
-    def centre_voltage(self, center_um: float, dt_s: float, state: Any) -> float:
-        xm = float(self.parts.position_in(np.array([float(center_um)]), np.array([state.time_s]))[0])
-        u = self.inner.centre_voltage(xm, dt_s, state.inner)
-        return float(self.parts.voltage_out(np.array([u]))[0])
+    @property
+    def plans_by_thesis(self) -> bool:  # type: ignore[override]
+        """The wrapped model's planner."""
+        return self.inner.plans_by_thesis
 
 
 def with_parts(model: AxisModel, parts: Parts) -> AxisModel:

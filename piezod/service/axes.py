@@ -10,9 +10,9 @@ state the per-sample inverse then *is* the closed-form inverse (4.11) of (3.8)
 ODE state carries the transient.
 
 Positions are in stage coordinates: the model's absolute position, 0 um at
-0 V for a relaxed stage; a scan centred on ``c`` um runs around the voltage at which the model
-in use stands at ``c`` when moved there from its present state
-(:meth:`~piezod.model.axis_model.AxisModel.centre_voltage`; the thesis model: ``V_C = c / b``).
+0 V for a relaxed stage; the thesis model runs a scan centred on ``c`` um around ``V_C = c / b``,
+the time-domain models between the turning voltages of their own steady loop from the present
+state (:meth:`~piezod.model.axis_model.AxisModel.loop_voltages`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod.config import AxisConfig
-from piezod.errors import SafetyError
+from piezod.errors import ModelError, RangeUnreachableError, SafetyError
 from piezod.model.axis_model import AxisModel, DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
 from piezod.model.inverse import ThesisInverse
 from piezod.model.params import ThesisParams
@@ -218,13 +218,29 @@ class AxisDriver:
         SafetyError
             If the centre lies outside the limits.
         """
-        # centred where the model in use stands at center_um (the thesis model: center_um / b);
-        # the loop's reach around that voltage is the thesis law's (4.12)
-        center_v = self.model.centre_voltage(float(center_um), self._dt_s, self._state)
-        if not math.isfinite(center_v):
-            raise SafetyError(f"centre {center_um:.6g} um: the model gives no finite voltage there")
+        r, f, c = float(range_um), float(frequency_hz), float(center_um)
+        if self.model.plans_by_thesis:
+            return _plan(self.params, r, f, c, *self.limits)
+        if not (math.isfinite(r) and r > 0.0 and math.isfinite(f) and f > 0.0 and math.isfinite(c)):
+            raise ModelError(f"scan range {r!r} um, frequency {f!r} Hz, centre {c!r} um: finite, > 0 needed")
+        v_min, v_max = self.model.loop_voltages(c, r, f, self._state)
         lo, hi = self.limits
-        return _plan(self.params, float(range_um), float(frequency_hz), float(center_um), lo, hi, center_v)
+        if not (math.isfinite(v_min) and math.isfinite(v_max)):
+            raise SafetyError(f"centre {c:.6g} um: the model gives no finite voltage there")
+        if v_min < lo or v_max > hi:
+            centre = 0.5 * (v_min + v_max)
+            if not lo < centre < hi:
+                raise SafetyError(
+                    f"centre {c:.6g} um needs {centre:.6g} V, outside the voltage limits [{lo:g}, {hi:g}] V"
+                )
+            up, down = (hi - centre) / max(v_max - centre, 1e-12), (centre - lo) / max(centre - v_min, 1e-12)
+            raise RangeUnreachableError(
+                f"scan range {r:.6g} um at {f:.6g} Hz centred on {c:.6g} um needs {v_min:.6g} ... "
+                f"{v_max:.6g} V with the axis's model (limits [{lo:g}, {hi:g}] V); the largest reachable "
+                f"range there is about {r * min(up, down):.6g} um"
+            )
+        # the thesis model's creep term (kappa) is not used by the time-domain models
+        return PeriodicPlan(r, f, c, v_min, v_max, 0.0)
 
     def peak_slew_v_per_s(self, plan: PeriodicPlan) -> float:
         """Largest |dV/dt| of the corrected steady loop of ``plan`` (inf if a branch is not monotone).
