@@ -40,6 +40,16 @@ SYM = BoucWenParams.from_bouc_wen(0.12, 0.4, 0.010, 0.004)
 SPEC = CreepSpectrum.log_spaced(1e-4, 1e5, 3, 0.015 / 3)
 
 
+def _knee(
+    n: float, b: float = 0.2, a: float = 0.35, beta: float = 1.1e-3, gamma: float = 4.6e-4
+) -> BoucWenParams:
+    """hil_sim's ``x = b (V - h')``, ``dh' = A dV - beta |dV| |h'|^(n-1) h' - gamma dV |h'|^n`` in
+    the host's form: ``h' = A h`` gives ``du/dd = 1 - sign(u) |k u|^n``, ``k^n = (beta +- gamma) A^(n-1)``."""
+    k_same = ((beta + gamma) * a ** (n - 1)) ** (1.0 / n)
+    k_back = ((beta - gamma) * a ** (n - 1)) ** (1.0 / n)
+    return BoucWenParams(b, -b * a, k_same, k_back, k_same, k_back, 1.0, n)
+
+
 def _voltages(n: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     t = np.linspace(0.0, 10.0, n)
@@ -66,8 +76,15 @@ def test_equal_rates_are_coleman_hodgdon() -> None:
     np.testing.assert_allclose(x, xc, rtol=0, atol=1e-11)
 
 
-@pytest.mark.parametrize("law", [SYM, ASYM], ids=["symmetric", "asymmetric"])
+@pytest.mark.parametrize(
+    "law",
+    [SYM, ASYM, _knee(1.5), _knee(2.0), _knee(3.0)],
+    ids=["symmetric", "asymmetric", "exponent-1.5", "exponent-2", "exponent-3"],
+)
 def test_forward_is_block_invariant_and_inverse_exact(law: BoucWenParams) -> None:
+    """Exponent 1 in closed form (to rounding); other exponents are their Runge-Kutta step,
+    inverted by Newton to 1e-10 of the run (so 1e-9 of the range)."""
+    tol = 1e-12 if law.exponent == 1.0 else 1e-9
     v = _voltages(20001, 3)
     s0 = boucwen_rest_state(law, 5.0)
     x, end = boucwen_forward(law, v, s0)
@@ -77,8 +94,8 @@ def test_forward_is_block_invariant_and_inverse_exact(law: BoucWenParams) -> Non
         parts.append(xb)
     np.testing.assert_array_equal(np.concatenate(parts), x)
     u, end_i = boucwen_inverse(law, x, s0)
-    np.testing.assert_allclose(u, v, rtol=0, atol=1e-12 * float(np.ptp(v)))
-    assert end_i.h_v == pytest.approx(end.h_v, abs=1e-12)
+    np.testing.assert_allclose(u, v, rtol=0, atol=tol * float(np.ptp(v)))
+    assert end_i.h_v == pytest.approx(end.h_v, abs=tol)
 
 
 @settings(max_examples=40, deadline=None)
@@ -187,16 +204,6 @@ def test_config_section_round_trips() -> None:
         )
 
 
-def _knee(
-    n: float, b: float = 0.2, a: float = 0.35, beta: float = 1.1e-3, gamma: float = 4.6e-4
-) -> BoucWenParams:
-    """hil_sim's ``x = b (V - h')``, ``dh' = A dV - beta |dV| |h'|^(n-1) h' - gamma dV |h'|^n`` in
-    the host's form: ``h' = A h`` gives ``du/dd = 1 - sign(u) |k u|^n``, ``k^n = (beta +- gamma) A^(n-1)``."""
-    k_same = ((beta + gamma) * a ** (n - 1)) ** (1.0 / n)
-    k_back = ((beta - gamma) * a ** (n - 1)) ** (1.0 / n)
-    return BoucWenParams(b, -b * a, k_same, k_back, k_same, k_back, 1.0, n)
-
-
 def test_exponent_two_is_hil_sims_sharp_knee() -> None:
     """Exponent 2 (tanh / tan along a run): the host's Runge-Kutta steps against hil_sim's closed
     form, at 10 kS/s with the voltages a 1-2 Hz scan makes (the law is its discretisation)."""
@@ -209,22 +216,6 @@ def test_exponent_two_is_hil_sims_sharp_knee() -> None:
     np.testing.assert_allclose(x, xs, rtol=0, atol=1e-3)  # 1 nm over a 35 um loop
     with pytest.raises(ModelError, match="exponent"):
         BoucWenParams(0.1, -0.01, 0.01, 0.01, 0.01, 0.01, 1.0, 0.5)
-
-
-@pytest.mark.parametrize("n", [1.5, 2.0, 3.0])
-def test_any_exponent_inverts_exactly_over_blocks(n: float) -> None:
-    law = _knee(n)
-    v = _voltages(20001, 4)
-    s0 = boucwen_rest_state(law, 5.0)
-    x, end = boucwen_forward(law, v, s0)
-    parts, s = [], s0
-    for chunk in np.array_split(v, [1, 2, 777, 15000]):
-        xb, s = boucwen_forward(law, chunk, s)
-        parts.append(xb)
-    np.testing.assert_array_equal(np.concatenate(parts), x)
-    u, end_i = boucwen_inverse(law, x, s0)
-    np.testing.assert_allclose(u, v, rtol=0, atol=1e-9 * float(np.ptp(v)))
-    assert end_i.h_v == pytest.approx(end.h_v, abs=1e-9)
 
 
 @pytest.mark.parametrize("driver", ["position", "voltage"])

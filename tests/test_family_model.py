@@ -32,6 +32,20 @@ THESIS = ThesisModelConfig(
 )
 
 
+def _pi_section(**extra: float) -> FamilyModelConfig:
+    """The ``family:`` section of the Prandtl-Ishlinskii law ``PI`` with the creep ``SPEC``."""
+    return FamilyModelConfig(
+        law="prandtl-ishlinskii",
+        b_um_per_v=PI.b_um_per_v,
+        pi_rho0=PI.rho0,
+        pi_thresholds_v=list(PI.thresholds_v),
+        pi_weights=list(PI.weights),
+        creep_taus_s=list(SPEC.taus),
+        creep_weights=list(SPEC.w),
+        **extra,
+    )
+
+
 def _smooth_targets(n: int, dt: float, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     t = np.arange(n) * dt
@@ -143,16 +157,7 @@ def test_hold_relaxes_creep_and_settles_the_lag() -> None:
 
 
 def test_driver_runs_a_family_axis_without_model_branches() -> None:
-    section = FamilyModelConfig(
-        law="prandtl-ishlinskii",
-        b_um_per_v=PI.b_um_per_v,
-        pi_rho0=PI.rho0,
-        pi_thresholds_v=list(PI.thresholds_v),
-        pi_weights=list(PI.weights),
-        creep_taus_s=list(SPEC.taus),
-        creep_weights=list(SPEC.w),
-        lag_time_constant_s=2e-4,
-    )
+    section = _pi_section(lag_time_constant_s=2e-4)
     cfg = AxisConfig(
         voltage_min_v=-230,
         voltage_max_v=230,
@@ -206,15 +211,7 @@ def test_the_planner_places_a_scan_by_the_model_in_use() -> None:
     planned between the turning voltages of the family model's own loop, not around ``c / b`` of
     the thesis parameters (those put the centre of a large scan below the amplifier's range and
     the planner refused it); the driver then runs the scan inside the planned voltages."""
-    section = FamilyModelConfig(
-        law="prandtl-ishlinskii",
-        b_um_per_v=PI.b_um_per_v,
-        pi_rho0=PI.rho0,
-        pi_thresholds_v=list(PI.thresholds_v),
-        pi_weights=list(PI.weights),
-        creep_taus_s=list(SPEC.taus),
-        creep_weights=list(SPEC.w),
-    )
+    section = _pi_section()
     thesis = THESIS.model_copy(update={"b_um_per_v": 0.2})
     cfg = AxisConfig(
         voltage_min_v=-30,
