@@ -100,8 +100,9 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
         for b in (lo[k], hi[k]):
             if math.isfinite(b) and abs(p[k] - b) <= 1e-6 * max(1.0, abs(b)):
                 on.append(names[k])
-    if isinstance(model.base, OdeBase) and p[2] <= 1e-12:
-        on.append("alpha_per_v")  # b = u, no loop opening: alpha has no effect
+    if isinstance(model.base, OdeBase) and (p[2] <= 1e-12 or "b_um_per_v" in on):
+        # b = u (the loop opening alpha (b - u) at 0, to the bounds' tolerance): alpha has no effect
+        on.append("alpha_per_v")
     prob = Problem(model, geo, rows)
     jac = jacobian(prob, p, free, central=True)
     cov = jacobian_covariance(jac, fit.rss, max(fit.dof, 1))
