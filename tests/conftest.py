@@ -31,6 +31,28 @@ BOARD_BACKENDS = ("hil_sim", "firmware")
 """``hil_sim``: ``python -m hil_sim``; ``firmware``: the host build of ``firmware_proto/c``."""
 
 
+@pytest.fixture(autouse=True)
+def _logger_state() -> Any:
+    """Undo what an in-process entry point (``piezod sim`` via ``main``) does to logging.
+
+    ``hil_sim``'s entry point gives its logger a handler on the process's stderr and stops
+    propagation: run in a test, that handler writes to pytest's captured stream after it is closed,
+    and later tests' ``caplog`` (on the root logger) no longer sees ``hil_sim``'s records.
+    """
+    import logging
+
+    saved = {}
+    for name in ("hil_sim", "piezod"):
+        lg = logging.getLogger(name)
+        saved[name] = (list(lg.handlers), lg.propagate, lg.level)
+    yield
+    for name, (handlers, propagate, level) in saved.items():
+        lg = logging.getLogger(name)
+        lg.handlers[:] = handlers
+        lg.propagate = propagate
+        lg.setLevel(level)
+
+
 @pytest.fixture(scope="session")
 def firmware_host_binary(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The host build of the C reference firmware, built once per session with ``make`` into a temp dir."""
