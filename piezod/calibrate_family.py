@@ -715,9 +715,7 @@ def _fit_bouc_wen(
     theta, w, kappa, tau, _, it = _alternate(s, features(z), f_rest, lam, slope_of_theta=slope)
     b, c = float(theta[0]), -float(theta[1])
     # the slope after a reversal is b + c M (BoucWenParams.min_slope_um_per_v): keep it positive
-    k_us, k_ub, k_ds, k_db = rates
-    n = exponent
-    m = max(1.0 + (k_ub * amp ** (1.0 / n) / k_ds) ** n, amp + (k_db / k_us) ** n)
+    m = BoucWenParams(b, 0.0, *rates, amp, exponent).reversal_rate
     c = max(c, -(1.0 - 2.0 * MIN_SLOPE_FRACTION) * b / m)
     law = BoucWenParams(b, c, *rates, amp, exponent)
     return theta, w, kappa, tau, it + evaluations, law, 6

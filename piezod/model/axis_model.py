@@ -172,7 +172,6 @@ class ThesisAxisModel(AxisModel):
         return dataclasses.replace(self, kappa_um_per_v=kappa_um_per_v, center_v=center_v)
 
 
-
 @dataclass(frozen=True)
 class DynamicAxisModel(AxisModel):
     """The time-domain model: ODE (2.21) + creep operator (:mod:`piezod.model.dynamic`)."""

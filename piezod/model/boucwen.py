@@ -113,15 +113,23 @@ class BoucWenParams:
     @property
     def min_slope_um_per_v(self) -> float:
         """Smallest ``dx_h/dV`` along any run from a state inside :attr:`h_range_v` (um/V)."""
-        lo, hi = self.h_range_v
         c = self.c_um_per_v
         if c >= 0.0:
             # the slope b + c du/dd is smallest where h reaches its saturation: b
             return self.b_um_per_v
+        return self.b_um_per_v + c * self.reversal_rate
+
+    @property
+    def reversal_rate(self) -> float:
+        """Largest ``du/dd`` ``M``: right after a reversal at the far end of :attr:`h_range_v`.
+
+        The slope of ``x_h`` along a run is ``b + c du/dd``, so for ``c < 0`` it is smallest,
+        ``b + c M``, there.
+        """
+        lo, hi = self.h_range_v
         n = self.exponent
-        up = self.b_um_per_v + c * (1.0 + math.pow(self.k_up_back * -lo, n))
-        down = self.b_um_per_v + c * (self.amp_down + math.pow(self.k_down_back * hi, n))
-        return min(up, down)
+        up = 1.0 + math.pow(self.k_up_back * -lo, n)
+        return max(up, self.amp_down + math.pow(self.k_down_back * hi, n))
 
     @classmethod
     def from_bouc_wen(
@@ -169,11 +177,11 @@ def _args(p: BoucWenParams) -> tuple[float, ...]:
     return (p.b_um_per_v, p.c_um_per_v, p.amp_down, *p.rates)
 
 
-def _forward_kernel(p: BoucWenParams, v: F64, u0: float, h0: float, out: F64) -> float:
-    """``x_h = b V + c h`` into ``out`` by the exponent's kernel; the last ``h``."""
-    if p.exponent == 1.0:
-        return float(kernels.bw_forward(v, *_args(p), u0, h0, out))
-    return float(kernels.bwn_forward(v, *_args(p), p.exponent, u0, h0, out))
+def _forward_kernel(v: F64, args: tuple[float, ...], n: float, u0: float, h0: float, out: F64) -> float:
+    """``b V + c h`` into ``out`` (``args`` as :func:`_args`) by exponent ``n``'s kernel; the last ``h``."""
+    if n == 1.0:
+        return float(kernels.bw_forward(v, *args, u0, h0, out))
+    return float(kernels.bwn_forward(v, *args, n, u0, h0, out))
 
 
 def creep_loop(
@@ -208,7 +216,7 @@ def boucwen_forward(
     if v.size == 0:
         return np.empty(0), state
     out = np.empty(v.size)
-    h = _forward_kernel(params, v, state.voltage_v, state.h_v, out)
+    h = _forward_kernel(v, _args(params), params.exponent, state.voltage_v, state.h_v, out)
     return out, BoucWenState(float(v[-1]), float(h), float(out[-1]))
 
 
@@ -238,10 +246,7 @@ def unit_hysteresis(
     """``h`` along ``voltage_v`` from rest at ``rest_voltage_v`` (a calibration feature)."""
     v = np.ascontiguousarray(voltage_v, dtype=np.float64)
     out = np.empty(v.size)
-    if exponent == 1.0:
-        kernels.bw_forward(v, 0.0, 1.0, amp_down, *rates, float(rest_voltage_v), 0.0, out)
-    else:
-        kernels.bwn_forward(v, 0.0, 1.0, amp_down, *rates, float(exponent), float(rest_voltage_v), 0.0, out)
+    _forward_kernel(v, (0.0, 1.0, amp_down, *rates), float(exponent), float(rest_voltage_v), 0.0, out)
     return out
 
 

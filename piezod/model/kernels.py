@@ -541,8 +541,6 @@ def _bwn_pow(x: float, n: float) -> float:
         return x * x
     if n == 3.0:
         return x * x * x
-    if n == 1.0:
-        return x
     return math.pow(x, n)
 
 
@@ -650,13 +648,14 @@ def _bwn_loop(
                     hi = d
                 else:
                     lo = d
-                der = big + c * _bwn_rate(u1, amp, k_same, k_back, n)
+                rate = _bwn_rate(u1, amp, k_same, k_back, n)
+                der = big + c * rate
                 nxt = d - val / der if der > 0.0 else 0.5 * (lo + hi)
                 if not (lo <= nxt <= hi):
                     nxt = 0.5 * (lo + hi)
                 if abs(nxt - d) <= 1e-10 * abs(nxt):
                     # a last step below 1e-10 of d: u moves with it at its rate (error ~ k (1e-10 d)^2)
-                    u1 += (nxt - d) * (der - big) / c if c != 0.0 else 0.0
+                    u1 += (nxt - d) * rate
                     d = nxt
                     break
                 d = nxt
