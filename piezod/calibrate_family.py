@@ -61,7 +61,7 @@ from piezod.model.boucwen import (
     unit_hysteresis,
 )
 from piezod.model.dynamic import MAX_TOTAL_CREEP
-from piezod.model.family import CREEP_DRIVERS, CreepSpectrum, FamilyParams
+from piezod.model.family import CREEP_DRIVERS, MAX_STIFFNESS_PCT_PER_UM, CreepSpectrum, FamilyParams
 from piezod.model.gplay import (
     GeneralisedPlayParams,
     basis_features,
@@ -82,6 +82,10 @@ GP_NODES = 3
 GP_CENTRE_SMOOTHING = 0.0
 #: Longest drive lag the fit considers (s).
 _MAX_LAG_S = 0.05
+#: Bound on the static map's ``kappa`` in the fits (the model's own limit). Unbounded, a law whose
+#: features include a static map of the voltage (the generalised play law's reversible part) trades
+#: ``kappa x_c^2`` against them without limit: the alternation then diverged on a unipolar stack.
+_MAX_KAPPA = MAX_STIFFNESS_PCT_PER_UM / 200.0
 
 
 # ------------------------------------------------------------------------------ the shared linear path
@@ -316,11 +320,15 @@ def _alternate(
     regressors are then the filtered voltages ``s (V + E[V])`` (else the filtered hysteretic
     positions).
     """
-    voltage = slope_of_theta is not None
-    sv: F64 = np.zeros(f_grid.shape[1]) if slope_of_theta is None else slope_of_theta
+    if slope_of_theta is not None:
+        return _voltage_fit(
+            s, f_grid, f_rest, lam, slope_of_theta, theta_reg=theta_reg, keep=keep,
+            max_iter=max_iter if not refine else max(max_iter, 40),
+        )
+    voltage = False
+    sv: F64 = np.zeros(f_grid.shape[1])
     data = s.data
     f = f_grid[data.compared]
-    # voltage-driven creep filters the voltage (column 0) only
     e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(1 if voltage else f_grid.shape[1])]
     n_f, m = f.shape[1], s.taus.size
     w = np.zeros(m)
@@ -352,8 +360,8 @@ def _alternate(
         else:
             a = np.column_stack([(1.0 + total) * f[:, j] + e_f[j] @ w for j in range(n_f)] + [xc * xc])
         ac = _centre(data, a)[tr]
-        lower = np.concatenate([np.full(n_f, 0.0), [-np.inf]])
-        upper = np.full(n_f + 1, np.inf)
+        lower = np.concatenate([np.full(n_f, 0.0), [-_MAX_KAPPA]])
+        upper = np.concatenate([np.full(n_f, np.inf), [_MAX_KAPPA]])
         lower[0] = 1e-9
         # a feature the training data never move (a play wider than any loop) stays at 0
         norms = np.linalg.norm(ac, axis=0)
@@ -362,7 +370,7 @@ def _alternate(
         upper[dead] = 0.0
         t_ridge = None if theta_reg is None else np.column_stack([theta_reg, np.zeros(theta_reg.shape[0])])
         coef, _ = solve_linear(
-            ac, yc + _centre(data, tau * rate)[tr], lower=lower, upper=upper, ridge=t_ridge
+            ac, yc + _centre(data, tau * rate)[tr], lower=lower, upper=upper, ridge=t_ridge, method="bvls"
         )
         theta, kappa = coef[:n_f], float(coef[-1])
         xh = f @ theta
@@ -387,6 +395,7 @@ def _alternate(
             lower=np.zeros(m),
             upper=np.full(m, MAX_TOTAL_CREEP / m),
             ridge=math.sqrt(lam) * scale * s.creep_reg,
+            method="bvls",
         )
         xc = b_cols @ w + xh if voltage else (1.0 + float(w.sum())) * xh + e_x @ w
         # the lag to first order, x(V lagged by tau) = x(V) - tau dx/dt: a 1-D least squares
@@ -410,6 +419,127 @@ def _alternate(
             s, f_grid, f_rest, lam, best, slope_of_theta=slope_of_theta, theta_reg=theta_reg, e_f=e_f
         )
     return best
+
+
+def _voltage_fit(
+    s: _Session,
+    f_grid: F64,
+    f_rest: F64,
+    lam: float,
+    slope_of_theta: F64,
+    *,
+    theta_reg: F64 | None = None,
+    keep: list[F64] | None = None,
+    max_iter: int = 40,
+    tol: float = 1e-7,
+) -> tuple[F64, F64, float, float, float, int]:
+    """Voltage-driven creep: ``(theta, w, kappa, tau_lag, rms_train, iterations)`` by Gauss-Newton.
+
+    With the creep driven by the voltage the position is ``x_c = F theta + s (W V + E[V] w)``
+    with ``s = slope_of_theta @ theta`` the law's rest slope: bilinear in ``theta`` and ``w``, but
+    *linear* in ``theta`` and ``c = s w`` (the creep per volt of each element). The fit solves
+    for ``(theta, c)`` jointly, so it never alternates along the valley where ``s`` and ``w``
+    trade off (an alternation there let the slope of a law with local densities -- the
+    generalised play law's at 0 V -- run away: 0.74 -> 2.9 -> 0.46 um/V in three steps and a
+    diverged fit); the static map ``kappa`` and the drive lag ``tau`` are the only nonlinear
+    parts, taken by Gauss-Newton steps on all coefficients (each a bounded, regularised
+    :func:`solve_linear`, accepted with step halving when the regularised training cost falls).
+    ``w = c / s`` at the end. ``keep`` receives the training residuals of the result.
+    """
+    data = s.data
+    f = f_grid[data.compared]
+    n_f, m = f.shape[1], s.taus.size
+    # x_creep = sum_k c_k (V + e_k[V]): column k is what c_k multiplies
+    cc = f[:, :1] + s.dev(f_grid[:, 0], float(f_rest[0]))
+    r_f = np.column_stack([_rate(data, f_grid[:, j]) for j in range(n_f)])
+    tr = s.train_rows
+    yc = s.yc[tr]
+    reg = s.creep_reg
+    ridge_scale = float(np.linalg.norm(_centre(data, cc)[tr])) / math.sqrt(m)
+    ridge = np.zeros((reg.shape[0], n_f + m + 2))
+    ridge[:, n_f : n_f + m] = math.sqrt(lam) * ridge_scale * reg
+    if theta_reg is not None:
+        extra = np.zeros((theta_reg.shape[0], n_f + m + 2))
+        extra[:, :n_f] = theta_reg
+        ridge = np.vstack([ridge, extra])
+    lower = np.concatenate([np.zeros(n_f + m), [-_MAX_KAPPA, 0.0]])
+    upper = np.concatenate([np.full(n_f + m, np.inf), [_MAX_KAPPA, _MAX_LAG_S]])
+    lower[0] = 1e-9
+    # a feature the training data never move (a play wider than any loop) stays at 0
+    norms = np.linalg.norm(_centre(data, f)[tr], axis=0)
+    dead = norms <= 1e-9 * float(np.max(norms))
+    lower[:n_f][dead] = 0.0
+    upper[:n_f][dead] = 0.0
+
+    def evaluate(p: F64) -> tuple[F64, F64, F64]:
+        theta, c, kappa, tau = p[:n_f], p[n_f : n_f + m], float(p[-2]), float(p[-1])
+        xc = f @ theta + cc @ c
+        rate = r_f @ theta + float(c.sum()) * r_f[:, 0]
+        return xc + kappa * xc * xc - tau * rate, xc, rate
+
+    def feasible(p: F64) -> F64:
+        # w_k = c_k / s <= MAX_TOTAL_CREEP / m with the slope s of this very point
+        out = p.copy()
+        cap = MAX_TOTAL_CREEP / m * max(float(slope_of_theta @ p[:n_f]), 0.0)
+        out[n_f : n_f + m] = np.minimum(out[n_f : n_f + m], cap)
+        return out
+
+    def cost(p: F64) -> tuple[float, F64]:
+        resid = (_centre(data, evaluate(p)[0]) - s.yc)[tr]
+        return float(resid @ resid) + float(np.sum((ridge @ p) ** 2)), resid
+
+    p = np.zeros(n_f + m + 2)
+    # the creep per volt is bounded through the slope (w_k = c_k / s <= MAX_TOTAL_CREEP / m): start
+    # from the law alone so the first joint step has a slope to bound by
+    first, _ = solve_linear(_centre(data, f)[tr], yc, lower=lower[:n_f], upper=upper[:n_f], method="bvls")
+    p[:n_f] = first
+    current, resid = cost(p)
+    it = 0
+    for it in range(1, max_iter + 1):
+        _, xc, rate = evaluate(p)
+        kappa, tau = float(p[-2]), float(p[-1])
+        chain = 1.0 + 2.0 * kappa * xc
+        jac = np.column_stack(
+            [
+                chain[:, None] * f - tau * r_f,
+                chain[:, None] * cc - tau * r_f[:, :1],
+                xc * xc,
+                -rate,
+            ]
+        )
+        jc = _centre(data, jac)[tr]
+        x0 = evaluate(p)[0]
+        target = (s.yc - _centre(data, x0))[tr] + jc @ p
+        slope = float(slope_of_theta @ p[:n_f])
+        if slope > 0.0:
+            upper[n_f : n_f + m] = MAX_TOTAL_CREEP / m * slope
+        lo, hi = lower.copy(), upper.copy()
+        if it == 1:
+            # without creep the static map and the lag have no column yet: they start at zero
+            lo[-2:] = hi[-2:] = 0.0
+        q, _ = solve_linear(jc, target, lower=lo, upper=hi, ridge=ridge, method="bvls")
+        step, accepted = 1.0, False
+        while step >= 1.0 / 1024.0:
+            trial = feasible(p + step * (q - p))
+            new, new_resid = cost(trial)
+            if new < current:
+                accepted = True
+                break
+            step *= 0.5
+        if not accepted:
+            it -= 1
+            break
+        gain = (current - new) / new
+        p, current, resid = trial, new, new_resid
+        if gain < tol:
+            break
+    theta, c, kappa, tau = p[:n_f], p[n_f : n_f + m], float(p[-2]), float(p[-1])
+    slope = float(slope_of_theta @ theta)
+    w = np.minimum(c / slope, MAX_TOTAL_CREEP / m) if slope > 0.0 else np.zeros(m)
+    if keep is not None:
+        keep[:] = [resid.copy()]
+    rms = float(np.sqrt(np.mean(resid**2)))
+    return theta.copy(), w, kappa, tau, rms, max(it, 1)
 
 
 def _joint_refine(
@@ -480,8 +610,8 @@ def _joint_refine(
     theta, w = theta.copy(), w.copy()
     if not math.isfinite(rms):
         return start
-    lower = np.concatenate([np.zeros(n_f), np.zeros(m), [-np.inf, 0.0]])
-    upper = np.concatenate([np.full(n_f, np.inf), np.full(m, MAX_TOTAL_CREEP / m), [np.inf, _MAX_LAG_S]])
+    lower = np.concatenate([np.zeros(n_f), np.zeros(m), [-_MAX_KAPPA, 0.0]])
+    upper = np.concatenate([np.full(n_f, np.inf), np.full(m, MAX_TOTAL_CREEP / m), [_MAX_KAPPA, _MAX_LAG_S]])
     lower[0] = 1e-9
     b = parts(theta, w, kappa, tau)[3]
     ridge_scale = float(np.linalg.norm(_centre(data, b)[tr])) / math.sqrt(m)
@@ -507,7 +637,7 @@ def _joint_refine(
             extra = np.zeros((theta_reg.shape[0], p0.size))
             extra[:, :n_f] = theta_reg
             ridge = np.vstack([ridge, extra])
-        p, _ = solve_linear(jc, target, lower=lower, upper=upper, ridge=ridge)
+        p, _ = solve_linear(jc, target, lower=lower, upper=upper, ridge=ridge, method="bvls")
         step = 1.0
         accepted = False
         while step >= 1.0 / 16.0:

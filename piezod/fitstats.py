@@ -25,6 +25,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import lsq_linear
 
+from piezod.errors import CalibrationError
+
 F64 = NDArray[np.float64]
 
 #: Singular values below this fraction of the largest count as zero (infinite variance).
@@ -360,6 +362,7 @@ def solve_linear(
     lower: F64 | None = None,
     upper: F64 | None = None,
     ridge: F64 | None = None,
+    method: str = "trf",
 ) -> tuple[F64, float]:
     """Bounded, optionally Tikhonov-regularised linear least squares ``min |A c - y|^2 + |R c|^2``.
 
@@ -378,6 +381,10 @@ def solve_linear(
         Bounds per coefficient (default unbounded).
     ridge
         Regularisation matrix ``R``, shape ``(k, p)`` (default none).
+    method
+        ``trf`` (trust-region reflective: any size) or ``bvls`` (an active-set method, exact to
+        rounding: for up to a few hundred coefficients whose columns are nearly collinear, where
+        ``trf`` stops short of the minimum).
 
     Returns
     -------
@@ -401,6 +408,7 @@ def solve_linear(
             lower=lo[free],
             upper=hi[free],
             ridge=None if ridge is None else ridge[:, free],
+            method=method,
         )
         c[free] = sub
         return c, float(np.sqrt(np.mean((a @ c - y) ** 2)))
@@ -417,6 +425,12 @@ def solve_linear(
         a_full, y_full = a, y
     scale = np.linalg.norm(a_full, axis=0)
     scale[scale == 0.0] = 1.0
-    res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="trf", lsmr_tol="auto")
-    sol: F64 = res.x / scale
+    if method == "bvls":
+        res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="bvls")
+    elif method == "trf":
+        res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="trf", lsmr_tol="auto")
+    else:
+        raise CalibrationError(f"unknown linear least-squares method {method!r} (trf, bvls)")
+    # the active-set solution may sit a rounding error outside its bounds
+    sol: F64 = np.clip(res.x / scale, lo, hi)
     return sol, float(np.sqrt(np.mean((a @ sol - y) ** 2)))

@@ -72,6 +72,9 @@ from piezod.model.play import (
 F64 = NDArray[np.float64]
 HysteresisLaw = HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams
 CREEP_DRIVERS = ("position", "voltage")
+#: Largest static stiffness map the model accepts (%/um): ``x + k x^2 / 200`` changes the
+#: sensitivity by ``k`` % per um, so 5 %/um is far beyond any stage (fits are bounded by it).
+MAX_STIFFNESS_PCT_PER_UM = 5.0
 #: Creep drivers whose per-sample inverse fits the streaming budget (<= 150 ns per sample and axis,
 #: ``piezod bench inverse``): both, since the voltage-driven loop is compiled (:mod:`piezod.model.kernels`).
 REALTIME_CREEP_DRIVERS = ("position", "voltage")
@@ -180,8 +183,11 @@ class FamilyParams:
             )
         if not (math.isfinite(self.lag_time_constant_s) and 0.0 <= self.lag_time_constant_s <= 1.0):
             raise ModelError(f"lag_time_constant_s must lie in [0, 1] s, got {self.lag_time_constant_s!r}")
-        if not (math.isfinite(self.stiffness_pct_per_um) and abs(self.stiffness_pct_per_um) <= 5.0):
-            raise ModelError(f"stiffness_pct_per_um must lie in [-5, 5], got {self.stiffness_pct_per_um!r}")
+        limit = MAX_STIFFNESS_PCT_PER_UM
+        if not (math.isfinite(self.stiffness_pct_per_um) and abs(self.stiffness_pct_per_um) <= limit):
+            raise ModelError(
+                f"stiffness_pct_per_um must lie in [-{limit:g}, {limit:g}], got {self.stiffness_pct_per_um!r}"
+            )
 
     @property
     def law(self) -> str:
