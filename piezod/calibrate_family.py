@@ -745,6 +745,10 @@ def _rest_position(
 #: Bounds of the Bouc-Wen (Duhem) law's searched rates: relaxation rates (1/V), the ratio of the
 #: recovery rate after a reversal to the saturating rate, and ``amp_down``.
 BW_RATE_BOUNDS = (1e-4, 0.3)
+#: The rate bounds are for sessions spanning at least this many volts; a narrower session's are
+#: scaled up by ``BW_SPAN_REF_V / span`` (``k x span``, how far a branch bends over the session's
+#: voltages, is what the data pin: a rate below ``1e-4 x 100 V / span`` cannot bend within them).
+BW_SPAN_REF_V = 100.0
 BW_RATIO_BOUNDS = (0.0, 3.0)
 BW_AMP_BOUNDS = (0.5, 2.0)
 #: The Bouc-Wen rate search: exponents and recovery ratios profiled (a scalar search of the rate,
@@ -753,6 +757,39 @@ BW_EXPONENTS = (1.0, 2.0, 3.0)
 BW_PROFILE_RATIOS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5)
 BW_PROFILE_EVALUATIONS = 14
 BW_POLISH_EVALUATIONS = 80
+#: A rejected Bouc-Wen candidate scores this many times :func:`_train_scale_um` (worse than any
+#: admissible one: a fit is at most as bad as a constant per experiment).
+BW_REJECT_FACTOR = 10.0
+
+
+def _train_scale_um(s: _Session) -> float:
+    """RMS of the centred training positions (um): what a constant per experiment leaves."""
+    return float(np.sqrt(np.mean(s.yc[s.train_rows] ** 2)))
+
+
+def _bw_admissible(theta: F64, rates: tuple[float, float, float, float], amp: float, exponent: float) -> bool:
+    """Whether the linear fit ``theta = (b, -c)`` is a law the slope limit leaves as it is.
+
+    The slope after a reversal, ``b + c M`` (:attr:`BoucWenParams.reversal_rate`), must stay >= 2
+    :data:`~piezod.model.boucwen.MIN_SLOPE_FRACTION` ``b`` (where :func:`_fit_bouc_wen` limits
+    ``c``). A fit beyond it is one the limit would change, by ``(c_fit - c_limit) h``: when ``b``
+    and ``-c`` nearly cancel (a rate so low the law cannot bend within the session's voltages,
+    ``h`` almost ``V``), that is the whole position many times over.
+    """
+    b, c = float(theta[0]), -float(theta[1])
+    if not (math.isfinite(b) and math.isfinite(c) and b > 0.0):
+        return False
+    m = BoucWenParams(b, 0.0, *rates, amp, exponent).reversal_rate
+    return c >= -(1.0 - 2.0 * MIN_SLOPE_FRACTION) * b / m
+
+
+def _bw_rate_bounds(data: DynamicCalibrationData) -> tuple[float, float]:
+    """The searched rates (1/V): :data:`BW_RATE_BOUNDS`, scaled up on a session narrower than
+    :data:`BW_SPAN_REF_V`."""
+    v = data.hysteresis_voltage_v
+    span = float(np.max(v) - np.min(v)) if v.size else 0.0
+    scale = BW_SPAN_REF_V / span if 0.0 < span < BW_SPAN_REF_V else 1.0
+    return (BW_RATE_BOUNDS[0] * scale, BW_RATE_BOUNDS[1] * scale)
 
 
 def _bw_unpack(z: F64) -> tuple[tuple[float, float, float, float], float]:
@@ -781,13 +818,25 @@ def _fit_bouc_wen(
     ``c`` is then limited so the slope after a reversal stays >=
     :data:`~piezod.model.boucwen.MIN_SLOPE_FRACTION` of ``b``.
 
+    The rates are searched in :func:`_bw_rate_bounds` (scaled up on a session spanning less than
+    :data:`BW_SPAN_REF_V`). A candidate whose linear fit is not finite or is one that limit would
+    change (:func:`_bw_admissible`) is rejected: it scores a flat residual of
+    :data:`BW_REJECT_FACTOR` times the centred data, above every admissible one, so neither the
+    profile nor the polish can pick it.
+
     Returns ``(theta, w, kappa, tau, iterations, law, searched parameters)``.
+
+    Raises
+    ------
+    CalibrationError
+        Every profiled candidate was rejected.
     """
     data = s.data
     rest = data.rest_voltage_v
     f_rest = np.array([rest, 0.0])
     slope = np.array([1.0, 0.0]) if voltage else None
     n_train = int(np.count_nonzero(s.train_rows))
+    reject = np.full(n_train, BW_REJECT_FACTOR * _train_scale_um(s))
     exponent = 1.0
     evaluations = 0
 
@@ -800,15 +849,21 @@ def _fit_bouc_wen(
         nonlocal evaluations
         evaluations += 1
         keep: list[F64] = []
-        _alternate(s, features(z), f_rest, lam, max_iter=4, slope_of_theta=slope, refine=False, keep=keep)
-        # a law the linear fit cannot use at all (no finite step): a large, flat residual
-        return keep[0] if keep else np.full(n_train, 1e3)
+        theta = _alternate(
+            s, features(z), f_rest, lam, max_iter=4, slope_of_theta=slope, refine=False, keep=keep
+        )[0]
+        rates, amp = _bw_unpack(z)
+        if keep and np.all(np.isfinite(keep[0])) and _bw_admissible(theta, rates, amp, exponent):
+            return keep[0]
+        # no finite step, or a law the slope limit would have to change (its score is not the
+        # returned law's): rejected, a flat residual above any admissible one
+        return reject
 
     def cost(z: F64) -> float:
         r = residuals(z)
         return float(np.sqrt(np.mean(r * r)))
 
-    lo, hi = (math.log(b) for b in BW_RATE_BOUNDS)
+    lo, hi = (math.log(b) for b in _bw_rate_bounds(data))
     best_z, best, best_n = np.zeros(5), math.inf, 1.0
     last = math.inf
     for exponent in BW_EXPONENTS:
@@ -827,6 +882,11 @@ def _fit_bouc_wen(
         if here >= last:
             break  # sharper than the last exponent fits worse: the next, sharper still, is not tried
         last = here
+    if best >= float(reject[0]):
+        raise CalibrationError(
+            "family fit (bouc-wen): no searched rates give an admissible law (every candidate's "
+            "fit diverged or needs a slope after a reversal below the limit)"
+        )
     exponent = best_n
     amp_lo, amp_hi = (math.log(b) for b in BW_AMP_BOUNDS)
     lower = np.array([lo, lo, BW_RATIO_BOUNDS[0], BW_RATIO_BOUNDS[0], amp_lo])
@@ -901,7 +961,9 @@ def fit_family(
     Raises
     ------
     CalibrationError
-        Unknown law, or the fit gives parameters the model refuses.
+        Unknown law, or the fit gives parameters the model refuses; the Bouc-Wen law's search
+        finds no admissible rates, or its law fits the training rows worse than a constant per
+        experiment.
     """
     if law not in LAWS:
         raise CalibrationError(f"unknown hysteresis law {law!r} (one of {', '.join(LAWS)})")
@@ -1009,7 +1071,15 @@ def fit_family(
     n_coefficients = theta.size + taus.size + 2 + int(law == "coleman-hodgdon" and alpha_per_v is None)
     if law == "bouc-wen":
         n_coefficients += searched
-    return _result(s, params, it, n_coefficients, t0)
+    fit = _result(s, params, it, n_coefficients, t0)
+    if law == "bouc-wen" and not fit.rms_um <= _train_scale_um(s):
+        # the returned law, not the search's linear fit, is what is scored: never hand back a law
+        # that fits worse than a constant per experiment
+        raise CalibrationError(
+            f"family fit (bouc-wen) failed: training RMS {fit.rms_um:.3g} um, worse than a constant "
+            f"per experiment ({_train_scale_um(s):.3g} um)"
+        )
+    return fit
 
 
 @dataclass(frozen=True, eq=False)
@@ -1029,6 +1099,13 @@ class ModelChoice:
         Training RMS per candidate (um).
     holdout
         Indices of the held-out experiments.
+    fits
+        The family members' fits on the training experiments, by candidate name.
+    not_adoptable
+        Candidates fitted and scored but never chosen (creep driver not adoptable).
+    failed
+        Candidates whose fit failed (:class:`~piezod.errors.CalibrationError`), with its message:
+        skipped by the choice.
     """
 
     chosen: str
@@ -1038,9 +1115,10 @@ class ModelChoice:
     holdout: tuple[int, ...]
     fits: dict[str, FamilyFit] = field(default_factory=dict)
     not_adoptable: tuple[str, ...] = ()
+    failed: dict[str, str] = field(default_factory=dict)
 
     def table(self) -> str:
-        """One line per candidate: training and held-out RMS, the chosen one marked."""
+        """One line per candidate: training and held-out RMS, the chosen one marked; failed fits last."""
         lines = [f"{'model':<40} {'train RMS (nm)':>15} {'held-out RMS (nm)':>18}"]
         for name in self.heldout_rms_um:
             mark = "  <- chosen" if name == self.chosen else ""
@@ -1048,6 +1126,8 @@ class ModelChoice:
                 mark = "  (not adopted: its inverse is too slow for streaming)"
             train, held = 1e3 * self.train_rms_um[name], 1e3 * self.heldout_rms_um[name]
             lines.append(f"{name:<40} {train:>15.2f} {held:>18.2f}{mark}")
+        for name, reason in self.failed.items():
+            lines.append(f"{name:<40} {'failed':>15} {'-':>18}  ({reason})")
         return "\n".join(lines)
 
 
@@ -1095,17 +1175,29 @@ def choose_model(
     adoptable_drivers
         Creep drivers the choice may adopt; the others are fitted and scored but never chosen
         (the daemon passes :data:`piezod.model.family.REALTIME_CREEP_DRIVERS`).
+
+    Raises
+    ------
+    CalibrationError
+        No candidate is left to choose (every fit failed, or every one left is not adoptable),
+        or the refit of the chosen one fails. A candidate whose fit fails is skipped and listed in
+        :attr:`ModelChoice.failed` (shown by :meth:`ModelChoice.table`).
     """
     train = holdout_mask(data.n_experiments, holdout_every)
     heldout: dict[str, float] = {}
     train_rms: dict[str, float] = {}
     fits: dict[str, FamilyFit] = {}
+    failed: dict[str, str] = {}
     for law in laws:
         for driver in creep_drivers:
-            fit = fit_family(
-                data, law, train=train, plays=plays, alpha_per_v=alpha_per_v, creep_driver=driver
-            )
             name = f"family/{law}" + ("/voltage-creep" if driver == "voltage" else "")
+            try:
+                fit = fit_family(
+                    data, law, train=train, plays=plays, alpha_per_v=alpha_per_v, creep_driver=driver
+                )
+            except CalibrationError as exc:
+                failed[name] = str(exc)
+                continue
             fits[name] = fit
             heldout[name] = fit.heldout_rms_um
             train_rms[name] = fit.rms_um
@@ -1117,6 +1209,9 @@ def choose_model(
         heldout[name] = float(np.sqrt(np.mean(resid[s.test_rows] ** 2))) if s.test_rows.any() else math.nan
     blocked = tuple(k for k, f in fits.items() if f.params.creep_driver not in adoptable_drivers)
     scores = {k: (v if math.isfinite(v) else train_rms[k]) for k, v in heldout.items() if k not in blocked}
+    if not scores:
+        reasons = "; ".join(f"{k}: {v}" for k, v in failed.items()) or "every candidate is not adoptable"
+        raise CalibrationError(f"no model to choose: {reasons}")
     chosen = min(scores, key=lambda k: scores[k])
     final = None
     if chosen in fits:
@@ -1128,7 +1223,7 @@ def choose_model(
             creep_driver=fits[chosen].params.creep_driver,
         )
     holdout = tuple(int(i) for i in np.flatnonzero(~train))
-    return ModelChoice(chosen, final, heldout, train_rms, holdout, fits, blocked)
+    return ModelChoice(chosen, final, heldout, train_rms, holdout, fits, blocked, failed)
 
 
 def family_model_config(params: FamilyParams) -> FamilyModelConfig:
