@@ -315,21 +315,26 @@ def _alternate(
     ``refine`` continues with joint Gauss-Newton steps (:func:`_joint_refine`).
 
     The drive lag enters to first order: ``x(V lagged by tau) = x(V) - tau dx/dt``.
-    ``slope_of_theta`` selects voltage-driven creep: the law's rest slope is
-    ``slope_of_theta @ theta`` and column 0 of ``f_grid`` is the drive voltage; the creep
-    regressors are then the filtered voltages ``s (V + E[V])`` (else the filtered hysteretic
-    positions).
+    The creep regressors are the filtered hysteretic positions. ``slope_of_theta`` selects
+    voltage-driven creep instead (the law's rest slope is ``slope_of_theta @ theta`` and column 0
+    of ``f_grid`` is the drive voltage): that fit is linear in the law and the creep per volt and
+    is solved by :func:`_voltage_fit` (``max_iter`` Gauss-Newton steps, at least 40 with
+    ``refine``).
     """
     if slope_of_theta is not None:
         return _voltage_fit(
-            s, f_grid, f_rest, lam, slope_of_theta, theta_reg=theta_reg, keep=keep,
-            max_iter=max_iter if not refine else max(max_iter, 40),
+            s,
+            f_grid,
+            f_rest,
+            lam,
+            slope_of_theta,
+            theta_reg=theta_reg,
+            keep=keep,
+            max_iter=max(max_iter, 40) if refine else max_iter,
         )
-    voltage = False
-    sv: F64 = np.zeros(f_grid.shape[1])
     data = s.data
     f = f_grid[data.compared]
-    e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(1 if voltage else f_grid.shape[1])]
+    e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(f_grid.shape[1])]
     n_f, m = f.shape[1], s.taus.size
     w = np.zeros(m)
     kappa = 0.0
@@ -354,11 +359,7 @@ def _alternate(
     while it < max_iter:
         it += 1
         total = float(w.sum())
-        if voltage:
-            cv = total * f[:, 0] + e_f[0] @ w
-            a = np.column_stack([f[:, j] + sv[j] * cv for j in range(n_f)] + [xc * xc])
-        else:
-            a = np.column_stack([(1.0 + total) * f[:, j] + e_f[j] @ w for j in range(n_f)] + [xc * xc])
+        a = np.column_stack([(1.0 + total) * f[:, j] + e_f[j] @ w for j in range(n_f)] + [xc * xc])
         ac = _centre(data, a)[tr]
         lower = np.concatenate([np.full(n_f, 0.0), [-_MAX_KAPPA]])
         upper = np.concatenate([np.full(n_f, np.inf), [_MAX_KAPPA]])
@@ -374,18 +375,11 @@ def _alternate(
         )
         theta, kappa = coef[:n_f], float(coef[-1])
         xh = f @ theta
-        if voltage:
-            slope = float(sv @ theta)
-            e_x = slope * e_f[0]
-            xc_new = xh + slope * (total * f[:, 0] + e_f[0] @ w)
-            b_cols = slope * (f[:, 0][:, None] + e_f[0])
-            rate = _rate(data, f_grid @ theta) + slope * total * _rate(data, f_grid[:, 0])
-        else:
-            e_x = sum(theta[j] * e_f[j] for j in range(n_f))
-            assert isinstance(e_x, np.ndarray)
-            xc_new = (1.0 + total) * xh + e_x @ w
-            b_cols = xh[:, None] + e_x
-            rate = (1.0 + total) * _rate(data, f_grid @ theta)
+        e_x = sum(theta[j] * e_f[j] for j in range(n_f))
+        assert isinstance(e_x, np.ndarray)
+        xc_new = (1.0 + total) * xh + e_x @ w
+        b_cols = xh[:, None] + e_x
+        rate = (1.0 + total) * _rate(data, f_grid @ theta)
         target = s.yc - _centre(data, xh + kappa * xc_new * xc_new - tau * rate)
         bc = _centre(data, b_cols)
         scale = float(np.linalg.norm(bc[tr])) / math.sqrt(m)
@@ -397,7 +391,7 @@ def _alternate(
             ridge=math.sqrt(lam) * scale * s.creep_reg,
             method="bvls",
         )
-        xc = b_cols @ w + xh if voltage else (1.0 + float(w.sum())) * xh + e_x @ w
+        xc = (1.0 + float(w.sum())) * xh + e_x @ w
         # the lag to first order, x(V lagged by tau) = x(V) - tau dx/dt: a 1-D least squares
         without = _centre(data, xc + kappa * xc * xc) - s.yc
         rate_c = _centre(data, rate)
@@ -415,9 +409,7 @@ def _alternate(
             if stall >= 2:
                 break
     if refine:
-        return _joint_refine(
-            s, f_grid, f_rest, lam, best, slope_of_theta=slope_of_theta, theta_reg=theta_reg, e_f=e_f
-        )
+        return _joint_refine(s, f_grid, lam, best, e_f, theta_reg=theta_reg)
     return best
 
 
@@ -545,13 +537,11 @@ def _voltage_fit(
 def _joint_refine(
     s: _Session,
     f_grid: F64,
-    f_rest: F64,
     lam: float,
     start: tuple[F64, F64, float, float, float, int],
+    e_f: list[F64],
     *,
-    slope_of_theta: F64 | None = None,
     theta_reg: F64 | None = None,
-    e_f: list[F64] | None = None,
     max_iter: int = 40,
     tol: float = 1e-6,
 ) -> tuple[F64, F64, float, float, float, int]:
@@ -562,16 +552,12 @@ def _joint_refine(
     stiffness and the lag (chain rule through ``x_c + kappa x_c^2 - tau dx/dt``) every step is one
     bounded, regularised linear least-squares problem in all coefficients at once
     (:func:`solve_linear`), accepted with step halving only when the regularised training cost
-    falls.
+    falls. ``e_f`` are the creep deviations of every feature column (position-driven creep).
     """
     data = s.data
-    voltage = slope_of_theta is not None
-    sv: F64 = np.zeros(f_grid.shape[1]) if slope_of_theta is None else slope_of_theta
     f = f_grid[data.compared]
     n_f, m = f.shape[1], s.taus.size
-    if e_f is None:
-        e_f = [s.dev(f_grid[:, j], float(f_rest[j])) for j in range(1 if voltage else n_f)]
-    stacked = None if voltage else np.stack(e_f)
+    stacked = np.stack(e_f)
     rates = np.column_stack([_rate(data, f_grid[:, j]) for j in range(n_f)])
     tr = s.train_rows
     reg = s.creep_reg
@@ -579,20 +565,11 @@ def _joint_refine(
     def parts(theta: F64, w: F64, kappa: float, tau: float) -> tuple[F64, F64, F64, F64, F64, F64]:
         total = float(w.sum())
         xh = f @ theta
-        if voltage:
-            slope = float(sv @ theta)
-            cv = total * f[:, 0] + e_f[0] @ w
-            xc = xh + slope * cv
-            a = f + np.outer(cv, sv)
-            b = slope * (f[:, 0][:, None] + e_f[0])
-            rate_cols = rates + total * np.outer(rates[:, 0], sv)
-        else:
-            assert stacked is not None
-            e_x = np.tensordot(theta, stacked, axes=1)
-            xc = (1.0 + total) * xh + e_x @ w
-            a = (1.0 + total) * f + (stacked @ w).T
-            b = xh[:, None] + e_x
-            rate_cols = (1.0 + total) * rates
+        e_x = np.tensordot(theta, stacked, axes=1)
+        xc = (1.0 + total) * xh + e_x @ w
+        a = (1.0 + total) * f + (stacked @ w).T
+        b = xh[:, None] + e_x
+        rate_cols = (1.0 + total) * rates
         rate = rate_cols @ theta
         x = xc + kappa * xc * xc - tau * rate
         return x, xc, a, b, rate, rate_cols
@@ -623,8 +600,8 @@ def _joint_refine(
     for _ in range(max_iter):
         x, xc, a, b, rate, rate_cols = parts(theta, w, kappa, tau)
         chain = 1.0 + 2.0 * kappa * xc
-        # d rate / d w_i: the creep's instantaneous share scales the rate of its driver
-        rate_w = float(sv @ theta) * rates[:, 0] if voltage else rates @ theta
+        # d rate / d w_i: the creep's instantaneous share scales the rate of the position
+        rate_w = rates @ theta
         jac = np.column_stack(
             [chain[:, None] * a - tau * rate_cols, chain[:, None] * b - tau * rate_w[:, None], xc * xc, -rate]
         )
@@ -745,6 +722,8 @@ def _rest_position(
 #: Bounds of the Bouc-Wen (Duhem) law's searched rates: relaxation rates (1/V), the ratio of the
 #: recovery rate after a reversal to the saturating rate, and ``amp_down``.
 BW_RATE_BOUNDS = (1e-4, 0.3)
+#: Bounds of the Coleman-Hodgdon law's searched ``alpha`` (1/V), scaled like the Bouc-Wen rates.
+CH_ALPHA_BOUNDS = (1e-4, 0.1)
 #: The rate bounds are for sessions spanning at least this many volts; a narrower session's are
 #: scaled up by ``BW_SPAN_REF_V / span`` (``k x span``, how far a branch bends over the session's
 #: voltages, is what the data pin: a rate below ``1e-4 x 100 V / span`` cannot bend within them).
@@ -783,12 +762,18 @@ def _bw_admissible(theta: F64, rates: tuple[float, float, float, float], amp: fl
     return c >= -(1.0 - 2.0 * MIN_SLOPE_FRACTION) * b / m
 
 
+def _span_scale(data: DynamicCalibrationData) -> float:
+    """``BW_SPAN_REF_V / span`` on a session spanning fewer volts, else 1: the factor on the
+    searched rates (1/V) of the Bouc-Wen and Coleman-Hodgdon laws."""
+    v = data.hysteresis_voltage_v
+    span = float(np.max(v) - np.min(v)) if v.size else 0.0
+    return BW_SPAN_REF_V / span if 0.0 < span < BW_SPAN_REF_V else 1.0
+
+
 def _bw_rate_bounds(data: DynamicCalibrationData) -> tuple[float, float]:
     """The searched rates (1/V): :data:`BW_RATE_BOUNDS`, scaled up on a session narrower than
     :data:`BW_SPAN_REF_V`."""
-    v = data.hysteresis_voltage_v
-    span = float(np.max(v) - np.min(v)) if v.size else 0.0
-    scale = BW_SPAN_REF_V / span if 0.0 < span < BW_SPAN_REF_V else 1.0
+    scale = _span_scale(data)
     return (BW_RATE_BOUNDS[0] * scale, BW_RATE_BOUNDS[1] * scale)
 
 
@@ -1019,9 +1004,7 @@ def fit_family(
             used = np.flatnonzero(theta[1:] > 0.0)
             used = used if used.size else np.array([0])
             weights = theta[1:][used] / b
-            hyst = PlayParams(
-                b, float(theta[0] / b), tuple(map(float, r[used])), tuple(map(float, weights))
-            )
+            hyst = PlayParams(b, float(theta[0] / b), tuple(map(float, r[used])), tuple(map(float, weights)))
         else:
             ch_slope = np.array([1.0, 0.0]) if voltage else None
 
@@ -1038,12 +1021,19 @@ def fit_family(
                     slope_of_theta=ch_slope,
                     refine=False,
                 )
+                b_fit, delta_fit = float(res[0][0]), float(res[0][1])
+                if not (math.isfinite(res[4]) and b_fit > 0.0 and b_fit - alpha * delta_fit > 1e-6 * b_fit):
+                    # the slope after a reversal u = b - alpha delta would have to be clamped: the
+                    # score is not the returned law's (b and delta cancel where the law cannot bend)
+                    return reject, res[0], res[1], res[2], res[5]
                 return res[4], res[0], res[1], res[2], res[5]
 
+            reject = BW_REJECT_FACTOR * _train_scale_um(s)
             if alpha_per_v is None:
+                scale = _span_scale(data)
                 best = minimize_scalar(
                     lambda la: run(la)[0],
-                    bounds=(math.log(1e-4), math.log(0.1)),
+                    bounds=(math.log(CH_ALPHA_BOUNDS[0] * scale), math.log(CH_ALPHA_BOUNDS[1] * scale)),
                     method="bounded",
                     options={"xatol": 0.05, "maxiter": 14},
                 )
@@ -1056,7 +1046,12 @@ def fit_family(
                 s, f_grid, np.array([rest_v, 0.0]), regularisation, slope_of_theta=ch_slope
             )
             b, delta = float(theta[0]), float(theta[1])
-            u = max(b - alpha * delta, 1e-6 * b)
+            if not b - alpha * delta > 1e-6 * b:
+                raise CalibrationError(
+                    f"family fit (coleman-hodgdon): at alpha = {alpha:.3g} 1/V the slope after a reversal, "
+                    f"b - alpha delta = {b - alpha * delta:.3g} um/V, is not positive (no admissible law)"
+                )
+            u = b - alpha * delta
             hyst = HysteresisParams(alpha, b, u)
         params = FamilyParams(
             hyst,

@@ -428,7 +428,9 @@ def solve_linear(
     if method == "bvls":
         res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="bvls")
     elif method == "trf":
-        res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="trf", lsmr_tol="auto")
+        res = lsq_linear(
+            a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="trf", lsmr_tol="auto"
+        )
     else:
         raise CalibrationError(f"unknown linear least-squares method {method!r} (trf, bvls)")
     # the active-set solution may sit a rounding error outside its bounds

@@ -183,6 +183,10 @@ class VerifyPoint:
     note: str = ""
 
 
+#: Share of the voltage span the checked verification scans keep from the limits.
+CHECK_MARGIN = 0.03
+
+
 def check_points(
     config: ScannerConfig,
     points: Sequence[VerifyPoint],
@@ -202,7 +206,10 @@ def check_points(
     point: 10 % steps, never inside the frame) or shrunk (its range, 10 % steps), and says so in
     :attr:`VerifyPoint.note`; one that cannot be placed keeps its setting with a note saying it
     clamps (its figures are then not the model's). The check starts from the stage resting at
-    ``start_v`` (default: the axis's safe voltage).
+    ``start_v`` (default: the axis's safe voltage), while the run starts from the state the frame
+    left (the model switched in from the stage's voltage and position): the scans are placed
+    :data:`CHECK_MARGIN` of the voltage span inside the limits (never past the safe voltage), so a
+    point the check placed is not refused or clamped for a state it could not know.
     """
     import copy
     import dataclasses
@@ -213,12 +220,19 @@ def check_points(
     from piezod.trajectory import RasterTrajectory
 
     ax = config.axes[axis]
+    home = _home_um(config, axis, 0.5 * (ax.voltage_max_v + ax.voltage_min_v))
+    margin = CHECK_MARGIN * (ax.voltage_max_v - ax.voltage_min_v)
+    ax = ax.model_copy(
+        update={
+            "voltage_min_v": min(ax.voltage_min_v + margin, ax.safe_voltage_v),
+            "voltage_max_v": max(ax.voltage_max_v - margin, ax.safe_voltage_v),
+        }
+    )
     rate = float(config.sample_rate_hz)
     driver = AxisDriver(axis, ax, rate)
     driver.reset(ax.safe_voltage_v if start_v is None else start_v)
     drivers: dict[str, AxisDriver] = {axis: driver}
     block = 4096
-    home = _home_um(config, axis, 0.5 * (ax.voltage_max_v + ax.voltage_min_v))
 
     def clamps(pt: VerifyPoint, n_lines: int) -> tuple[int, dict[str, AxisDriver]]:
         trial = copy.deepcopy(drivers)

@@ -197,3 +197,30 @@ def test_the_bouc_wen_fit_finds_a_sharp_knee_exponent() -> None:
         first = fit_family(data, "bouc-wen", train=train).heldout_rms_um
     assert held < 0.25 * first, (held, first)
     assert held < 0.010
+
+
+@cache
+def _stack_session() -> DynamicCalibrationData:
+    path = resolve_stage("stack-holdout-stage")
+    assert path is not None
+    stage = StageConfig.from_file(path)
+    plan = calibration_plan((60.0, 120.0), (0.5, 2.0), (40.0, 55.0), cycles=2, settle_cycles=1)
+    sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-20.0, 120.0))
+    return prepare_dynamic(session_experiments(sess), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
+
+
+@pytest.mark.parametrize("driver", ["position", "voltage"])
+def test_the_generalised_play_law_fits_at_least_as_well_as_its_special_case(driver: str) -> None:
+    """stack-holdout-stage (a unipolar Preisach stack with narrow relays; developed against since
+    session 7): the generalised play law contains the Prandtl-Ishlinskii law, so it may not train
+    worse. Until session 7 it did (31 against 19.6 nm on the full frame): with voltage-driven creep
+    the alternation let the law's slope at 0 V run away and diverged, and ``lsq_linear``'s
+    trust-region method stopped short of the minimum on its near-collinear columns."""
+    data = _stack_session()
+    train = holdout_mask(data.n_experiments, 3)
+    pi = fit_family(data, "prandtl-ishlinskii", train=train, creep_driver=driver)
+    gp = fit_family(data, "generalised-play", train=train, creep_driver=driver)
+    assert gp.rms_um <= 1.02 * pi.rms_um
+    assert gp.heldout_rms_um < 0.5 * pi.heldout_rms_um
+    # sensor noise 2 nm rms; the law the stage follows is in the fitted family
+    assert gp.heldout_rms_um < 0.008
