@@ -394,6 +394,17 @@ def resonance_step(
     state : ResonanceState
         State after the block.
     """
+    w0 = 2.0 * math.pi * effect.f0_hz
+    w_d = w0 * math.sqrt(max(0.0, 1.0 - 1.0 / (4.0 * effect.q * effect.q)))
+    if w_d * dt_s >= 0.5 * math.pi:
+        # a step too long for the discretisation's state recovery (an idle hold of the board):
+        # the same first-order hold on sub-steps, the input linear between the samples
+        k = math.ceil(w_d * dt_s / (0.25 * math.pi))
+        xs = np.concatenate([np.asarray(state.input_um, dtype=np.float64)[:, None], x_um], axis=1)
+        frac = np.arange(1, k + 1, dtype=np.float64) / k
+        up = xs[:, :-1, None] + (xs[:, 1:, None] - xs[:, :-1, None]) * frac
+        y_up, after = resonance_step(effect, up.reshape(x_um.shape[0], -1), dt_s / k, state)
+        return y_up[:, k - 1 :: k], after
     c = _resonance_discrete(effect.f0_hz, effect.q, dt_s)
     (p00, p01), (p10, p11) = c.phi
     p0, v0, u0 = state.position_um, state.velocity_um_per_s, state.input_um

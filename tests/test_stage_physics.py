@@ -270,3 +270,22 @@ def test_hil_sim_stage_does_not_import_piezod() -> None:
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_a_resonance_steps_through_an_idle_hold_longer_than_its_period() -> None:
+    """The board steps the stage through an idle hold in one step of ~0.1 s; a resonance of 1.1 kHz
+    used to refuse it ("needs a sample rate above 2442 Hz"), so `piezod sim` died at start-up on a
+    preset with a resonance. Long steps are sub-stepped: the same as the input played finely."""
+    from hil_sim.effects import ResonanceEffect, resonance_rest_state, resonance_step
+
+    fx = ResonanceEffect(f0_hz=1100.0, q=12.0)
+    x = np.array([[0.0, 3.0, 3.0, -1.0]])
+    coarse, after = resonance_step(fx, x, 0.1, resonance_rest_state(np.array([0.0])))
+    k = 2000
+    fine_in = np.concatenate(
+        [np.linspace(a, b, k + 1)[1:] for a, b in zip([0.0, *x[0, :-1]], x[0], strict=True)]
+    )[None, :]
+    fine, fine_after = resonance_step(fx, fine_in, 0.1 / k, resonance_rest_state(np.array([0.0])))
+    np.testing.assert_allclose(coarse[0], fine[0, k - 1 :: k], atol=1e-9)
+    np.testing.assert_allclose(after.position_um, fine_after.position_um, atol=1e-9)
+    np.testing.assert_allclose(after.velocity_um_per_s, fine_after.velocity_um_per_s, atol=1e-6)
