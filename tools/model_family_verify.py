@@ -69,6 +69,29 @@ def markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def summary_table(paths: list[str]) -> str:
+    """One markdown row per saved run: the chosen model, its held-out RMS, the worst figures."""
+    lines = [
+        "| stage | chosen | held-out RMS (nm) | inside: max nonlin. / max abs length err. (%)"
+        " | outside: max abs length err. (%) |",
+        "|---|---|---|---|---|",
+    ]
+    for p in paths:
+        r = json.loads(Path(p).read_text())
+        rep = r["choice"]
+        inside = r["summary"].get(f"{rep['chosen'].split('/')[0]}/inside") or next(
+            v for k, v in r["summary"].items() if k.endswith("/inside")
+        )
+        outside = next(v for k, v in r["summary"].items() if k.endswith("/outside"))
+        lines.append(
+            f"| `{Path(r['stage']).stem.removeprefix('sim-')}` | {rep['chosen']} |"
+            f" {1e3 * rep['heldout_rms_um'][rep['chosen']]:.2f} |"
+            f" {inside['max_nonlinearity_pct']:.3f} / {inside['max_abs_length_error_pct']:.3f} |"
+            f" {outside['max_abs_length_error_pct']:.3f} |"
+        )
+    return "\n".join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--stage", default="pi-stage", help="preset name or scanner YAML with simulation:")
@@ -81,7 +104,13 @@ def main() -> int:
     ap.add_argument(
         "--markdown", default=None, metavar="F.json", help="print the tables of a saved --json run"
     )
+    ap.add_argument(
+        "--summary", nargs="+", default=None, metavar="F.json", help="one row per saved --json run"
+    )
     args = ap.parse_args()
+    if args.summary:
+        print(summary_table(args.summary))
+        return 0
     if args.markdown:
         print(markdown(json.loads(Path(args.markdown).read_text())))
         return 0
