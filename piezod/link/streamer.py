@@ -615,7 +615,8 @@ class Streamer:
         the host computed and queued samples up to the index it claimed played (minutes of
         samples ahead of the clock, played out after the next rewind: a scan started meanwhile
         waited for them). It is counted (:attr:`StreamStats.implausible_status`), logged once,
-        and not acted on; the next plausible STATUS is.
+        and not acted on; the next plausible STATUS is. (One that a genuine STATUS replaced before
+        the feeding thread looked is neither acted on nor counted.)
         """
         caps = self.session.capabilities
         depth = caps.fifo_depth_samples if caps is not None else None
