@@ -368,7 +368,7 @@ def test_forged_frames_around_a_stop_leave_the_next_scan_alone(tmp_path: Path) -
     recorded scan. Held: the new scan ends in its own time (before: the daemon computed the 25 s of
     samples the STATUS claimed played, and the new scan waited for them to be played first; the fuzz
     test's STATUS frames claim up to 10**7), its recording is complete with every row, no sensor gap
-    is reported, the STATUS and the frame of rows never sent are logged as ignored.
+    is reported, the frame of rows never sent is logged as ignored.
     """
     proxy = FuzzProxy(1e-9, seed=13)
     try:
@@ -404,8 +404,8 @@ def test_forged_frames_around_a_stop_leave_the_next_scan_alone(tmp_path: Path) -
             _no_crash(d)
             st = c.status()
             assert not [f for f in st.faults if f.code == "SENSOR_GAP"], st.faults
-            log = d.log_text()
-            assert "implausible STATUS ignored" in log and "SENSOR frame ignored" in log
+            # (the STATUS is logged only if the streamer looked before the next genuine one came)
+            assert "SENSOR frame ignored: rows 1099511627776.." in d.log_text()
         for axis in ("x", "y"):
             t = rec.t_s[rec.axis == axis]
             assert np.allclose(np.diff(t), 1.0 / rate), axis  # every row, once
