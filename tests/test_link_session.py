@@ -20,9 +20,14 @@ from firmware_proto import (
     BoardState,
     Capabilities,
     FaultFlags,
+    Frame,
+    FrameDecoder,
     Heartbeat,
+    Message,
     MessageType,
     NakReason,
+    Sensor,
+    Status,
     encode,
 )
 from piezod.cli import main
@@ -47,6 +52,7 @@ from piezod.link.session import (
     plan_channels,
 )
 from piezod.link.streamer import CodeConverter, MatchedBlock, Streamer, TriangleSource
+from piezod.link.transport import Transport
 
 RATE = 20_000
 
@@ -552,6 +558,92 @@ def test_probe_bad_url_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture
     assert len(err) == 1 and err[0].startswith("piezod probe: error:") and "ttyNONE" in err[0]
 
 
+# -- a confused board: forged, well-framed frames between the board's own ----------------------------
+
+
+class ForgingTransport(Transport):
+    """The board's wire with frames inserted towards the host, between two of the board's frames,
+    numbered as the board's next one (the host sees no lost frame to explain them)."""
+
+    def __init__(self, inner: Transport, expected_seq: Any) -> None:
+        self.inner = inner
+        self.url = inner.url
+        self.read_timeout_s = inner.read_timeout_s
+        self.write_timeout_s = inner.write_timeout_s
+        self.expected_seq = expected_seq  # () -> the seq the host expects next
+        self.forged: queue.Queue[Message] = queue.Queue()
+        self._pending = b""
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        self._pending += self.inner.read(max_bytes)
+        cut = self._pending.rfind(b"\0") + 1
+        out, self._pending = self._pending[:cut], self._pending[cut:]
+        if not self._pending and not self.forged.empty():
+            seqs = [f.seq for f in FrameDecoder().feed(out) if isinstance(f, Frame)]
+            seq = seqs[-1] + 1 if seqs else self.expected_seq()
+            out += encode(self.forged.get_nowait(), seq & 0xFFFFFFFF)
+        return out
+
+    def write(self, data: bytes) -> None:
+        self.inner.write(data)
+
+    def close(self) -> None:
+        self.inner.close()
+
+    @property
+    def closed(self) -> bool:
+        return self.inner.closed
+
+
+def test_forged_readback_and_status_neither_confuse_the_run_nor_run_ahead(
+    board: TestBoard, config: ScannerConfig
+) -> None:
+    """Tried: while streaming, a SENSOR frame restarting the readback at index 1, one of rows never
+    sent (index 2**40), and a STATUS claiming sample 10**7 played with a credit of 2**40 (what the
+    board-side fuzz test sends). Held: no sensor gap (the first frame's rows are duplicates, the
+    second is ignored), the STATUS is ignored (the streamer computes no more than its lead ahead of
+    the clock, instead of 10**7 samples to be played before anything computed later), every
+    sample sent is played and read back once.
+    """
+    wires: list[ForgingTransport] = []
+
+    def connect() -> Transport:
+        def expected() -> int:
+            conn = s._conn
+            dec = conn.endpoint.decoder if conn is not None else None
+            return dec.expected if isinstance(dec, SeqWatch) and dec.expected is not None else 0
+
+        wires.append(ForgingTransport(board.connect(), expected))
+        return wires[-1]
+
+    with BoardSession.open(transport_factory=connect, config=config, sample_rate_hz=RATE) as s:
+        channels = len(s.plan.configure.channels)  # type: ignore[union-attr]
+        blocks: list[MatchedBlock] = []
+        streamer = Streamer(s, _source(), lead_s=0.2, on_block=blocks.append)
+        streamer.start(0)
+        time.sleep(0.4)
+        for msg in (
+            Sensor(1, 1, np.zeros((1, channels), np.int16)),
+            Sensor(2**40, 1, np.zeros((2, channels), np.int16)),
+            Status(BoardState.RUNNING, FaultFlags.NONE, 2**40, 10**7, 2**32 - 1),
+        ):
+            wires[-1].forged.put(msg)
+        time.sleep(0.4)
+        assert wires[-1].forged.empty()
+        stats = streamer.finish()
+        c = s.counters()
+    run = stats.runs[0]
+    assert run.ended_by == "stop" and run.samples_played == run.samples_sent
+    # ignored (counted) if the streamer looked at it before the next genuine STATUS came
+    assert stats.implausible_status <= 1 and stats.rewinds == 0
+    computed = stats.blocks_computed * streamer.block_samples
+    assert computed <= run.samples_sent + streamer.fill_samples + streamer.block_samples
+    assert c.sensor_gaps == 0 and c.sensor_rows_lost == 0, c
+    assert c.unexpected_frames == 1 and c.sensor_rows_duplicate == 1
+    idx = np.concatenate([b.indices for b in blocks])
+    np.testing.assert_array_equal(np.unique(idx), np.arange(run.samples_played))
+
+
 # -- go-back-N decisions, on synthetic STATUS frames (no threads, no clock) -------------------------
 
 
@@ -626,6 +718,23 @@ def test_go_back_n_on_a_reported_gap_after_the_guard(config: ScannerConfig) -> N
     assert st.stats.rewinds == 1  # within one round trip: wait
     st._on_status(_running(600, 30, gaps=3), 0.040, 0.040, new=False)
     assert st.stats.rewinds == 2 and st.next_index == 600  # still stuck once the guard is over
+
+
+def test_a_status_reporting_samples_never_sent_is_not_acted_on(config: ScannerConfig) -> None:
+    """A STATUS is plausible only if it reports no sample beyond those sent (1100 here) and no more
+    free FIFO than the board has; each implausible one is counted once, however often it is looked at."""
+    from firmware_proto import Status
+
+    st, _ = _streamer_with_1100_sent(config)
+    assert st._plausible(_running(1100, 1099), 1) and st._plausible(_running(1000, 10), 2)
+    forged = [
+        Status(BoardState.RUNNING, FaultFlags.NONE, 1101, 10, 1000),  # received beyond those sent
+        Status(BoardState.RUNNING, FaultFlags.NONE, 0, 10**7, 1000),  # played beyond those sent
+        Status(BoardState.IDLE, FaultFlags.NONE, 1000, 10, 2**32 - 1),  # more free FIFO than 16384
+    ]
+    for count, status in enumerate(forged, start=3):
+        assert not st._plausible(status, count) and not st._plausible(status, count)
+    assert st.stats.implausible_status == 3
 
 
 def test_the_tally_counts_under_the_counters_names_and_snapshots_do_not_alias() -> None:

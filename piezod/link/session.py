@@ -224,6 +224,7 @@ class BoardSession:
         self._tail: tuple[int, float] | None = None
         self._link_broke_in_run = False
         self._last_played_seen: int | None = None
+        self._sent_hw = 0  # one past the highest sample index sent in this session
         self._pending_axes: tuple[str | None, ...] | None = None
 
     # -- opening ----------------------------------------------------------------------------
@@ -730,7 +731,11 @@ class BoardSession:
             elif isinstance(msg, Fault):
                 name = msg.code.name
                 self._tally.fault_frames[name] = self._tally.fault_frames.get(name, 0) + 1
-                if msg.code in (FaultCode.UNDERRUN, FaultCode.WATCHDOG) and msg.index != NO_INDEX:
+                if (
+                    msg.code in (FaultCode.UNDERRUN, FaultCode.WATCHDOG)
+                    and msg.index != NO_INDEX
+                    and self._was_sent(msg.index)
+                ):
                     self._last_played_seen = max(self._last_played_seen or 0, msg.index)
                 out.append(BoardFault(now, msg))
             else:
@@ -790,7 +795,8 @@ class BoardSession:
     def _on_status(self, conn: _Connection, st: Status, now: float, out: list[LinkEvent]) -> None:
         prev = self._status
         self._status = st
-        if st.last_played_index != NO_INDEX:
+        played_known = st.last_played_index != NO_INDEX and self._was_sent(st.last_played_index)
+        if played_known:
             self._last_played_seen = st.last_played_index
         self._status_time = now
         self._status_count += 1
@@ -816,25 +822,53 @@ class BoardSession:
             st.state in (BoardState.IDLE, BoardState.RAMPING)
             and (was_running or self._tail is None)
             and self._sensor_next is not None
-            and st.last_played_index != NO_INDEX
+            and played_known
         ):
             self._tail = (st.last_played_index, now + 4 * self.settings.status_period_ms / 1000.0)
         out.append(StatusUpdate(now, st))
         self._cond.notify_all()
 
+    def _was_sent(self, index: int) -> bool:
+        """Whether sample ``index`` can have been played: sent in this session (any index before the
+        session's first START: the board may still run a stream of an earlier host process)."""
+        return self._run_start is None or index < self._sent_hw
+
     def _on_sensor(self, msg: Sensor, now: float, out: list[LinkEvent]) -> None:
         n = msg.n_samples
         self._tally.add("sensor_frames")
+        last = msg.first_index + (n - 1) * msg.stride
+        if self._run_start is not None and (
+            not self._was_sent(last)
+            or msg.stride != self._sensor_stride
+            or msg.n_channels != len(self._adc_scale)
+        ):
+            # readback of samples never sent, at another decimation or of other channels than
+            # configured: a confused (or forged) frame; taken as readback it would move the run's
+            # expected index (and report the rows between as lost)
+            self._tally.add("unexpected_frames")
+            log.warning(
+                "SENSOR frame ignored: rows %d.. stride %d of %d channels, but samples sent up to %d, "
+                "decimation %d, %d channels",
+                msg.first_index,
+                msg.stride,
+                msg.n_channels,
+                self._sent_hw - 1,
+                self._sensor_stride,
+                len(self._adc_scale),
+            )
+            return
         self._tally.add("sensor_rows", n)
         errors = self._loss_pos
         nxt = self._sensor_next
+        end = msg.first_index + n * msg.stride
         if nxt is not None:
             if msg.first_index > nxt:
                 missing = -(-(msg.first_index - nxt) // msg.stride)
                 self._count_gap(nxt, missing, errors > self._sensor_err_mark, now, out)
             elif msg.first_index < nxt:
                 self._tally.add("sensor_rows_duplicate", min(n, -(-(nxt - msg.first_index) // msg.stride)))
-        self._sensor_next = msg.first_index + n * msg.stride
+                end = max(end, nxt)  # rows already seen never restart the run's readback
+        self._sensor_next = end
         self._sensor_stride = msg.stride
         self._sensor_err_mark = errors
         if self.plan is not None and msg.n_channels == len(self._adc_scale):
@@ -1063,6 +1097,7 @@ class BoardSession:
             if conn is None or not conn.alive:
                 raise LinkClosedError(f"{self.url}: the link is down")
             seq = conn.endpoint.send(msg, time.monotonic())
+            self._sent_hw = max(self._sent_hw, first_index + msg.n_samples)
             self._tally.add("samples_frames_sent")
             self._tally.add("sample_rows_sent", msg.n_samples)
         conn.wake.set()

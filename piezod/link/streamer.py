@@ -222,6 +222,7 @@ class StreamStats:
     sync_frames_sent: int = 0
     sync_events_sent: int = 0
     sync_events_late: int = 0
+    implausible_status: int = 0
 
     @property
     def samples_sent(self) -> int:
@@ -368,6 +369,7 @@ class Streamer:
         self._w_seen = -1
         self._w_changed_at = 0.0
         self._seen_count = -1
+        self._implausible_count = -1
         self._thread: threading.Thread | None = None
         self._quit = threading.Event()
         self._wake = threading.Event()
@@ -558,6 +560,8 @@ class Streamer:
             now = time.monotonic()
             st, st_time, st_count = self.session.status_snapshot()
             fresh = st is not None and st_count > self._status_mark
+            if fresh and st is not None and not self._plausible(st, st_count):
+                fresh = False  # nothing the board reported can be trusted: send nothing on it
             if fresh and st is not None:
                 if self._limit_violation:
                     self.session.stop()
@@ -602,6 +606,35 @@ class Streamer:
                 self._stop_sent = True
             self._wake.wait(wait)
             self._wake.clear()
+
+    def _plausible(self, st: Status, st_count: int) -> bool:
+        """Whether ``st`` can describe this run: it reports no sample the host never sent.
+
+        A STATUS claiming samples received or played beyond the highest index sent, or more
+        free FIFO than the board has, comes from a confused (or forged) board. Acting on it,
+        the host computed and queued samples up to the index it claimed played (minutes of
+        samples ahead of the clock, played out after the next rewind: a scan started meanwhile
+        waited for them). It is counted (:attr:`StreamStats.implausible_status`), logged once,
+        and not acted on; the next plausible STATUS is. (One that a genuine STATUS replaced before
+        the feeding thread looked is neither acted on nor counted.)
+        """
+        caps = self.session.capabilities
+        depth = caps.fifo_depth_samples if caps is not None else None
+        played = st.last_played_index
+        reason = None
+        if st.write_index > self._sent_hw:
+            reason = f"write_index {st.write_index} beyond the samples sent (up to {self._sent_hw - 1})"
+        elif played != NO_INDEX and played >= self._sent_hw:
+            reason = f"last_played_index {played} beyond the samples sent (up to {self._sent_hw - 1})"
+        elif depth is not None and st.fifo_free_samples > depth:
+            reason = f"fifo_free_samples {st.fifo_free_samples} beyond the FIFO depth {depth}"
+        if reason is None:
+            return True
+        if st_count != self._implausible_count:
+            self._implausible_count = st_count
+            self.stats.implausible_status += 1
+            log.warning("implausible STATUS ignored (state %s): %s", st.state.name, reason)
+        return False
 
     def _data_end(self) -> int:
         """Index after the last row computed (staged rows follow ``next_index``, also after a rewind)."""
