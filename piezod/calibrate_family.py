@@ -834,9 +834,10 @@ def _fit_bouc_wen(
         nonlocal evaluations
         evaluations += 1
         keep: list[F64] = []
-        theta = _alternate(
-            s, features(z), f_rest, lam, max_iter=4, slope_of_theta=slope, refine=False, keep=keep
-        )[0]
+        f = features(z)
+        if not np.all(np.isfinite(f)):
+            return reject  # the law's variable overflowed along this session (a rate far too high)
+        theta = _alternate(s, f, f_rest, lam, max_iter=4, slope_of_theta=slope, refine=False, keep=keep)[0]
         rates, amp = _bw_unpack(z)
         if keep and np.all(np.isfinite(keep[0])) and _bw_admissible(theta, rates, amp, exponent):
             return keep[0]

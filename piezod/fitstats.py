@@ -392,7 +392,14 @@ def solve_linear(
         The solution.
     rms : float
         RMS of ``A c - y`` (without the regularisation rows).
+
+    Raises
+    ------
+    CalibrationError
+        ``A`` or ``y`` is not finite, or ``method`` is unknown.
     """
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(y))):
+        raise CalibrationError("linear least squares: the design matrix or the data is not finite")
     p = a.shape[1]
     lo = np.full(p, -np.inf) if lower is None else np.asarray(lower, dtype=np.float64)
     hi = np.full(p, np.inf) if upper is None else np.asarray(upper, dtype=np.float64)

@@ -48,6 +48,12 @@ class HeightComparison:
         The linear conversion's sensitivity (best fit to the true heights: the most favourable one).
     samples
         Compared samples.
+    model_plateau_max_pct, linear_plateau_max_pct
+        Largest |converted - true| on the plateaus only (% of the step): the compared samples
+        farther than :data:`EDGE_SAMPLES` truth samples from any where the true height moves by
+        more than 5 % of the step. At an edge the tip is on the step and the height changes by the
+        step within a few samples, so a fraction of a sample of timing between drive and extension
+        (an amplifier pole) is a large error there; the thesis's overshoots are on the plateaus.
     """
 
     step_um: float
@@ -57,6 +63,12 @@ class HeightComparison:
     linear_rms_pct: float
     sensitivity_um_per_v: float
     samples: int
+    model_plateau_max_pct: float = math.nan
+    linear_plateau_max_pct: float = math.nan
+
+
+#: Truth samples on either side of an edge left out of the plateau figures.
+EDGE_SAMPLES = 3
 
 
 def _level_per_line(err: F64, line: NDArray[np.int64]) -> F64:
@@ -90,6 +102,11 @@ def compare_heights(
     lo, hi = np.percentile(true_um[ok], [1, 99])
     step = float(hi - lo)
     pct = 100.0 / step
+    idx = np.flatnonzero(ok)
+    edge = np.zeros(idx.size, dtype=bool)
+    for k in np.flatnonzero(np.abs(np.diff(true_um[idx])) > 0.05 * step):
+        edge[max(0, k - EDGE_SAMPLES) : k + 1 + EDGE_SAMPLES + 1] = True
+    plateau = idx[~edge]
     return (
         HeightComparison(
             step_um=step,
@@ -99,6 +116,8 @@ def compare_heights(
             linear_rms_pct=float(np.sqrt(np.nanmean(e_l**2))) * pct,
             sensitivity_um_per_v=s,
             samples=int(ok.sum()),
+            model_plateau_max_pct=float(np.max(np.abs(e_m[plateau]), initial=0.0)) * pct,
+            linear_plateau_max_pct=float(np.max(np.abs(e_l[plateau]), initial=0.0)) * pct,
         ),
         e_m,
         e_l,

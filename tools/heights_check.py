@@ -127,13 +127,16 @@ def _report(args: Any, cfg_path: Path, base: Any, rs: dict[str, Any], true: dict
         f"{SCANS['verification'].range_um:g} um at {SCANS['verification'].line_rate_hz:g} Hz "
         f"({first.samples} samples); z model fitted on the calibration scan: {chosen}"
     )
-    print(f"{'conversion':<34} {'max % of step':>14} {'rms % of step':>14}")
+    print(f"{'conversion':<34} {'max % of step':>14} {'rms % of step':>14} {'plateau max %':>14}")
     print(
         f"{'linear (' + format(first.sensitivity_um_per_v, '.4f') + ' um/V)':<34} "
-        f"{first.linear_max_pct:14.2f} {first.linear_rms_pct:14.2f}"
+        f"{first.linear_max_pct:14.2f} {first.linear_rms_pct:14.2f} {first.linear_plateau_max_pct:14.2f}"
     )
     for name, cmp in rows.items():
-        print(f"{name:<34} {cmp.model_max_pct:14.2f} {cmp.model_rms_pct:14.2f}")
+        print(
+            f"{name:<34} {cmp.model_max_pct:14.2f} {cmp.model_rms_pct:14.2f}"
+            f" {cmp.model_plateau_max_pct:14.2f}"
+        )
     if args.json:
         Path(args.json).write_text(
             json.dumps(
@@ -144,8 +147,16 @@ def _report(args: Any, cfg_path: Path, base: Any, rs: dict[str, Any], true: dict
                         "max_pct": first.linear_max_pct,
                         "rms_pct": first.linear_rms_pct,
                         "sensitivity_um_per_v": first.sensitivity_um_per_v,
+                        "plateau_max_pct": first.linear_plateau_max_pct,
                     },
-                    **{k: {"max_pct": c.model_max_pct, "rms_pct": c.model_rms_pct} for k, c in rows.items()},
+                    **{
+                        k: {
+                            "max_pct": c.model_max_pct,
+                            "rms_pct": c.model_rms_pct,
+                            "plateau_max_pct": c.model_plateau_max_pct,
+                        }
+                        for k, c in rows.items()
+                    },
                     "z_fit": {"chosen": chosen, "heldout_rms_um": heldout},
                 },
                 indent=2,
