@@ -39,7 +39,13 @@ from piezod.errors import RangeUnreachableError, SafetyError
 from piezod.linearity import experiment_linearity
 from piezod.recording import Experiment
 from piezod.service.axes import AxisDriver
-from piezod.stagecal import check_points, choose_for_experiments, default_frame, verification_points
+from piezod.stagecal import (
+    audit_and_extend,
+    check_points,
+    choose_for_experiments,
+    default_frame,
+    verification_points,
+)
 
 
 def markdown(result: dict[str, Any]) -> str:
@@ -97,6 +103,11 @@ def main() -> int:
     ap.add_argument("--stage", default="pi-stage", help="preset name or scanner YAML with simulation:")
     ap.add_argument("--json", default=None)
     ap.add_argument("--loops", type=int, default=4)
+    ap.add_argument(
+        "--audit",
+        action="store_true",
+        help="audit the frame and adopt its findings, as piezod calibrate does",
+    )
     ap.add_argument("--skip-dynamic", action="store_true", help="verify the chosen model only")
     ap.add_argument(
         "--choice-only", action="store_true", help="stop after the held-out model choice (no verification)"
@@ -132,6 +143,15 @@ def main() -> int:
     with_dyn = cd.calibrated_config(dyn, axis=axis, base=thesis)
     choice = choose_for_experiments(exps, axis, with_dyn, ramp, base.axes[axis].safe_voltage_v)
     print(choice.report["table"])
+    if args.audit:
+        # as piezod calibrate does by default: the frame audited, the findings with a runtime part
+        # adopted when the extended model predicts the held-out experiments better
+        audited = audit_and_extend(exps, axis, choice, with_dyn, ramp, base.axes[axis].safe_voltage_v)
+        print(f"audit of the frame: findings {', '.join(audited.report['findings']) or 'none'}")
+        print(audited.report["text"])
+        choice = type(choice)(
+            {**choice.report, "audit": audited.report}, audited.config, audited.fit_error_pct
+        )
     if args.choice_only:
         if args.json:
             Path(args.json).write_text(json.dumps({"stage": str(path), "choice": choice.report}, indent=2))
