@@ -11,6 +11,7 @@ from hil_sim.session import calibration_plan, run_session
 from hil_sim.stage import StageConfig, resolve_stage
 from piezod.calibrate_dynamic import DynamicCalibrationData, prepare_dynamic
 from piezod.calibrate_family import (
+    CHOICE_TIE_FRACTION,
     choose_model,
     family_model_config,
     fit_family,
@@ -92,7 +93,12 @@ def test_the_streaming_choice_adopts_either_creep_driver_and_can_still_block_one
     data = _pi_session()
     choice = choose_model(data, alpha_per_v=3e-3, holdout_every=3, adoptable_drivers=REALTIME_CREEP_DRIVERS)
     held = choice.heldout_rms_um
-    assert choice.chosen == min(held, key=held.__getitem__), choice.table()
+    # the best held-out RMS, or a member with fewer coefficients within CHOICE_TIE_FRACTION of it
+    # (here Prandtl-Ishlinskii, the stage's own law, within 1 % of the generalised play law)
+    best = min(held.values())
+    assert held[choice.chosen] <= best * (1.0 + CHOICE_TIE_FRACTION), choice.table()
+    size = {k: f.n - f.dof for k, f in choice.fits.items()}
+    assert all(size[k] >= size[choice.chosen] for k in size if held[k] <= best * (1.0 + CHOICE_TIE_FRACTION))
     assert "not adopted" not in choice.table()
     assert choice.fit is not None
     driver = choice.fit.params.creep_driver
