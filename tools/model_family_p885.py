@@ -17,6 +17,7 @@ measured positions, :func:`piezod.audit.residuals.noise_floor`).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import time
@@ -33,8 +34,22 @@ from piezod.recording import read_experiments
 DATA = Path(__file__).resolve().parent.parent / "piezod" / "data" / "real" / "pi-p885"
 
 
-def _prepare(name: str):  # type: ignore[no-untyped-def]
+def _prepare(name: str, delay_samples: int = 0):  # type: ignore[no-untyped-def]
     exps = read_experiments([DATA / name])
+    if delay_samples > 0:
+        # the readback aligned to the drive: the position recorded n samples later is the stage's now
+        n = delay_samples
+        exps = [
+            dataclasses.replace(
+                e,
+                t_s=e.t_s[:-n],
+                voltage_v=e.voltage_v[:-n],
+                position_um=e.position_um[n:],
+                target_um=None if e.target_um is None else e.target_um[:-n],
+                line_numbers=None if e.line_numbers is None else e.line_numbers[:-n],
+            )
+            for e in exps
+        ]
     v0 = float(exps[0].voltage_v[0])
     return exps, prepare_dynamic(
         exps, max_samples_per_loop=4096, max_samples_per_experiment=1 << 16, rest_voltage_v=v0
@@ -84,10 +99,16 @@ def main() -> int:
         default=None,
         help="generalised play law: penalty on its centre dependence (default: the calibration's)",
     )
+    ap.add_argument(
+        "--sensor-delay-samples",
+        type=int,
+        default=0,
+        help="align the readback by this many samples first (SOURCE.md: the sensor lags by one)",
+    )
     ap.add_argument("--plot", default=None, metavar="F.png", help="validation residual of the best member")
     args = ap.parse_args()
-    ident_exps, ident = _prepare("identification.csv")
-    valid_exps, valid = _prepare("validation.csv")
+    ident_exps, ident = _prepare("identification.csv", args.sensor_delay_samples)
+    valid_exps, valid = _prepare("validation.csv", args.sensor_delay_samples)
     floor_id = float(np.sqrt(np.mean([noise_floor(np.asarray(e.position_um)) ** 2 for e in ident_exps])))
     floor_va = float(np.sqrt(np.mean([noise_floor(np.asarray(e.position_um)) ** 2 for e in valid_exps])))
     rows = []
