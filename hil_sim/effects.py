@@ -329,6 +329,11 @@ class _ResonanceDiscrete:
     a: tuple[float, float, float]
 
 
+def _damped_rad_per_s(f0_hz: float, q: float) -> float:
+    """The resonator's damped angular frequency (rad/s)."""
+    return 2.0 * math.pi * f0_hz * math.sqrt(max(0.0, 1.0 - 1.0 / (4.0 * q * q)))
+
+
 @functools.lru_cache(maxsize=64)
 def _resonance_discrete(f0_hz: float, q: float, dt_s: float) -> _ResonanceDiscrete:
     """First-order-hold discretisation of the resonator (exact for input linear between samples).
@@ -338,7 +343,7 @@ def _resonance_discrete(f0_hz: float, q: float, dt_s: float) -> _ResonanceDiscre
     that :func:`scipy.signal.lfilter` runs.
     """
     w0 = 2.0 * math.pi * f0_hz
-    w_d = w0 * math.sqrt(max(0.0, 1.0 - 1.0 / (4.0 * q * q)))
+    w_d = _damped_rad_per_s(f0_hz, q)
     if w_d * dt_s >= 0.9 * math.pi:
         raise ModelError(
             f"resonance f0_hz={f0_hz:g} needs a sample rate above {2.0 * w_d / (0.9 * 2.0 * math.pi):.4g} Hz"
@@ -394,8 +399,7 @@ def resonance_step(
     state : ResonanceState
         State after the block.
     """
-    w0 = 2.0 * math.pi * effect.f0_hz
-    w_d = w0 * math.sqrt(max(0.0, 1.0 - 1.0 / (4.0 * effect.q * effect.q)))
+    w_d = _damped_rad_per_s(effect.f0_hz, effect.q)
     if w_d * dt_s >= 0.5 * math.pi:
         # a step too long for the discretisation's state recovery (an idle hold of the board):
         # the same first-order hold on sub-steps, the input linear between the samples

@@ -276,6 +276,14 @@ class _Session:
         ]
 
 
+def _dead(columns: F64) -> NDArray[np.bool_]:
+    """Columns (centred, training rows) the training data never move -- a play wider than any
+    loop: their coefficients stay at 0."""
+    norms = np.linalg.norm(columns, axis=0)
+    dead: NDArray[np.bool_] = norms <= 1e-9 * float(np.max(norms))
+    return dead
+
+
 def _rate(data: DynamicCalibrationData, grid_values: F64) -> F64:
     """Time derivative of a grid signal at the compared samples (per uniform piece)."""
     out = np.zeros(grid_values.size)
@@ -369,9 +377,7 @@ def _alternate(
         lower = np.concatenate([np.full(n_f, 0.0), [-_MAX_KAPPA]])
         upper = np.concatenate([np.full(n_f, np.inf), [_MAX_KAPPA]])
         lower[0] = 1e-9
-        # a feature the training data never move (a play wider than any loop) stays at 0
-        norms = np.linalg.norm(ac, axis=0)
-        dead = norms <= 1e-9 * float(np.max(norms))
+        dead = _dead(ac)
         lower[dead] = 0.0
         upper[dead] = 0.0
         t_ridge = None if theta_reg is None else np.column_stack([theta_reg, np.zeros(theta_reg.shape[0])])
@@ -462,9 +468,7 @@ def _voltage_fit(
     lower = np.concatenate([np.zeros(n_f + m), [-_MAX_KAPPA, 0.0]])
     upper = np.concatenate([np.full(n_f + m, np.inf), [_MAX_KAPPA, _MAX_LAG_S]])
     lower[0] = 1e-9
-    # a feature the training data never move (a play wider than any loop) stays at 0
-    norms = np.linalg.norm(_centre(data, f)[tr], axis=0)
-    dead = norms <= 1e-9 * float(np.max(norms))
+    dead = _dead(_centre(data, f)[tr])
     lower[:n_f][dead] = 0.0
     upper[:n_f][dead] = 0.0
 
@@ -493,7 +497,7 @@ def _voltage_fit(
     current, resid = cost(p)
     it = 0
     for it in range(1, max_iter + 1):
-        _, xc, rate = evaluate(p)
+        x0, xc, rate = evaluate(p)
         kappa, tau = float(p[-2]), float(p[-1])
         chain = 1.0 + 2.0 * kappa * xc
         jac = np.column_stack(
@@ -505,7 +509,6 @@ def _voltage_fit(
             ]
         )
         jc = _centre(data, jac)[tr]
-        x0 = evaluate(p)[0]
         target = (s.yc - _centre(data, x0))[tr] + jc @ p
         slope = float(slope_of_theta @ p[:n_f])
         if slope > 0.0:
@@ -598,8 +601,7 @@ def _joint_refine(
     b = parts(theta, w, kappa, tau)[3]
     ridge_scale = float(np.linalg.norm(_centre(data, b)[tr])) / math.sqrt(m)
     current, rms = cost(theta, w, kappa, tau, ridge_scale)
-    norms = np.linalg.norm(_centre(data, f)[tr], axis=0)
-    dead = norms <= 1e-9 * float(np.max(norms))
+    dead = _dead(_centre(data, f)[tr])
     lower[:n_f][dead] = 0.0
     upper[:n_f][dead] = 0.0
     for _ in range(max_iter):
@@ -751,6 +753,12 @@ def _train_scale_um(s: _Session) -> float:
     return float(np.sqrt(np.mean(s.yc[s.train_rows] ** 2)))
 
 
+def _bw_c_floor(b: float, rates: tuple[float, float, float, float], amp: float, exponent: float) -> float:
+    """Lowest ``c`` that keeps the slope after a reversal, ``b + c M``
+    (:attr:`BoucWenParams.reversal_rate`), >= 2 :data:`~piezod.model.boucwen.MIN_SLOPE_FRACTION` ``b``."""
+    return -(1.0 - 2.0 * MIN_SLOPE_FRACTION) * b / BoucWenParams(b, 0.0, *rates, amp, exponent).reversal_rate
+
+
 def _bw_admissible(theta: F64, rates: tuple[float, float, float, float], amp: float, exponent: float) -> bool:
     """Whether the linear fit ``theta = (b, -c)`` is a law the slope limit leaves as it is.
 
@@ -763,8 +771,7 @@ def _bw_admissible(theta: F64, rates: tuple[float, float, float, float], amp: fl
     b, c = float(theta[0]), -float(theta[1])
     if not (math.isfinite(b) and math.isfinite(c) and b > 0.0):
         return False
-    m = BoucWenParams(b, 0.0, *rates, amp, exponent).reversal_rate
-    return c >= -(1.0 - 2.0 * MIN_SLOPE_FRACTION) * b / m
+    return c >= _bw_c_floor(b, rates, amp, exponent)
 
 
 def _span_scale(data: DynamicCalibrationData) -> float:
@@ -896,8 +903,7 @@ def _fit_bouc_wen(
     theta, w, kappa, tau, _, it = _alternate(s, features(z), f_rest, lam, slope_of_theta=slope)
     b, c = float(theta[0]), -float(theta[1])
     # the slope after a reversal is b + c M (BoucWenParams.min_slope_um_per_v): keep it positive
-    m = BoucWenParams(b, 0.0, *rates, amp, exponent).reversal_rate
-    c = max(c, -(1.0 - 2.0 * MIN_SLOPE_FRACTION) * b / m)
+    c = max(c, _bw_c_floor(b, rates, amp, exponent))
     law = BoucWenParams(b, c, *rates, amp, exponent)
     return theta, w, kappa, tau, it + evaluations, law, 6
 
@@ -1073,12 +1079,12 @@ def fit_family(
     if law == "bouc-wen":
         n_coefficients += searched
     fit = _result(s, params, it, n_coefficients, t0)
-    if law == "bouc-wen" and not fit.rms_um <= _train_scale_um(s):
+    if law == "bouc-wen" and not fit.rms_um <= (constant := _train_scale_um(s)):
         # the returned law, not the search's linear fit, is what is scored: never hand back a law
         # that fits worse than a constant per experiment
         raise CalibrationError(
             f"family fit (bouc-wen) failed: training RMS {fit.rms_um:.3g} um, worse than a constant "
-            f"per experiment ({_train_scale_um(s):.3g} um)"
+            f"per experiment ({constant:.3g} um)"
         )
     return fit
 
@@ -1217,13 +1223,12 @@ def choose_model(
         reasons = "; ".join(f"{k}: {v}" for k, v in failed.items()) or "every candidate is not adoptable"
         raise CalibrationError(f"no model to choose: {reasons}")
     chosen = min(scores, key=lambda k: scores[k])
+    final = None
     if chosen in fits:
         # ties within the held-out data's resolution go to the member with fewer coefficients
         limit = scores[chosen] * (1.0 + CHOICE_TIE_FRACTION)
         tied = [k for k in scores if k in fits and scores[k] <= limit]
         chosen = min(tied, key=lambda k: (fits[k].n - fits[k].dof, scores[k]))
-    final = None
-    if chosen in fits:
         final = fit_family(
             data,
             fits[chosen].law,

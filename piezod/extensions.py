@@ -42,15 +42,23 @@ class Adoption:
     ----------
     effects
         ``{effect id: {parameter: value}}`` for the ``extensions:`` section.
-    adopted
-        One line per adopted finding (``stiffness: sensitivity_pct_per_um = -0.16``).
     skipped
         One line per finding left out, with the reason.
     """
 
     effects: dict[str, dict[str, float]] = field(default_factory=dict)
-    adopted: tuple[str, ...] = ()
     skipped: tuple[str, ...] = ()
+
+    @property
+    def adopted(self) -> tuple[str, ...]:
+        """One line per adopted finding (``stiffness: sensitivity_pct_per_um = -0.16``)."""
+        lines = []
+        for effect, values in self.effects.items():
+            line = f"{effect}: " + ", ".join(f"{k} = {v:.6g}" for k, v in values.items())
+            if effect in SENSOR_EFFECTS:
+                line += " (sensor path: the readback is aligned, the drive unchanged)"
+            lines.append(line)
+        return tuple(lines)
 
     def summary(self) -> str:
         """Human-readable, one line per finding."""
@@ -67,7 +75,6 @@ def adopt_findings(findings: Sequence[Mapping[str, Any]]) -> Adoption:
         Each with ``effect`` and ``params`` (registry names, public units).
     """
     effects: dict[str, dict[str, float]] = {}
-    adopted: list[str] = []
     skipped: list[str] = []
     for f in findings:
         effect = str(f["effect"])
@@ -81,11 +88,6 @@ def adopt_findings(findings: Sequence[Mapping[str, Any]]) -> Adoption:
                 skipped.append(f"{effect}: {exc}")
                 continue
             effects[effect] = vals
-            adopted.append(
-                f"{effect}: "
-                + ", ".join(f"{k} = {v:.6g}" for k, v in vals.items())
-                + " (sensor path: the readback is aligned, the drive unchanged)"
-            )
             continue
         if effect not in PART_EFFECTS:
             skipped.append(f"{effect}: {NO_PART_REASON.get(effect, 'no runtime part')}")
@@ -103,10 +105,9 @@ def adopt_findings(findings: Sequence[Mapping[str, Any]]) -> Adoption:
                 skipped.append(f"{effect}: {exc}")
                 continue
             effects[effect] = values
-            adopted.append(f"{effect}: " + ", ".join(f"{k} = {v:.6g}" for k, v in values.items()))
             continue
         skipped.append(f"{effect}: no finite value for {', '.join(PART_EFFECTS[effect])}")
-    return Adoption(effects, tuple(adopted), tuple(skipped))
+    return Adoption(effects, tuple(skipped))
 
 
 def extended_config(config: ScannerConfig, axis: str, adoption: Adoption) -> ScannerConfig:

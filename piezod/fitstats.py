@@ -432,14 +432,10 @@ def solve_linear(
         a_full, y_full = a, y
     scale = np.linalg.norm(a_full, axis=0)
     scale[scale == 0.0] = 1.0
-    if method == "bvls":
-        res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="bvls")
-    elif method == "trf":
-        res = lsq_linear(
-            a_full / scale, y_full, bounds=(lo * scale, hi * scale), method="trf", lsmr_tol="auto"
-        )
-    else:
+    if method not in ("trf", "bvls"):
         raise CalibrationError(f"unknown linear least-squares method {method!r} (trf, bvls)")
+    options = {"lsmr_tol": "auto"} if method == "trf" else {}
+    res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method=method, **options)
     # the active-set solution may sit a rounding error outside its bounds
     sol: F64 = np.clip(res.x / scale, lo, hi)
     return sol, float(np.sqrt(np.mean((a @ sol - y) ** 2)))

@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,6 +31,10 @@ from piezod.model.thesis import scan_range_um
 from piezod.recording import Experiment, read_experiments
 from piezod.service.engine import Engine, Segment
 from piezod.service.schemas import ScanRequest
+
+if TYPE_CHECKING:
+    from piezod.calibrate_dynamic import DynamicCalibrationData
+    from piezod.extensions import Adoption
 
 Progress = Callable[[str, float], None]
 
@@ -570,6 +574,17 @@ def _choose_here(
     )
 
 
+def _frame_session(
+    experiments: Sequence[Experiment], ramp_v_per_s: float, rest_voltage_v: float
+) -> DynamicCalibrationData:
+    """The frame laid out for the family fit (:func:`piezod.calibrate_dynamic.prepare_dynamic`)."""
+    from piezod import calibrate_dynamic as cd
+
+    return cd.prepare_dynamic(
+        experiments, max_samples_per_loop=256, slew_rate_v_per_s=ramp_v_per_s, rest_voltage_v=rest_voltage_v
+    )
+
+
 def choose_for_experiments(
     experiments: Sequence[Experiment],
     axis: AxisName,
@@ -583,16 +598,10 @@ def choose_for_experiments(
     (``model: family`` with its section, or ``model: dynamic``), the report (``table``,
     ``chosen``, RMS per candidate) and, as ``fit_error_pct``, the chosen model's held-out RMS in um.
     """
-    from piezod import calibrate_dynamic as cd
     from piezod import calibrate_family as cf
     from piezod.model.family import REALTIME_CREEP_DRIVERS, CreepSpectrum, FamilyParams
 
-    data = cd.prepare_dynamic(
-        experiments,
-        max_samples_per_loop=256,
-        slew_rate_v_per_s=ramp_v_per_s,
-        rest_voltage_v=rest_voltage_v,
-    )
+    data = _frame_session(experiments, ramp_v_per_s, rest_voltage_v)
     ax = base.axes[axis]
     others: dict[str, FamilyParams] = {}
     alpha = None
@@ -713,11 +722,11 @@ REFINE_EVALUATIONS = 12
 
 def refine_adoption(
     experiments: Sequence[Experiment],
-    adoption: Any,
+    adoption: Adoption,
     chosen: str,
     ramp_v_per_s: float,
     rest_voltage_v: float,
-) -> tuple[Any, list[str]]:
+) -> tuple[Adoption, list[str]]:
     """Profile each adopted runtime part's primary parameter on the chosen member's fit.
 
     The audit estimates a part against its own baseline model, which absorbs some of the effect
@@ -739,7 +748,6 @@ def refine_adoption(
 
     from scipy.optimize import minimize_scalar
 
-    from piezod import calibrate_dynamic as cd
     from piezod import calibrate_family as cf
     from piezod.extensions import experiments_through
     from piezod.model.parts import PART_EFFECTS
@@ -762,12 +770,7 @@ def refine_adoption(
         def train_rms(value: float, effect: str = effect, name: str = name) -> float:
             trial = {k: dict(v) for k, v in effects.items()}
             trial[effect][name] = float(value)
-            data = cd.prepare_dynamic(
-                experiments_through(experiments, trial),
-                max_samples_per_loop=256,
-                slew_rate_v_per_s=ramp_v_per_s,
-                rest_voltage_v=rest_voltage_v,
-            )
+            data = _frame_session(experiments_through(experiments, trial), ramp_v_per_s, rest_voltage_v)
             train = cf.holdout_mask(data.n_experiments)
             try:
                 return cf.fit_family(data, law, train=train, creep_driver=driver).rms_um
@@ -789,14 +792,7 @@ def refine_adoption(
             )
     if not notes:
         return adoption, []
-    refined = {n.split(":")[0] for n in notes}
-    adopted = tuple(
-        f"{e}: " + ", ".join(f"{k} = {v:.6g}" for k, v in effects[e].items())
-        if (e := line.split(":")[0]) in refined
-        else line
-        for line in adoption.adopted
-    )
-    return dataclasses.replace(adoption, effects=effects, adopted=adopted), notes
+    return dataclasses.replace(adoption, effects=effects), notes
 
 
 def _audit_here(

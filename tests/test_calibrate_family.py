@@ -26,13 +26,25 @@ from piezod.simulator import session_experiments
 
 
 @cache
-def _pi_session() -> DynamicCalibrationData:
-    path = resolve_stage("pi-stage")
+def _preset_session(
+    preset: str,
+    ranges_v: tuple[float, ...],
+    frequencies_hz: tuple[float, ...],
+    offsets_v: tuple[float, ...],
+    rate_hz: float,
+    limits_v: tuple[float, float],
+) -> DynamicCalibrationData:
+    """A short session (2 ranges x 2 rates x 2 offsets, 2 loops each) on a preset's ``x`` axis."""
+    path = resolve_stage(preset)
     assert path is not None
     stage = StageConfig.from_file(path)
-    plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
-    sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-230.0, 230.0))
+    plan = calibration_plan(ranges_v, frequencies_hz, offsets_v, cycles=2, settle_cycles=1)
+    sess = run_session(stage, plan, sample_rate_hz=rate_hz, axis="x", voltage_limits_v=limits_v)
     return prepare_dynamic(session_experiments(sess), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
+
+
+def _pi_session() -> DynamicCalibrationData:
+    return _preset_session("pi-stage", (150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), 1000.0, (-230.0, 230.0))
 
 
 def test_a_play_law_is_chosen_on_a_prandtl_ishlinskii_stage_by_held_out_data() -> None:
@@ -113,12 +125,9 @@ def test_preisach_stage_picks_the_generalised_play_law() -> None:
     """preisach-stage (a relay density that depends on the relay centre; held out until the
     generalised play law was developed against it): the held-out data pick the generalised play
     law, which represents such a density, over the Prandtl-Ishlinskii law, which cannot."""
-    path = resolve_stage("preisach-stage")
-    assert path is not None
-    stage = StageConfig.from_file(path)
-    plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
-    sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-230.0, 230.0))
-    data = prepare_dynamic(session_experiments(sess), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
+    data = _preset_session(
+        "preisach-stage", (150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), 1000.0, (-230.0, 230.0)
+    )
     choice = choose_model(data, alpha_per_v=3e-3, holdout_every=3, creep_drivers=("position",))
     assert choice.chosen == "family/generalised-play", choice.table()
     fit = choice.fit
@@ -148,14 +157,10 @@ def test_joint_gauss_newton_finishes_what_the_alternation_leaves(monkeypatch: py
     assert refined.heldout_rms_um < 0.006
 
 
-@cache
 def _boucwen_session() -> DynamicCalibrationData:
-    path = resolve_stage("boucwen-stage")
-    assert path is not None
-    stage = StageConfig.from_file(path)
-    plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
-    sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-200.0, 200.0))
-    return prepare_dynamic(session_experiments(sess), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
+    return _preset_session(
+        "boucwen-stage", (150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), 1000.0, (-200.0, 200.0)
+    )
 
 
 def test_the_duhem_law_is_chosen_on_a_bouc_wen_stage_by_held_out_data() -> None:
@@ -176,14 +181,10 @@ def test_the_duhem_law_is_chosen_on_a_bouc_wen_stage_by_held_out_data() -> None:
     )
 
 
-@cache
 def _knee_session() -> DynamicCalibrationData:
-    path = resolve_stage("knee-holdout-stage")
-    assert path is not None
-    stage = StageConfig.from_file(path)
-    plan = calibration_plan((80.0, 160.0), (0.5, 2.0), (50.0, 70.0), cycles=2, settle_cycles=1)
-    sess = run_session(stage, plan, sample_rate_hz=5000.0, axis="x", voltage_limits_v=(-30.0, 150.0))
-    return prepare_dynamic(session_experiments(sess), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
+    return _preset_session(
+        "knee-holdout-stage", (80.0, 160.0), (0.5, 2.0), (50.0, 70.0), 5000.0, (-30.0, 150.0)
+    )
 
 
 def test_the_bouc_wen_fit_finds_a_sharp_knee_exponent() -> None:
@@ -205,14 +206,10 @@ def test_the_bouc_wen_fit_finds_a_sharp_knee_exponent() -> None:
     assert held < 0.010
 
 
-@cache
 def _stack_session() -> DynamicCalibrationData:
-    path = resolve_stage("stack-holdout-stage")
-    assert path is not None
-    stage = StageConfig.from_file(path)
-    plan = calibration_plan((60.0, 120.0), (0.5, 2.0), (40.0, 55.0), cycles=2, settle_cycles=1)
-    sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-20.0, 120.0))
-    return prepare_dynamic(session_experiments(sess), max_samples_per_loop=128, slew_rate_v_per_s=2000.0)
+    return _preset_session(
+        "stack-holdout-stage", (60.0, 120.0), (0.5, 2.0), (40.0, 55.0), 1000.0, (-20.0, 120.0)
+    )
 
 
 @pytest.mark.parametrize("driver", ["position", "voltage"])

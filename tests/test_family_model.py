@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from piezod.calibrate_family import family_model_config
 from piezod.config import AxisConfig, FamilyModelConfig, ThesisModelConfig
 from piezod.errors import ModelError, RangeUnreachableError
 from piezod.model.axis_model import FamilyAxisModel, ThesisAxisModel
@@ -34,16 +35,7 @@ THESIS = ThesisModelConfig(
 
 def _pi_section(**extra: float) -> FamilyModelConfig:
     """The ``family:`` section of the Prandtl-Ishlinskii law ``PI`` with the creep ``SPEC``."""
-    return FamilyModelConfig(
-        law="prandtl-ishlinskii",
-        b_um_per_v=PI.b_um_per_v,
-        pi_rho0=PI.rho0,
-        pi_thresholds_v=list(PI.thresholds_v),
-        pi_weights=list(PI.weights),
-        creep_taus_s=list(SPEC.taus),
-        creep_weights=list(SPEC.w),
-        **extra,
-    )
+    return family_model_config(FamilyParams(PI, SPEC, **extra))
 
 
 def _smooth_targets(n: int, dt: float, seed: int) -> np.ndarray:

@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from piezod.config import AxisConfig, FamilyModelConfig, ThesisModelConfig
+from piezod.calibrate_family import family_model_config
+from piezod.config import AxisConfig, ThesisModelConfig
 from piezod.errors import ModelError
 from piezod.model.axis_model import DynamicAxisModel, FamilyAxisModel
 from piezod.model.dynamic import DynamicParams
@@ -116,16 +117,7 @@ def test_parts_refuse_what_is_not_physical_or_not_a_part() -> None:
 
 
 def test_the_axis_config_wraps_its_model_in_the_parts() -> None:
-    family = FamilyModelConfig(
-        law="prandtl-ishlinskii",
-        b_um_per_v=PI.b_um_per_v,
-        pi_rho0=PI.rho0,
-        pi_thresholds_v=list(PI.thresholds_v),
-        pi_weights=list(PI.weights),
-        creep_taus_s=list(SPEC.taus),
-        creep_weights=list(SPEC.w),
-        creep_driver="voltage",
-    )
+    family = family_model_config(FamilyParams(PI, SPEC, creep_driver="voltage"))
     base = {
         "voltage_min_v": -230.0, "voltage_max_v": 230.0, "thesis": THESIS, "model": "family", "family": family
     }

@@ -243,9 +243,7 @@ def test_an_adopted_part_is_refined_on_the_chosen_members_fit() -> None:
     plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
     sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-230.0, 230.0))
     exps = session_experiments(sess)
-    found = Adoption(
-        {"polarity": {"negative_sensitivity_pct": -3.5}}, ("polarity: negative_sensitivity_pct = -3.5",)
-    )
+    found = Adoption({"polarity": {"negative_sensitivity_pct": -3.5}})
     refined, notes = refine_adoption(exps, found, "family/prandtl-ishlinskii/voltage-creep", 2000.0, 0.0)
     value = refined.effects["polarity"]["negative_sensitivity_pct"]
     assert abs(value + 5.0) < 0.3, notes

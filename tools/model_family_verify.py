@@ -23,6 +23,7 @@ this process instead of behind the pty, so a loaded machine cannot spoil the run
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -85,10 +86,8 @@ def summary_table(paths: list[str]) -> str:
     for p in paths:
         r = json.loads(Path(p).read_text())
         rep = r["choice"]
-        inside = r["summary"].get(f"{rep['chosen'].split('/')[0]}/inside") or next(
-            v for k, v in r["summary"].items() if k.endswith("/inside")
-        )
-        outside = next(v for k, v in r["summary"].items() if k.endswith("/outside"))
+        kind = rep["chosen"].split("/")[0]
+        inside, outside = r["summary"][f"{kind}/inside"], r["summary"][f"{kind}/outside"]
         lines.append(
             f"| `{Path(r['stage']).stem.removeprefix('sim-')}` | {rep['chosen']} |"
             f" {1e3 * rep['heldout_rms_um'][rep['chosen']]:.2f} |"
@@ -149,9 +148,7 @@ def main() -> int:
         audited = audit_and_extend(exps, axis, choice, with_dyn, ramp, base.axes[axis].safe_voltage_v)
         print(f"audit of the frame: findings {', '.join(audited.report['findings']) or 'none'}")
         print(audited.report["text"])
-        choice = type(choice)(
-            {**choice.report, "audit": audited.report}, audited.config, audited.fit_error_pct
-        )
+        choice = dataclasses.replace(audited, report={**choice.report, "audit": audited.report})
     if args.choice_only:
         if args.json:
             Path(args.json).write_text(json.dumps({"stage": str(path), "choice": choice.report}, indent=2))
