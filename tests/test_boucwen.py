@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from hil_sim.hysteresis import BoucWenParams as SimBoucWen
@@ -107,6 +107,8 @@ def test_forward_is_block_invariant_and_inverse_exact(law: BoucWenParams) -> Non
     amp=st.floats(0.5, 2.0),
     frac=st.floats(0.0, 0.95),
 )
+# a subnormal recovery rate (found by hypothesis in a full run: 1.3e-11 V where rounding allows 1.1e-11)
+@example(seed=0, scale=0.25, k_same=1e-4, ratio=2.2250738585072014e-308, amp=1.0, frac=0.5)
 def test_inverse_reaches_any_targets(
     seed: int, scale: float, k_same: float, ratio: float, amp: float, frac: float
 ) -> None:

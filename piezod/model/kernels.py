@@ -385,10 +385,23 @@ def _gpi_loop(
 
 
 def _bw_phi(k: float, d: float) -> float:
-    """``(1 - exp(-k d)) / k`` (``d`` for ``k = 0``): the relaxed fraction over a run ``d``."""
-    if k == 0.0:
-        return d
-    return -math.expm1(-k * d) / k
+    """``(1 - exp(-k d)) / k`` (``d`` for ``k = 0``): the relaxed fraction over a run ``d``.
+
+    Below ``k d = 1e-8`` by its series ``d (1 - k d / 2)`` (error ``(k d)^2 / 6``, below rounding):
+    dividing by a subnormal ``k`` (a rate of 1e-312 1/V) loses most of the quotient's digits.
+    """
+    y = k * d
+    if y < 1e-8:
+        return d * (1.0 - 0.5 * y)
+    return -math.expm1(-y) / k
+
+
+def _bw_to_zero(h0: float, sigma: float, amp: float, k_back: float) -> float:
+    """The run from ``h0`` (``sigma h0 < 0``) to ``h = 0``: ``log1p(k |h0| / amp) / k``, written as
+    ``|h0| / amp`` times ``log1p(x) / x`` (series below ``x = 1e-8``: ``k`` may be subnormal)."""
+    ratio = -sigma * h0 / amp
+    x = ratio * k_back
+    return ratio * (math.log1p(x) / x if x > 1e-8 else 1.0 - 0.5 * x)
 
 
 def _bw_h(h0: float, d: float, sigma: float, amp: float, k_same: float, k_back: float) -> float:
@@ -399,8 +412,7 @@ def _bw_h(h0: float, d: float, sigma: float, amp: float, k_same: float, k_back: 
     change of ``h`` at most (at ``h = 0`` it moves in direction ``sigma``).
     """
     if sigma * h0 < 0.0:
-        arg = -sigma * h0 * k_back / amp
-        d0 = math.log1p(arg) / k_back if k_back > 0.0 else -sigma * h0 / amp
+        d0 = _bw_to_zero(h0, sigma, amp, k_back)
         if d <= d0:
             return h0 + (sigma * amp - k_back * h0) * _bw_phi(k_back, d)
         d -= d0
@@ -439,8 +451,7 @@ def _bw_run_solve(big: float, q: float, k: float, target: float, cap: float) -> 
         d = cap
     for _ in range(60):
         em = math.expm1(-k * d)
-        phi = -em / k if k != 0.0 else d
-        val = big * d + q * phi - target
+        val = big * d + q * _bw_phi(k, d) - target
         if val == 0.0:
             return d
         if val > 0.0:
@@ -514,8 +525,7 @@ def _bw_loop(
                     h = h1
                     t = 0.0
                 else:
-                    ratio = -sigma * h0 / amp
-                    d0 = math.log1p(ratio * k_back) / k_back if k_back > 0.0 else ratio
+                    d0 = _bw_to_zero(h0, sigma, amp, k_back)
                     g0 = big * d0 + q * _bw_phi(k_back, d0)
                     t -= g0
                     u0 += sigma * d0
@@ -697,6 +707,7 @@ _gsettle = _jit(_gsettle)
 gpi_loop = cast(Loop, _jit(_gpi_loop))
 # _bw_forward and _bw_loop call these by their global names, resolved when they compile
 _bw_phi = _jit(_bw_phi)
+_bw_to_zero = _jit(_bw_to_zero)
 _bw_h = _jit(_bw_h)
 _bw_run_solve = _jit(_bw_run_solve)
 bw_forward = cast(Callable[..., float], _jit(_bw_forward))
