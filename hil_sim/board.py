@@ -91,7 +91,6 @@ _IDLE_MIN_SPAN_S = 1e-9
 _DEFAULT_STATUS_PERIOD_S = 0.01
 """FAULT rate limit before the first CONFIGURE (no ``status_period_ms`` yet)."""
 _MAX_PENDING_TICKS = 1 << 16
-_TRUTH_EVERY = 10
 
 _NAK_FOR_DECODE_ERROR = {
     ErrorKind.UNKNOWN_TYPE: NakReason.UNKNOWN_TYPE,
@@ -832,7 +831,7 @@ class Board:
         if self._truth_fh is None:
             return
         j = np.arange(rows.shape[1])
-        sel = (first + j) % _TRUTH_EVERY == 0
+        sel = (first + j) % self._cfg.truth_every == 0
         block = np.vstack(((first + j[sel]).astype(np.float64), rows[:, sel]))
         self._truth_fh.write(np.ascontiguousarray(block.T, dtype=np.float64).tobytes())
         self._truth_fh.flush()

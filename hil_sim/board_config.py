@@ -59,10 +59,13 @@ class BoardConfig:
         position sensor the x / y ADC channels read 0 and CAPABILITIES says so
         (``position_sensor`` false, protocol revision 2).
     truth_log
-        With a microscope: append the hidden truth to this file, every 10th played sample, as
+        With a microscope: append the hidden truth to this file, every ``truth_every``-th played sample, as
         float64 rows ``(sample_index, x_um, y_um, z_voltage_v, z_um)`` (raw, native byte order):
         the true tip position an external interferometer would measure, for checking sensorless
         calibrations (``piezod.imagecal.read_truth_log``).
+    truth_every
+        Log every ``truth_every``-th played sample (default 10; 1 for a z calibration that needs the
+        extension at the sample rate, as a z sensor would give it).
     sync_outputs
         Digital sync outputs driven from SYNC frames (0..8; CAPABILITIES ``sync_outputs``).
     protocol_version
@@ -96,6 +99,7 @@ class BoardConfig:
     seed: int = 0
     microscope: MicroscopeConfig | None = None
     truth_log: str | None = None
+    truth_every: int = 10
     sync_outputs: int = 3
     protocol_version: int = PROTOCOL_VERSION
     caps_protocol_version: int | None = None
@@ -103,6 +107,8 @@ class BoardConfig:
     record_played: bool = False
 
     def __post_init__(self) -> None:
+        if not 1 <= self.truth_every <= 1 << 20:
+            raise ConfigError(f"board: truth_every must lie in [1, 2**20], got {self.truth_every!r}")
         for name in ("corrupt_rate", "corrupt_in_rate", "drop_rate"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:

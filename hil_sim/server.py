@@ -427,6 +427,13 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PATH",
         help="with a microscope: append the true tip position to PATH (hidden truth for checks)",
     )
+    parser.add_argument(
+        "--truth-every",
+        type=int,
+        default=10,
+        metavar="N",
+        help="with --truth-log: log every N-th played sample (default 10)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log every dropped frame")
 
 
@@ -486,7 +493,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             config, microscope=_microscope_from_args(args, resolve_stage(args.config))
         )
     if args.truth_log:
-        config = dataclasses.replace(config, truth_log=str(args.truth_log))
+        config = dataclasses.replace(config, truth_log=str(args.truth_log), truth_every=args.truth_every)
     board = Board.from_scanner_file(
         resolve_stage(args.config), effects=tuple(args.effect), seed=args.seed, config=config, now=clock()
     )

@@ -252,9 +252,15 @@ class _Session:
     """Cached pieces of a session for repeated fits (features, deviations operator, centring)."""
 
     def __init__(
-        self, data: DynamicCalibrationData, taus: F64, train: NDArray[np.bool_], skip_s: float = 0.0
+        self,
+        data: DynamicCalibrationData,
+        taus: F64,
+        train: NDArray[np.bool_],
+        skip_s: float = 0.0,
+        max_lag_s: float = _MAX_LAG_S,
     ) -> None:
         self.data = data
+        self.max_lag_s = max_lag_s
         self.taus = taus
         self.dev = _Deviations(data, taus)
         self.y = data.position_um
@@ -407,7 +413,7 @@ def _alternate(
         without = _centre(data, xc + kappa * xc * xc) - s.yc
         rate_c = _centre(data, rate)
         denom = float(rate_c[tr] @ rate_c[tr])
-        tau = 0.0 if denom <= 0.0 else float(np.clip((without[tr] @ rate_c[tr]) / denom, 0.0, _MAX_LAG_S))
+        tau = 0.0 if denom <= 0.0 else float(np.clip((without[tr] @ rate_c[tr]) / denom, 0.0, s.max_lag_s))
         resid = without - tau * rate_c
         rms = float(np.sqrt(np.mean(resid[tr] ** 2)))
         if rms < last * (1.0 - tol):
@@ -466,7 +472,7 @@ def _voltage_fit(
         extra[:, :n_f] = theta_reg
         ridge = np.vstack([ridge, extra])
     lower = np.concatenate([np.zeros(n_f + m), [-_MAX_KAPPA, 0.0]])
-    upper = np.concatenate([np.full(n_f + m, np.inf), [_MAX_KAPPA, _MAX_LAG_S]])
+    upper = np.concatenate([np.full(n_f + m, np.inf), [_MAX_KAPPA, s.max_lag_s]])
     lower[0] = 1e-9
     dead = _dead(_centre(data, f)[tr])
     lower[:n_f][dead] = 0.0
@@ -596,7 +602,7 @@ def _joint_refine(
     if not math.isfinite(rms):
         return start
     lower = np.concatenate([np.zeros(n_f), np.zeros(m), [-_MAX_KAPPA, 0.0]])
-    upper = np.concatenate([np.full(n_f, np.inf), np.full(m, MAX_TOTAL_CREEP / m), [_MAX_KAPPA, _MAX_LAG_S]])
+    upper = np.concatenate([np.full(n_f, np.inf), np.full(m, MAX_TOTAL_CREEP / m), [_MAX_KAPPA, s.max_lag_s]])
     lower[0] = 1e-9
     b = parts(theta, w, kappa, tau)[3]
     ridge_scale = float(np.linalg.norm(_centre(data, b)[tr])) / math.sqrt(m)
@@ -922,6 +928,7 @@ def fit_family(
     thresholds: F64 | None = None,
     nodes: F64 | None = None,
     centre_smoothing: float = GP_CENTRE_SMOOTHING,
+    fit_lag: bool = True,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -954,6 +961,10 @@ def fit_family(
     centre_smoothing
         Generalised play law: weight of the penalty on density changes between neighbouring
         centre nodes (:func:`_centre_smoothing`); 0 leaves the centre dependence free.
+    fit_lag
+        Fit the drive lag (in its first-order form ``x - tau_lag dx/dt``, good while the drive
+        changes slowly against ``tau_lag``); False holds it at 0, for a caller that runs the exact
+        lag over the voltages itself (steps: :func:`piezod.heights.fit_z_model`).
 
     Raises
     ------
@@ -972,7 +983,7 @@ def fit_family(
     if not mask.any():
         raise CalibrationError("no experiment left to fit")
     t0 = time.perf_counter()
-    s = _Session(data, taus, mask, skip_s)
+    s = _Session(data, taus, mask, skip_s, _MAX_LAG_S if fit_lag else 0.0)
     rest_v = data.rest_voltage_v
     hyst: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams
     searched = 0

@@ -14,6 +14,7 @@ height of a line is arbitrary in an image).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -180,47 +181,135 @@ def z_experiments(rs: RasterSamples, true_um: F64, label: str) -> list[Experimen
     return out
 
 
+#: Drive lags the z fit profiles, in sample intervals (then refined between the best's neighbours).
+Z_LAG_GRID_SAMPLES = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
+
+
+def lagged_experiments(experiments: list[Experiment], tau_s: float) -> list[Experiment]:
+    """The experiments with their voltages run through the drive lag ``tau_s`` exactly.
+
+    The lag is the runtime model's (:mod:`piezod.model.family`): ``V_c[n] = a V_c[n-1] + (1 - a)
+    V[n]``, ``a = exp(-dt / tau)``, with each sample's own ``dt``; it carries its state from one
+    experiment to the next when they are contiguous (one sample apart) and starts settled at the
+    first voltage otherwise.
+    """
+    if tau_s < 0.0 or not math.isfinite(tau_s):
+        raise CalibrationError(f"drive lag must be >= 0 s, got {tau_s!r}")
+    if tau_s == 0.0:
+        return list(experiments)
+    out: list[Experiment] = []
+    y = 0.0
+    last_t: float | None = None
+    for e in sorted(experiments, key=lambda e: float(e.t_s[0])):
+        dt = np.diff(e.t_s)
+        step = float(np.median(dt)) if dt.size else 0.0
+        a = np.exp(-np.concatenate([[step], dt]) / tau_s)
+        v = np.empty_like(e.voltage_v)
+        contiguous = last_t is not None and float(e.t_s[0]) - last_t <= 1.5 * step
+        y = y if contiguous else float(e.voltage_v[0])
+        for i, (ai, xi) in enumerate(zip(a.tolist(), e.voltage_v.tolist(), strict=True)):
+            y = ai * y + (1.0 - ai) * xi
+            v[i] = y
+        last_t = float(e.t_s[-1])
+        out.append(dataclasses.replace(e, voltage_v=v))
+    return out
+
+
 def fit_z_model(
     experiments: list[Experiment], base: ScannerConfig, *, axis: Literal["x", "y", "z"] = "z"
 ) -> tuple[AxisConfig, str, dict[str, float]]:
     """The z axis's model from z voltage vs measured extension.
 
-    Every law and creep driver of :mod:`piezod.calibrate_family` is fitted on the training lines
-    and scored on the held-out ones (every fourth line); the best is refitted on all (as
-    :func:`piezod.calibrate_family.choose_model` calibrates the lateral axes). A member whose fit
+    A height image's z voltage steps at every edge within a sample or two, so the drive lag (an
+    amplifier pole) is applied exactly to the voltages, not in the family fit's first-order form
+    (good for slow drives only): it is profiled by the held-out RMS of one law
+    (Prandtl-Ishlinskii, voltage-driven creep) on :data:`Z_LAG_GRID_SAMPLES` and refined between
+    the best point's neighbours. At that lag every law and creep driver of
+    :mod:`piezod.calibrate_family` is scored by held-out data and the best is refitted on all (as
+    :func:`piezod.calibrate_family.choose_model` calibrates the lateral axes): with several scans
+    (an experiment's label up to ``#``, as :func:`z_experiments` writes it) each scan is held out
+    in turn and predicted from the others (the RMS over the folds), so a model that fits the lines
+    of its own scans but not another rate or range loses; with one scan every fourth line is held
+    out. A member whose fit
     fails is left out; when every one fails the dynamic model
     (:func:`piezod.calibrate_dynamic.fit_dynamic`, fitted on all lines) is the model.
+
+    Parameters
+    ----------
+    experiments
+        The z calibration data (:func:`z_experiments`), at the sample rate: a lag of a fraction of
+        a sample is not determined by data sampled more sparsely.
+    base
+        The scanner configuration (the axis's safe voltage, the ramp rate).
+    axis
+        The axis to calibrate.
 
     Returns
     -------
     axis_config, chosen, heldout_rms_um
         The calibrated z axis, the chosen candidate's name, and every family candidate's held-out
-        RMS (um; NaN: its fit failed, the reason in the log).
+        RMS (um; over the folds; NaN: its fit failed, the reason in the log) at the chosen lag.
 
     Raises
     ------
     CalibrationError
         Too little data, or no model could be fitted.
     """
-    from piezod.calibrate_data import prepare_dynamic
+    from scipy.optimize import minimize_scalar
+
+    from piezod.calibrate_data import DynamicCalibrationData, prepare_dynamic
     from piezod.calibrate_dynamic import CreepStructure, calibrated_config, fit_dynamic
     from piezod.calibrate_family import LAWS, family_model_config, fit_family, holdout_mask
     from piezod.model.family import CREEP_DRIVERS
 
     ax = base.axes[axis]
-    data = prepare_dynamic(
-        experiments,
-        rest_voltage_v=ax.safe_voltage_v,
-        slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
-        max_samples_per_experiment=2048,
-    )
+
+    def prepare(tau_s: float) -> DynamicCalibrationData:
+        return prepare_dynamic(
+            lagged_experiments(experiments, tau_s),
+            rest_voltage_v=ax.safe_voltage_v,
+            slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
+            max_samples_per_experiment=4096,
+        )
+
+    data = prepare(0.0)
     train = holdout_mask(data.n_experiments, 4)
+    dt = min(float(np.median(np.diff(e.t_s))) for e in experiments if e.t_s.size > 1)
+    profiled: dict[float, float] = {}
+
+    def profile(tau_s: float) -> float:
+        if tau_s not in profiled:
+            try:
+                fit = fit_family(
+                    prepare(tau_s), "prandtl-ishlinskii", train=train, creep_driver="voltage", fit_lag=False
+                )
+                profiled[tau_s] = fit.heldout_rms_um
+            except CalibrationError as exc:
+                _log.warning("z lag %.3g s not profiled: %s", tau_s, exc)
+                profiled[tau_s] = math.inf
+        return profiled[tau_s]
+
+    grid = [k * dt for k in Z_LAG_GRID_SAMPLES]
+    scores = [profile(t) for t in grid]
+    best = int(np.argmin(scores))
+    lag_s = grid[best]
+    if math.isfinite(scores[best]):
+        lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
+        if hi > lo:
+            res = minimize_scalar(
+                profile, bounds=(lo, hi), method="bounded", options={"xatol": 0.05 * dt, "maxiter": 8}
+            )
+            if float(res.fun) < scores[best]:
+                lag_s = float(res.x)
+    data = prepare(lag_s)
     heldout: dict[str, float] = {}
     for law in LAWS:
         for driver in CREEP_DRIVERS:
             name = f"family/{law}" + ("/voltage-creep" if driver == "voltage" else "")
             try:
-                heldout[name] = fit_family(data, law, train=train, creep_driver=driver).heldout_rms_um
+                heldout[name] = fit_family(
+                    data, law, train=train, creep_driver=driver, fit_lag=False
+                ).heldout_rms_um
             except CalibrationError as exc:
                 heldout[name] = math.nan
                 _log.warning("z model %s not fitted: %s", name, exc)
@@ -229,15 +318,16 @@ def fit_z_model(
         chosen = min(scored, key=lambda k: scored[k])
         law = chosen.split("/")[1]
         driver = "voltage" if chosen.endswith("voltage-creep") else "position"
-        final = fit_family(data, law, creep_driver=driver)
+        final = fit_family(data, law, creep_driver=driver, fit_lag=False)
+        params = dataclasses.replace(final.params, lag_time_constant_s=lag_s)
         return (
-            ax.model_copy(update={"model": "family", "family": family_model_config(final.params)}),
+            ax.model_copy(update={"model": "family", "family": family_model_config(params)}),
             chosen,
             heldout,
         )
     # relaxation times beyond ten times what the data spans are not determined by it
     span_s = float(max(e.t_s[-1] for e in experiments) - min(e.t_s[0] for e in experiments))
-    dyn = fit_dynamic(data, creep=CreepStructure(tau_min_s=1e-3, tau_max_s=max(10.0, 10.0 * span_s)))
+    dyn = fit_dynamic(prepare(0.0), creep=CreepStructure(tau_min_s=1e-3, tau_max_s=max(10.0, 10.0 * span_s)))
     return calibrated_config(dyn, axis=axis, base=base).axes[axis], "dynamic", heldout
 
 
@@ -245,6 +335,7 @@ __all__ = [
     "HeightComparison",
     "compare_heights",
     "fit_z_model",
+    "lagged_experiments",
     "plot_height_profiles",
     "z_experiments",
 ]
