@@ -28,7 +28,7 @@ from piezod.errors import CalibrationError, ModelError, PiezodError
 from piezod.linearity import linearity
 from piezod.model.sensor import SensorPath
 from piezod.model.thesis import scan_range_um
-from piezod.recording import Experiment, read_experiments
+from piezod.recording import Experiment, Recording, read_experiments
 from piezod.service.engine import Engine, Segment
 from piezod.service.schemas import ScanRequest
 
@@ -190,6 +190,34 @@ class VerifyPoint:
 #: Share of the voltage span the checked verification scans keep from the limits.
 CHECK_MARGIN = 0.03
 
+#: Samples at the end of the frame whose readback is averaged for the position the run starts from.
+FRAME_END_SAMPLES = 50
+
+
+def frame_end(rec: Recording, axis: AxisName = "x") -> tuple[float, float]:
+    """Where the calibration frame left the stage: the last voltage of ``axis`` and its measured
+    position (the mean readback of the last :data:`FRAME_END_SAMPLES` samples: the sensor noise
+    averaged).
+
+    A fitted law's positions are defined along the histories it was fitted on, not absolutely
+    (its rest curve is not identified), so the run adopts the new model at this voltage and
+    measured position (:meth:`piezod.service.engine.Engine.set_axis_model`) and the verification
+    is placed and checked from there (:func:`verification_points`, :func:`check_points`): the
+    scan centres are the sensor's coordinates.
+
+    Raises
+    ------
+    CalibrationError
+        The recording has no finite readback of ``axis``.
+    """
+    of_axis = np.ones(len(rec.t_s), dtype=bool) if rec.axis is None else rec.axis == axis
+    rows = np.flatnonzero(of_axis & np.isfinite(rec.position_um) & np.isfinite(rec.voltage_v))
+    if rows.size == 0:
+        where = rec.path or "the frame"
+        raise CalibrationError(f"{where}: no readback of axis {axis} to start the verification from")
+    last = rows[-FRAME_END_SAMPLES:]
+    return float(rec.voltage_v[rows[-1]]), float(np.mean(rec.position_um[last]))
+
 
 def check_points(
     config: ScannerConfig,
@@ -198,6 +226,7 @@ def check_points(
     axis: AxisName = "x",
     lines: int = 4,
     start_v: float | None = None,
+    start_um: float | None = None,
 ) -> list[VerifyPoint]:
     """Check every verification point with the verified model's own inverse over the whole scan.
 
@@ -209,11 +238,12 @@ def check_points(
     voltage limits (or that the scan planner refuses) is moved towards the centre (an offset
     point: 10 % steps, never inside the frame) or shrunk (its range, 10 % steps), and says so in
     :attr:`VerifyPoint.note`; one that cannot be placed keeps its setting with a note saying it
-    clamps (its figures are then not the model's). The check starts from the stage resting at
-    ``start_v`` (default: the axis's safe voltage), while the run starts from the state the frame
-    left (the model switched in from the stage's voltage and position): the scans are placed
-    :data:`CHECK_MARGIN` of the voltage span inside the limits (never past the safe voltage), so a
-    point the check placed is not refused or clamped for a state it could not know.
+    clamps (its figures are then not the model's). The check starts where the run starts: the
+    model adopted at ``start_v`` and the measured ``start_um`` (:func:`frame_end`: the model is
+    switched in from the stage's voltage and sensor position), or, without ``start_um``, resting
+    at ``start_v`` (default: the axis's safe voltage). The scans are placed :data:`CHECK_MARGIN`
+    of the voltage span inside the limits (never past the safe voltage), so a point the check
+    placed is not refused or clamped for a state it could not know exactly.
     """
     import copy
     import dataclasses
@@ -224,7 +254,8 @@ def check_points(
     from piezod.trajectory import RasterTrajectory
 
     ax = config.axes[axis]
-    home = _home_um(config, axis, 0.5 * (ax.voltage_max_v + ax.voltage_min_v))
+    start = None if start_um is None else (ax.safe_voltage_v if start_v is None else start_v, start_um)
+    home = _home_um(config, axis, 0.5 * (ax.voltage_max_v + ax.voltage_min_v), start)
     margin = CHECK_MARGIN * (ax.voltage_max_v - ax.voltage_min_v)
     ax = ax.model_copy(
         update={
@@ -234,7 +265,10 @@ def check_points(
     )
     rate = float(config.sample_rate_hz)
     driver = AxisDriver(axis, ax, rate)
-    driver.reset(ax.safe_voltage_v if start_v is None else start_v)
+    if start is not None:
+        driver.adopt(*start)
+    else:
+        driver.reset(ax.safe_voltage_v if start_v is None else start_v)
     drivers: dict[str, AxisDriver] = {axis: driver}
     block = 4096
 
@@ -298,9 +332,20 @@ def check_points(
 
 
 def verification_points(
-    config: ScannerConfig, frame: Frame, *, reduced: bool = False, axis: AxisName = "x"
+    config: ScannerConfig,
+    frame: Frame,
+    *,
+    reduced: bool = False,
+    axis: AxisName = "x",
+    start: tuple[float, float] | None = None,
 ) -> list[VerifyPoint]:
-    """Scans inside the frame and outside it (10x slower, 10x faster, offsets beyond)."""
+    """Scans inside the frame and outside it (10x slower, 10x faster, offsets beyond).
+
+    Scan centres are positions: with ``start`` (the voltage and the measured position the run
+    starts from, :func:`frame_end`) they are the verified model's, adopted there and ramped to
+    the frame's centre voltage (the sensor's coordinates, as the daemon's driver has them once
+    the model is switched in); without it, ramped from rest at 0 V.
+    """
     ax = config.axes[axis]
     p = ax.thesis.params()
     f_lo, f_hi = frame.frequencies_hz
@@ -315,7 +360,7 @@ def verification_points(
     b = p.b_um_per_v
     # Scan centres are positions, and position 0 is where the stage rests at 0 V: on a unipolar
     # stage (-30 ... +150 V) the frame's centre lies elsewhere, and a scan centred on 0 clamps.
-    home = _home_um(config, axis, centre)
+    home = _home_um(config, axis, centre, start)
     pts = [
         VerifyPoint(um(r_lo * 1.1, f_mid), round(f_mid, 2), home, True, "inside: small range"),
         VerifyPoint(um(0.5 * (r_lo + r_hi), f_mid), round(f_mid, 2), home, True, "inside: mid range"),
@@ -337,22 +382,32 @@ def verification_points(
     r_off = min(r_lo, 2.0 * (0.5 * (ax.voltage_max_v - ax.voltage_min_v) - off_v) * 0.9)
     if r_off > 0:
         for sign in (-1.0, 1.0):
-            off_um, at_v = _offset_um(config, axis, centre, sign * off_v, um(r_off, 1.0), b, 1.2 * frame_off)
+            off_um, at_v = _offset_um(
+                config, axis, centre, sign * off_v, um(r_off, 1.0), b, 1.2 * frame_off, start
+            )
             pts.append(VerifyPoint(um(r_off, 1.0), 1.0, off_um, False, f"offset {at_v:+.0f} V beyond frame"))
     return pts
 
 
-def _home_um(config: ScannerConfig, axis: AxisName, centre_v: float) -> float:
-    """Where the model stands at the frame's centre voltage, ramped from rest at 0 V (um; 0 if symmetric)."""
+def _home_um(
+    config: ScannerConfig, axis: AxisName, centre_v: float, start: tuple[float, float] | None = None
+) -> float:
+    """Where the model stands at the frame's centre voltage (um): ramped from ``start`` (voltage,
+    measured position), or from rest at 0 V (0 if symmetric)."""
     from piezod.service.axes import axis_model
 
-    if centre_v == 0.0:
+    if centre_v == 0.0 and start is None:
         return 0.0
-    return round(_ramped_um(axis_model(config.axes[axis]), centre_v, float(config.sample_rate_hz)), 2)
+    model = axis_model(config.axes[axis])
+    return round(_ramped_um(model, centre_v, float(config.sample_rate_hz), start=start), 2)
 
 
-def _ramped_um(model: Any, to_v: float, rate_hz: float, samples: int = 2000) -> float:
-    """The model's position after a straight ramp from rest at 0 V to ``to_v``, from its rest at 0 V.
+def _ramped_um(
+    model: Any, to_v: float, rate_hz: float, samples: int = 2000, start: tuple[float, float] | None = None
+) -> float:
+    """The model's position after a straight ramp to ``to_v``: from rest at 0 V, relative to its
+    rest at 0 V; or, with ``start``, from the model adopted at that voltage and measured position
+    (absolute: the measurement's coordinates).
 
     The fitted laws are identified along the histories of the calibration frame, which starts
     with the stage resting at its safe voltage and ramping to the first scan; a state "rested at
@@ -360,6 +415,11 @@ def _ramped_um(model: Any, to_v: float, rate_hz: float, samples: int = 2000) -> 
     can put it far off (on a unipolar stack fitted by the generalised play law, twice the
     stage's position at its centre voltage).
     """
+    if start is not None:
+        here = model.adopt(float(start[0]), float(start[1]))
+        volts = np.linspace(float(start[0]), float(to_v), samples + 1)[1:]
+        _, after = model.forward(volts, 1.0 / rate_hz, here)
+        return float(model.position(after))
     rest = model.rest(0.0)
     volts = np.linspace(0.0, float(to_v), samples + 1)[1:]
     _, after = model.forward(volts, 1.0 / rate_hz, rest)
@@ -374,16 +434,17 @@ def _offset_um(
     range_um: float,
     b: float,
     least_v: float,
+    start: tuple[float, float] | None = None,
 ) -> tuple[float, float]:
     """The centre (um) of a scan ``off_v`` from the voltage centre, and that offset (V).
 
     The offset is a *voltage*: the axis's own model (the one being verified) says where the stage
-    stands there when ramped from rest at 0 V (:func:`_ramped_um`) -- the thesis model's ``b``
-    says it wrongly for a loop much wider or narrower than the thesis law's (its centre then
-    needs more voltage than the amplifier has, and the scan clamps). The periodic plan checks the
-    thesis loop's reach around that voltage, so the offset shrinks (down to ``least_v``, still
-    beyond the frame) until that check passes; where it never does, the thesis model places it
-    as before.
+    stands there when ramped from rest at 0 V or from ``start`` (:func:`_ramped_um`) -- the
+    thesis model's ``b`` says it wrongly for a loop much wider or narrower than the thesis law's
+    (its centre then needs more voltage than the amplifier has, and the scan clamps). The
+    periodic plan checks the thesis loop's reach around that voltage, so the offset shrinks (down
+    to ``least_v``, still beyond the frame) until that check passes; where it never does, the
+    thesis model places it as before.
     """
     from piezod.errors import RangeUnreachableError, SafetyError
     from piezod.service.axes import _plan, axis_model
@@ -394,7 +455,7 @@ def _offset_um(
     rate = float(config.sample_rate_hz)
     v = off_v
     while abs(v) >= least_v:
-        off_um = round(_ramped_um(model, centre_v + v, rate), 2)
+        off_um = round(_ramped_um(model, centre_v + v, rate, start=start), 2)
         try:
             _plan(thesis, range_um, 1.0, off_um, ax.voltage_min_v, ax.voltage_max_v, center_v=centre_v + v)
         except (RangeUnreachableError, SafetyError):
@@ -817,8 +878,12 @@ def _linearity_here(path: Path, axis: AxisName, sensor: SensorPath | None = None
     return float(e.nonlinearity_pct), float(e.length_error_pct)
 
 
-def _check_points_here(config: ScannerConfig, points: list[VerifyPoint], axis: AxisName) -> list[VerifyPoint]:
-    return check_points(config, points, axis=axis)
+def _check_points_here(
+    config: ScannerConfig, points: list[VerifyPoint], axis: AxisName, start: tuple[float, float] | None
+) -> list[VerifyPoint]:
+    if start is None:
+        return check_points(config, points, axis=axis)
+    return check_points(config, points, axis=axis, start_v=start[0], start_um=start[1])
 
 
 def _synth_here(path: Path) -> None:
@@ -904,11 +969,15 @@ class AnalysisWorker:
         return self._pool.submit(_linearity_here, path, axis, sensor).result()
 
     def check_points(
-        self, config: ScannerConfig, points: Sequence[VerifyPoint], axis: AxisName = "x"
+        self,
+        config: ScannerConfig,
+        points: Sequence[VerifyPoint],
+        axis: AxisName = "x",
+        start: tuple[float, float] | None = None,
     ) -> list[VerifyPoint]:
         """:func:`check_points` in the worker process (a whole-scan rendering must not hold the
-        daemon's GIL)."""
-        return self._pool.submit(_check_points_here, config, list(points), axis).result()
+        daemon's GIL), from ``start`` (voltage, measured position: :func:`frame_end`) when given."""
+        return self._pool.submit(_check_points_here, config, list(points), axis, start).result()
 
     def synth_frame(self, path: Path) -> None:
         """Write a synthetic 12-experiment calibration session (for benchmarks) to ``path``."""

@@ -10,6 +10,7 @@ import pytest
 
 from piezod.cli import main
 from piezod.config import default_sim_config_path, load_config
+from piezod.errors import CalibrationError
 from piezod.stagecal import default_frame, verification_points
 
 
@@ -251,3 +252,39 @@ def test_an_adopted_part_is_refined_on_the_chosen_members_fit() -> None:
     assert refined.adopted == (f"polarity: negative_sensitivity_pct = {value:.6g}",)
     # a chosen model outside the family is left as the audit found it
     assert refine_adoption(exps, found, "dynamic", 2000.0, 0.0) == (found, [])
+
+
+def test_verification_starts_where_the_frame_left_the_stage_in_the_sensors_coordinates() -> None:
+    """A fitted law's positions are relative to the histories it was fitted on: the run adopts
+    the model at the frame's last voltage and measured position, so the scan centres follow the
+    measurement (5 um more measured: every centre 5 um further), the check starts there too, and
+    frame_end averages the readback of the frame's last samples."""
+    from piezod.recording import Recording
+    from piezod.stagecal import FRAME_END_SAMPLES, check_points, frame_end
+
+    cfg = load_config(default_sim_config_path())
+    frame = default_frame(cfg)
+    x = cfg.axes["x"]
+    v_end = 0.5 * (x.voltage_min_v + x.voltage_max_v)  # the frame's centre: the ramp there is empty
+    plain = verification_points(cfg, frame, start=(v_end, 10.0))
+    shifted = verification_points(cfg, frame, start=(v_end, 15.0))
+    inside = [(p, q) for p, q in zip(plain, shifted, strict=True) if p.inside_frame]
+    assert inside and all(p.offset_um == pytest.approx(10.0, abs=0.02) for p, _ in inside)
+    assert all(q.offset_um == pytest.approx(15.0, abs=0.02) for _, q in inside)
+    checked = check_points(cfg, plain[:3], start_v=v_end, start_um=10.0)
+    assert [p.why for p in checked] == [p.why for p in plain[:3]]
+
+    n = 400
+    rng = np.random.default_rng(0)
+    pos = np.r_[np.zeros(n - FRAME_END_SAMPLES), 12.0 + 0.003 * rng.standard_normal(FRAME_END_SAMPLES)]
+    rec = Recording(
+        t_s=np.arange(n) / 1e4,
+        axis=np.array(["x"] * n),
+        target_um=np.zeros(n),
+        voltage_v=np.linspace(0.0, 60.0, n),
+        position_um=pos,
+    )
+    v, x = frame_end(rec)
+    assert v == pytest.approx(60.0) and x == pytest.approx(12.0, abs=0.002)
+    with pytest.raises(CalibrationError, match="no readback of axis y"):
+        frame_end(rec, "y")

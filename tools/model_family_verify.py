@@ -41,6 +41,7 @@ from piezod.linearity import experiment_linearity
 from piezod.recording import Experiment
 from piezod.service.axes import AxisDriver
 from piezod.stagecal import (
+    FRAME_END_SAMPLES,
     audit_and_extend,
     check_points,
     choose_for_experiments,
@@ -135,7 +136,8 @@ def main() -> int:
     t0 = time.perf_counter()
     frame = default_frame(base, axis)
     exps = bench.play_frame(frame, axis, ramp)
-    last_x = float(exps[-1].position_um[-1])
+    # where the frame left the stage: its last voltage and readback (noise averaged, as frame_end)
+    last_x = float(np.mean(exps[-1].position_um[-FRAME_END_SAMPLES:]))
     print(f"frame: {len(exps)} experiments, {bench.t:.0f} s simulated")
     thesis = calibrated_config(calibrate(exps), axis=axis, base=base)
     dyn = cd.calibrate_dynamic(exps, slew_rate_v_per_s=ramp, rest_voltage_v=base.axes[axis].safe_voltage_v)
@@ -158,7 +160,9 @@ def main() -> int:
     rows: list[dict[str, Any]] = []
     # placed, then checked with the verified model's own inverse over each whole scan (as piezod
     # calibrate does): a point that would clamp is moved or shrunk, and says so
-    points = check_points(calibrated, verification_points(calibrated, frame, axis=axis), axis=axis)
+    start = (bench.v, last_x)
+    planned = verification_points(calibrated, frame, axis=axis, start=start)
+    points = check_points(calibrated, planned, axis=axis, start_v=start[0], start_um=start[1])
     for pt in points:
         if pt.note:
             print(f"verification point '{pt.why}': {pt.note}")

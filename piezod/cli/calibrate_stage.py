@@ -12,11 +12,13 @@ from piezod.cli._common import board_url, fresh_dir, human_stream, scanner_confi
 from piezod.config import AxisName, dump_config, load_config
 from piezod.errors import CalibrationError
 from piezod.progress import progress_bar
+from piezod.recording import read_recording
 from piezod.service.engine import Engine
 from piezod.stagecal import (
     AnalysisWorker,
     default_frame,
     format_table,
+    frame_end,
     frame_summary,
     plot_verification,
     run_frame,
@@ -135,16 +137,27 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 print(f"faults while the stage held during the fits (acknowledged): {text}", file=say)
                 report["faults_while_fitting"] = faults
             if not args.no_verify:
-                planned = verification_points(calibrated, frame, reduced=reduced, axis=axis)
-                points = worker.check_points(calibrated, planned, axis)
+                # the run starts where the frame left the stage, in the sensor's coordinates (if the
+                # stage still holds the frame's last voltage: a position read at another is not the state)
+                start: tuple[float, float] | None = frame_end(read_recording(frame_path), axis)
+                held = engine.status().voltage_v.get(axis)
+                span_v = base.axes[axis].voltage_max_v - base.axes[axis].voltage_min_v
+                if start is not None and (held is None or abs(held - start[0]) > 1e-3 * span_v):
+                    start = None
+                planned = verification_points(calibrated, frame, reduced=reduced, axis=axis, start=start)
+                points = worker.check_points(calibrated, planned, axis, start)
                 for pt in points:
                     if pt.note:
                         print(f"verification point '{pt.why}': {pt.note}", file=say)
                 models = [calibrated.axes[axis].model] + (
                     ["dynamic"] if calibrated.axes[axis].model != "dynamic" else []
                 )
-                for model in models:
-                    engine.set_axis_model(axis, calibrated.axes[axis].model_copy(update={"model": model}))
+                for k, model in enumerate(models):
+                    engine.set_axis_model(
+                        axis,
+                        calibrated.axes[axis].model_copy(update={"model": model}),
+                        position_um=start[1] if k == 0 and start is not None else None,
+                    )
                     sensor = calibrated.axes[axis].sensor_path()
                     rows += verify(engine, points, recdir, model, worker, sensor=sensor)
                 print(format_table(rows), file=say)

@@ -576,14 +576,23 @@ class Engine:
             self._state = "scanning"
         return self.status()
 
-    def set_axis_model(self, axis: AxisName, config: AxisConfig) -> None:
-        """Use new model parameters on ``axis`` from now on (the model state carries over)."""
+    def set_axis_model(self, axis: AxisName, config: AxisConfig, *, position_um: float | None = None) -> None:
+        """Use new model parameters on ``axis`` from now on.
+
+        The new model continues from the present voltage and the old model's position, or, with
+        ``position_um``, from that position (the sensor's reading: a freshly fitted law's
+        positions are defined only relative to the histories it was fitted on, and the old model's
+        may be an uncalibrated guess).
+        """
         # Built outside the lock: building a model may compile its per-sample loop (seconds), and
         # the block producer needs the lock to keep the board's FIFO fed meanwhile.
         new = AxisDriver(axis, config, self.rate_hz)
         with self._lock:
             old = self.drivers[axis]
-            new.adopt_state(old)
+            if position_um is None:
+                new.adopt_state(old)
+            else:
+                new.adopt(old.voltage_v, position_um)
             self.drivers[axis] = new
 
     def healthy(self) -> bool:
