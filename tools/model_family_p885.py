@@ -29,13 +29,17 @@ import numpy as np
 from piezod.audit.residuals import noise_floor
 from piezod.calibrate_dynamic import _centre, prepare_dynamic
 from piezod.calibrate_family import CREEP_DRIVERS, LAWS, fit_family, session_positions, settled_rows
+from piezod.heights import lagged_experiments
 from piezod.recording import read_experiments
 
 DATA = Path(__file__).resolve().parent.parent / "piezod" / "data" / "real" / "pi-p885"
 
 
-def _prepare(name: str, delay_samples: int = 0):  # type: ignore[no-untyped-def]
+def _prepare(name: str, delay_samples: int = 0, lag_samples: float = 0.0):  # type: ignore[no-untyped-def]
     exps = read_experiments([DATA / name])
+    if lag_samples > 0.0:
+        dt = float(np.median(np.diff(exps[0].t_s)))
+        exps = lagged_experiments(exps, lag_samples * dt)
     if delay_samples > 0:
         # the readback aligned to the drive: the position recorded n samples later is the stage's now
         n = delay_samples
@@ -105,10 +109,17 @@ def main() -> int:
         default=0,
         help="align the readback by this many samples first (SOURCE.md: the sensor lags by one)",
     )
+    ap.add_argument(
+        "--drive-lag-samples",
+        type=float,
+        default=0.0,
+        help="run the drive voltage through an exact first-order lag of this many sample intervals and"
+        " hold the fit's own (first-order form) lag at 0",
+    )
     ap.add_argument("--plot", default=None, metavar="F.png", help="validation residual of the best member")
     args = ap.parse_args()
-    ident_exps, ident = _prepare("identification.csv", args.sensor_delay_samples)
-    valid_exps, valid = _prepare("validation.csv", args.sensor_delay_samples)
+    ident_exps, ident = _prepare("identification.csv", args.sensor_delay_samples, args.drive_lag_samples)
+    valid_exps, valid = _prepare("validation.csv", args.sensor_delay_samples, args.drive_lag_samples)
     floor_id = float(np.sqrt(np.mean([noise_floor(np.asarray(e.position_um)) ** 2 for e in ident_exps])))
     floor_va = float(np.sqrt(np.mean([noise_floor(np.asarray(e.position_um)) ** 2 for e in valid_exps])))
     rows = []
@@ -116,6 +127,8 @@ def main() -> int:
     for law, driver in [(law, d) for law in args.laws for d in CREEP_DRIVERS]:
         t0 = time.perf_counter()
         extra = {} if args.centre_smoothing is None else {"centre_smoothing": args.centre_smoothing}
+        if args.drive_lag_samples > 0.0:
+            extra["fit_lag"] = False
         fit = fit_family(ident, law, plays=args.plays, skip_s=args.skip_s, creep_driver=driver, **extra)
         x = session_positions(valid, fit.params)
         keep = settled_rows(valid, args.skip_s)
