@@ -317,14 +317,23 @@ def forward_heights(axis: AxisConfig, z_voltage_v: F64, dt_s: float) -> F64:
     :func:`piezod.heights.fit_z_model`), the dynamic model (hysteresis ODE + creep operator) when
     the axis has a ``dynamic`` section, else the hysteresis ODE (2.21) of its thesis parameters
     (no creep: the thesis's creep law (3.8) holds for periodic scans only, which z is not). The
-    height is relative to the rest position at the first sample's voltage.
+    height is relative to the position before the first sample.
+
+    A family model starts at rest at the axis's safe voltage and ramps to the first sample at the
+    axis's slew rate: a fitted law's states are defined along the histories it was fitted on,
+    which start that way (:func:`piezod.calibrate_data.prepare_dynamic`); "rested at the first
+    voltage for ever" is a state no calibration visits (a Bouc-Wen law fitted to 0.05 nm put its
+    slope 7 % off there). The other models start at rest at the first sample's voltage.
     """
     v = np.asarray(z_voltage_v, dtype=np.float64)
     if v.size == 0:
         return np.zeros(0)
     if axis.model == "family" and axis.family is not None:
         fp = axis.family.params()
-        fs = family_rest_state(fp, float(v[0]))
+        fs = family_rest_state(fp, axis.safe_voltage_v)
+        n = math.ceil(abs(float(v[0]) - axis.safe_voltage_v) / axis.slew_rate_v_per_s / dt_s)
+        if n > 0:
+            _, fs = family_forward(fp, np.linspace(axis.safe_voltage_v, float(v[0]), n + 1)[1:], dt_s, fs)
         xf, _ = family_forward(fp, v, dt_s, fs)
         out_f: F64 = xf - fs.position_um
         return out_f
