@@ -351,3 +351,31 @@ def test_the_audit_report_and_plots_say_what_the_decision_did() -> None:
             assert all(len(line.get_xdata()) >= 3 for line in a.get_lines() if line.get_marker() == "o")
     for fig in list(map(plt.figure, plt.get_fignums())):
         plt.close(fig)
+
+
+def test_a_recording_after_a_model_switch_names_the_switched_model(tmp_path: Path) -> None:
+    """piezod calibrate switches the fitted model in (Engine.set_axis_model); the recordings made
+    after it said the configuration's first model (the uncalibrated thesis guess) and its hash."""
+    import hashlib
+
+    from piezod.service.engine import Engine
+
+    cfg_path = default_sim_config_path()
+    base = load_config(cfg_path)
+    fitted = load_config(cfg_path.parent / "sim-stage-calibrated.yaml").axes["x"]
+    assert base.axes["x"].model == "thesis" and fitted.model != "thesis"
+    with spawn_sim(cfg_path) as sim:
+        engine = Engine(base, sim.path, recording_dir=tmp_path)
+        engine.open()
+        try:
+            engine.set_axis_model("x", fitted)
+            path = tmp_path / "after.csv"
+            engine.start_scan(ScanRequest(range_um=5.0, line_rate_hz=5.0, lines=1, name="after"), path=path)
+            assert engine.wait_idle(timeout_s=60.0) == "idle"
+            engine.wait_recorded()
+        finally:
+            engine.close()
+    meta = read_recording(path).metadata
+    assert meta["model"] == fitted.model
+    assert json.loads(meta["model_params"]) == getattr(fitted, fitted.model).model_dump(mode="json")
+    assert meta["config_sha256"] != hashlib.sha256(base.model_dump_json().encode()).hexdigest()

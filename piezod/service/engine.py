@@ -594,6 +594,8 @@ class Engine:
             else:
                 new.adopt(old.voltage_v, position_um)
             self.drivers[axis] = new
+            # the recordings' headers state the model in force (model, parameters, config hash)
+            self.config = self.config.model_copy(update={"axes": {**self.config.axes, axis: config}})
 
     def healthy(self) -> bool:
         """Streaming runs and the board reports in time (the systemd watchdog is pinged only then)."""
