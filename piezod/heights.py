@@ -23,6 +23,7 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.signal import lfilter
 
 from piezod.config import AxisConfig, ScannerConfig
 from piezod.errors import CalibrationError
@@ -188,10 +189,10 @@ Z_LAG_GRID_SAMPLES = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
 def lagged_experiments(experiments: list[Experiment], tau_s: float) -> list[Experiment]:
     """The experiments with their voltages run through the drive lag ``tau_s`` exactly.
 
-    The lag is the runtime model's (:mod:`piezod.model.family`): ``V_c[n] = a V_c[n-1] + (1 - a)
-    V[n]``, ``a = exp(-dt / tau)``, with each sample's own ``dt``; it carries its state from one
-    experiment to the next when they are contiguous (one sample apart) and starts settled at the
-    first voltage otherwise.
+    The lag is the runtime model's (:func:`piezod.model.family.family_forward`): ``V_c[n] =
+    a V_c[n-1] + (1 - a) V[n]``, ``a = exp(-dt / tau)`` with the experiment's (uniform) sample
+    interval; it carries its state from one experiment to the next when they are contiguous (one
+    sample apart) and starts settled at the first voltage otherwise.
     """
     if tau_s < 0.0 or not math.isfinite(tau_s):
         raise CalibrationError(f"drive lag must be >= 0 s, got {tau_s!r}")
@@ -201,16 +202,12 @@ def lagged_experiments(experiments: list[Experiment], tau_s: float) -> list[Expe
     y = 0.0
     last_t: float | None = None
     for e in sorted(experiments, key=lambda e: float(e.t_s[0])):
-        dt = np.diff(e.t_s)
-        step = float(np.median(dt)) if dt.size else 0.0
-        a = np.exp(-np.concatenate([[step], dt]) / tau_s)
-        v = np.empty_like(e.voltage_v)
+        step = float(np.median(np.diff(e.t_s))) if e.t_s.size > 1 else 0.0
+        a = math.exp(-step / tau_s)
         contiguous = last_t is not None and float(e.t_s[0]) - last_t <= 1.5 * step
-        y = y if contiguous else float(e.voltage_v[0])
-        for i, (ai, xi) in enumerate(zip(a.tolist(), e.voltage_v.tolist(), strict=True)):
-            y = ai * y + (1.0 - ai) * xi
-            v[i] = y
-        last_t = float(e.t_s[-1])
+        y0 = y if contiguous else float(e.voltage_v[0])
+        v = lfilter([1.0 - a], [1.0, -a], e.voltage_v, zi=[a * y0])[0]
+        y, last_t = float(v[-1]), float(e.t_s[-1])
         out.append(dataclasses.replace(e, voltage_v=v))
     return out
 
@@ -263,17 +260,19 @@ def fit_z_model(
     from piezod.model.family import CREEP_DRIVERS
 
     ax = base.axes[axis]
+    prepared: dict[float, DynamicCalibrationData] = {}
 
     def prepare(tau_s: float) -> DynamicCalibrationData:
-        return prepare_dynamic(
-            lagged_experiments(experiments, tau_s),
-            rest_voltage_v=ax.safe_voltage_v,
-            slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
-            max_samples_per_experiment=4096,
-        )
+        if tau_s not in prepared:
+            prepared[tau_s] = prepare_dynamic(
+                lagged_experiments(experiments, tau_s),
+                rest_voltage_v=ax.safe_voltage_v,
+                slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
+                max_samples_per_experiment=4096,
+            )
+        return prepared[tau_s]
 
-    data = prepare(0.0)
-    train = holdout_mask(data.n_experiments, 4)
+    train = holdout_mask(prepare(0.0).n_experiments, 4)
     dt = min(float(np.median(np.diff(e.t_s))) for e in experiments if e.t_s.size > 1)
     profiled: dict[float, float] = {}
 

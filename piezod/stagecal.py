@@ -415,15 +415,14 @@ def _ramped_um(
     can put it far off (on a unipolar stack fitted by the generalised play law, twice the
     stage's position at its centre voltage).
     """
-    if start is not None:
-        here = model.adopt(float(start[0]), float(start[1]))
-        volts = np.linspace(float(start[0]), float(to_v), samples + 1)[1:]
-        _, after = model.forward(volts, 1.0 / rate_hz, here)
-        return float(model.position(after))
-    rest = model.rest(0.0)
-    volts = np.linspace(0.0, float(to_v), samples + 1)[1:]
-    _, after = model.forward(volts, 1.0 / rate_hz, rest)
-    return float(model.position(after) - model.position(rest))
+    if start is None:
+        from_v, here = 0.0, model.rest(0.0)
+        origin = float(model.position(here))
+    else:
+        from_v, here, origin = float(start[0]), model.adopt(float(start[0]), float(start[1])), 0.0
+    volts = np.linspace(from_v, float(to_v), samples + 1)[1:]
+    _, after = model.forward(volts, 1.0 / rate_hz, here)
+    return float(model.position(after)) - origin
 
 
 def _offset_um(
@@ -881,9 +880,8 @@ def _linearity_here(path: Path, axis: AxisName, sensor: SensorPath | None = None
 def _check_points_here(
     config: ScannerConfig, points: list[VerifyPoint], axis: AxisName, start: tuple[float, float] | None
 ) -> list[VerifyPoint]:
-    if start is None:
-        return check_points(config, points, axis=axis)
-    return check_points(config, points, axis=axis, start_v=start[0], start_um=start[1])
+    start_v, start_um = (None, None) if start is None else start
+    return check_points(config, points, axis=axis, start_v=start_v, start_um=start_um)
 
 
 def _synth_here(path: Path) -> None:

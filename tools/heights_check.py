@@ -59,11 +59,13 @@ def _scan(engine: Engine, request: ScanRequest, path: Path) -> None:
     engine.wait_recorded()
 
 
-def _true_z(rs_t: np.ndarray, truth: Path, rate: float, every: int = 1) -> np.ndarray:
-    """The true z extension at every ``every``-th sample the truth log holds, NaN elsewhere: at a
-    step the extension moves within a sample or two, which no interpolation between logged
-    samples follows."""
-    idx, z = read_truth_log(truth, "z_um")
+def _true_z(
+    rs_t: np.ndarray, truth: tuple[np.ndarray, np.ndarray], rate: float, every: int = 1
+) -> np.ndarray:
+    """The true z extension (``truth``: the log's sample indices and z column) at every
+    ``every``-th sample the log holds, NaN elsewhere: at a step the extension moves within a
+    sample or two, which no interpolation between logged samples follows."""
+    idx, z = truth
     k = np.rint(rs_t * rate).astype(np.int64)
     pos = np.clip(np.searchsorted(idx, k), 0, idx.size - 1)
     return np.where((idx[pos] == k) & (k % every == 0), z[pos], np.nan)
@@ -89,9 +91,10 @@ def main(argv: list[str] | None = None) -> int:
         if not (truth.exists() and all(p.exists() for p in recs.values())):
             _record(cfg_path, config, d, truth, recs)
         rs = {k: raster_samples(read_recording(p)) for k, p in recs.items()}
-        true = {k: _true_z(r.t_s, truth, rate) for k, r in rs.items()}
-        # compared at every COMPARE_EVERY-th sample: the published figures' definition
-        true["verification"] = _true_z(rs["verification"].t_s, truth, rate, COMPARE_EVERY)
+        log = read_truth_log(truth, "z_um")
+        # the verification compared at every COMPARE_EVERY-th sample: the published figures' definition
+        every = {k: COMPARE_EVERY if k == "verification" else 1 for k in rs}
+        true = {k: _true_z(r.t_s, log, rate, every[k]) for k, r in rs.items()}
     _report(args, cfg_path, base, rs, true)
     return 0
 

@@ -139,11 +139,11 @@ def run_on_stage(args: argparse.Namespace) -> int:
             if not args.no_verify:
                 # the run starts where the frame left the stage, in the sensor's coordinates (if the
                 # stage still holds the frame's last voltage: a position read at another is not the state)
-                start: tuple[float, float] | None = frame_end(read_recording(frame_path), axis)
+                v_end, x_end = frame_end(read_recording(frame_path), axis)
                 held = engine.status().voltage_v.get(axis)
                 span_v = base.axes[axis].voltage_max_v - base.axes[axis].voltage_min_v
-                if start is not None and (held is None or abs(held - start[0]) > 1e-3 * span_v):
-                    start = None
+                holds = held is not None and abs(held - v_end) <= 1e-3 * span_v
+                start = (v_end, x_end) if holds else None
                 planned = verification_points(calibrated, frame, reduced=reduced, axis=axis, start=start)
                 points = worker.check_points(calibrated, planned, axis, start)
                 for pt in points:
