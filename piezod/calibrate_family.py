@@ -591,14 +591,14 @@ def _joint_refine(
         x = xc + kappa * xc * xc - tau * rate
         return x, xc, a, b, rate, rate_cols
 
-    def cost(theta: F64, w: F64, kappa: float, tau: float, ridge_scale: float) -> tuple[float, float]:
+    def cost(theta: F64, w: F64, kappa: float, tau: float, ridge_scale: float) -> tuple[float, float, F64]:
         x = parts(theta, w, kappa, tau)[0]
         resid = (_centre(data, x) - s.yc)[tr]
         fit = float(resid @ resid)
         penalty = lam * ridge_scale**2 * float(np.sum((reg @ w) ** 2))
         if theta_reg is not None:
             penalty += float(np.sum((theta_reg @ theta) ** 2))
-        return fit + penalty, math.sqrt(fit / max(1, resid.size))
+        return fit + penalty, math.sqrt(fit / max(1, resid.size)), resid
 
     theta, w, kappa, tau, rms, it = start
     theta, w = theta.copy(), w.copy()
@@ -609,7 +609,7 @@ def _joint_refine(
     lower[0] = 1e-9
     b = parts(theta, w, kappa, tau)[3]
     ridge_scale = float(np.linalg.norm(_centre(data, b)[tr])) / math.sqrt(m)
-    current, rms = cost(theta, w, kappa, tau, ridge_scale)
+    current, rms, resid = cost(theta, w, kappa, tau, ridge_scale)
     dead = _dead(_centre(data, f)[tr])
     lower[:n_f][dead] = 0.0
     upper[:n_f][dead] = 0.0
@@ -637,7 +637,7 @@ def _joint_refine(
             q = p0 + step * (p - p0)
             th, wq, kq, tq = q[:n_f], q[n_f : n_f + m], float(q[-2]), float(q[-1])
             if float(wq.sum()) < MAX_TOTAL_CREEP:
-                new, new_rms = cost(th, wq, kq, tq, ridge_scale)
+                new, new_rms, new_resid = cost(th, wq, kq, tq, ridge_scale)
                 if new < current:
                     accepted = True
                     break
@@ -645,12 +645,12 @@ def _joint_refine(
         if not accepted:
             break
         gain = (current - new) / current
-        theta, w, kappa, tau, current, rms = th.copy(), wq.copy(), kq, tq, new, new_rms
+        theta, w, kappa, tau, current, rms, resid = th.copy(), wq.copy(), kq, tq, new, new_rms, new_resid
         it += 1
         if gain < tol:
             break
     if keep is not None:
-        keep[:] = [(_centre(data, parts(theta, w, kappa, tau)[0]) - s.yc)[tr]]
+        keep[:] = [resid]
     return theta, w, kappa, tau, rms, it
 
 

@@ -734,6 +734,7 @@ def audit_and_extend(
     """
     from piezod.audit import AuditOptions, run_audit
     from piezod.audit import result_json as audit_json
+    from piezod.calibrate_family import CHOICE_TIE_FRACTION
     from piezod.extensions import adopt_findings, experiments_through, extended_config
     from piezod.model.parts import PART_EFFECTS
     from piezod.model.sensor import SENSOR_EFFECTS
@@ -761,8 +762,6 @@ def audit_and_extend(
         experiments_through(experiments, adoption.effects), axis, base, ramp_v_per_s, rest_voltage_v
     )
     report["heldout_rms_um"]["extended"] = redone.fit_error_pct
-    from piezod.calibrate_family import CHOICE_TIE_FRACTION
-
     # A lag the held-out data cannot place (the sensor path predicts as well as the drive lag the
     # fit takes instead) is put at the sensor: a sensor lag compensated at the drive makes the
     # voltage overshoot every reversal, which moves a hysteretic stage's branch; a drive lag left

@@ -171,6 +171,9 @@ def main() -> int:
     for kind in kinds:
         cfg = calibrated.axes[axis].model_copy(update={"model": kind, "slew_rate_v_per_s": 1e6})
         driver = AxisDriver(axis, cfg, rate)
+        # scored where the stage is, as piezod calibrate scores it: a readback lag the model puts
+        # in the sensor path is not a position error
+        sensor = cfg.sensor_path()
         # as the daemon switches a model in: from the stage's voltage and position (here the sensor's
         # last reading), not from a rest state at that voltage (one the frame never visits)
         driver.adopt(bench.v, last_x)
@@ -205,9 +208,6 @@ def main() -> int:
                 continue
             k0 = n_move + per
             exp = Experiment("verify", axis, t[k0:], v[k0:], x[k0:], target_um=target[k0:])
-            # where the stage is, as piezod calibrate scores it: a readback lag the model puts in
-            # the sensor path is not a position error
-            sensor = calibrated.axes[axis].sensor_path()
             if not sensor.identity:
                 exp = experiments_through_sensor([exp], sensor)[0]
             lin = experiment_linearity(exp)
