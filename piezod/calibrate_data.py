@@ -219,6 +219,11 @@ class DynamicCalibrationData:
         Voltage the stage rested at before ``t = 0``.
     experiments
         Per-experiment layout.
+    offset_group
+        ``None`` (one unknown position offset per experiment), or the offset group of every
+        compared sample: a group is a set of samples of one experiment that share an unknown
+        position offset (a line pattern's rising and falling flanks, whose positions differ by
+        the line width the fit need not know).
     """
 
     hysteresis_voltage_v: F64
@@ -230,6 +235,7 @@ class DynamicCalibrationData:
     counts: NDArray[np.intp]
     rest_voltage_v: float
     experiments: tuple[ExperimentLayout, ...]
+    offset_group: NDArray[np.intp] | None = None
 
     @property
     def n_experiments(self) -> int:
@@ -241,6 +247,31 @@ class DynamicCalibrationData:
         """Voltage at the grid samples."""
         out: F64 = self.hysteresis_voltage_v[self.grid_index]
         return out
+
+    def groups(self) -> NDArray[np.intp]:
+        """The offset group of every compared sample (the experiment's index by default)."""
+        if self.offset_group is not None:
+            return self.offset_group
+        out: NDArray[np.intp] = np.repeat(np.arange(self.n_experiments, dtype=np.intp), self.counts)
+        return out
+
+    def centred(self, a: F64) -> F64:
+        """``a`` (compared samples along axis 0) less its mean per offset group (per experiment
+        unless :attr:`offset_group` says otherwise): what is left once the unknown offsets are
+        eliminated."""
+        if self.offset_group is None:
+            sums = np.add.reduceat(a, self.starts, axis=0)
+            means = sums / (self.counts if a.ndim == 1 else self.counts[:, None])
+            out: F64 = a - np.repeat(means, self.counts, axis=0)
+            return out
+        g = self.offset_group
+        n = np.bincount(g).astype(np.float64)
+        if a.ndim == 1:
+            return a - (np.bincount(g, weights=a, minlength=n.size) / np.maximum(n, 1.0))[g]
+        sums2 = np.zeros((n.size, *a.shape[1:]))
+        np.add.at(sums2, g, a)
+        centred: F64 = a - (sums2 / np.maximum(n, 1.0)[:, None])[g]
+        return centred
 
     def time_scales_s(self) -> tuple[float, float]:
         """Shortest and longest time scale the frame shows: a quarter loop / a ramp; the session."""
@@ -343,6 +374,7 @@ def prepare_dynamic(
     slew_rate_v_per_s: float = 2000.0,
     rest_voltage_v: float = 0.0,
     max_preroll_loops: int = 8,
+    hold_before_move: bool = False,
 ) -> DynamicCalibrationData:
     """Lay out a session of experiments (any waveforms, one axis) for the dynamic fit.
 
@@ -360,6 +392,10 @@ def prepare_dynamic(
         Voltage the stage rested at before ``t = 0`` (the safe voltage).
     max_preroll_loops
         Most settling loops assumed before a periodic experiment.
+    hold_before_move
+        Between experiments the stage holds where the previous one ended, then moves to the next
+        start (the daemon's scan jobs: a scan holds at its end until the next one moves); by
+        default it moves first and holds at the next start (``hil_sim.session``'s pause).
 
     Raises
     ------
@@ -428,13 +464,14 @@ def prepare_dynamic(
         # (hil_sim.session's pause)
         steps = min(move, _MOVE_STEPS)
         frac = np.arange(1, steps + 1) / max(steps, 1)
-        v_hold = v_from if prev is None else v_start
-        if hold > 0 and prev is None:
+        hold_first = prev is None or hold_before_move
+        v_hold = v_from if hold_first else v_start
+        if hold > 0 and hold_first:
             builder.piece(np.array([v_hold]), np.zeros(1, dtype=np.intp), hold * dt)
         if move > 0:
             mv = v_from + (v_start - v_from) * frac
             builder.piece(mv, np.arange(steps, dtype=np.intp), move * dt / steps)
-        if hold > 0 and prev is not None:
+        if hold > 0 and not hold_first:
             builder.piece(np.array([v_hold]), np.zeros(1, dtype=np.intp), hold * dt)
         # settling loops (the periodic extension of the first recorded loop backwards in time),
         # then the recorded samples: grid every `stride` samples, ending on the last one

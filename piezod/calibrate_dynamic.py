@@ -254,10 +254,7 @@ class _Model:
 
 
 def _centre(data: DynamicCalibrationData, a: NDArray[np.float64]) -> NDArray[np.float64]:
-    sums = np.add.reduceat(a, data.starts, axis=0)
-    means = sums / (data.counts if a.ndim == 1 else data.counts[:, None])
-    out: NDArray[np.float64] = a - np.repeat(means, data.counts, axis=0)
-    return out
+    return data.centred(a)
 
 
 # --------------------------------------------------------------------------------------------- start
@@ -533,9 +530,10 @@ def fit_dynamic(
         raise CalibrationError("fitted creep too large")
 
     x = model.positions(z_sol)
+    # the experiment's mean offset is reported; its groups' offsets are eliminated
     offsets = np.add.reduceat(data.position_um - x, data.starts) / data.counts
-    fitted = x + np.repeat(offsets, data.counts)
-    resid_um = data.position_um - fitted
+    resid_um = _centre(data, data.position_um - x)
+    fitted = data.position_um - resid_um
     p_free = int(mask.sum())
     lsf = np.add.reduceat(resid_um**2, data.starts)
     sigma = np.sqrt(lsf / np.maximum(data.counts - p_free, 1))
@@ -544,7 +542,7 @@ def fit_dynamic(
     rms = np.sqrt(lsf / data.counts)
 
     n_exp = data.n_experiments
-    dof = max(resid_um.size - p_free - n_exp, 1)
+    dof = max(resid_um.size - p_free - int(np.unique(data.groups()).size), 1)
     stats = parameter_statistics(
         res.jac,
         float(resid_um @ resid_um),

@@ -661,7 +661,7 @@ def _result(s: _Session, params: FamilyParams, iterations: int, n_coefficients: 
     train = resid[s.train_rows]
     held = resid[s.test_rows]
     n = int(train.size)
-    n_offsets = int(np.unique(np.repeat(np.arange(s.data.n_experiments), s.data.counts)[s.train_rows]).size)
+    n_offsets = int(np.unique(s.data.groups()[s.train_rows]).size)
     return FamilyFit(
         params=params,
         residuals_um=train,

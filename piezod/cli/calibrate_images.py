@@ -126,6 +126,7 @@ def _fit_here(
     worker process: results are plain data)."""
     from piezod import calibrate_family as cf
     from piezod.model.family import REALTIME_CREEP_DRIVERS, CreepSpectrum, FamilyParams
+    from piezod.trajectory import SETTLE_LINES
 
     recs = [read_recording(p) for p in paths]
     events = [flank_events(r, pitch_um, label=p.stem) for r, p in zip(recs, paths, strict=True)]
@@ -137,6 +138,7 @@ def _fit_here(
         th.line_width_um,
         slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
         rest_voltage_v=ax.safe_voltage_v,
+        settle_lines=SETTLE_LINES,
     )
     dyn = fit_dynamic(session)
     # flanks the first fit misses by far (dust, a misread edge) are dropped, then everything refitted
