@@ -161,7 +161,9 @@ def test_flanks_on_a_stage_of_other_physics_choose_its_law() -> None:
     )
 
 
-def test_a_wrong_line_width_does_not_enter_the_fits(session: tuple[list[Recording], list[np.ndarray]]) -> None:
+def test_a_wrong_line_width_does_not_enter_the_fits(
+    session: tuple[list[Recording], list[np.ndarray]],
+) -> None:
     """Each scan's rising and falling flanks are offset groups of their own: the thesis fit's line
     width (off by a few nm on a stage it does not describe) only moves the falling family."""
     recs, _ = session
