@@ -12,8 +12,12 @@ baseline alone is at its self-consistency floor and what remains is the effect's
 3. **extended**: the audit (:func:`piezod.audit.run_audit`) of the same frame for the candidates
    ``piezod calibrate`` audits (those a runtime part or the sensor path can take), its material
    findings mapped to runtime parts and the sensor path (:func:`piezod.extensions.adopt_findings`),
-   the dynamic model refitted with them fixed (the frame's readback aligned through the sensor
-   path, then seen through the parts' exact inverse), the parts around it
+   each part's primary parameter and the sensor path's lag profiled on the refitted dynamic
+   model's training RMS (:func:`piezod.extensions.refine_parts`,
+   :func:`piezod.extensions.refine_sensor_lag`: what ``piezod calibrate``'s
+   :func:`piezod.stagecal.refine_adoption` does with the chosen family member), the dynamic model
+   refitted with them fixed (the frame's readback aligned through the sensor path, then seen
+   through the parts' exact inverse), the parts around it
    (:class:`piezod.model.parts.PartsAxisModel`);
 4. both verified by online-corrected triangles at the frame's verification points
    (:func:`piezod.stagecal.verification_points`; one warm-up loop, then ``loops`` recorded),
@@ -32,6 +36,7 @@ floor with the baseline already is reported as "below resolution" (nothing to re
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -43,7 +48,14 @@ from numpy.typing import NDArray
 
 from piezod import calibrate_dynamic as cd
 from piezod.config import AxisName, ScannerConfig, default_sim_config_path, load_config
-from piezod.extensions import Adoption, adopt_findings, experiments_through, extended_config
+from piezod.extensions import (
+    Adoption,
+    adopt_findings,
+    experiments_through,
+    extended_config,
+    refine_parts,
+    refine_sensor_lag,
+)
 from piezod.linearity import experiment_linearity
 from piezod.model.parts import PART_EFFECTS
 from piezod.model.registry import REGISTRY
@@ -144,6 +156,24 @@ def _dynamic(exps: Sequence[Experiment], base: ScannerConfig, axis: AxisName) ->
     axes = dict(cfg.axes)
     axes[axis] = axes[axis].model_copy(update={"model": "dynamic"})
     return cfg.model_copy(update={"axes": axes})
+
+
+def _refit_rms(
+    exps: Sequence[Experiment], effects: dict[str, dict[str, float]], base: ScannerConfig, axis: AxisName
+) -> float:
+    """Training RMS (um) of the dynamic model refitted on the frame seen through ``effects``."""
+    from piezod.errors import CalibrationError
+
+    ax = base.axes[axis]
+    try:
+        dyn = cd.calibrate_dynamic(
+            experiments_through(exps, effects),
+            slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
+            rest_voltage_v=ax.safe_voltage_v,
+        )
+    except CalibrationError:
+        return math.inf
+    return float(dyn.residual_rms_um)
 
 
 def _verify(
@@ -271,6 +301,14 @@ def run_case(
         out["findings"] = [f["effect"] for f in doc["findings"]]
         out["adoption"] = {"adopted": list(adoption.adopted), "skipped": list(adoption.skipped)}
         if adoption.effects:
+            # as piezod calibrate's refine_adoption, on the bench's model (the dynamic model)
+            refined, notes = refine_parts(adoption.effects, lambda fx: _refit_rms(exps, fx, base, axis))
+            refined, note = refine_sensor_lag(refined, lambda fx: _refit_rms(exps, fx, base, axis))
+            notes += [f"sensor path {note}"] if note else []
+            if notes:
+                adoption = dataclasses.replace(adoption, effects=refined)
+                out["refined"] = notes
+                out["adoption"]["adopted"] = list(adoption.adopted)
             refit = _dynamic(experiments_through(exps, adoption.effects), base, axis)
             extended = extended_config(refit, axis, adoption)
             out["extended"] = {"rows": _verify(bench, extended, axis, points, loops)}
@@ -310,6 +348,10 @@ def score(case: dict[str, Any], floor: dict[str, float], resolution_pct: float) 
     return {"left": left, "below_resolution": below, "met": met and not below}
 
 
+def _case(specs: list[str], reduced: bool, loops: int, seed: int) -> dict[str, Any]:
+    return run_case(specs, reduced=reduced, loops=loops, seed=seed)
+
+
 def run_effects_bench(
     effects: Sequence[str] | None = None,
     *,
@@ -318,16 +360,34 @@ def run_effects_bench(
     seed: int = 1,
     resolution_pct: float = 0.01,
     on_step: Callable[[str], None] | None = None,
+    jobs: int = 1,
 ) -> dict[str, Any]:
-    """The table of the module docstring for ``effects`` (default: every hil_sim effect)."""
+    """The table of the module docstring for ``effects`` (default: every hil_sim effect).
+
+    ``jobs > 1`` runs the cases (the floor and one per effect: each independent, deterministic
+    for its seed) in that many worker processes; ``on_step`` then hears one ``"case"`` per
+    finished case instead of every step.
+    """
     from piezod.simulator import sim_effect_names
 
     names = list(effects) if effects else list(sim_effect_names())
-    floor_case = run_case([], reduced=reduced, loops=loops, seed=seed, on_step=on_step)
-    floor = floor_case["baseline"]["worst"]
+    specs = [[], *(realistic_specs(name) for name in names)]
+    if jobs > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        step = on_step or (lambda _s: None)
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+            futures = [pool.submit(_case, sp, reduced, loops, seed) for sp in specs]
+            for f in futures:
+                f.add_done_callback(lambda _f: step("case"))
+            cases = [f.result() for f in futures]
+    else:
+        cases = [run_case(sp, reduced=reduced, loops=loops, seed=seed, on_step=on_step) for sp in specs]
+    floor = cases[0]["baseline"]["worst"]
     rows = []
-    for name in names:
-        case = run_case(realistic_specs(name), reduced=reduced, loops=loops, seed=seed, on_step=on_step)
+    for name, case in zip(names, cases[1:], strict=True):
         rows.append({"effect": name, **case, **score(case, floor, resolution_pct)})
     return {
         "stage": "built-in stage (configs/sim-stage.yaml) + one hil_sim effect: the baseline is the "
@@ -357,7 +417,7 @@ def format_table(result: dict[str, Any]) -> str:
         left = r["left"]
         verdict = "below resolution" if r["below_resolution"] else ("**yes**" if r["met"] else "no")
         injected = ", ".join(s.split(".", 1)[1] for s in r["specs"])
-        adopted = "; ".join(a.split(":")[0] for a in r["adoption"]["adopted"]) or "-"
+        adopted = "; ".join(a.split(" (")[0] for a in r["adoption"]["adopted"]) or "-"
         oracle = (
             f"{left['nonlinearity_pct']['injected']:.3f} / {left['length_error_pct']['injected']:.3f}"
             if "injected" in left["nonlinearity_pct"]

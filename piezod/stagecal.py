@@ -783,10 +783,6 @@ def audit_and_extend(
     return ThesisFit(report, chosen.config, chosen.fit_error_pct)
 
 
-#: Evaluations of the profile search per adopted part (:func:`refine_adoption`).
-REFINE_EVALUATIONS = 12
-
-
 def refine_adoption(
     experiments: Sequence[Experiment],
     adoption: Adoption,
@@ -794,17 +790,15 @@ def refine_adoption(
     ramp_v_per_s: float,
     rest_voltage_v: float,
 ) -> tuple[Adoption, list[str]]:
-    """Profile each adopted runtime part's primary parameter on the chosen member's fit.
+    """Profile the adopted runtime parts and the sensor path on the chosen member's fit.
 
-    The audit estimates a part against its own baseline model, which absorbs some of the effect
-    (a law whose density depends on the relay centre takes part of a polarity kink at 0 V: on a
-    tube with 5 % depoling the audit found 3.98 %). Here each part's primary parameter is searched
-    (bounded scalar search over half to one and a half times the audit's value, inside the
-    registry's physical bounds; :data:`REFINE_EVALUATIONS` evaluations) for the smallest *training*
-    RMS of the chosen family member refitted on the frame seen through the parts
-    (:func:`piezod.extensions.experiments_through`); the held-out experiments stay out of it. A
-    chosen model that is not a family member, or parts without a scalar static parameter (the
-    sensor path), are left as the audit found them.
+    The audit estimates them against its own baseline model, which absorbs part of an effect.
+    Each runtime part's primary parameter (:func:`piezod.extensions.refine_parts`) and the sensor
+    path's lag (:func:`piezod.extensions.refine_sensor_lag`) are searched for the smallest
+    *training* RMS of the chosen family member refitted on the frame seen through them; the
+    held-out experiments stay out of it. For the sensor path the member is fitted without a
+    drive lag of its own, which would otherwise take any part of the lag the sensor path leaves.
+    A chosen model that is not a family member leaves the findings as the audit found them.
 
     Returns
     -------
@@ -813,50 +807,28 @@ def refine_adoption(
     """
     import dataclasses
 
-    from scipy.optimize import minimize_scalar
-
     from piezod import calibrate_family as cf
-    from piezod.extensions import experiments_through
-    from piezod.model.parts import PART_EFFECTS
-    from piezod.model.registry import spec
+    from piezod.extensions import experiments_through, refine_parts, refine_sensor_lag
+    from piezod.model.sensor import SENSOR_EFFECTS
 
     parts = chosen.split("/")
     if len(parts) < 2 or parts[0] != "family":
         return adoption, []
     law, driver = parts[1], "voltage" if chosen.endswith("/voltage-creep") else "position"
-    effects = {k: dict(v) for k, v in adoption.effects.items()}
-    notes: list[str] = []
-    for effect in [e for e in effects if e in PART_EFFECTS]:
-        name = PART_EFFECTS[effect][0]
-        p0 = float(effects[effect][name])
-        if p0 == 0.0:
-            continue
-        lo_phys, hi_phys = next(p.physical for p in spec(effect).params if p.name == name)
-        lo, hi = max(lo_phys, p0 - 0.5 * abs(p0)), min(hi_phys, p0 + 0.5 * abs(p0))
 
-        def train_rms(value: float, effect: str = effect, name: str = name) -> float:
-            trial = {k: dict(v) for k, v in effects.items()}
-            trial[effect][name] = float(value)
-            data = _frame_session(experiments_through(experiments, trial), ramp_v_per_s, rest_voltage_v)
-            train = cf.holdout_mask(data.n_experiments)
-            try:
-                return cf.fit_family(data, law, train=train, creep_driver=driver).rms_um
-            except (CalibrationError, ModelError):
-                return math.inf
+    def train_rms(trial: dict[str, dict[str, float]], fit_lag: bool = True) -> float:
+        data = _frame_session(experiments_through(experiments, trial), ramp_v_per_s, rest_voltage_v)
+        train = cf.holdout_mask(data.n_experiments)
+        try:
+            return cf.fit_family(data, law, train=train, creep_driver=driver, fit_lag=fit_lag).rms_um
+        except (CalibrationError, ModelError):
+            return math.inf
 
-        start = train_rms(p0)
-        best = minimize_scalar(
-            train_rms,
-            bounds=(lo, hi),
-            method="bounded",
-            options={"xatol": 0.01 * abs(p0), "maxiter": REFINE_EVALUATIONS},
-        )
-        if math.isfinite(float(best.fun)) and float(best.fun) < start:
-            effects[effect][name] = float(best.x)
-            notes.append(
-                f"{effect}: {name} {p0:.6g} -> {float(best.x):.6g} (training RMS of {chosen} "
-                f"{start * 1e3:.2f} -> {float(best.fun) * 1e3:.2f} nm)"
-            )
+    effects, notes = refine_parts(adoption.effects, train_rms, chosen)
+    if any(e in SENSOR_EFFECTS for e in effects):
+        effects, note = refine_sensor_lag(effects, lambda trial: train_rms(trial, fit_lag=False))
+        if note:
+            notes.append(f"sensor path {note}, of {chosen} without a drive lag of its own")
     if not notes:
         return adoption, []
     return dataclasses.replace(adoption, effects=effects), notes

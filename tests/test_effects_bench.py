@@ -102,6 +102,33 @@ def test_a_sensor_delay_is_corrected_by_aligning_the_readback() -> None:
         assert left["injected"] <= TARGET_FRACTION * left["baseline"], s
 
 
+def test_the_sensor_lag_is_profiled_on_the_refit() -> None:
+    """The audit's delay and lag are scaled by one factor to the refit's smallest training RMS
+    (their split kept); parts are profiled on their primary parameter; nothing changes when the
+    audit's values fit best."""
+    from piezod.extensions import refine_parts, refine_sensor_lag
+
+    found = {
+        "delay": {"delay_s": 0.0, "lag_time_constant_s": 0.935e-3},
+        "stiffness": {"sensitivity_pct_per_um": 0.09},
+    }
+
+    def rms(fx: dict[str, dict[str, float]]) -> float:
+        total = sum(fx["delay"].values())
+        return 1e-3 + (total - 0.63e-3) ** 2 + (fx["stiffness"]["sensitivity_pct_per_um"] - 0.1) ** 2
+
+    out, note = refine_sensor_lag(found, rms)
+    assert out["delay"]["delay_s"] == 0.0
+    assert math.isclose(out["delay"]["lag_time_constant_s"], 0.63e-3, rel_tol=0.02)
+    assert out["stiffness"] == found["stiffness"] and note is not None and "0.935 ms -> 0.63" in note
+    parts, notes = refine_parts(out, rms)
+    assert math.isclose(parts["stiffness"]["sensitivity_pct_per_um"], 0.1, rel_tol=0.02) and len(notes) == 1
+    assert parts["delay"] == out["delay"]
+    same, _ = refine_sensor_lag(out, rms)
+    lag = out["delay"]["lag_time_constant_s"]
+    assert math.isclose(same["delay"]["lag_time_constant_s"], lag, rel_tol=0.01)
+
+
 class TargetMissedError(AssertionError):
     """The extended model leaves more than 1/3 of the baseline's error (the known xfails: only this)."""
 

@@ -80,6 +80,13 @@ def register(sub: Any) -> None:
     )
     eff.add_argument("--plot", metavar="F.png", help="bar chart of what each model leaves (effects)")
     eff.add_argument("--full-frame", action="store_true", help="the full calibration frame (effects)")
+    eff.add_argument(
+        "--jobs",
+        type=positive_int,
+        default=1,
+        metavar="N",
+        help="run the cases in N worker processes (effects; each full-frame case takes 1-2 GB)",
+    )
     p.set_defaults(func=run)
 
 
@@ -190,7 +197,7 @@ def _run_effects(args: argparse.Namespace) -> dict[str, Any]:
         def tick(_step: str) -> None:
             bar.update(1)
 
-        result = run_effects_bench(names, reduced=not args.full_frame, on_step=tick)
+        result = run_effects_bench(names, reduced=not args.full_frame, on_step=tick, jobs=args.jobs)
     print(format_table(result), file=human_stream(args))
     if args.plot:
         print(f"plot: {plot_effects(result, args.plot)}", file=human_stream(args))
