@@ -34,6 +34,7 @@ recording, whose sensor-path linearity (:mod:`piezod.linearity`) stands beside t
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -131,8 +132,29 @@ def _align_lines(halves: dict[tuple[int, int], _Half]) -> dict[tuple[int, int], 
     Every line of a direction scans alike, so a flank of the sample lies at nearly the same
     commanded position in every line: each line's numbers are shifted onto those of the line with
     most flanks (the median of the matched differences); flanks matching no flank of that line
-    (a particle, a misread edge) are dropped.
+    (a particle, a misread edge) are dropped, and so are period numbers that fewer than half the
+    lines of the direction show (the line with most flanks may be the one that crosses a
+    particle: on the simulated microscope's 14 um scans its bump became a flank 2 um off).
     """
+    out = _align_onto_reference(halves)
+    for d in (1, -1):
+        keys = [key for key in out if key[1] == d]
+        seen: dict[int, int] = {}
+        for key in keys:
+            for k in np.unique(out[key][1]):
+                seen[int(k)] = seen.get(int(k), 0) + 1
+        need = max(2, math.ceil(0.5 * len(keys)))
+        for key in keys:
+            ts, ks, vs, xi, t_l = out[key]
+            keep = np.array([seen[int(k)] >= need for k in ks], dtype=bool)
+            if keep.sum() < 2:
+                del out[key]
+            elif not keep.all():
+                out[key] = (ts[keep], ks[keep], vs[keep], xi[keep], t_l)
+    return out
+
+
+def _align_onto_reference(halves: dict[tuple[int, int], _Half]) -> dict[tuple[int, int], _Half]:
     out: dict[tuple[int, int], _Half] = {}
     for d in (1, -1):
         keys = [key for key in halves if key[1] == d]

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil_sim.sample import get_sample
+from hil_sim.sample import Sample, get_sample
 from hil_sim.stage import Stage, StageConfig
 from piezod import calibrate_family as cf
 from piezod.config import config_dir
@@ -35,13 +35,14 @@ def _frame(
     *,
     hold_s: float = 0.0,
     settle_lines: int = 0,
+    sample: Sample | None = None,
 ) -> tuple[list[Recording], list[np.ndarray]]:
     """Uncorrected raster recordings of the 3 um pattern on a stage of known dynamic model (or on the
     x axis of a hil_sim preset of other physics), one session.
 
     Before every scan the stage holds ``hold_s`` where the previous one ended, moves to the start
     and scans ``settle_lines`` unrecorded lines (the daemon's raster jobs)."""
-    sample = get_sample("line-3um")
+    sample = sample or get_sample("line-3um")
     volts: list[np.ndarray] = []
     spans: list[tuple[int, int, float, float]] = []
     v_last, n = 0.0, 0
@@ -159,6 +160,24 @@ def test_flanks_on_a_stage_of_other_physics_choose_its_law() -> None:
         choice.heldout_rms_um["family/prandtl-ishlinskii"]
         < 0.5 * choice.heldout_rms_um["family/coleman-hodgdon"]
     )
+
+
+def test_a_flank_only_one_line_shows_is_dropped_even_in_the_line_with_most_flanks() -> None:
+    """The line that crosses a particle has one flank more than the others: it is the reference
+    the others are numbered onto, but a period number fewer than half the lines show is dropped."""
+    from piezod.imagecal import _align_lines
+
+    halves = {}
+    for ln in range(5):
+        xi = np.array([-5.2, -2.1, 0.5, 2.9]) + 0.01 * ln
+        if ln == 3:
+            xi = np.concatenate(([-6.5], xi))  # the particle's bump
+        t = 0.1 * np.arange(xi.size)
+        halves[(ln, 1)] = (t, np.arange(xi.size, dtype=np.int64), xi * 10.0, xi, t)
+    out = _align_lines(halves)
+    assert all(out[(ln, 1)][3].size == 4 for ln in range(5))
+    assert -6.5 not in out[(3, 1)][3]
+    assert len({tuple(out[(ln, 1)][1]) for ln in range(5)}) == 1  # one numbering for all lines
 
 
 def test_a_wrong_line_width_does_not_enter_the_fits(
