@@ -255,7 +255,8 @@ def test_sensorless_calibration_on_the_simulated_stage(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_sensorless_calibration_on_a_stage_of_other_physics(tmp_path: Path) -> None:
     """`configs/sim-pi-microscope.yaml` (Prandtl-Ishlinskii, voltage-driven creep, no sensor): the
-    targets by the hidden truth (docs/images.md; image vs truth within 0.05 % is not met yet)."""
+    targets by the images and by the hidden truth (docs/images.md, session 10; image vs truth per
+    branch, within 0.045 % inside on its run there, is reported by tools/image_flank_limit.py)."""
     cfg = str(config_dir() / "sim-pi-microscope.yaml")
     p = subprocess.run(
         [
@@ -269,10 +270,12 @@ def test_sensorless_calibration_on_a_stage_of_other_physics(tmp_path: Path) -> N
     )
     assert p.returncode == 0, p.stderr
     rep = json.loads(p.stdout)
-    assert rep["choice"]["chosen"].startswith("family/prandtl-ishlinskii"), rep["choice"]["table"]
+    # a play law (the stage's is Prandtl-Ishlinskii; the generalised play law fits it as well)
+    chosen = rep["choice"]["chosen"]
+    assert chosen.startswith(("family/prandtl-ishlinskii", "family/generalised-play")), rep["choice"]["table"]
     for r in (r for r in rep["verification"] if r["model"] == rep["choice"]["model"]):
-        tr = r["truth"]
-        if r["frame"] == "inside":
-            assert tr["nonlinearity_pct"] <= 0.1 and abs(tr["length_error_pct"]) <= 0.2, r
-        else:
-            assert abs(tr["length_error_pct"]) <= 1.0, r
+        for m in (r["truth"], r["image"]):
+            if r["frame"] == "inside":
+                assert m["nonlinearity_pct"] <= 0.1 and abs(m["length_error_pct"]) <= 0.2, r
+            else:
+                assert abs(m["length_error_pct"]) <= 1.0, r
