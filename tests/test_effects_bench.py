@@ -134,14 +134,11 @@ class TargetMissedError(AssertionError):
 
 
 _KNOWN = {
-    "stiffness": "the audit does not name stiffness on the reduced frame (held-out gain 1.30 +- 0.16, not 2 "
-    "jackknife standard errors above 1; a paired block test gives z = 3.1 but loses a hidden resonance); "
-    "the stiffness part removes it with the injected value",
-    "saturation": "the audit's saturation candidate explains nothing on the reduced, centred frame (held-out "
-    "gain 0.998: the baseline's hysteresis shape absorbs the odd compression); the saturation part removes "
-    "it with the injected value",
-    "delay": "the audit's delay candidate (d = 0.53 ms) has held-out gain 1.13 +- 0.14 on the reduced frame, "
-    "not 2 standard errors above 1; the sensor path removes it with the injected value",
+    "drift": "the audit does not name a 0.63 nm/s drift on the full frame; the baseline leaves 0.014 % "
+    "length error (above the 0.01 % resolution); the drift part removes it with the injected value",
+    "thermal": "the audit does not name a 1.2 %/h sensitivity drift on the full frame; the baseline leaves "
+    "0.08-0.18 % length error, growing with the time since the frame; the thermal part removes it with "
+    "the injected value",
 }
 
 
@@ -156,8 +153,9 @@ _KNOWN = {
     ],
 )
 def test_the_extended_model_removes_what_the_effect_causes(effect: str) -> None:
-    """The table of docs/model-family.md, section 8 (``piezod bench effects``), one effect per test."""
-    result = run_effects_bench([effect])
+    """The table of docs/model-family.md, section 8 (``piezod bench effects --full-frame``), one effect
+    per test, on the frame ``piezod calibrate`` uses."""
+    result = run_effects_bench([effect], reduced=False)
     print(format_table(result))
     (row,) = result["rows"]
     if (effect in PART_EFFECTS or effect in SENSOR_EFFECTS) and not row["below_resolution"]:
