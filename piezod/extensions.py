@@ -247,7 +247,8 @@ def refine_sensor_lag(
     0.32 ms lag at the sensor (0.63 ms in all) it found a 0.94 ms lag, and the model refitted
     through that path left 0.074 % length error where the injected path leaves none. The
     refitted model's training RMS is sharp at the true total (the dynamic model's fit error on
-    the full frame: 0.094 / 0.032 / 0.020 / 0.040 / 0.069 % at 0 / 0.5 / 0.63 / 0.8 / 0.94 ms).
+    the full frame, ``tools/sensor_lag_profile.py``: 0.094 / 0.032 / 0.020 / 0.040 / 0.069 % at
+    0 / 0.5 / 0.63 / 0.8 / 0.94 ms).
     So the audit's delay and lag are scaled by one factor in :data:`SENSOR_LAG_FACTORS` (their
     split is kept: the frame's rates do not separate a delay from a lag of the same total), by a
     bounded scalar search of :data:`SENSOR_LAG_EVALUATIONS` evaluations of ``train_rms``.
