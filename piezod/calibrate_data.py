@@ -366,6 +366,10 @@ def _sample_period(v: F64, per_loop: float, *, rel: float = 0.03, probes: int = 
     return lags[int(np.argmin(cost))]
 
 
+#: Most settling loops :func:`prepare_dynamic` assumes before a periodic experiment (by default).
+MAX_PREROLL_LOOPS = 8
+
+
 def prepare_dynamic(
     experiments: Sequence[Experiment],
     *,
@@ -373,7 +377,7 @@ def prepare_dynamic(
     max_samples_per_experiment: int = 8192,
     slew_rate_v_per_s: float = 2000.0,
     rest_voltage_v: float = 0.0,
-    max_preroll_loops: int = 8,
+    max_preroll_loops: int = MAX_PREROLL_LOOPS,
     hold_before_move: bool = False,
 ) -> DynamicCalibrationData:
     """Lay out a session of experiments (any waveforms, one axis) for the dynamic fit.
@@ -531,4 +535,11 @@ def prepare_dynamic(
     )
 
 
-__all__ = ["CalibrationData", "DynamicCalibrationData", "ExperimentLayout", "prepare", "prepare_dynamic"]
+__all__ = [
+    "MAX_PREROLL_LOOPS",
+    "CalibrationData",
+    "DynamicCalibrationData",
+    "ExperimentLayout",
+    "prepare",
+    "prepare_dynamic",
+]

@@ -66,7 +66,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from scipy.special import digamma
 
 from piezod import __version__
-from piezod.calibrate_data import DynamicCalibrationData, ExperimentLayout, prepare_dynamic
+from piezod.calibrate_data import MAX_PREROLL_LOOPS, DynamicCalibrationData, ExperimentLayout, prepare_dynamic
 from piezod.config import (
     AxisConfig,
     DynamicModelConfig,
@@ -604,7 +604,7 @@ def calibrate_dynamic(
     max_samples_per_experiment: int = 8192,
     slew_rate_v_per_s: float = 2000.0,
     rest_voltage_v: float = 0.0,
-    max_preroll_loops: int = 8,
+    max_preroll_loops: int = MAX_PREROLL_LOOPS,
     on_eval: Callable[[int], None] | None = None,
 ) -> DynamicCalibrationResult:
     """:func:`prepare_dynamic` the experiments and :func:`fit_dynamic` them (see there)."""

@@ -48,6 +48,7 @@ from numpy.typing import NDArray
 
 from piezod import calibrate_dynamic as cd
 from piezod.config import AxisName, ScannerConfig, default_sim_config_path, load_config
+from piezod.errors import CalibrationError
 from piezod.extensions import (
     Adoption,
     adopt_findings,
@@ -162,8 +163,6 @@ def _refit_rms(
     exps: Sequence[Experiment], effects: dict[str, dict[str, float]], base: ScannerConfig, axis: AxisName
 ) -> float:
     """Training RMS (um) of the dynamic model refitted on the frame seen through ``effects``."""
-    from piezod.errors import CalibrationError
-
     ax = base.axes[axis]
     try:
         dyn = cd.calibrate_dynamic(

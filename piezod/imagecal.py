@@ -44,6 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod.calibrate import CalibrationData, CalibrationResult, fit, model_positions
+from piezod.calibrate_data import MAX_PREROLL_LOOPS
 from piezod.calibrate_dynamic import (
     DynamicCalibrationData,
     DynamicCalibrationResult,
@@ -412,7 +413,7 @@ def flank_session(
         max_samples_per_experiment=1 << 16,
         slew_rate_v_per_s=slew_rate_v_per_s,
         rest_voltage_v=rest_voltage_v,
-        max_preroll_loops=8 if settle_lines is None else settle_lines,
+        max_preroll_loops=MAX_PREROLL_LOOPS if settle_lines is None else settle_lines,
         hold_before_move=settle_lines is not None,
     )
     by_label = {ev.label: ev for ev in events}
