@@ -39,7 +39,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -54,8 +54,7 @@ from piezod.extensions import (
     adopt_findings,
     experiments_through,
     extended_config,
-    refine_parts,
-    refine_sensor_lag,
+    refine_findings,
 )
 from piezod.linearity import experiment_linearity
 from piezod.model.parts import PART_EFFECTS
@@ -149,30 +148,39 @@ def _stage(path: Path, specs: Sequence[str], axis: AxisName, seed: int) -> Any:
     return load_stage(path, specs, axis, seed)
 
 
-def _dynamic(exps: Sequence[Experiment], base: ScannerConfig, axis: AxisName) -> ScannerConfig:
-    ramp = base.service.ramp_rate_v_per_s
-    rest = base.axes[axis].safe_voltage_v
-    dyn = cd.calibrate_dynamic(list(exps), slew_rate_v_per_s=ramp, rest_voltage_v=rest)
-    cfg = cd.calibrated_config(dyn, axis=axis, base=base)
-    axes = dict(cfg.axes)
-    axes[axis] = axes[axis].model_copy(update={"model": "dynamic"})
-    return cfg.model_copy(update={"axes": axes})
+class _Refits:
+    """The dynamic model fitted on the frame seen through given effects, each fit done once (the
+    profile searches evaluate the values they settle on, the extended model is the fit there)."""
 
+    def __init__(self, exps: Sequence[Experiment], base: ScannerConfig, axis: AxisName) -> None:
+        self.exps, self.base, self.axis = list(exps), base, axis
+        self._fits: dict[tuple[tuple[str, tuple[tuple[str, float], ...]], ...], Any] = {}
 
-def _refit_rms(
-    exps: Sequence[Experiment], effects: dict[str, dict[str, float]], base: ScannerConfig, axis: AxisName
-) -> float:
-    """Training RMS (um) of the dynamic model refitted on the frame seen through ``effects``."""
-    ax = base.axes[axis]
-    try:
-        dyn = cd.calibrate_dynamic(
-            experiments_through(exps, effects),
-            slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
-            rest_voltage_v=ax.safe_voltage_v,
-        )
-    except CalibrationError:
-        return math.inf
-    return float(dyn.residual_rms_um)
+    def fit(self, effects: Mapping[str, Mapping[str, float]]) -> Any:
+        """The fit (``DynamicCalibrationResult``); raises :class:`CalibrationError`."""
+        key = tuple(sorted((e, tuple(sorted(v.items()))) for e, v in effects.items()))
+        if key not in self._fits:
+            seen = experiments_through(self.exps, effects) if effects else self.exps
+            self._fits[key] = cd.calibrate_dynamic(
+                seen,
+                slew_rate_v_per_s=self.base.service.ramp_rate_v_per_s,
+                rest_voltage_v=self.base.axes[self.axis].safe_voltage_v,
+            )
+        return self._fits[key]
+
+    def rms(self, effects: dict[str, dict[str, float]]) -> float:
+        """Training RMS (um) of the fit (``inf`` when it fails)."""
+        try:
+            return float(self.fit(effects).residual_rms_um)
+        except CalibrationError:
+            return math.inf
+
+    def config(self, effects: Mapping[str, Mapping[str, float]]) -> ScannerConfig:
+        """The base config with the fitted dynamic model in force on the axis."""
+        cfg = cd.calibrated_config(self.fit(effects), axis=self.axis, base=self.base)
+        axes = dict(cfg.axes)
+        axes[self.axis] = axes[self.axis].model_copy(update={"model": "dynamic"})
+        return cfg.model_copy(update={"axes": axes})
 
 
 def _verify(
@@ -280,7 +288,8 @@ def run_case(
     exps = bench.play_frame(frame, axis, base.service.ramp_rate_v_per_s)
     step = on_step or (lambda _s: None)
     step("frame")
-    baseline = _dynamic(exps, base, axis)
+    refits = _Refits(exps, base, axis)
+    baseline = refits.config({})
     step("baseline")
     points = verification_points(baseline, frame, reduced=reduced, axis=axis)
     out: dict[str, Any] = {"specs": list(specs)}
@@ -301,15 +310,12 @@ def run_case(
         out["adoption"] = {"adopted": list(adoption.adopted), "skipped": list(adoption.skipped)}
         if adoption.effects:
             # as piezod calibrate's refine_adoption, on the bench's model (the dynamic model)
-            refined, notes = refine_parts(adoption.effects, lambda fx: _refit_rms(exps, fx, base, axis))
-            refined, note = refine_sensor_lag(refined, lambda fx: _refit_rms(exps, fx, base, axis))
-            notes += [f"sensor path {note}"] if note else []
+            refined, notes = refine_findings(adoption.effects, refits.rms)
             if notes:
                 adoption = dataclasses.replace(adoption, effects=refined)
                 out["refined"] = notes
                 out["adoption"]["adopted"] = list(adoption.adopted)
-            refit = _dynamic(experiments_through(exps, adoption.effects), base, axis)
-            extended = extended_config(refit, axis, adoption)
+            extended = extended_config(refits.config(adoption.effects), axis, adoption)
             out["extended"] = {"rows": _verify(bench, extended, axis, points, loops)}
         else:
             out["extended"] = {"rows": _verify(bench, baseline, axis, points, loops)}
@@ -317,8 +323,7 @@ def run_case(
         injected = _injected_parts(specs)
         if injected:
             # the same refit with the injected values: what the runtime parts do when the finding is right
-            refit = _dynamic(experiments_through(exps, injected), base, axis)
-            oracle = extended_config(refit, axis, Adoption(injected))
+            oracle = extended_config(refits.config(injected), axis, Adoption(injected))
             out["injected"] = {"rows": _verify(bench, oracle, axis, points, loops)}
             step("injected verified")
     for key in ("baseline", "extended", "injected"):
@@ -345,10 +350,6 @@ def score(case: dict[str, Any], floor: dict[str, float], resolution_pct: float) 
         for m in METRICS:
             left[m]["injected"] = max(0.0, case["injected"]["worst"][m] - floor[m])
     return {"left": left, "below_resolution": below, "met": met and not below}
-
-
-def _case(specs: list[str], reduced: bool, loops: int, seed: int) -> dict[str, Any]:
-    return run_case(specs, reduced=reduced, loops=loops, seed=seed)
 
 
 def run_effects_bench(
@@ -378,7 +379,7 @@ def run_effects_bench(
         step = on_step or (lambda _s: None)
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
-            futures = [pool.submit(_case, sp, reduced, loops, seed) for sp in specs]
+            futures = [pool.submit(run_case, sp, reduced=reduced, loops=loops, seed=seed) for sp in specs]
             for f in futures:
                 f.add_done_callback(lambda _f: step("case"))
             cases = [f.result() for f in futures]

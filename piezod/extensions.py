@@ -299,6 +299,24 @@ def refine_sensor_lag(
     return out, note
 
 
+def refine_findings(
+    effects: Mapping[str, Mapping[str, float]],
+    train_rms: Callable[[dict[str, dict[str, float]]], float],
+    sensor_rms: Callable[[dict[str, dict[str, float]]], float] | None = None,
+    model: str = "the refitted model",
+    sensor_model: str | None = None,
+) -> tuple[dict[str, dict[str, float]], list[str]]:
+    """:func:`refine_parts` on ``train_rms``, then :func:`refine_sensor_lag` on ``sensor_rms``
+    (default ``train_rms``: a model without a drive lag of its own, described by
+    ``sensor_model`` in the note); the refined effects and one line per change."""
+    out, notes = refine_parts(effects, train_rms, model)
+    if any(e in SENSOR_EFFECTS for e in out):
+        out, note = refine_sensor_lag(out, sensor_rms or train_rms)
+        if note:
+            notes.append(f"sensor path {note}" + (f", of {sensor_model}" if sensor_model else ""))
+    return out, notes
+
+
 def write_extended_config(
     base: str | Path, axis: str, findings: Sequence[Mapping[str, Any]], out: str | Path, source: str
 ) -> Adoption:
@@ -344,6 +362,7 @@ __all__ = [
     "experiments_through_parts",
     "experiments_through_sensor",
     "extended_config",
+    "refine_findings",
     "refine_parts",
     "refine_sensor_lag",
     "write_extended_config",

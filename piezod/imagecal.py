@@ -373,6 +373,35 @@ def merged_positions(ev: FlankEvents, line_width_um: float) -> F64:
     return out
 
 
+def timed_layout(
+    recs: Sequence[Recording],
+    events: Sequence[FlankEvents],
+    *,
+    slew_rate_v_per_s: float = 2000.0,
+    rest_voltage_v: float = 0.0,
+    max_samples_per_loop: int = 2048,
+    settle_lines: int | None = None,
+) -> DynamicCalibrationData:
+    """The frame's layout for :func:`flank_session` (same arguments) with every compared grid
+    sample's recorded time in place of its position."""
+    exps = []
+    for rec, ev in zip(recs, events, strict=True):
+        sel = _x_rows(rec)
+        t = rec.t_s[sel]
+        exps.append(
+            Experiment(label=ev.label, axis="x", t_s=t, voltage_v=rec.voltage_v[sel], position_um=t.copy())
+        )
+    return prepare_dynamic(
+        exps,
+        max_samples_per_loop=max_samples_per_loop,
+        max_samples_per_experiment=1 << 16,
+        slew_rate_v_per_s=slew_rate_v_per_s,
+        rest_voltage_v=rest_voltage_v,
+        max_preroll_loops=MAX_PREROLL_LOOPS if settle_lines is None else settle_lines,
+        hold_before_move=settle_lines is not None,
+    )
+
+
 def flank_session(
     recs: Sequence[Recording],
     events: Sequence[FlankEvents],
@@ -400,21 +429,13 @@ def flank_session(
     sample's position per family, so an error of the thesis fit's line width (``line_width_um``
     only moves the falling family) does not enter them.
     """
-    exps = []
-    for rec, ev in zip(recs, events, strict=True):
-        sel = _x_rows(rec)
-        t = rec.t_s[sel]
-        exps.append(
-            Experiment(label=ev.label, axis="x", t_s=t, voltage_v=rec.voltage_v[sel], position_um=t.copy())
-        )
-    data = prepare_dynamic(
-        exps,
-        max_samples_per_loop=max_samples_per_loop,
-        max_samples_per_experiment=1 << 16,
+    data = timed_layout(
+        recs,
+        events,
         slew_rate_v_per_s=slew_rate_v_per_s,
         rest_voltage_v=rest_voltage_v,
-        max_preroll_loops=MAX_PREROLL_LOOPS if settle_lines is None else settle_lines,
-        hold_before_move=settle_lines is not None,
+        max_samples_per_loop=max_samples_per_loop,
+        settle_lines=settle_lines,
     )
     by_label = {ev.label: ev for ev in events}
     compared, positions, starts, counts, groups = [], [], [], [], []
@@ -657,6 +678,7 @@ __all__ = [
     "read_truth_log",
     "run_image_scans",
     "thesis_data",
+    "timed_layout",
     "verification_scans",
     "with_truth",
 ]

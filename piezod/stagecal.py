@@ -808,8 +808,7 @@ def refine_adoption(
     import dataclasses
 
     from piezod import calibrate_family as cf
-    from piezod.extensions import experiments_through, refine_parts, refine_sensor_lag
-    from piezod.model.sensor import SENSOR_EFFECTS
+    from piezod.extensions import experiments_through, refine_findings
 
     parts = chosen.split("/")
     if len(parts) < 2 or parts[0] != "family":
@@ -824,11 +823,13 @@ def refine_adoption(
         except (CalibrationError, ModelError):
             return math.inf
 
-    effects, notes = refine_parts(adoption.effects, train_rms, chosen)
-    if any(e in SENSOR_EFFECTS for e in effects):
-        effects, note = refine_sensor_lag(effects, lambda trial: train_rms(trial, fit_lag=False))
-        if note:
-            notes.append(f"sensor path {note}, of {chosen} without a drive lag of its own")
+    effects, notes = refine_findings(
+        adoption.effects,
+        train_rms,
+        lambda trial: train_rms(trial, fit_lag=False),
+        model=chosen,
+        sensor_model=f"{chosen} without a drive lag of its own",
+    )
     if not notes:
         return adoption, []
     return dataclasses.replace(adoption, effects=effects), notes

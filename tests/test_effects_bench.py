@@ -65,7 +65,7 @@ def test_the_refit_through_the_polarity_map_recovers_the_stage() -> None:
     data = prepare_dynamic(mapped, slew_rate_v_per_s=base.service.ramp_rate_v_per_s)
     for layout, exp in zip(data.experiments, exps, strict=True):
         assert layout.frequency_hz == pytest.approx(exp.scan().frequency_hz, rel=1e-6), layout.label
-    refit = eb._dynamic(mapped, base, "x").axes["x"].dynamic
+    refit = eb._Refits(mapped, base, "x").config({}).axes["x"].dynamic
     assert refit is not None
     # the stage's true b (configs/sim-stage.yaml, simulation.axes.x)
     assert refit.b_um_per_v == pytest.approx(0.115, rel=3e-4)

@@ -26,9 +26,8 @@ import numpy as np
 
 from piezod import calibrate_family as cf
 from piezod import imagecal as ic
-from piezod.calibrate_data import prepare_dynamic
 from piezod.config import load_config
-from piezod.recording import Experiment, read_recording
+from piezod.recording import read_recording
 from piezod.trajectory import SETTLE_LINES
 
 
@@ -54,24 +53,12 @@ def main(argv: list[str] | None = None) -> int:
         recs, events, th.line_width_um, slew_rate_v_per_s=ramp, rest_voltage_v=0.0, settle_lines=settle
     )
     # the compared samples' times: the same layout with the time in place of the position
-    exps, truths = [], []
+    truths = []
     idx, tx = ic.read_truth_log(args.recordings_dir / "truth.f64")
-    for rec, ev in zip(recs, events, strict=True):
+    for rec in recs:
         sel = ic._x_rows(rec)
-        t = rec.t_s[sel]
-        exps.append(
-            Experiment(label=ev.label, axis="x", t_s=t, voltage_v=rec.voltage_v[sel], position_um=t.copy())
-        )
-        truths.append((t, ic.with_truth(rec, (idx, tx), base.sample_rate_hz).position_um[sel]))
-    kw = {} if settle is None else {"max_preroll_loops": settle, "hold_before_move": True}
-    timed = prepare_dynamic(
-        exps,
-        max_samples_per_loop=2048,
-        max_samples_per_experiment=1 << 16,
-        slew_rate_v_per_s=ramp,
-        rest_voltage_v=0.0,
-        **kw,
-    )
+        truths.append((rec.t_s[sel], ic.with_truth(rec, (idx, tx), base.sample_rate_hz).position_um[sel]))
+    timed = ic.timed_layout(recs, events, slew_rate_v_per_s=ramp, rest_voltage_v=0.0, settle_lines=settle)
     grid_t = np.full(timed.grid_index.size, np.nan)
     grid_t[timed.compared] = timed.position_um
     true_pos = np.empty(session.compared.size)
