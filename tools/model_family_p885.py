@@ -35,7 +35,9 @@ from piezod.recording import read_experiments
 DATA = Path(__file__).resolve().parent.parent / "piezod" / "data" / "real" / "pi-p885"
 
 
-def _prepare(name: str, delay_samples: int = 0, lag_samples: float = 0.0):  # type: ignore[no-untyped-def]
+def _prepare(  # type: ignore[no-untyped-def]
+    name: str, delay_samples: int = 0, lag_samples: float = 0.0, rest_voltage_v: float | None = None
+):
     exps = read_experiments([DATA / name])
     if lag_samples > 0.0:
         dt = float(np.median(np.diff(exps[0].t_s)))
@@ -54,7 +56,7 @@ def _prepare(name: str, delay_samples: int = 0, lag_samples: float = 0.0):  # ty
             )
             for e in exps
         ]
-    v0 = float(exps[0].voltage_v[0])
+    v0 = float(exps[0].voltage_v[0]) if rest_voltage_v is None else rest_voltage_v
     return exps, prepare_dynamic(
         exps, max_samples_per_loop=4096, max_samples_per_experiment=1 << 16, rest_voltage_v=v0
     )

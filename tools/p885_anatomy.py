@@ -1,0 +1,164 @@
+"""What the model family leaves on the real P-885 stack, taken apart.
+
+Usage::
+
+    python tools/p885_anatomy.py [--plays 32]
+
+Four measurements on ``piezod/data/real/pi-p885`` (real data), each law fitted by
+:func:`piezod.calibrate_family.fit_family` with the recording's documented one-sample sensor lag
+removed and an exact one-sample drive lag (the best setting of ``tools/model_family_p885.py``):
+
+1. **The identification fit's own residual**, folded over the 1 Hz period (the run is one raised
+   sine at constant amplitude): the part locked to the excitation's phase, the slow part (1 s
+   average of what is left) and the rest, beside the sensor noise floor.
+2. **The validation run predicted, stretch by stretch** (full amplitude, decay, rest, growth; the
+   first 36 s open loop, then the authors' compensated input): RMS, mean and RMS about the mean
+   of the prediction error per stretch (one offset per experiment and one gain for the run fitted,
+   as the family tool does).
+3. **Nested loops in the training data**: fitted on one experiment of the validation run (open
+   loop / compensated; the state carried through both), the other predicted.
+4. **The identification run's unknown history**: the same fits with the stage at rest at 0 V
+   before the record instead of at its first voltage.
+
+Every score is an RMS in um; "x" is the ratio to the validation run's noise floor (third
+differences, :func:`piezod.audit.residuals.noise_floor`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from model_family_p885 import _prepare
+
+from piezod.audit.residuals import noise_floor
+from piezod.calibrate_data import DynamicCalibrationData
+from piezod.calibrate_dynamic import _centre
+from piezod.calibrate_family import FamilyParams, fit_family, session_positions, settled_rows
+
+F64 = NDArray[np.float64]
+SKIP_S = 1.0
+STRETCHES = (
+    ("open loop, full amplitude", 1.0, 16.0),
+    ("open loop, decay", 16.0, 20.0),
+    ("open loop, rest", 20.0, 24.0),
+    ("open loop, growth", 24.0, 28.0),
+    ("open loop, full amplitude", 28.0, 36.0),
+    ("compensated, full amplitude", 37.0, 48.0),
+    ("compensated, decay", 48.0, 52.0),
+    ("compensated, rest", 52.0, 56.0),
+    ("compensated, growth", 56.0, 60.0),
+    ("compensated, full amplitude", 60.0, 71.0),
+)
+
+
+def _error(data: DynamicCalibrationData, params: FamilyParams, rows: NDArray[np.bool_]) -> F64:
+    """Prediction minus measurement on ``rows``: offsets per experiment, one gain (nuisance)."""
+    x = _centre(data, session_positions(data, params))[rows]
+    y = _centre(data, data.position_um)[rows]
+    gain = float(x @ y / (x @ x))
+    out: F64 = gain * x - y
+    return out
+
+
+def _rms(a: F64) -> float:
+    return float(np.sqrt(np.mean(a**2)))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[1])
+    ap.add_argument("--plays", type=int, default=32)
+    args = ap.parse_args()
+    _, ident = _prepare("identification.csv", 1, 1.0)
+    valid_exps, valid = _prepare("validation.csv", 1, 1.0)
+    floor = float(np.sqrt(np.mean([noise_floor(np.asarray(e.position_um)) ** 2 for e in valid_exps])))
+    floor_id = noise_floor(np.asarray(ident.position_um))
+    members = (("prandtl-ishlinskii", "position"), ("generalised-play", "voltage"))
+    fits = {
+        m: fit_family(ident, m[0], plays=args.plays, skip_s=SKIP_S, creep_driver=m[1], fit_lag=False)
+        for m in members
+    }
+    print(f"noise floor: identification {floor_id:.4f} um, validation {floor:.4f} um")
+
+    print("\n1. the identification fit's residual, folded over the 1 Hz period")
+    period = round(1.0 / float(ident.experiments[0].frequency_hz) / 0.005)
+    keep = settled_rows(ident, SKIP_S)
+    idx = np.arange(keep.size)
+    for (law, driver), fit in fits.items():
+        r = -_error(ident, fit.params, np.ones(keep.size, dtype=bool))
+        r = r - r[keep].mean()
+        phase = idx % period
+        locked = np.array([r[keep & (phase == k)].mean() for k in range(period)])
+        rest = r - locked[phase]
+        slow = np.convolve(rest, np.ones(period) / period, mode="same")
+        inner = keep & (idx >= idx[keep][0] + period // 2) & (idx <= idx[-1] - period // 2)
+        spectrum = np.abs(np.fft.rfft(locked)) * 2.0 / period / np.sqrt(2.0)
+        print(
+            f"   {law} ({driver} creep): RMS {_rms(r[keep]):.4f} = phase-locked {_rms(locked):.4f}"
+            f" (1f {spectrum[1]:.4f}, 2f {spectrum[2]:.4f}, 3f {spectrum[3]:.4f})"
+            f" + slow {_rms(slow[inner]):.4f} + rest {_rms((rest - slow)[inner]):.4f}"
+        )
+
+    print("\n2. the validation run predicted (fitted on the identification run), stretch by stretch")
+    keep_v = settled_rows(valid, SKIP_S)
+    t = np.concatenate(
+        [
+            e.t_start_s + np.linspace(0.0, e.duration_s, int(c))
+            for e, c in zip(valid.experiments, valid.counts, strict=True)
+        ]
+    )
+    for (law, driver), fit in fits.items():
+        err = np.zeros(keep_v.size)
+        err[keep_v] = _error(valid, fit.params, keep_v)
+        print(
+            f"   {law} ({driver} creep): whole run {_rms(err[keep_v]):.4f} ({_rms(err[keep_v]) / floor:.2f}x)"
+        )
+        for name, a, b in STRETCHES:
+            sel = keep_v & (t >= a) & (t < b)
+            e = err[sel]
+            print(
+                f"      {a:4.0f}-{b:3.0f} s {name:<28} RMS {_rms(e):.4f}  mean {e.mean():+.4f}"
+                f"  about the mean {float(e.std()):.4f}"
+            )
+
+    print(
+        "\n3. nested loops in the training data: one experiment of the validation run fitted,"
+        " the other predicted"
+    )
+    exp_of_row = np.repeat(np.arange(valid.n_experiments), valid.counts)
+    for law, driver in members:
+        for k, name in enumerate(("open loop", "compensated")):
+            train = np.arange(valid.n_experiments) == k
+            fit = fit_family(
+                valid, law, plays=args.plays, skip_s=SKIP_S, creep_driver=driver, fit_lag=False, train=train
+            )
+            test = keep_v & ~train[exp_of_row]
+            e = _error(valid, fit.params, test)
+            print(
+                f"   {law} ({driver} creep) fitted on the {name} part: training {fit.rms_um:.4f}"
+                f" ({fit.rms_um / floor:.2f}x), the other part {_rms(e):.4f} ({_rms(e) / floor:.2f}x)"
+            )
+
+    print(
+        "\n4. the identification run's unknown history: the stage rested at 0 V before it"
+        " (not at its first voltage)"
+    )
+    _, ident0 = _prepare("identification.csv", 1, 1.0, rest_voltage_v=0.0)
+    for law, driver in members:
+        fit = fit_family(ident0, law, plays=args.plays, skip_s=SKIP_S, creep_driver=driver, fit_lag=False)
+        e = _error(valid, fit.params, keep_v)
+        print(
+            f"   {law} ({driver} creep): identification {fit.rms_um:.4f}, validation {_rms(e):.4f}"
+            f" ({_rms(e) / floor:.2f}x)"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
