@@ -52,6 +52,7 @@ from piezod.errors import CalibrationError
 from piezod.extensions import (
     Adoption,
     adopt_findings,
+    adoption_audit_options,
     experiments_through,
     extended_config,
     refine_findings,
@@ -275,7 +276,7 @@ def run_case(
         ``extended`` (``rows`` per point and ``worst`` inside the frame), ``injected`` (the same
         refit with the injected values of the effects that have a runtime part), ``seconds``.
     """
-    from piezod.audit import AuditOptions, result_json, run_audit
+    from piezod.audit import result_json, run_audit
 
     t0 = time.perf_counter()
     path = stage_path or default_sim_config_path()
@@ -301,8 +302,9 @@ def run_case(
     else:
         # the candidates piezod calibrate audits its frame for: those a runtime part or the sensor
         # path can take (the others could not be adopted)
-        effects = tuple(audit_effects) if audit_effects else (*PART_EFFECTS, *SENSOR_EFFECTS)
-        options = AuditOptions(folds=folds, refit_cv=False, effects=effects)
+        options = adoption_audit_options(folds)
+        if audit_effects:
+            options = dataclasses.replace(options, effects=tuple(audit_effects))
         doc = result_json(run_audit(exps, [], options=options))
         step("audit")
         adoption: Adoption = adopt_findings(doc["findings"])

@@ -732,17 +732,13 @@ def audit_and_extend(
         The config to write (``chosen.config`` or the extended one), ``report`` with ``findings``,
         ``adopted``, ``skipped``, ``heldout_rms_um`` (chosen / extended) and ``text``.
     """
-    from piezod.audit import AuditOptions, run_audit
     from piezod.audit import result_json as audit_json
+    from piezod.audit import run_audit
     from piezod.calibrate_family import CHOICE_TIE_FRACTION
-    from piezod.extensions import adopt_findings, experiments_through, extended_config
-    from piezod.model.parts import PART_EFFECTS
+    from piezod.extensions import adopt_findings, adoption_audit_options, experiments_through, extended_config
     from piezod.model.sensor import SENSOR_EFFECTS
 
-    # only the effects a runtime part or the sensor path can take: the others could not be
-    # adopted (piezod audit tries all)
-    options = AuditOptions(folds=folds, refit_cv=False, effects=(*PART_EFFECTS, *SENSOR_EFFECTS))
-    doc = audit_json(run_audit(experiments, [], options=options))
+    doc = audit_json(run_audit(experiments, [], options=adoption_audit_options(folds)))
     adoption = adopt_findings(doc["findings"])
     report: dict[str, Any] = {
         "findings": [f["effect"] for f in doc["findings"]],

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -14,7 +15,9 @@ import pytest
 from test_audit_sessions import EFFECT_IDS, sim_session, thesis_session
 
 from piezod.audit import run_audit
+from piezod.audit.standins import preset_session
 from piezod.audit.synthetic import frame_plan, hidden_session
+from piezod.extensions import adoption_audit_options
 from piezod.recording import Experiment, read_experiments, split_experiments
 from piezod.synth import random_params
 
@@ -224,3 +227,20 @@ def test_gain_standard_error_is_a_block_jackknife() -> None:
     g, se = gain_with_se(same, half)
     assert g == pytest.approx(2.0, rel=0.02)
     assert 0.0 < se < 0.05
+
+
+def test_creep_in_the_baseline_lets_the_audit_size_a_thermal_drift() -> None:
+    """The adoption audit's ODE baseline carries the creep (``base_effects``): on a preset frame of
+    the built-in stage with a 3 %/h sensitivity drift the ODE alone leaves the creep's structure
+    (20x the noise) and names nothing; with the creep in the baseline the drift is named, sized
+    within 25 %, and the creep itself is never a finding."""
+    exps = preset_session("stage", ("thermal=3",), seed=2)
+    ode = dataclasses.replace(adoption_audit_options(), base="ode")
+    without = run_audit(exps, options=dataclasses.replace(ode, base_effects=()))
+    assert without.cause == "unexplained"
+    result = run_audit(exps, options=ode)
+    assert result.base_fit.model.effects == ("creep",)
+    assert any("baseline: + creep" in n for n in result.notes)
+    assert result.cause == "thermal"
+    assert "creep" not in [f.effect for f in result.findings]
+    assert result.findings[0].params["rate_pct_per_hour"] == pytest.approx(3.0, rel=0.25)

@@ -108,6 +108,9 @@ class AuditOptions:
         Evaluation budget of every cross-validation refit.
     gain_sigmas
         A candidate's held-out gain must exceed 1 by this many standard errors.
+    base_effects
+        Effects fitted into the baseline before the search (``creep`` when the model the findings
+        will extend has creep anyway, as every runtime model does): never candidates, never named.
     """
 
     folds: int = 5
@@ -121,6 +124,7 @@ class AuditOptions:
     refit_cv: bool = True
     cv_nfev: int = 60
     gain_sigmas: float = 2.0
+    base_effects: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -333,7 +337,7 @@ def run_audit(
     """
     t_start = time.perf_counter()
     opts = options or AuditOptions()
-    unknown = [e for e in opts.effects if e not in EFFECTS]
+    unknown = [e for e in (*opts.effects, *opts.base_effects) if e not in EFFECTS]
     if unknown:
         raise PiezodError(f"unknown effect(s) {', '.join(unknown)}; choose from {', '.join(EFFECTS)}")
     step = on_step or (lambda _s: None)
@@ -405,6 +409,19 @@ def run_audit(
     else:
         notes.insert(0, "baseline: thesis model (3.8), 7 parameters; per-experiment offset")
     geo = geometry(data, scales.t_ref_s, scales.f_ref_hz)
+    for effect in opts.base_effects:
+        if effect == "creep" and kind == THESIS:
+            continue  # (3.8) has its creep factor (3.5)
+        cand = make_candidate(effect, kind)
+        why = cand.testable(scales)
+        if why:
+            notes.append(f"baseline: without {effect} ({why})")
+            continue
+        base_fit = fit_candidate(Problem(base_fit.model.with_candidate(cand), geo, rows), base_fit, cand)
+        _, public = base_fit.model.public(base_fit.p)
+        values = ", ".join(f"{k} {v:.4g}" for k, v in public[effect].items())
+        notes.append(f"baseline: + {effect} ({values}), part of the model the findings extend")
+        step(f"baseline + {effect}")
     val_geo = geometry(val, scales.t_ref_s, scales.f_ref_hz) if val is not None else None
     if val_geo is not None:
         method = f"validation recordings ({val_geo.data.n_experiments} experiments)"
@@ -428,7 +445,7 @@ def run_audit(
     rounds: list[tuple[CandidateResult, ...]] = []
     findings: list[CandidateResult] = []
     pre: list[CandidateResult] = []
-    remaining = [e for e in opts.effects]
+    remaining = [e for e in opts.effects if e not in opts.base_effects]
     stop = ""
     if outside.switching is not None:
         stop = "switching"
