@@ -107,3 +107,14 @@ def test_too_few_samples_names_the_experiment(tmp_path: Path, capsys: pytest.Cap
     assert main(["audit", str(short)]) == 2
     err = capsys.readouterr().err
     assert "short.csv" in err and "at least" in err
+
+
+def test_base_effects_are_fitted_into_the_baseline_never_named(capsys: pytest.CaptureFixture[str]) -> None:
+    data = Path(__file__).resolve().parents[1] / "piezod" / "data" / "real" / "pi-p885"
+    args = ["audit", str(data / "identification.csv"), "--validate", str(data / "validation.csv")]
+    assert main([*args, "--base-effects", "creep", "--effects", "delay", "stiffness"]) == 0
+    out = capsys.readouterr().out
+    baseline = next(line for line in out.splitlines() if line.startswith("baseline parameters:"))
+    assert "creep_pct_per_decade" in baseline and "(creep)" in baseline
+    assert "note: baseline: + creep" in out
+    assert not any(line.startswith("creep ") for line in out.splitlines())

@@ -210,8 +210,10 @@ def print_summary(result: AuditResult, out: IO[str]) -> None:
         f"held-out: {result.heldout_method}; {result.seconds:.1f} s",
         file=out,
     )
-    params, _ = b.model.public(b.p)
-    pr("baseline parameters: " + ", ".join(f"{k} = {v:.5g}" for k, v in params.items()), file=out)
+    params, extra = b.model.public(b.p)
+    within = [f"{k} = {v:.5g} ({effect})" for effect, values in extra.items() for k, v in values.items()]
+    shown = [f"{k} = {v:.5g}" for k, v in params.items()] + within
+    pr("baseline parameters: " + ", ".join(shown), file=out)
     pr(
         f"baseline: rms {b.rms_um:.4g} um, held-out {result.base_heldout.rms_um:.4g} um, noise floor "
         f"{result.noise_floor_um:.4g} um (ratio {result.structure_ratio:.2f})",

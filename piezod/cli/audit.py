@@ -66,6 +66,15 @@ def register(sub: Any) -> None:
         metavar="ID",
         help=f"candidates to try ({', '.join(EFFECTS)})",
     )
+    p.add_argument(
+        "--base-effects",
+        nargs="+",
+        choices=EFFECTS,
+        default=(),
+        metavar="ID",
+        help="effects fitted into the baseline first, never named (e.g. creep: what piezod calibrate's"
+        " adoption audit does)",
+    )
     cv = p.add_mutually_exclusive_group()
     cv.add_argument(
         "--refit-cv",
@@ -107,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
         base=args.baseline,
         effects=tuple(args.effects) if args.effects else EFFECTS,
         refit_cv=not args.fast_cv,
+        base_effects=tuple(args.base_effects),
     )
     with progress_bar(desc="audit", total=None, unit="fit") as bar:
 
