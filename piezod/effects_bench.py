@@ -56,6 +56,7 @@ from piezod.extensions import (
     experiments_through,
     extended_config,
     refine_findings,
+    trend_horizon_s,
 )
 from piezod.linearity import experiment_linearity
 from piezod.model.parts import PART_EFFECTS
@@ -307,7 +308,7 @@ def run_case(
             options = dataclasses.replace(options, effects=tuple(audit_effects))
         doc = result_json(run_audit(exps, [], options=options))
         step("audit")
-        adoption: Adoption = adopt_findings(doc["findings"])
+        adoption: Adoption = adopt_findings(doc["findings"], horizon_s=trend_horizon_s(exps))
         out["findings"] = [f["effect"] for f in doc["findings"]]
         out["adoption"] = {"adopted": list(adoption.adopted), "skipped": list(adoption.skipped)}
         if adoption.effects:

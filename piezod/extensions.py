@@ -22,7 +22,7 @@ import numpy as np
 
 from piezod.config import ScannerConfig, dump_config, load_config
 from piezod.errors import ConfigError, ModelError
-from piezod.model.parts import PART_EFFECTS, Parts
+from piezod.model.parts import PART_EFFECTS, TIME_PARTS, Parts
 from piezod.model.sensor import SENSOR_EFFECTS, SensorPath
 from piezod.recording import Experiment
 
@@ -95,13 +95,30 @@ def adoption_audit_options(folds: int = 4) -> Any:
     )
 
 
-def adopt_findings(findings: Sequence[Mapping[str, Any]]) -> Adoption:
+#: The time-dependent parts (thermal, drift) follow the time for this many times the length of
+#: the session they were found on, then hold (:class:`~piezod.model.parts.Parts`): a trend seen
+#: over minutes says nothing about a week of scanning, and unbounded it would grow without limit
+#: (0.3 nm/s is 180 um a week; 1.2 %/h is 200 % of the sensitivity).
+TREND_HORIZON_FACTOR = 3.0
+
+
+def trend_horizon_s(experiments: Sequence[Experiment]) -> float:
+    """How long the adopted time-dependent parts follow the time: :data:`TREND_HORIZON_FACTOR`
+    times the session's length (first to last sample of ``experiments``)."""
+    t0 = min(float(e.t_s[0]) for e in experiments)
+    t1 = max(float(e.t_s[-1]) for e in experiments)
+    return TREND_HORIZON_FACTOR * max(t1 - t0, 1.0)
+
+
+def adopt_findings(findings: Sequence[Mapping[str, Any]], *, horizon_s: float = math.inf) -> Adoption:
     """Map the audit's findings (``result_json(...)["findings"]``) to runtime parts.
 
     Parameters
     ----------
     findings
         Each with ``effect`` and ``params`` (registry names, public units).
+    horizon_s
+        The time-dependent parts' horizon (:func:`trend_horizon_s`; ``inf``: none).
     """
     effects: dict[str, dict[str, float]] = {}
     skipped: list[str] = []
@@ -128,6 +145,8 @@ def adopt_findings(findings: Sequence[Mapping[str, Any]]) -> Adoption:
                 break
             values[name] = float(value)
         else:
+            if effect in TIME_PARTS and math.isfinite(horizon_s):
+                values["horizon_s"] = float(horizon_s)
             try:
                 Parts.from_effects({**effects, effect: values})
             except ModelError as exc:
@@ -347,7 +366,13 @@ def refine_findings(
 
 
 def write_extended_config(
-    base: str | Path, axis: str, findings: Sequence[Mapping[str, Any]], out: str | Path, source: str
+    base: str | Path,
+    axis: str,
+    findings: Sequence[Mapping[str, Any]],
+    out: str | Path,
+    source: str,
+    *,
+    horizon_s: float = math.inf,
 ) -> Adoption:
     """Write ``base`` with the findings' runtime parts on ``axis`` to ``out`` (a comment says which).
 
@@ -363,9 +388,11 @@ def write_extended_config(
         The extended scanner YAML (written atomically; loads with ``piezod serve``/``scan``).
     source
         What the findings come from (named in the comment).
+    horizon_s
+        The time-dependent parts' horizon (:func:`trend_horizon_s` of the audited recordings).
     """
     config = load_config(base)
-    adoption = adopt_findings(findings)
+    adoption = adopt_findings(findings, horizon_s=horizon_s)
     extended = extended_config(config, axis, adoption)
     header = "\n".join(
         [
@@ -385,6 +412,7 @@ __all__ = [
     "REFINE_EVALUATIONS",
     "SENSOR_LAG_EVALUATIONS",
     "SENSOR_LAG_FACTORS",
+    "TREND_HORIZON_FACTOR",
     "Adoption",
     "adopt_findings",
     "experiments_through",
@@ -394,5 +422,6 @@ __all__ = [
     "refine_findings",
     "refine_parts",
     "refine_sensor_lag",
+    "trend_horizon_s",
     "write_extended_config",
 ]

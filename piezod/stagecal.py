@@ -735,11 +735,17 @@ def audit_and_extend(
     from piezod.audit import result_json as audit_json
     from piezod.audit import run_audit
     from piezod.calibrate_family import CHOICE_TIE_FRACTION
-    from piezod.extensions import adopt_findings, adoption_audit_options, experiments_through, extended_config
+    from piezod.extensions import (
+        adopt_findings,
+        adoption_audit_options,
+        experiments_through,
+        extended_config,
+        trend_horizon_s,
+    )
     from piezod.model.sensor import SENSOR_EFFECTS
 
     doc = audit_json(run_audit(experiments, [], options=adoption_audit_options(folds)))
-    adoption = adopt_findings(doc["findings"])
+    adoption = adopt_findings(doc["findings"], horizon_s=trend_horizon_s(experiments))
     report: dict[str, Any] = {
         "findings": [f["effect"] for f in doc["findings"]],
         "cause": doc["cause"],

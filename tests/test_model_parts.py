@@ -164,3 +164,52 @@ def test_the_parts_apply_the_same_laws_as_the_simulated_stage() -> None:
     expected = ALL.position_out(x0, t + dt)
     np.testing.assert_allclose(x1, expected, rtol=0, atol=1e-9)
     assert not math.isclose(float(np.max(np.abs(x1 - x0))), 0.0)
+
+
+def test_time_parts_hold_after_their_horizon_and_still_invert_exactly() -> None:
+    """A trend found over a session is followed for a horizon, then held (not extrapolated for
+    ever); forward and inverse stay exact across the horizon, and the YAML round-trips it."""
+    parts = Parts.from_effects(
+        {
+            "thermal": {"rate_pct_per_hour": 2.0, "horizon_s": 10.0},
+            "drift": {"rate_nm_per_s": 10.0, "horizon_s": 5.0},
+        }
+    )
+    assert parts.effects()["drift"] == {"rate_nm_per_s": 10.0, "horizon_s": 5.0}
+    assert Parts.from_effects(parts.effects()) == parts
+    t = np.array([0.0, 2.5, 5.0, 50.0, 3600.0])
+    x = parts.position_out(np.full(t.size, 10.0), t)
+    drift = x - 10.0 * (1.0 + 2.0 * np.minimum(t, 10.0) / 360000.0)
+    np.testing.assert_allclose(drift, [0.0, 0.025, 0.05, 0.05, 0.05], atol=1e-12)
+    np.testing.assert_allclose(parts.position_in(x, t), 10.0, atol=1e-12)
+    short = Parts(rate_pct_per_hour=2.0, thermal_horizon_s=0.1, rate_nm_per_s=10.0, drift_horizon_s=0.05)
+    model = PartsAxisModel(FamilyAxisModel(FamilyParams(PI, SPEC, 0.0, 0.0, "voltage")), short)
+    dt = 1e-4
+    s0 = model.rest(0.0)
+    target = _targets(2000, dt) - _targets(1, dt)[0] + model.position(s0)  # 0.2 s: across both horizons
+    v, _ = model.inverse(target, dt, s0)
+    xf, _ = model.forward(v, dt, s0)
+    np.testing.assert_allclose(xf, target, rtol=0, atol=1e-9)
+    with pytest.raises(ModelError, match="no runtime parameter 'horizon_s'"):
+        Parts.from_effects({"stiffness": {"sensitivity_pct_per_um": 0.1, "horizon_s": 10.0}})
+    with pytest.raises(ModelError, match="horizon_s"):
+        Parts.from_effects({"drift": {"rate_nm_per_s": 1.0, "horizon_s": 0.0}})
+
+
+def test_adoption_gives_the_time_parts_a_horizon_of_three_sessions() -> None:
+    from piezod.extensions import TREND_HORIZON_FACTOR, adopt_findings, trend_horizon_s
+    from piezod.recording import Experiment
+
+    t = np.linspace(10.0, 70.0, 11)
+    exps = [Experiment("a", "x", t, t, t), Experiment("b", "x", t + 60.0, t, t)]
+    assert trend_horizon_s(exps) == pytest.approx(TREND_HORIZON_FACTOR * 120.0)
+    findings = [
+        {"effect": "drift", "params": {"rate_nm_per_s": 0.5}},
+        {"effect": "stiffness", "params": {"sensitivity_pct_per_um": 0.05}},
+    ]
+    adoption = adopt_findings(findings, horizon_s=360.0)
+    assert adoption.effects == {
+        "drift": {"rate_nm_per_s": 0.5, "horizon_s": 360.0},
+        "stiffness": {"sensitivity_pct_per_um": 0.05},
+    }
+    assert "horizon_s" not in adopt_findings(findings).effects["drift"]

@@ -12,6 +12,11 @@ stage (:mod:`hil_sim.stage`)::
     x_q = x_sat tanh(x_s / x_sat)                         saturation
     x   = x_q + r_D t / 1000                              drift (r_D in nm/s)
 
+The time-dependent parts (thermal, drift) follow ``t`` up to their ``horizon_s`` and hold there: a
+linear trend measured over a calibration session of minutes is not extrapolated over a week of
+scanning (``piezod calibrate`` adopts them with :data:`~piezod.extensions.TREND_HORIZON_FACTOR`
+times the session's length; without a horizon they follow ``t`` for ever).
+
 Every part is a monotone static map or a known function of time, so the inverse runs the chain
 backwards exactly, ``O(1)`` per sample and vectorised: subtract the drift, ``x_sat atanh``, the
 quadratic formula, divide by the thermal scale, the model's own inverse, divide negative
@@ -49,6 +54,8 @@ PART_EFFECTS: dict[str, tuple[str, ...]] = {
     "saturation": ("x_sat_um",),
     "drift": ("rate_nm_per_s",),
 }
+#: Parts that are functions of time: they take an optional ``horizon_s`` besides their parameters.
+TIME_PARTS: tuple[str, ...] = ("thermal", "drift")
 #: A saturated target is clipped to this fraction of ``x_sat``.
 _SATURATION_REACH = 1.0 - 1e-9
 
@@ -69,6 +76,9 @@ class Parts:
         Saturation scale (um), > 0; ``inf`` for none.
     rate_nm_per_s
         Drift velocity (nm/s).
+    thermal_horizon_s, drift_horizon_s
+        Time (s, since the rest or adoption) after which the thermal / drift part holds its value
+        instead of following ``t``; ``inf`` for never.
     """
 
     negative_sensitivity_pct: float = 0.0
@@ -76,8 +86,14 @@ class Parts:
     sensitivity_pct_per_um: float = 0.0
     x_sat_um: float = math.inf
     rate_nm_per_s: float = 0.0
+    thermal_horizon_s: float = math.inf
+    drift_horizon_s: float = math.inf
 
     def __post_init__(self) -> None:
+        for effect in TIME_PARTS:
+            h = getattr(self, f"{effect}_horizon_s")
+            if not h > 0.0:
+                raise ModelError(f"{effect}.horizon_s = {h!r} must be > 0 (s)")
         for effect, names in PART_EFFECTS.items():
             for name in names:
                 value = getattr(self, name)
@@ -99,6 +115,9 @@ class Parts:
                     f"effect {effect!r} has no runtime part (parts: {', '.join(PART_EFFECTS)})"
                 )
             for name, value in params.items():
+                if name == "horizon_s" and effect in TIME_PARTS:
+                    fields[f"{effect}_horizon_s"] = float(value)
+                    continue
                 if name not in PART_EFFECTS[effect]:
                     raise ModelError(f"effect {effect!r} has no runtime parameter {name!r}")
                 fields[name] = float(value)
@@ -107,11 +126,16 @@ class Parts:
     def effects(self) -> dict[str, dict[str, float]]:
         """The parts that are on, as ``{effect id: {parameter: value}}``."""
         off = {"x_sat_um": math.inf}
-        return {
+        out = {
             effect: {n: float(getattr(self, n)) for n in names}
             for effect, names in PART_EFFECTS.items()
             if any(getattr(self, n) != off.get(n, 0.0) for n in names)
         }
+        for effect in TIME_PARTS:
+            h = float(getattr(self, f"{effect}_horizon_s"))
+            if effect in out and math.isfinite(h):
+                out[effect]["horizon_s"] = h
+        return out
 
     @property
     def identity(self) -> bool:
@@ -138,21 +162,29 @@ class Parts:
         """``x`` from the wrapped model's position ``x_m`` at times ``t``."""
         x = xm
         if self.rate_pct_per_hour != 0.0:
-            x = x * (1.0 + self.rate_pct_per_hour * t / 360000.0)
+            x = x * self._thermal_scale(t)
         k = self.sensitivity_pct_per_um / 200.0
         if k != 0.0:
             x = x + k * x * x
         if self.x_sat_um != math.inf:
             x = self.x_sat_um * np.tanh(x / self.x_sat_um)
         if self.rate_nm_per_s != 0.0:
-            x = x + self.rate_nm_per_s * 1e-3 * t
+            x = x + self._drift_um(t)
         return x
+
+    def _thermal_scale(self, t: F64) -> F64:
+        out: F64 = 1.0 + self.rate_pct_per_hour * np.minimum(t, self.thermal_horizon_s) / 360000.0
+        return out
+
+    def _drift_um(self, t: F64) -> F64:
+        out: F64 = self.rate_nm_per_s * 1e-3 * np.minimum(t, self.drift_horizon_s)
+        return out
 
     def position_in(self, x: F64, t: F64) -> F64:
         """The wrapped model's target ``x_m`` for the position ``x`` at times ``t`` (exact inverse)."""
         y = x
         if self.rate_nm_per_s != 0.0:
-            y = y - self.rate_nm_per_s * 1e-3 * t
+            y = y - self._drift_um(t)
         if self.x_sat_um != math.inf:
             xs = self.x_sat_um
             y = xs * np.arctanh(np.clip(y / xs, -_SATURATION_REACH, _SATURATION_REACH))
@@ -160,7 +192,7 @@ class Parts:
         if k != 0.0:
             y = 2.0 * y / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * k * y, 0.0)))
         if self.rate_pct_per_hour != 0.0:
-            y = y / (1.0 + self.rate_pct_per_hour * t / 360000.0)
+            y = y / self._thermal_scale(t)
         return y
 
 
@@ -267,4 +299,4 @@ def _times(state: PartsState, n: int, dt_s: float) -> F64:
     return out
 
 
-__all__ = ["PART_EFFECTS", "Parts", "PartsAxisModel", "PartsState", "with_parts"]
+__all__ = ["PART_EFFECTS", "TIME_PARTS", "Parts", "PartsAxisModel", "PartsState", "with_parts"]
