@@ -66,25 +66,29 @@ def _pi_loop(
         f = xh + g * u_prev
         u = u_prev
         if y > f:
+            # one pass for the slope and the next knot; another only per knot crossed
             slope = base
+            knot = math.inf
             for i in range(p):
-                if plays[i] + r[i] <= u:
+                k = plays[i] + r[i]
+                if k <= u:
                     slope += b * pw[i]
+                elif k < knot:
+                    knot = k
             while True:
-                knot = math.inf
-                for i in range(p):
-                    k = plays[i] + r[i]
-                    if u < k < knot:
-                        knot = k
                 cand = u + (y - f) / slope
                 if cand <= knot:
                     u = cand
                     break
                 f += slope * (knot - u)
                 u = knot
+                knot = math.inf
                 for i in range(p):
-                    if plays[i] + r[i] == knot:
+                    k = plays[i] + r[i]
+                    if k == u:
                         slope += b * pw[i]
+                    elif u < k < knot:
+                        knot = k
             acc = 0.0
             for i in range(p):
                 lo = u - r[i]
@@ -94,24 +98,27 @@ def _pi_loop(
             xh = b * (rho0 * u + acc)
         elif y < f:
             slope = base
+            knot = -math.inf
             for i in range(p):
-                if plays[i] - r[i] >= u:
+                k = plays[i] - r[i]
+                if k >= u:
                     slope += b * pw[i]
+                elif k > knot:
+                    knot = k
             while True:
-                knot = -math.inf
-                for i in range(p):
-                    k = plays[i] - r[i]
-                    if knot < k < u:
-                        knot = k
                 cand = u + (y - f) / slope
                 if cand >= knot:
                     u = cand
                     break
                 f += slope * (knot - u)
                 u = knot
+                knot = -math.inf
                 for i in range(p):
-                    if plays[i] - r[i] == knot:
+                    k = plays[i] - r[i]
+                    if k == u:
                         slope += b * pw[i]
+                    elif knot < k < u:
+                        knot = k
             acc = 0.0
             for i in range(p):
                 hi = u + r[i]
