@@ -85,6 +85,34 @@ GP_CENTRE_SMOOTHING = 0.0
 #: generalised play law (its generalisation, three times the coefficients) predicted 0.9-1.4 % better
 #: and verified no better or worse (the sensorless images: -0.22 % against -0.13 % inside).
 CHOICE_TIE_FRACTION = 0.02
+#: Play operators of the play laws unless the choice refines them.
+DEFAULT_PLAYS = 32
+#: Laws built from play operators, whose resolution (the number of plays) the choice refines.
+PLAY_LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play")
+#: Finest play grid the choice tries: the per-sample inverse of a play law grows with its plays
+#: (Prandtl-Ishlinskii with voltage creep and every runtime part: ~100 ns at 64, ~170 ns at 128).
+MAX_PLAYS = 64
+
+
+def member_name(law: str, driver: str, plays: int | None = None) -> str:
+    """The choice's name of a family member: ``family/<law>[/<n>-plays][/voltage-creep]`` (the
+    play count only when it is not the choice's default)."""
+    return (
+        f"family/{law}"
+        + (f"/{plays}-plays" if plays else "")
+        + ("/voltage-creep" if driver == "voltage" else "")
+    )
+
+
+def parse_member(name: str) -> tuple[str, str, int | None] | None:
+    """``(law, creep driver, plays or None)`` of a :func:`member_name`; None for another candidate."""
+    parts = name.split("/")
+    if len(parts) < 2 or parts[0] != "family" or parts[1] not in LAWS:
+        return None
+    plays = next((int(p.removesuffix("-plays")) for p in parts[2:] if p.endswith("-plays")), None)
+    return parts[1], "voltage" if parts[-1] == "voltage-creep" else "position", plays
+
+
 #: Longest drive lag the fit considers (s).
 _MAX_LAG_S = 0.05
 #: Bound on the static map's ``kappa`` in the fits (the model's own limit). Unbounded, a law whose
@@ -931,7 +959,7 @@ def fit_family(
     *,
     alpha_per_v: float | None = None,
     train: NDArray[np.bool_] | None = None,
-    plays: int = 32,
+    plays: int = DEFAULT_PLAYS,
     taus: F64 | None = None,
     regularisation: float = 1e-4,
     skip_s: float = 0.0,
@@ -1177,7 +1205,7 @@ def choose_model(
     laws: Sequence[str] = LAWS,
     holdout_every: int = 4,
     others: dict[str, FamilyParams] | None = None,
-    plays: int = 32,
+    plays: int = DEFAULT_PLAYS,
     alpha_per_v: float | None = None,
     creep_drivers: Sequence[str] = CREEP_DRIVERS,
     adoptable_drivers: Sequence[str] = CREEP_DRIVERS,
@@ -1185,7 +1213,11 @@ def choose_model(
     """Fit every law on the training experiments, compare held-out prediction RMS, refit the best.
 
     Family members within :data:`CHOICE_TIE_FRACTION` of the best held-out RMS are a tie, won by
-    the one with the fewest coefficients (a candidate from ``others`` wins only outright).
+    the one with the fewest coefficients (a candidate from ``others`` wins only outright). A play
+    law's resolution is then refined: the same member with twice the plays (up to
+    :data:`MAX_PLAYS`) replaces it when it predicts the held-out experiments better by more than
+    the tie fraction (a stage whose loops have a few sharp kinks needs a finer grid than a smooth
+    one; the finer member is named ``.../<n>-plays``).
 
     Parameters
     ----------
@@ -1223,7 +1255,7 @@ def choose_model(
     failed: dict[str, str] = {}
     for law in laws:
         for driver in creep_drivers:
-            name = f"family/{law}" + ("/voltage-creep" if driver == "voltage" else "")
+            name = member_name(law, driver)
             try:
                 fit = fit_family(
                     data, law, train=train, plays=plays, alpha_per_v=alpha_per_v, creep_driver=driver
@@ -1252,13 +1284,24 @@ def choose_model(
         limit = scores[chosen] * (1.0 + CHOICE_TIE_FRACTION)
         tied = [k for k in scores if k in fits and scores[k] <= limit]
         chosen = min(tied, key=lambda k: (fits[k].n - fits[k].dof, scores[k]))
-        final = fit_family(
-            data,
-            fits[chosen].law,
-            plays=plays,
-            alpha_per_v=alpha_per_v,
-            creep_driver=fits[chosen].params.creep_driver,
-        )
+        law, driver = fits[chosen].law, fits[chosen].params.creep_driver
+        n_plays = plays
+        while law in PLAY_LAWS and 2 * n_plays <= MAX_PLAYS:
+            finer = member_name(law, driver, 2 * n_plays)
+            try:
+                fit = fit_family(
+                    data, law, train=train, plays=2 * n_plays, alpha_per_v=alpha_per_v, creep_driver=driver
+                )
+            except CalibrationError as exc:
+                failed[finer] = str(exc)
+                break
+            fits[finer] = fit
+            heldout[finer], train_rms[finer] = fit.heldout_rms_um, fit.rms_um
+            if not fit.heldout_rms_um < scores[chosen] * (1.0 - CHOICE_TIE_FRACTION):
+                break
+            chosen, n_plays = finer, 2 * n_plays
+            scores[chosen] = fit.heldout_rms_um
+        final = fit_family(data, law, plays=n_plays, alpha_per_v=alpha_per_v, creep_driver=driver)
     holdout = tuple(int(i) for i in np.flatnonzero(~train))
     return ModelChoice(chosen, final, heldout, train_rms, holdout, fits, blocked, failed)
 
@@ -1311,7 +1354,10 @@ def family_model_config(params: FamilyParams) -> FamilyModelConfig:
 
 __all__ = [
     "CREEP_DRIVERS",
+    "DEFAULT_PLAYS",
     "LAWS",
+    "MAX_PLAYS",
+    "PLAY_LAWS",
     "FamilyFit",
     "ModelChoice",
     "choose_model",
@@ -1320,6 +1366,8 @@ __all__ = [
     "family_model_config",
     "fit_family",
     "holdout_mask",
+    "member_name",
+    "parse_member",
     "session_positions",
     "solve_linear",
 ]

@@ -104,7 +104,9 @@ TREND_HORIZON_FACTOR = 3.0
 
 def trend_horizon_s(experiments: Sequence[Experiment]) -> float:
     """How long the adopted time-dependent parts follow the time: :data:`TREND_HORIZON_FACTOR`
-    times the session's length (first to last sample of ``experiments``)."""
+    times the session's length (first to last sample of ``experiments``; ``inf`` for none)."""
+    if not experiments:
+        return math.inf
     t0 = min(float(e.t_s[0]) for e in experiments)
     t1 = max(float(e.t_s[-1]) for e in experiments)
     return TREND_HORIZON_FACTOR * max(t1 - t0, 1.0)

@@ -812,16 +812,19 @@ def refine_adoption(
     from piezod import calibrate_family as cf
     from piezod.extensions import experiments_through, refine_findings
 
-    parts = chosen.split("/")
-    if len(parts) < 2 or parts[0] != "family":
+    member = cf.parse_member(chosen)
+    if member is None:
         return adoption, []
-    law, driver = parts[1], "voltage" if chosen.endswith("/voltage-creep") else "position"
+    law, driver, plays = member
+    plays = plays or cf.DEFAULT_PLAYS
 
     def train_rms(trial: dict[str, dict[str, float]], fit_lag: bool = True) -> float:
         data = _frame_session(experiments_through(experiments, trial), ramp_v_per_s, rest_voltage_v)
         train = cf.holdout_mask(data.n_experiments)
         try:
-            return cf.fit_family(data, law, train=train, creep_driver=driver, fit_lag=fit_lag).rms_um
+            return cf.fit_family(
+                data, law, train=train, plays=plays, creep_driver=driver, fit_lag=fit_lag
+            ).rms_um
         except (CalibrationError, ModelError):
             return math.inf
 
