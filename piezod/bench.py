@@ -33,7 +33,7 @@ FloatArray = NDArray[np.float64]
 #: Per-sample inverse of the richest runtime model (issue 9), ns per sample and axis.
 TARGET_MODEL_NS_PER_SAMPLE = 150.0
 #: The richest runtime model of :func:`bench_models` (the one the 150 ns target is about).
-RICHEST_MODEL = "family/generalised-play/voltage-creep+parts"
+RICHEST_MODEL = "family/generalised-play/64-plays/voltage-creep+parts"
 #: The targets of docs/formats.md, section 5.
 TARGET_NS_PER_SAMPLE = 50.0
 TARGET_RATIO = 0.3
@@ -104,7 +104,8 @@ def bench_models() -> dict[str, Any]:
     of 19 relaxation times from 0.1 ms to 1e5 s and the stiffness map; :data:`RICHEST_MODEL` (the
     generalised play law) adds voltage-driven creep and every runtime part
     (:mod:`piezod.model.parts`: polarity, thermal,
-    stiffness, saturation, drift).
+    stiffness, saturation, drift) at the finest play grid the calibration's choice writes (64 plays;
+    the Prandtl-Ishlinskii law with voltage creep and every part at 64 plays beside it).
     """
     from piezod.model.axis_model import DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
     from piezod.model.boucwen import BoucWenParams
@@ -126,6 +127,16 @@ def bench_models() -> dict[str, Any]:
         tuple(float(x) for x in 160.0 * np.arange(1, 33) / 33),
         (-230.0, 0.0, 230.0),
         ((0.046, 0.052, 0.058), *((0.9 * w, w, 1.15 * w) for w in map(float, gw))),
+    )
+    # the finest play grid the calibration's choice writes (calibrate_family.MAX_PLAYS)
+    fine = 64
+    fshape = np.exp(-np.arange(fine) / (fine / 2.7))
+    pi_fine = PlayParams.uniform(0.115, 0.45, 320.0, fine, 0.55 * fshape / fshape.sum())
+    fw = 0.115 * 0.55 * fshape / fshape.sum()
+    gp_fine = GeneralisedPlayParams(
+        tuple(float(x) for x in 160.0 * np.arange(1, fine + 1) / (fine + 1)),
+        (-230.0, 0.0, 230.0),
+        ((0.046, 0.052, 0.058), *((0.9 * w, w, 1.15 * w) for w in map(float, fw))),
     )
     # the Duhem law with direction- and sign-dependent rates at a fitted size (asymmetric)
     bw = BoucWenParams(0.098, -0.037, 0.0159, 0.0097, 0.0155, 0.0081, 1.2)
@@ -158,8 +169,16 @@ def bench_models() -> dict[str, Any]:
             FamilyAxisModel(FamilyParams(pi, creep, 2e-4, 0.05, "voltage")),
             Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
         ),
-        RICHEST_MODEL: PartsAxisModel(
+        "family/generalised-play/voltage-creep+parts": PartsAxisModel(
             FamilyAxisModel(FamilyParams(gp, creep, 2e-4, 0.05, "voltage")),
+            Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
+        ),
+        "family/prandtl-ishlinskii/64-plays/voltage-creep+parts": PartsAxisModel(
+            FamilyAxisModel(FamilyParams(pi_fine, creep, 2e-4, 0.05, "voltage")),
+            Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
+        ),
+        RICHEST_MODEL: PartsAxisModel(
+            FamilyAxisModel(FamilyParams(gp_fine, creep, 2e-4, 0.05, "voltage")),
             Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
         ),
     }

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from piezod.bench import RICHEST_MODEL
 from piezod.cli import main
 from piezod.config import default_sim_config_path, load_config
 from piezod.errors import ConfigError
@@ -81,7 +82,7 @@ def test_bench_stream_target_3_axes_100k_20s() -> None:
 def test_the_richest_model_runs_in_the_streaming_path_without_loss(tmp_path: Path) -> None:
     """Short version of the soak target below: every axis's voltages come from the model's inverse."""
     out = tmp_path / "bench.json"
-    model = "family/generalised-play/voltage-creep+parts"
+    model = RICHEST_MODEL
     args = ["bench", "stream", "--axes", "3", "--rate-hz", "50000", "--seconds", "0.8", "--model", model]
     assert main([*args, "--json", str(out)]) == 0
     result = json.loads(out.read_text())
@@ -95,7 +96,7 @@ def test_the_richest_model_runs_in_the_streaming_path_without_loss(tmp_path: Pat
 @pytest.mark.soak
 def test_bench_stream_target_3_axes_100k_20s_with_the_richest_model() -> None:
     """``piezod bench stream --axes 3 --rate-hz 100000 --seconds 20 --model <richest>`` loses nothing."""
-    model = "family/generalised-play/voltage-creep+parts"
+    model = RICHEST_MODEL
     result = run_stream_bench(argparse.Namespace(axes=3, rate_hz=100_000.0, seconds=20.0, model=model))
     print(json.dumps(result, indent=2))
     assert result["underruns"] == 0 and result["unexplained_loss"] == 0
