@@ -16,7 +16,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,6 +25,9 @@ from piezod.errors import ConfigError, ModelError
 from piezod.model.parts import PART_EFFECTS, TIME_PARTS, Parts
 from piezod.model.sensor import SENSOR_EFFECTS, SensorPath
 from piezod.recording import Experiment
+
+if TYPE_CHECKING:
+    from piezod.audit import AuditOptions
 
 #: Why a registry effect has no runtime part.
 NO_PART_REASON: dict[str, str] = {
@@ -74,16 +77,12 @@ class Adoption:
 ADOPTION_BASE_EFFECTS: tuple[str, ...] = ("creep",)
 
 
-def adoption_audit_options(folds: int = 4) -> Any:
+def adoption_audit_options(folds: int = 4) -> AuditOptions:
     """The audit settings of ``piezod calibrate``'s adoption (and the effects bench's).
 
     Only the effects a runtime part or the sensor path can take are candidates (the others could
     not be adopted; ``piezod audit`` tries all); the creep is part of the baseline
     (:data:`ADOPTION_BASE_EFFECTS`); the folds are refitted by a few Gauss-Newton steps.
-
-    Returns
-    -------
-    piezod.audit.AuditOptions
     """
     from piezod.audit import AuditOptions
 

@@ -256,7 +256,14 @@ def fit_z_model(
 
     from piezod.calibrate_data import DynamicCalibrationData, prepare_dynamic
     from piezod.calibrate_dynamic import CreepStructure, calibrated_config, fit_dynamic
-    from piezod.calibrate_family import LAWS, family_model_config, fit_family, holdout_mask
+    from piezod.calibrate_family import (
+        LAWS,
+        family_model_config,
+        fit_family,
+        holdout_mask,
+        member_name,
+        parse_member,
+    )
     from piezod.model.family import CREEP_DRIVERS
 
     ax = base.axes[axis]
@@ -304,7 +311,7 @@ def fit_z_model(
     heldout: dict[str, float] = {}
     for law in LAWS:
         for driver in CREEP_DRIVERS:
-            name = f"family/{law}" + ("/voltage-creep" if driver == "voltage" else "")
+            name = member_name(law, driver)
             try:
                 heldout[name] = fit_family(
                     data, law, train=train, creep_driver=driver, fit_lag=False
@@ -315,8 +322,7 @@ def fit_z_model(
     scored = {k: v for k, v in heldout.items() if math.isfinite(v)}
     if scored:
         chosen = min(scored, key=lambda k: scored[k])
-        law = chosen.split("/")[1]
-        driver = "voltage" if chosen.endswith("voltage-creep") else "position"
+        law, driver, _ = parse_member(chosen) or (chosen, "position", None)
         final = fit_family(data, law, creep_driver=driver, fit_lag=False)
         params = dataclasses.replace(final.params, lag_time_constant_s=lag_s)
         return (
