@@ -120,24 +120,24 @@ def bench_models() -> dict[str, Any]:
     shape = np.exp(-np.arange(16) / 6.0)
     pi = PlayParams.uniform(0.115, 0.45, 320.0, 16, 0.55 * shape / shape.sum())
     ch = HysteresisParams(3e-3, 0.115, 0.072)
-    # generalised play law at a fitted size: 32 plays, density over 3 relay-centre nodes
-    gshape = np.exp(-np.arange(32) / 12.0)
-    gw = 0.115 * 0.55 * gshape / gshape.sum()
-    gp = GeneralisedPlayParams(
-        tuple(float(x) for x in 160.0 * np.arange(1, 33) / 33),
-        (-230.0, 0.0, 230.0),
-        ((0.046, 0.052, 0.058), *((0.9 * w, w, 1.15 * w) for w in map(float, gw))),
-    )
+
+    def generalised_play(n: int, decay: float) -> GeneralisedPlayParams:
+        """``n`` plays with weights decaying over ``decay`` plays, density over 3 relay-centre nodes."""
+        shape = np.exp(-np.arange(n) / decay)
+        w = 0.115 * 0.55 * shape / shape.sum()
+        return GeneralisedPlayParams(
+            tuple(float(x) for x in 160.0 * np.arange(1, n + 1) / (n + 1)),
+            (-230.0, 0.0, 230.0),
+            ((0.046, 0.052, 0.058), *((0.9 * v, v, 1.15 * v) for v in map(float, w))),
+        )
+
+    # generalised play law at a fitted size: 32 plays
+    gp = generalised_play(32, 12.0)
     # the finest play grid the calibration's choice writes (calibrate_family.MAX_PLAYS)
     fine = 64
     fshape = np.exp(-np.arange(fine) / (fine / 2.7))
     pi_fine = PlayParams.uniform(0.115, 0.45, 320.0, fine, 0.55 * fshape / fshape.sum())
-    fw = 0.115 * 0.55 * fshape / fshape.sum()
-    gp_fine = GeneralisedPlayParams(
-        tuple(float(x) for x in 160.0 * np.arange(1, fine + 1) / (fine + 1)),
-        (-230.0, 0.0, 230.0),
-        ((0.046, 0.052, 0.058), *((0.9 * w, w, 1.15 * w) for w in map(float, fw))),
-    )
+    gp_fine = generalised_play(fine, fine / 2.7)
     # the Duhem law with direction- and sign-dependent rates at a fitted size (asymmetric)
     bw = BoucWenParams(0.098, -0.037, 0.0159, 0.0097, 0.0155, 0.0081, 1.2)
     # exponent 2 (a sharp knee): the law is its per-sample Runge-Kutta step, inverted by Newton

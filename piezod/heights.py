@@ -262,7 +262,6 @@ def fit_z_model(
         fit_family,
         holdout_mask,
         member_name,
-        parse_member,
     )
     from piezod.model.family import CREEP_DRIVERS
 
@@ -309,9 +308,11 @@ def fit_z_model(
                 lag_s = float(res.x)
     data = prepare(lag_s)
     heldout: dict[str, float] = {}
+    members: dict[str, tuple[str, str]] = {}
     for law in LAWS:
         for driver in CREEP_DRIVERS:
             name = member_name(law, driver)
+            members[name] = (law, driver)
             try:
                 heldout[name] = fit_family(
                     data, law, train=train, creep_driver=driver, fit_lag=False
@@ -322,7 +323,7 @@ def fit_z_model(
     scored = {k: v for k, v in heldout.items() if math.isfinite(v)}
     if scored:
         chosen = min(scored, key=lambda k: scored[k])
-        law, driver, _ = parse_member(chosen) or (chosen, "position", None)
+        law, driver = members[chosen]
         final = fit_family(data, law, creep_driver=driver, fit_lag=False)
         params = dataclasses.replace(final.params, lag_time_constant_s=lag_s)
         return (

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from piezod.audit.residuals import noise_floor
-from piezod.calibrate_dynamic import _centre, prepare_dynamic
+from piezod.calibrate_dynamic import prepare_dynamic
 from piezod.calibrate_family import CREEP_DRIVERS, LAWS, fit_family, session_positions, settled_rows
 from piezod.heights import lagged_experiments
 from piezod.recording import read_experiments
@@ -60,6 +60,15 @@ def _prepare(  # type: ignore[no-untyped-def]
     return exps, prepare_dynamic(
         exps, max_samples_per_loop=4096, max_samples_per_experiment=1 << 16, rest_voltage_v=v0
     )
+
+
+def prediction_error(data: Any, params: Any, rows: Any) -> tuple[Any, float]:
+    """Prediction minus measurement on ``rows`` of a session, with one offset per experiment and
+    one sensor gain for the session fitted (the nuisance parameters), and that gain."""
+    x = data.centred(session_positions(data, params))[rows]
+    y = data.centred(data.position_um)[rows]
+    gain = float(x @ y / (x @ x))
+    return gain * x - y, gain
 
 
 def _plot(path: Path, valid: Any, law: str, driver: str, keep: Any, resid: Any, floor: float) -> None:
@@ -132,14 +141,11 @@ def main() -> int:
         if args.drive_lag_samples > 0.0:
             extra["fit_lag"] = False
         fit = fit_family(ident, law, plays=args.plays, skip_s=args.skip_s, creep_driver=driver, **extra)
-        x = session_positions(valid, fit.params)
         keep = settled_rows(valid, args.skip_s)
-        xc = _centre(valid, x)[keep]
-        yc = _centre(valid, valid.position_um)[keep]
-        gain = float(xc @ yc / (xc @ xc))
-        rms_valid = float(np.sqrt(np.mean((gain * xc - yc) ** 2)))
+        err, gain = prediction_error(valid, fit.params, keep)
+        rms_valid = float(np.sqrt(np.mean(err**2)))
         if best is None or rms_valid < best[0]:
-            best = (rms_valid, (law, driver, keep, gain * xc - yc))
+            best = (rms_valid, (law, driver, keep, err))
         p = fit.params
         rows.append(
             {

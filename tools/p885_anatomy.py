@@ -35,12 +35,11 @@ from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from model_family_p885 import _prepare
+from model_family_p885 import _prepare, prediction_error
 
 from piezod.audit.residuals import noise_floor
 from piezod.calibrate_data import DynamicCalibrationData
-from piezod.calibrate_dynamic import _centre
-from piezod.calibrate_family import FamilyParams, fit_family, session_positions, settled_rows
+from piezod.calibrate_family import FamilyParams, fit_family, settled_rows
 
 F64 = NDArray[np.float64]
 SKIP_S = 1.0
@@ -60,10 +59,7 @@ STRETCHES = (
 
 def _error(data: DynamicCalibrationData, params: FamilyParams, rows: NDArray[np.bool_]) -> F64:
     """Prediction minus measurement on ``rows``: offsets per experiment, one gain (nuisance)."""
-    x = _centre(data, session_positions(data, params))[rows]
-    y = _centre(data, data.position_um)[rows]
-    gain = float(x @ y / (x @ x))
-    out: F64 = gain * x - y
+    out: F64 = prediction_error(data, params, rows)[0]
     return out
 
 
