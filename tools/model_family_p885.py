@@ -134,7 +134,7 @@ def main() -> int:
     floor_id = float(np.sqrt(np.mean([noise_floor(np.asarray(e.position_um)) ** 2 for e in ident_exps])))
     floor_va = float(np.sqrt(np.mean([noise_floor(np.asarray(e.position_um)) ** 2 for e in valid_exps])))
     rows = []
-    best: tuple[float, Any] | None = None
+    best: tuple[float, tuple[str, str, Any, Any]] | None = None
     for law, driver in [(law, d) for law in args.laws for d in CREEP_DRIVERS]:
         t0 = time.perf_counter()
         extra = {} if args.centre_smoothing is None else {"centre_smoothing": args.centre_smoothing}

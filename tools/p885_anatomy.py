@@ -45,7 +45,8 @@ from model_family_p885 import _prepare, prediction_error
 
 from piezod.audit.residuals import noise_floor
 from piezod.calibrate_data import DynamicCalibrationData
-from piezod.calibrate_family import FamilyParams, fit_family, settled_rows
+from piezod.calibrate_family import fit_family, settled_rows
+from piezod.model.family import FamilyParams
 
 F64 = NDArray[np.float64]
 SKIP_S = 1.0
