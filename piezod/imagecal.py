@@ -26,6 +26,13 @@ of the sensor:
    positions (falling flanks moved by ``w``) shifted by the local velocity times the time
    difference (a fraction of a grid step).
 
+5. **Polarity** (:func:`search_polarity`): a partially depoled ceramic moves less per volt below
+   0 V; no hysteresis law bends at a fixed voltage, so after the choice of model the runtime
+   part's value is profiled on the flanks (the images pin the kink: it sits at 0 V of the drive),
+   the choice redone through it and the value refined on the new member. The position-side parts
+   are not searched: the family's static map takes a stiffness, and the flank positions are known
+   only up to an offset per scan.
+
 The position column of the recordings is never read. On the simulator the hidden truth (the
 board's ``--truth-log``) checks the result: :func:`with_truth` puts the true positions into a
 recording, whose sensor-path linearity (:mod:`piezod.linearity`) stands beside the image metrics.
@@ -39,6 +46,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,11 +59,14 @@ from piezod.calibrate_dynamic import (
     fit_dynamic,
     prepare_dynamic,
 )
-from piezod.errors import CalibrationError, RecordingError
+from piezod.errors import CalibrationError, ModelError, RecordingError
 from piezod.image import F64, assemble, geometry, raster_samples
 from piezod.image_linearity import find_flanks
 from piezod.model.params import ThesisParams
 from piezod.recording import Experiment, Recording, infer_scan
+
+if TYPE_CHECKING:
+    from piezod.calibrate_family import FamilyFit, ModelChoice
 
 _CONTINUITY_FLANKS = 4
 #: Faults that mean the stream broke during a scan (the scan is repeated).
@@ -495,6 +506,181 @@ def drop_outlier_flanks(
         offset_group=None if data.offset_group is None else data.offset_group[keep],
     )
     return out, int((~keep).sum())
+
+
+def session_through_polarity(data: DynamicCalibrationData, pct: float) -> DynamicCalibrationData:
+    """The session as a model inside a polarity part of ``pct`` sees it (drive voltages below 0 V
+    times ``1 + pct / 100``, :meth:`piezod.model.parts.Parts.voltage_in`)."""
+    from piezod.model.parts import Parts
+
+    if pct == 0.0:
+        return data
+    parts = Parts.from_effects({"polarity": {"negative_sensitivity_pct": float(pct)}})
+    return dataclasses.replace(data, hysteresis_voltage_v=parts.voltage_in(data.hysteresis_voltage_v))
+
+
+#: The polarity profile's first pass: a grid over the registry's realistic magnitudes and beyond
+#: (a fit's training RMS is not unimodal in the value far from it), then a bounded search between
+#: the best grid point's neighbours.
+POLARITY_GRID_PCT: tuple[float, ...] = (-20.0, -15.0, -10.0, -6.0, -3.0, 0.0, 3.0, 6.0, 10.0, 15.0, 20.0)
+#: Evaluations of the bounded search after the grid, and of the refinement on the new member.
+POLARITY_EVALUATIONS = 8
+#: The smallest polarity adopted (%): a kink of ``p`` % at the middle of a centred scan bends it by
+#: about ``p / 8`` % of its range, so below a quarter percent it is under the image metrics'
+#: resolution (0.01-0.03 %); on a stage without depoling the profile finds ~0.1 % that shaves a
+#: few percent off the held-out RMS of a law that misses something else.
+POLARITY_MIN_PCT = 0.25
+
+
+@dataclass(frozen=True)
+class PolaritySearch:
+    """The outcome of :func:`search_polarity`.
+
+    Attributes
+    ----------
+    pct
+        The adopted ``negative_sensitivity_pct`` (0: none adopted).
+    choice
+        The model choice to use: redone on the session through the part when adopted, else the
+        one passed in.
+    heldout_rms_um
+        Held-out flank RMS of the chosen member without the part, and with it (the final member
+        at the refined value; ``nan`` when not adopted).
+    notes
+        One line per step, for the report.
+    """
+
+    pct: float
+    choice: ModelChoice
+    heldout_rms_um: tuple[float, float]
+    notes: tuple[str, ...]
+
+
+def _profile(
+    rms: Callable[[float], float], lo: float, hi: float, grid: Sequence[float]
+) -> tuple[float, float]:
+    from scipy.optimize import minimize_scalar
+
+    pts = sorted({min(max(float(g), lo), hi) for g in grid})
+    vals = [rms(g) for g in pts]
+    k = int(np.argmin(vals))
+    a, b = pts[max(k - 1, 0)], pts[min(k + 1, len(pts) - 1)]
+    best_p, best_v = pts[k], vals[k]
+    if b > a:
+        res = minimize_scalar(rms, bounds=(a, b), method="bounded", options={"maxiter": POLARITY_EVALUATIONS})
+        if math.isfinite(float(res.fun)) and float(res.fun) < best_v:
+            best_p, best_v = float(res.x), float(res.fun)
+    return best_p, best_v
+
+
+def search_polarity(
+    data: DynamicCalibrationData,
+    choice: ModelChoice,
+    *,
+    alpha_per_v: float | None = None,
+    adoptable_drivers: Sequence[str] | None = None,
+    laws: Sequence[str] | None = None,
+    creep_drivers: Sequence[str] | None = None,
+) -> PolaritySearch:
+    """Search the flanks for a polarity part (a partially depoled ceramic) and redo the choice.
+
+    1. The chosen family member's training RMS on the session through a polarity part is
+       profiled (:data:`POLARITY_GRID_PCT`, then a bounded search; registry bounds).
+    2. The part is kept only when it is at least :data:`POLARITY_MIN_PCT` and the member, fitted
+       through it on the training scans, predicts the held-out scans better by more than
+       :data:`~piezod.calibrate_family.CHOICE_TIE_FRACTION`.
+    3. The model choice is redone on the session through the part (the best law can change: a
+       law that took part of the kink loses it), and the value refined on the new member (within
+       half of itself either way).
+
+    Parameters
+    ----------
+    data
+        The flank session (:func:`flank_session`).
+    choice
+        :func:`piezod.calibrate_family.choose_model` on it.
+    alpha_per_v, adoptable_drivers, laws, creep_drivers
+        As for the choice (None: :func:`~piezod.calibrate_family.choose_model`'s defaults).
+    """
+    from piezod import calibrate_family as cf
+    from piezod.model.family import CREEP_DRIVERS
+    from piezod.model.registry import spec
+
+    drivers = tuple(adoptable_drivers) if adoptable_drivers is not None else CREEP_DRIVERS
+    member = cf.parse_member(choice.chosen)
+    before = float(choice.heldout_rms_um.get(choice.chosen, math.nan))
+    if member is None:
+        return PolaritySearch(
+            0.0, choice, (before, math.nan), ("polarity: not searched (not a family member)",)
+        )
+    lo, hi = next(p.physical for p in spec("polarity").params if p.name == "negative_sensitivity_pct")
+    lo, hi = max(lo, min(POLARITY_GRID_PCT)), min(hi, max(POLARITY_GRID_PCT))
+    train = cf.holdout_mask(data.n_experiments)
+
+    def fitted(
+        member: tuple[str, str, int | None], pct: float, mask: NDArray[np.bool_] | None
+    ) -> FamilyFit | None:
+        law, driver, plays = member
+        try:
+            return cf.fit_family(
+                session_through_polarity(data, pct),
+                law,
+                train=mask,
+                plays=plays or cf.DEFAULT_PLAYS,
+                alpha_per_v=alpha_per_v,
+                creep_driver=driver,
+            )
+        except (CalibrationError, ModelError):
+            return None
+
+    def train_rms(member: tuple[str, str, int | None]) -> Callable[[float], float]:
+        def rms(pct: float) -> float:
+            f = fitted(member, float(pct), train)
+            return math.inf if f is None else float(f.rms_um)
+
+        return rms
+
+    p1, _ = _profile(train_rms(member), lo, hi, POLARITY_GRID_PCT)
+    f1 = fitted(member, p1, train)
+    held1 = math.inf if f1 is None else float(f1.heldout_rms_um)
+    notes = [
+        f"polarity profiled on {choice.chosen}: {p1:+.3g} %,"
+        f" held-out {1e3 * before:.2f} -> {1e3 * held1:.2f} nm"
+    ]
+    if abs(p1) < POLARITY_MIN_PCT:
+        notes.append(f"polarity: not adopted (below {POLARITY_MIN_PCT:g} %)")
+        return PolaritySearch(0.0, choice, (before, math.nan), tuple(notes))
+    if not held1 < before * (1.0 - cf.CHOICE_TIE_FRACTION):
+        notes.append("polarity: not adopted (held-out not better by the tie fraction)")
+        return PolaritySearch(0.0, choice, (before, math.nan), tuple(notes))
+    redone = cf.choose_model(
+        session_through_polarity(data, p1),
+        laws=tuple(laws) if laws is not None else cf.LAWS,
+        alpha_per_v=alpha_per_v,
+        creep_drivers=tuple(creep_drivers) if creep_drivers is not None else CREEP_DRIVERS,
+        adoptable_drivers=drivers,
+    )
+    member2 = cf.parse_member(redone.chosen)
+    if member2 is None:
+        raise CalibrationError(
+            f"the choice through the polarity part chose {redone.chosen!r}, not a family member"
+        )
+    half = max(0.5 * abs(p1), 1.0)
+    p2, _ = _profile(train_rms(member2), max(lo, p1 - half), min(hi, p1 + half), (p1 - half, p1, p1 + half))
+    f2 = fitted(member2, p2, train)
+    final = fitted(member2, p2, None)
+    if f2 is None or final is None:
+        raise CalibrationError(f"{redone.chosen} through a polarity part of {p2:+.3g} % failed to fit")
+    held2 = float(f2.heldout_rms_um)
+    notes.append(
+        f"choice redone through it: {redone.chosen}; polarity refined on it: {p2:+.4g} %, "
+        f"held-out {1e3 * held2:.2f} nm"
+    )
+    heldout = dict(redone.heldout_rms_um)
+    trains = dict(redone.train_rms_um)
+    heldout[redone.chosen], trains[redone.chosen] = held2, float(f2.rms_um)
+    out = dataclasses.replace(redone, fit=final, heldout_rms_um=heldout, train_rms_um=trains)
+    return PolaritySearch(float(p2), out, (before, held2), tuple(notes))
 
 
 def fit_dynamic_from_flanks(

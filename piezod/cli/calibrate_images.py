@@ -36,6 +36,7 @@ from piezod.imagecal import (
     flank_session,
     read_truth_log,
     run_image_scans,
+    search_polarity,
     verification_scans,
     with_truth,
 )
@@ -168,7 +169,14 @@ def _fit_here(
         alpha_per_v=dp.alpha_per_v,
         adoptable_drivers=REALTIME_CREEP_DRIVERS,
     )
+    polarity = search_polarity(
+        session, choice, alpha_per_v=dp.alpha_per_v, adoptable_drivers=REALTIME_CREEP_DRIVERS
+    )
+    choice = polarity.choice
     cal_ax = calibrated.axes["x"]
+    if polarity.pct != 0.0:
+        extensions = {**(cal_ax.extensions or {}), "polarity": {"negative_sensitivity_pct": polarity.pct}}
+        cal_ax = cal_ax.model_validate({**cal_ax.model_dump(), "extensions": extensions})
     if choice.fit is not None:
         section = cf.family_model_config(choice.fit.params)
         cal_ax = cal_ax.model_copy(update={"model": "family", "family": section})
@@ -190,6 +198,11 @@ def _fit_here(
             "heldout_rms_um": choice.heldout_rms_um,
             "train_rms_um": choice.train_rms_um,
             "table": choice.table(),
+        },
+        "polarity": {
+            "negative_sensitivity_pct": polarity.pct,
+            "heldout_rms_um": list(polarity.heldout_rms_um),
+            "notes": list(polarity.notes),
         },
     }
     return calibrated, summary
@@ -277,6 +290,8 @@ def run_from_images(args: argparse.Namespace) -> int:
             )
             print("model chosen by held-out images (flank positions):", file=say)
             print(summary["choice"]["table"], file=say)
+            for note in summary["polarity"]["notes"]:
+                print(note, file=say)
             dump_config(
                 calibrated,
                 out,
@@ -292,7 +307,11 @@ def run_from_images(args: argparse.Namespace) -> int:
                 scans = verification_scans(reduced=reduced)
                 chosen_model = calibrated.axes["x"].model
                 for model in dict.fromkeys(("thesis", chosen_model)):
-                    engine.set_axis_model("x", calibrated.axes["x"].model_copy(update={"model": model}))
+                    # the thesis row is the baseline as fitted: without the parts found for the chosen model
+                    update: dict[str, Any] = {"model": model}
+                    if model != chosen_model:
+                        update["extensions"] = None
+                    engine.set_axis_model("x", calibrated.axes["x"].model_copy(update=update))
                     _scan_with_retry(engine, scans[:1], recdir / f"warmup-{model}", say, correction=True)
                     vpaths: list[Path | None] = []
                     for sc in scans:
