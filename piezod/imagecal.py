@@ -523,7 +523,7 @@ def session_through_polarity(data: DynamicCalibrationData, pct: float) -> Dynami
 #: (a fit's training RMS is not unimodal in the value far from it), then a bounded search between
 #: the best grid point's neighbours.
 POLARITY_GRID_PCT: tuple[float, ...] = (-20.0, -15.0, -10.0, -6.0, -3.0, 0.0, 3.0, 6.0, 10.0, 15.0, 20.0)
-#: Evaluations of the bounded search after the grid, and of the refinement on the new member.
+#: Evaluations of the bounded search after the grid.
 POLARITY_EVALUATIONS = 8
 #: The smallest polarity adopted (%): a kink of ``p`` % at the middle of a centred scan bends it by
 #: about ``p / 8`` % of its range, so below a quarter percent it is under the image metrics'
@@ -590,8 +590,8 @@ def search_polarity(
        through it on the training scans, predicts the held-out scans better by more than
        :data:`~piezod.calibrate_family.CHOICE_TIE_FRACTION`.
     3. The model choice is redone on the session through the part (the best law can change: a
-       law that took part of the kink loses it), and the value refined on the new member (within
-       half of itself either way).
+       law that took part of the kink loses it), and the value refined on the new member
+       (:func:`piezod.extensions.refine_parts`, as the sensor path refines the audit's value).
 
     Parameters
     ----------
@@ -603,6 +603,7 @@ def search_polarity(
         As for the choice (None: :func:`~piezod.calibrate_family.choose_model`'s defaults).
     """
     from piezod import calibrate_family as cf
+    from piezod.extensions import refine_parts
     from piezod.model.family import CREEP_DRIVERS
     from piezod.model.registry import spec
 
@@ -618,9 +619,9 @@ def search_polarity(
     train = cf.holdout_mask(data.n_experiments)
 
     def fitted(
-        member: tuple[str, str, int | None], pct: float, mask: NDArray[np.bool_] | None
+        which: tuple[str, str, int | None], pct: float, mask: NDArray[np.bool_] | None
     ) -> FamilyFit | None:
-        law, driver, plays = member
+        law, driver, plays = which
         try:
             return cf.fit_family(
                 session_through_polarity(data, pct),
@@ -633,9 +634,9 @@ def search_polarity(
         except (CalibrationError, ModelError):
             return None
 
-    def train_rms(member: tuple[str, str, int | None]) -> Callable[[float], float]:
+    def train_rms(which: tuple[str, str, int | None]) -> Callable[[float], float]:
         def rms(pct: float) -> float:
-            f = fitted(member, float(pct), train)
+            f = fitted(which, float(pct), train)
             return math.inf if f is None else float(f.rms_um)
 
         return rms
@@ -665,8 +666,12 @@ def search_polarity(
         raise CalibrationError(
             f"the choice through the polarity part chose {redone.chosen!r}, not a family member"
         )
-    half = max(0.5 * abs(p1), 1.0)
-    p2, _ = _profile(train_rms(member2), max(lo, p1 - half), min(hi, p1 + half), (p1 - half, p1, p1 + half))
+    refined, _ = refine_parts(
+        {"polarity": {"negative_sensitivity_pct": p1}},
+        lambda trial: train_rms(member2)(trial["polarity"]["negative_sensitivity_pct"]),
+        model=redone.chosen,
+    )
+    p2 = float(refined["polarity"]["negative_sensitivity_pct"])
     f2 = fitted(member2, p2, train)
     final = fitted(member2, p2, None)
     if f2 is None or final is None:

@@ -126,6 +126,7 @@ def _fit_here(
     """Flanks, the fits, the choice of model by held-out images and the calibrated config (in the
     worker process: results are plain data)."""
     from piezod import calibrate_family as cf
+    from piezod.extensions import Adoption, extended_config
     from piezod.model.family import REALTIME_CREEP_DRIVERS, CreepSpectrum, FamilyParams
     from piezod.trajectory import SETTLE_LINES
 
@@ -174,9 +175,6 @@ def _fit_here(
     )
     choice = polarity.choice
     cal_ax = calibrated.axes["x"]
-    if polarity.pct != 0.0:
-        extensions = {**(cal_ax.extensions or {}), "polarity": {"negative_sensitivity_pct": polarity.pct}}
-        cal_ax = cal_ax.model_validate({**cal_ax.model_dump(), "extensions": extensions})
     if choice.fit is not None:
         section = cf.family_model_config(choice.fit.params)
         cal_ax = cal_ax.model_copy(update={"model": "family", "family": section})
@@ -185,6 +183,9 @@ def _fit_here(
     calibrated = calibrated.model_copy(
         update={"microscope": base.microscope, "axes": {**calibrated.axes, "x": cal_ax}}
     )
+    if polarity.pct != 0.0:
+        found = Adoption({"polarity": {"negative_sensitivity_pct": polarity.pct}})
+        calibrated = extended_config(calibrated, "x", found)
     summary = {
         "flanks": sum(len(e) for e in events),
         "flanks_dropped": dropped,
