@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from piezod.config import ScannerConfig, dump_config, load_config
-from piezod.errors import ConfigError, ModelError
+from piezod.errors import ConfigError, ModelError, RecordingError
 from piezod.model.parts import PART_EFFECTS, TIME_PARTS, Parts
 from piezod.model.sensor import SENSOR_EFFECTS, SensorPath
 from piezod.recording import Experiment
@@ -111,7 +111,49 @@ def trend_horizon_s(experiments: Sequence[Experiment]) -> float:
     return TREND_HORIZON_FACTOR * max(t1 - t0, 1.0)
 
 
-def adopt_findings(findings: Sequence[Mapping[str, Any]], *, horizon_s: float = math.inf) -> Adoption:
+def session_origin_unix_s(path: str | Path) -> float:
+    """The wall-clock instant (Unix time, s) at which a recording's clock read 0: its header's
+    ``started_utc`` minus its first sample's ``t`` (the board's clock counts from the start of the
+    session). ``nan`` when the header has no ``started_utc`` (recordings of other tools) or no
+    sample follows it.
+
+    Raises
+    ------
+    RecordingError
+        ``started_utc`` is not ``YYYY-MM-DDTHH:MM:SSZ`` (names the file).
+    """
+    import calendar
+    import time
+
+    started: str | None = None
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for line in f:
+            if line.startswith("#"):
+                key, _, value = line[1:].partition(":")
+                if key.strip() == "started_utc":
+                    started = value.strip()
+                continue
+            if line.startswith("t,") or not line.strip():
+                continue
+            first = line.split(",", 1)[0]
+            break
+        else:
+            return math.nan
+    if started is None:
+        return math.nan
+    try:
+        wall = float(calendar.timegm(time.strptime(started, "%Y-%m-%dT%H:%M:%SZ")))
+        t0 = float(first)
+    except ValueError as exc:
+        raise RecordingError(
+            f"{path}: started_utc {started!r} or first t {first!r} unreadable: {exc}"
+        ) from exc
+    return wall - t0 if math.isfinite(t0) else math.nan
+
+
+def adopt_findings(
+    findings: Sequence[Mapping[str, Any]], *, horizon_s: float = math.inf, since_unix_s: float = math.nan
+) -> Adoption:
     """Map the audit's findings (``result_json(...)["findings"]``) to runtime parts.
 
     Parameters
@@ -120,6 +162,10 @@ def adopt_findings(findings: Sequence[Mapping[str, Any]], *, horizon_s: float = 
         Each with ``effect`` and ``params`` (registry names, public units).
     horizon_s
         The time-dependent parts' horizon (:func:`trend_horizon_s`; ``inf``: none).
+    since_unix_s
+        When the clock of the audited recordings read 0 (:func:`session_origin_unix_s`): the
+        time parts go on from there (:meth:`~piezod.model.parts.Parts.anchored`); ``nan``: from
+        the adoption.
     """
     effects: dict[str, dict[str, float]] = {}
     skipped: list[str] = []
@@ -148,6 +194,8 @@ def adopt_findings(findings: Sequence[Mapping[str, Any]], *, horizon_s: float = 
         else:
             if effect in TIME_PARTS and math.isfinite(horizon_s):
                 values["horizon_s"] = float(horizon_s)
+            if effect in TIME_PARTS and math.isfinite(since_unix_s):
+                values["since_unix_s"] = float(since_unix_s)
             try:
                 Parts.from_effects({**effects, effect: values})
             except ModelError as exc:
@@ -342,9 +390,10 @@ def refine_sensor_lag(
     c = float(best.x)
     out = scaled(c)
     total = {e: sum(base[e].values()) for e in sensor}
-    note = "; ".join(
-        f"{e}: total {total[e] * 1e3:.3f} ms -> {total[e] * c * 1e3:.3f} ms" for e in sensor
-    ) + f" (training RMS {start * 1e3:.2f} -> {float(best.fun) * 1e3:.2f} nm)"
+    note = (
+        "; ".join(f"{e}: total {total[e] * 1e3:.3f} ms -> {total[e] * c * 1e3:.3f} ms" for e in sensor)
+        + f" (training RMS {start * 1e3:.2f} -> {float(best.fun) * 1e3:.2f} nm)"
+    )
     return out, note
 
 
@@ -374,6 +423,7 @@ def write_extended_config(
     source: str,
     *,
     horizon_s: float = math.inf,
+    since_unix_s: float = math.nan,
 ) -> Adoption:
     """Write ``base`` with the findings' runtime parts on ``axis`` to ``out`` (a comment says which).
 
@@ -391,9 +441,11 @@ def write_extended_config(
         What the findings come from (named in the comment).
     horizon_s
         The time-dependent parts' horizon (:func:`trend_horizon_s` of the audited recordings).
+    since_unix_s
+        When the audited recordings' clock read 0 (:func:`session_origin_unix_s`).
     """
     config = load_config(base)
-    adoption = adopt_findings(findings, horizon_s=horizon_s)
+    adoption = adopt_findings(findings, horizon_s=horizon_s, since_unix_s=since_unix_s)
     extended = extended_config(config, axis, adoption)
     header = "\n".join(
         [
@@ -423,6 +475,7 @@ __all__ = [
     "refine_findings",
     "refine_parts",
     "refine_sensor_lag",
+    "session_origin_unix_s",
     "trend_horizon_s",
     "write_extended_config",
 ]

@@ -702,6 +702,7 @@ def audit_and_extend(
     rest_voltage_v: float,
     *,
     folds: int = 4,
+    since_unix_s: float = math.nan,
 ) -> ThesisFit:
     """Audit the frame, adopt the material findings that have a runtime part if they predict better.
 
@@ -725,6 +726,9 @@ def audit_and_extend(
         As for the choice.
     folds
         The audit's held-out folds.
+    since_unix_s
+        When the frame's clock read 0 (:func:`piezod.extensions.session_origin_unix_s`): adopted
+        time parts go on from there.
 
     Returns
     -------
@@ -745,7 +749,9 @@ def audit_and_extend(
     from piezod.model.sensor import SENSOR_EFFECTS
 
     doc = audit_json(run_audit(experiments, [], options=adoption_audit_options(folds)))
-    adoption = adopt_findings(doc["findings"], horizon_s=trend_horizon_s(experiments))
+    adoption = adopt_findings(
+        doc["findings"], horizon_s=trend_horizon_s(experiments), since_unix_s=since_unix_s
+    )
     report: dict[str, Any] = {
         "findings": [f["effect"] for f in doc["findings"]],
         "cause": doc["cause"],
@@ -848,8 +854,12 @@ def _audit_here(
     ramp_v_per_s: float,
     rest_voltage_v: float,
 ) -> ThesisFit:
+    from piezod.extensions import session_origin_unix_s
+
     exps = read_experiments([frame_path], axis=axis)
-    return audit_and_extend(exps, axis, chosen, base, ramp_v_per_s, rest_voltage_v)
+    return audit_and_extend(
+        exps, axis, chosen, base, ramp_v_per_s, rest_voltage_v, since_unix_s=session_origin_unix_s(frame_path)
+    )
 
 
 def _linearity_here(path: Path, axis: AxisName, sensor: SensorPath | None = None) -> tuple[float, float]:

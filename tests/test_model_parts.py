@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -119,7 +120,11 @@ def test_parts_refuse_what_is_not_physical_or_not_a_part() -> None:
 def test_the_axis_config_wraps_its_model_in_the_parts() -> None:
     family = family_model_config(FamilyParams(PI, SPEC, creep_driver="voltage"))
     base = {
-        "voltage_min_v": -230.0, "voltage_max_v": 230.0, "thesis": THESIS, "model": "family", "family": family
+        "voltage_min_v": -230.0,
+        "voltage_max_v": 230.0,
+        "thesis": THESIS,
+        "model": "family",
+        "family": family,
     }
     ax = AxisConfig(**base, extensions={"stiffness": {"sensitivity_pct_per_um": -0.08}})
     model = axis_model(ax)
@@ -194,6 +199,53 @@ def test_time_parts_hold_after_their_horizon_and_still_invert_exactly() -> None:
         Parts.from_effects({"stiffness": {"sensitivity_pct_per_um": 0.1, "horizon_s": 10.0}})
     with pytest.raises(ModelError, match="horizon_s"):
         Parts.from_effects({"drift": {"rate_nm_per_s": 1.0, "horizon_s": 0.0}})
+
+
+def test_time_parts_go_on_from_the_session_they_were_measured_in(tmp_path: Path) -> None:
+    """The calibration's sensitivity is the one at its session's start: a thermal part adopted ten
+    minutes later starts ten minutes into its trend (and its horizon counts from the session), on
+    the wall clock the daemon reads when it builds the model; without ``since_unix_s`` the clock
+    starts at the adoption as before."""
+    import time as _time
+
+    from piezod.extensions import adopt_findings, session_origin_unix_s
+
+    since = 1_800_000_000.0
+    parts = Parts.from_effects(
+        {"thermal": {"rate_pct_per_hour": 1.0, "horizon_s": 1800.0, "since_unix_s": since}}
+    )
+    assert Parts.from_effects(parts.effects()) == parts
+    assert parts.effects()["thermal"]["since_unix_s"] == since
+    now = parts.anchored(since + 600.0)
+    assert now.thermal_t0_s == 600.0 and parts.thermal_t0_s == 0.0
+    x = now.position_out(np.full(3, 10.0), np.array([0.0, 600.0, 3600.0]))
+    np.testing.assert_allclose(x, 10.0 * (1.0 + np.array([600.0, 1200.0, 1800.0]) / 360000.0), rtol=1e-12)
+    np.testing.assert_allclose(now.position_in(x, np.array([0.0, 600.0, 3600.0])), 10.0, rtol=1e-12)
+    assert Parts(rate_pct_per_hour=1.0).anchored(since + 600.0) == Parts(rate_pct_per_hour=1.0)
+    with pytest.raises(ModelError, match="since_unix_s"):
+        Parts.from_effects({"drift": {"rate_nm_per_s": 1.0, "since_unix_s": -5.0}})
+    # the daemon anchors at its wall clock when it builds the axis model
+    ax = AxisConfig(
+        voltage_min_v=-200.0,
+        voltage_max_v=200.0,
+        model="thesis",
+        thesis=THESIS,
+        extensions={"thermal": {"rate_pct_per_hour": 1.0, "since_unix_s": _time.time() - 600.0}},
+    )
+    model = axis_model(ax)
+    assert isinstance(model, PartsAxisModel) and model.parts.thermal_t0_s == pytest.approx(600.0, abs=60.0)
+    # a recording's clock origin: its header's started_utc minus its first t
+    rec = tmp_path / "frame.csv"
+    rec.write_text(
+        "# scanner: s\n# started_utc: 2027-01-15T08:00:10Z\nt,voltage,position\n12.5,0,0\n13,0,0\n"
+    )
+    assert session_origin_unix_s(rec) == 1_800_000_010.0 - 12.5
+    (tmp_path / "old.csv").write_text("t,voltage,position\n0,0,0\n")
+    assert math.isnan(session_origin_unix_s(tmp_path / "old.csv"))
+    found = adopt_findings(
+        [{"effect": "drift", "params": {"rate_nm_per_s": 0.5}}], horizon_s=900.0, since_unix_s=since
+    )
+    assert found.effects["drift"] == {"rate_nm_per_s": 0.5, "horizon_s": 900.0, "since_unix_s": since}
 
 
 def test_adoption_gives_the_time_parts_a_horizon_of_three_sessions() -> None:

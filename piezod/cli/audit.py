@@ -134,11 +134,17 @@ def run(args: argparse.Namespace) -> int:
     doc = result_json(result, inputs=list(args.recordings), validate=list(args.validate))
     write_json(args.json, doc)
     if args.out:
-        from piezod.extensions import trend_horizon_s, write_extended_config
+        from piezod.extensions import session_origin_unix_s, trend_horizon_s, write_extended_config
 
         source = "piezod audit " + " ".join(Path(r).name for r in args.recordings)
         adoption = write_extended_config(
-            args.config, axis or "x", doc["findings"], args.out, source, horizon_s=trend_horizon_s(exps)
+            args.config,
+            axis or "x",
+            doc["findings"],
+            args.out,
+            source,
+            horizon_s=trend_horizon_s(exps),
+            since_unix_s=session_origin_unix_s(args.recordings[0]),
         )
         print(f"extended scanner YAML: {args.out}\n{adoption.summary()}", file=out)
     return 0

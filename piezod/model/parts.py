@@ -15,7 +15,11 @@ stage (:mod:`hil_sim.stage`)::
 The time-dependent parts (thermal, drift) follow ``t`` up to their ``horizon_s`` and hold there: a
 linear trend measured over a calibration session of minutes is not extrapolated over a week of
 scanning (``piezod calibrate`` adopts them with :data:`~piezod.extensions.TREND_HORIZON_FACTOR`
-times the session's length; without a horizon they follow ``t`` for ever).
+times the session's length; without a horizon they follow ``t`` for ever). Their clock reads
+``t`` plus the time since the session the trend was measured in began (``since_unix_s``: the
+calibration's sensitivity is the one at that session's start, so a part adopted ten minutes later
+starts ten minutes into its trend; the daemon sets it when it builds the model,
+:meth:`Parts.anchored`); without ``since_unix_s`` the clock starts at the rest or adoption.
 
 Every part is a monotone static map or a known function of time, so the inverse runs the chain
 backwards exactly, ``O(1)`` per sample and vectorised: subtract the drift, ``x_sat atanh``, the
@@ -32,6 +36,7 @@ spectrum).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -77,8 +82,15 @@ class Parts:
     rate_nm_per_s
         Drift velocity (nm/s).
     thermal_horizon_s, drift_horizon_s
-        Time (s, since the rest or adoption) after which the thermal / drift part holds its value
-        instead of following ``t``; ``inf`` for never.
+        Time (s, on the part's clock) after which the thermal / drift part holds its value instead
+        of following ``t``; ``inf`` for never.
+    thermal_since_unix_s, drift_since_unix_s
+        The wall-clock instant (Unix time, s) at which the part's clock reads 0: the start of the
+        session the trend was measured in (``nan``: the clock starts at the rest or adoption).
+        Pure data here: :meth:`anchored`, called where the clock is read, turns it into
+        ``*_t0_s``.
+    thermal_t0_s, drift_t0_s
+        The part's clock at the rest or adoption (s, >= 0).
     """
 
     negative_sensitivity_pct: float = 0.0
@@ -88,12 +100,22 @@ class Parts:
     rate_nm_per_s: float = 0.0
     thermal_horizon_s: float = math.inf
     drift_horizon_s: float = math.inf
+    thermal_since_unix_s: float = math.nan
+    drift_since_unix_s: float = math.nan
+    thermal_t0_s: float = 0.0
+    drift_t0_s: float = 0.0
 
     def __post_init__(self) -> None:
         for effect in TIME_PARTS:
             h = getattr(self, f"{effect}_horizon_s")
             if not h > 0.0:
                 raise ModelError(f"{effect}.horizon_s = {h!r} must be > 0 (s)")
+            since = getattr(self, f"{effect}_since_unix_s")
+            if not (math.isnan(since) or (math.isfinite(since) and since >= 0.0)):
+                raise ModelError(f"{effect}.since_unix_s = {since!r} must be a Unix time (s)")
+            t0 = getattr(self, f"{effect}_t0_s")
+            if not (math.isfinite(t0) and t0 >= 0.0):
+                raise ModelError(f"{effect} clock at adoption {t0!r} must be finite and >= 0 (s)")
         for effect, names in PART_EFFECTS.items():
             for name in names:
                 value = getattr(self, name)
@@ -111,12 +133,10 @@ class Parts:
         fields: dict[str, float] = {}
         for effect, params in effects.items():
             if effect not in PART_EFFECTS:
-                raise ModelError(
-                    f"effect {effect!r} has no runtime part (parts: {', '.join(PART_EFFECTS)})"
-                )
+                raise ModelError(f"effect {effect!r} has no runtime part (parts: {', '.join(PART_EFFECTS)})")
             for name, value in params.items():
-                if name == "horizon_s" and effect in TIME_PARTS:
-                    fields[f"{effect}_horizon_s"] = float(value)
+                if name in ("horizon_s", "since_unix_s") and effect in TIME_PARTS:
+                    fields[f"{effect}_{name}"] = float(value)
                     continue
                 if name not in PART_EFFECTS[effect]:
                     raise ModelError(f"effect {effect!r} has no runtime parameter {name!r}")
@@ -132,10 +152,22 @@ class Parts:
             if any(getattr(self, n) != off.get(n, 0.0) for n in names)
         }
         for effect in TIME_PARTS:
-            h = float(getattr(self, f"{effect}_horizon_s"))
-            if effect in out and math.isfinite(h):
-                out[effect]["horizon_s"] = h
+            for key in ("horizon_s", "since_unix_s"):
+                value = float(getattr(self, f"{effect}_{key}"))
+                if effect in out and math.isfinite(value):
+                    out[effect][key] = value
         return out
+
+    def anchored(self, now_unix_s: float) -> Parts:
+        """The parts with each time part's clock at ``now_unix_s`` set from its ``since_unix_s``
+        (a trend measured from the start of a calibration session goes on from where it is now,
+        not from 0 at the adoption; parts without ``since_unix_s`` are unchanged)."""
+        fields: dict[str, float] = {}
+        for effect in TIME_PARTS:
+            since = float(getattr(self, f"{effect}_since_unix_s"))
+            if math.isfinite(since):
+                fields[f"{effect}_t0_s"] = max(float(now_unix_s) - since, 0.0)
+        return dataclasses.replace(self, **fields) if fields else self
 
     @property
     def identity(self) -> bool:
@@ -173,11 +205,12 @@ class Parts:
         return x
 
     def _thermal_scale(self, t: F64) -> F64:
-        out: F64 = 1.0 + self.rate_pct_per_hour * np.minimum(t, self.thermal_horizon_s) / 360000.0
+        clock = np.minimum(t + self.thermal_t0_s, self.thermal_horizon_s)
+        out: F64 = 1.0 + self.rate_pct_per_hour * clock / 360000.0
         return out
 
     def _drift_um(self, t: F64) -> F64:
-        out: F64 = self.rate_nm_per_s * 1e-3 * np.minimum(t, self.drift_horizon_s)
+        out: F64 = self.rate_nm_per_s * 1e-3 * np.minimum(t + self.drift_t0_s, self.drift_horizon_s)
         return out
 
     def position_in(self, x: F64, t: F64) -> F64:

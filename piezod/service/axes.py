@@ -18,6 +18,7 @@ state (:meth:`~piezod.model.axis_model.AxisModel.loop_voltages`).
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
@@ -99,9 +100,11 @@ def axis_model(config: AxisConfig) -> AxisModel:
     The thesis model starts with the creep term of a slow scan over the whole voltage range (moves
     and holds then use the stage's quasi-static sensitivity, not the bare ``b``) until a scan sets
     its own (:meth:`AxisModel.with_plan`). The axis's ``extensions:`` (runtime parts, the audit's
-    findings) wrap the model (:mod:`piezod.model.parts`).
+    findings) wrap the model (:mod:`piezod.model.parts`); a time part measured in an earlier
+    session goes on from where its trend is now (:meth:`~piezod.model.parts.Parts.anchored` at
+    the wall clock).
     """
-    return with_parts(_bare_model(config), config.parts())
+    return with_parts(_bare_model(config), config.parts().anchored(time.time()))
 
 
 def _bare_model(config: AxisConfig) -> AxisModel:
@@ -338,4 +341,3 @@ def plan_axes(drivers: Mapping[str, AxisDriver], trajectory: Trajectory) -> dict
             )
         plans[name] = plan
     return plans
-

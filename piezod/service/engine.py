@@ -568,7 +568,12 @@ class Engine:
                 raise EngineStateError(f"cannot start a program while {self._state}")
             self._next_recording += 1
             ident = self._next_recording
-            meta = {"scanner": self.config.name, "sample_rate_hz": self.rate_hz, **metadata}
+            meta = {
+                "scanner": self.config.name,
+                "sample_rate_hz": self.rate_hz,
+                "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                **metadata,
+            }
             self._recorder.open(ident, path, meta, (axis,), targets=False)  # exclusive
             self._recording_id = ident
             self._recording_name = path.name
