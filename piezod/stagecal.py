@@ -484,6 +484,10 @@ def verify(
     """
     rows: list[dict[str, Any]] = []
     warm_faults: list[str] = []
+    if points and engine.status().state in ("fault", "disconnected"):
+        # an underrun while the stage held (the fits, the check of the points) on a loaded machine
+        # must not end the run: reported with the first point, cleared before the warm-up
+        warm_faults = _fault_texts(engine.acknowledge_fault())
     if points:
         first = points[0]
         warm = ScanRequest(
@@ -499,7 +503,7 @@ def verify(
         engine.start_scan(warm)
         if engine.wait_idle((4 + 3) / first.frequency_hz + 10.0) != "idle":
             # the warm-up is not measured, but its fault is reported with the first point
-            warm_faults = _fault_texts(engine.acknowledge_fault(since_s=mark))
+            warm_faults += _fault_texts(engine.acknowledge_fault(since_s=mark))
     for i, pt in enumerate(points):
         name = f"verify-{model}-{i:02d}"
         n_lines = 1 if pt.frequency_hz < 0.1 else lines  # a 0.02 Hz line takes 50 s

@@ -326,3 +326,50 @@ def test_a_sensor_lag_the_held_out_data_cannot_place_is_put_at_the_sensor(
     assert bool(out.report["adopted"]) is adopted
     extensions = out.config.axes["x"].extensions or {}
     assert (next(iter(effects)) in extensions) is adopted
+
+
+def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fatal(tmp_path: Path) -> None:
+    """An underrun while the stage held (the fits, the check of the points: a loaded machine) used
+    to end `piezod calibrate` with 'cannot start a scan while fault' at the verification's warm-up;
+    it is acknowledged, reported with the first point, and the verification goes on. The engine
+    here is a stand-in for its scan and fault interface (the daemon's fault handling itself is
+    tested against the real daemon in tests/test_fault_*.py)."""
+    from types import SimpleNamespace
+
+    from piezod.errors import EngineStateError
+    from piezod.stagecal import VerifyPoint, verify
+
+    class Held:
+        def __init__(self) -> None:
+            self.state, self.uptime_s, self.scans = "fault", 100.0, 0
+            self.faults = SimpleNamespace(recent=lambda n: [])
+
+        def status(self) -> SimpleNamespace:
+            return SimpleNamespace(state=self.state)
+
+        def acknowledge_fault(self, *a: object, **k: object) -> list[SimpleNamespace]:
+            self.state = "idle"
+            return [SimpleNamespace(source="board", code="UNDERRUN", message="run ended by underrun")]
+
+        def check_scan(self, req: object) -> None:
+            pass
+
+        def start_scan(self, req: object, path: Path | None = None) -> None:
+            if self.state != "idle":
+                raise EngineStateError(f"cannot start a scan while {self.state}")
+            self.scans += 1
+
+        def wait_idle(self, timeout_s: float) -> str:
+            return "idle"
+
+        def wait_recorded(self) -> None:
+            pass
+
+    worker = SimpleNamespace(linearity=lambda path, axis, sensor: (0.01, -0.02))
+    engine = Held()
+    pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside"), VerifyPoint(5.0, 2.0, 0.0, True, "inside")]
+    rows = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
+    assert engine.scans == 3  # the warm-up and both points
+    assert rows[0]["faults_before"] == ["board/UNDERRUN: run ended by underrun"]
+    assert "faults_before" not in rows[1]
+    assert [r["length_error_pct"] for r in rows] == [-0.02, -0.02]
