@@ -28,7 +28,7 @@ from piezod.errors import CalibrationError, ModelError, PiezodError
 from piezod.linearity import linearity
 from piezod.model.sensor import SensorPath
 from piezod.model.thesis import scan_range_um
-from piezod.recording import Experiment, Recording, read_experiments
+from piezod.recording import Experiment, Recording, read_experiments, read_recording
 from piezod.service.engine import Engine, Segment
 from piezod.service.schemas import ScanRequest
 
@@ -876,6 +876,10 @@ def _linearity_here(path: Path, axis: AxisName, sensor: SensorPath | None = None
     return float(e.nonlinearity_pct), float(e.length_error_pct)
 
 
+def _frame_end_here(path: Path, axis: AxisName) -> tuple[float, float]:
+    return frame_end(read_recording(path), axis)
+
+
 def _check_points_here(
     config: ScannerConfig, points: list[VerifyPoint], axis: AxisName, start: tuple[float, float] | None
 ) -> list[VerifyPoint]:
@@ -975,6 +979,12 @@ class AnalysisWorker:
         """:func:`check_points` in the worker process (a whole-scan rendering must not hold the
         daemon's GIL), from ``start`` (voltage, measured position: :func:`frame_end`) when given."""
         return self._pool.submit(_check_points_here, config, list(points), axis, start).result()
+
+    def frame_end(self, frame_path: Path, axis: AxisName = "x") -> tuple[float, float]:
+        """:func:`frame_end` of the frame recording, read in the worker process: parsing a frame of
+        a few hundred MB holds the interpreter for seconds, which starved the engine's streaming
+        thread past its lead (an underrun at the built-in stage's 1 s lead, twice)."""
+        return self._pool.submit(_frame_end_here, frame_path, axis).result()
 
     def synth_frame(self, path: Path) -> None:
         """Write a synthetic 12-experiment calibration session (for benchmarks) to ``path``."""

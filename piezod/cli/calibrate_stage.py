@@ -12,13 +12,11 @@ from piezod.cli._common import board_url, fresh_dir, human_stream, scanner_confi
 from piezod.config import AxisName, dump_config, load_config
 from piezod.errors import CalibrationError
 from piezod.progress import progress_bar
-from piezod.recording import read_recording
 from piezod.service.engine import Engine
 from piezod.stagecal import (
     AnalysisWorker,
     default_frame,
     format_table,
-    frame_end,
     frame_summary,
     plot_verification,
     run_frame,
@@ -139,7 +137,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
             if not args.no_verify:
                 # the run starts where the frame left the stage, in the sensor's coordinates (if the
                 # stage still holds the frame's last voltage: a position read at another is not the state)
-                v_end, x_end = frame_end(read_recording(frame_path), axis)
+                v_end, x_end = worker.frame_end(frame_path, axis)
                 held = engine.status().voltage_v.get(axis)
                 span_v = base.axes[axis].voltage_max_v - base.axes[axis].voltage_min_v
                 holds = held is not None and abs(held - v_end) <= 1e-3 * span_v
