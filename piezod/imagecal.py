@@ -67,6 +67,7 @@ from piezod.recording import Experiment, Recording, infer_scan
 
 if TYPE_CHECKING:
     from piezod.calibrate_family import FamilyFit, ModelChoice
+    from piezod.config import ScannerConfig
 
 _CONTINUITY_FLANKS = 4
 #: Faults that mean the stream broke during a scan (the scan is repeated).
@@ -506,6 +507,30 @@ def drop_outlier_flanks(
         offset_group=None if data.offset_group is None else data.offset_group[keep],
     )
     return out, int((~keep).sum())
+
+
+def frame_flank_session(
+    paths: Sequence[Path], pitch_um: float, base: ScannerConfig
+) -> tuple[list[Recording], list[FlankEvents], ThesisFromFlanks, DynamicCalibrationData]:
+    """A recorded image frame as ``piezod calibrate --from-images`` fits it: the recordings, their
+    flanks (labelled by file stem), the thesis fit from the flanks (its line widths) and the flank
+    session of the daemon's rasters (:func:`flank_session` with the settling lines)."""
+    from piezod.recording import read_recording
+    from piezod.trajectory import SETTLE_LINES
+
+    recs = [read_recording(p) for p in paths]
+    events = [flank_events(r, pitch_um, label=Path(p).stem) for r, p in zip(recs, paths, strict=True)]
+    ax = base.axes["x"]
+    th = fit_thesis_from_flanks(recs, events, start=ax.thesis.params())
+    session = flank_session(
+        recs,
+        events,
+        th.line_width_um,
+        slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
+        rest_voltage_v=ax.safe_voltage_v,
+        settle_lines=SETTLE_LINES,
+    )
+    return recs, events, th, session
 
 
 def session_through_polarity(data: DynamicCalibrationData, pct: float) -> DynamicCalibrationData:

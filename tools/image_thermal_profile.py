@@ -6,7 +6,7 @@ Usage::
         [--plays 64] [--rates 0 0.5 1 1.5 2]
 
 Builds the flank session of a recorded image frame as ``piezod calibrate --from-images`` does
-(:func:`piezod.imagecal.flank_session`), divides the flank positions by ``1 + r t / 360000`` (the
+(:func:`piezod.imagecal.frame_flank_session`), divides the flank positions by ``1 + r t / 360000`` (the
 runtime thermal part's scale, ``t`` from the frame's first compared sample) and fits one family
 member on the training scans for each rate ``r`` (%/h): training and held-out flank RMS per rate.
 A trend the frame pins lowers the held-out RMS by more than the model choice's tie fraction.
@@ -22,9 +22,7 @@ import numpy as np
 
 from piezod import calibrate_family as cf
 from piezod.config import load_config
-from piezod.imagecal import fit_thesis_from_flanks, flank_events, flank_session
-from piezod.recording import read_recording
-from piezod.trajectory import SETTLE_LINES
+from piezod.imagecal import frame_flank_session
 
 
 def main() -> int:
@@ -39,18 +37,7 @@ def main() -> int:
     args = ap.parse_args()
     base = load_config(args.config)
     paths = sorted(Path(args.frame_dir).glob("*.csv"))
-    recs = [read_recording(p) for p in paths]
-    events = [flank_events(r, args.pitch_um, label=p.stem) for r, p in zip(recs, paths, strict=True)]
-    ax = base.axes["x"]
-    th = fit_thesis_from_flanks(recs, events, start=ax.thesis.params())
-    session = flank_session(
-        recs,
-        events,
-        th.line_width_um,
-        slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
-        rest_voltage_v=ax.safe_voltage_v,
-        settle_lines=SETTLE_LINES,
-    )
+    _, _, _, session = frame_flank_session(paths, args.pitch_um, base)
     t_grid = np.zeros(session.hysteresis_voltage_v.size)
     for dt, a, b in session.pieces:
         t_grid[a:b] = (t_grid[a - 1] if a else 0.0) + dt * np.arange(1, b - a + 1)

@@ -31,9 +31,7 @@ from piezod.image_linearity import find_flanks, flank_sampled_linearity, image_l
 from piezod.imagecal import (
     default_image_frame,
     drop_outlier_flanks,
-    fit_thesis_from_flanks,
-    flank_events,
-    flank_session,
+    frame_flank_session,
     read_truth_log,
     run_image_scans,
     search_polarity,
@@ -128,20 +126,8 @@ def _fit_here(
     from piezod import calibrate_family as cf
     from piezod.extensions import Adoption, extended_config
     from piezod.model.family import REALTIME_CREEP_DRIVERS, CreepSpectrum, FamilyParams
-    from piezod.trajectory import SETTLE_LINES
 
-    recs = [read_recording(p) for p in paths]
-    events = [flank_events(r, pitch_um, label=p.stem) for r, p in zip(recs, paths, strict=True)]
-    ax = base.axes["x"]
-    th = fit_thesis_from_flanks(recs, events, start=ax.thesis.params())
-    session = flank_session(
-        recs,
-        events,
-        th.line_width_um,
-        slew_rate_v_per_s=base.service.ramp_rate_v_per_s,
-        rest_voltage_v=ax.safe_voltage_v,
-        settle_lines=SETTLE_LINES,
-    )
+    _, events, th, session = frame_flank_session(paths, pitch_um, base)
     dyn = fit_dynamic(session)
     # flanks the first fit misses by far (dust, a misread edge) are dropped, then everything refitted
     dp = dyn.params
