@@ -60,7 +60,7 @@ from piezod.calibrate_dynamic import (
     prepare_dynamic,
 )
 from piezod.errors import CalibrationError, ModelError, RecordingError
-from piezod.image import F64, assemble, geometry, raster_samples
+from piezod.image import F64, Geometry, assemble, geometry, raster_samples
 from piezod.image_linearity import find_flanks
 from piezod.model.params import ThesisParams
 from piezod.recording import Experiment, Recording, infer_scan
@@ -880,9 +880,255 @@ def run_image_scans(
     return paths
 
 
+
+#: A repeated image's sensitivity change is adopted as a warming trend when it is at least this
+#: large (%) - below it a trend over the minutes of a calibration is not worth extrapolating -
+#: and :data:`RECHECK_SIGMAS` times its standard uncertainty.
+RECHECK_MIN_PCT = 0.03
+#: See :data:`RECHECK_MIN_PCT`.
+RECHECK_SIGMAS = 3.0
+
+
+def recheck_scan(frame: Sequence[ImageScan]) -> ImageScan:
+    """The frame scan the sensitivity re-check repeats: the largest range without an offset (the
+    most flanks, so the most precise length), at its median line rate."""
+    centred = [s for s in frame if s.offset_um == 0.0] or list(frame)
+    if not centred:
+        raise CalibrationError("the image frame has no scans to re-check")
+    top = max(s.range_um for s in centred)
+    widest = sorted((s for s in centred if s.range_um == top), key=lambda s: s.line_rate_hz)
+    return widest[(len(widest) - 1) // 2]
+
+
+def recording_span_unix_s(path: str | Path) -> tuple[float, float]:
+    """Wall-clock instants (Unix time, s) of a recording's first and last sample: its header's
+    ``started_utc`` (:func:`piezod.extensions.session_origin_unix_s`) and the first column of its
+    last row, read from the file's end (a frame recording may be hundreds of MB).
+
+    Raises
+    ------
+    RecordingError
+        No ``started_utc`` in the header, or an unreadable last row (names the file).
+    """
+    from piezod.extensions import session_origin_unix_s
+
+    origin = session_origin_unix_s(path)
+    if not math.isfinite(origin):
+        raise RecordingError(f"{path}: no started_utc in the header: the time of the scan is unknown")
+    first = last = math.nan
+    with open(path, "rb") as f:
+        for raw in f:
+            if raw.startswith(b"#") or raw.startswith(b"t,") or not raw.strip():
+                continue
+            first = float(raw.split(b",", 1)[0])
+            break
+        f.seek(0, 2)
+        f.seek(max(0, f.tell() - 65536))
+        rows = [r for r in f.read().splitlines() if r.strip() and not r.startswith(b"#")]
+    try:
+        last = float(rows[-1].split(b",", 1)[0])
+    except (IndexError, ValueError) as exc:
+        raise RecordingError(f"{path}: the last row has no time: {exc}") from None
+    return origin + first, origin + last
+
+
+#: Degree of the Chebyshev series of the uncorrected branch the two images of a re-check share.
+RECHECK_DEGREE = 9
+
+
+def _height_pair(path: str | Path) -> tuple[F64, F64, Geometry]:
+    from piezod.image import images
+    from piezod.recording import read_recording
+
+    rec = read_recording(path)
+    try:
+        pair = next(p for p in images(rec) if p.grid == "commanded" and p.channel == "z_voltage")
+    except StopIteration:
+        raise RecordingError(f"{path}: no height image on the commanded grid") from None
+    return pair.trace, pair.retrace, pair.geometry
+
+
+def image_scale_change(first: str | Path, repeat: str | Path, pitch_um: float) -> tuple[float, float]:
+    """How much more the stage moves per commanded um in ``repeat`` than in ``first``, two
+    recorded images of the reference with the same drive: ``s - 1`` and its standard uncertainty.
+
+    The flank at commanded ``c`` of line ``l`` sits at ``k P = s_i F(c) + o_l`` (image ``i``;
+    ``s_1 = 1``): the uncorrected branch ``F`` (a Chebyshev series per scan direction) is the same
+    function of the commanded position in both images because the drive is; the offsets ``o_l``
+    per line and flank family take the sample's position, the line width and the slow creep of
+    each line. Dividing the repeat's equations by ``s`` makes the problem linear in ``1 / s``.
+    Unlike the images' length errors (4.15), this does not depend on which flanks each image
+    happens to see on a strongly curved uncorrected branch.
+
+    Raises
+    ------
+    RecordingError
+        No image, or too few flanks (names the file).
+    """
+    from piezod.image_linearity import find_flanks
+
+    imgs = [_height_pair(first), _height_pair(repeat)]
+    geo = imgs[0][2]
+    rows: list[F64] = []
+    rhs: list[F64] = []
+    blocks = []
+    for d in (0, 1):
+        per: list[tuple[F64, F64, NDArray[np.int64]]] = []
+        for (tr, rt, geo_i), path in zip(imgs, (first, repeat), strict=True):
+            fl = find_flanks(tr if d == 0 else rt, geo_i)
+            if fl.xi_um.size < 12:
+                raise RecordingError(f"{path}: {fl.xi_um.size} flanks in the image: too few to compare")
+            grp = np.unique(fl.line * 2 + (fl.family > 0), return_inverse=True)[1]
+            per.append((fl.xi_um, fl.k.astype(np.float64) * pitch_um, grp))
+        blocks.append(per)
+    n_poly = RECHECK_DEGREE
+    n_grp = [int(b[i][2].max()) + 1 for b in blocks for i in (0, 1)]
+    cols = 1 + 2 * n_poly + sum(n_grp)
+    col = 1
+    for (c1, x1, g1), (c2, x2, g2) in blocks:
+        base = col
+        col_o1 = base + n_poly
+        col_o2 = col_o1 + int(g1.max()) + 1
+        for img, (c, x, grp) in enumerate(((c1, x1, g1), (c2, x2, g2))):
+            u = 2.0 * (c - geo.x0_um) / geo.range_um - 1.0
+            a = np.zeros((c.size, cols))
+            a[:, base : base + n_poly] = np.polynomial.chebyshev.chebvander(u, n_poly)[:, 1:]
+            a[np.arange(c.size), (col_o1 if img == 0 else col_o2) + grp] = 1.0
+            if img == 0:
+                rows.append(a)
+                rhs.append(x)
+            else:
+                a[:, 0] = -x
+                rows.append(a)
+                rhs.append(np.zeros(c.size))
+        col = col_o2 + int(g2.max()) + 1
+    a_all = np.vstack(rows)
+    b_all = np.concatenate(rhs)
+    keep = np.ones(b_all.size, dtype=bool)
+    for _ in range(2):
+        sol, *_ = np.linalg.lstsq(a_all[keep], b_all[keep], rcond=None)
+        r = b_all - a_all @ sol
+        mad = 1.4826 * float(np.median(np.abs(r[keep] - np.median(r[keep]))))
+        keep = np.abs(r - np.median(r[keep])) <= 5.0 * max(mad, 1e-6)
+    sol, *_ = np.linalg.lstsq(a_all[keep], b_all[keep], rcond=None)
+    r = (b_all - a_all @ sol)[keep]
+    dof = max(int(keep.sum()) - cols, 1)
+    cov = np.linalg.pinv(a_all[keep].T @ a_all[keep]) * float(r @ r) / dof
+    inv_s = float(sol[0])
+    if not inv_s > 0:
+        raise RecordingError(f"{repeat}: the repeated image does not follow {first}")
+    sd = math.sqrt(max(float(cov[0, 0]), 0.0)) / inv_s**2
+    return 1.0 / inv_s - 1.0, sd
+
+
+@dataclass(frozen=True)
+class SensitivityRecheck:
+    """One frame scan of the reference repeated, uncorrected, minutes later: how much more the
+    stage moves per volt now (a scanner that warms; thesis section 4.4).
+
+    The two images share the drive, the range, the line rate and the settling lines, so what the
+    model gets wrong cancels and the ratio of their lengths is the change of the sensitivity; what
+    changed it is taken to grow linearly in time (a thermal part, :class:`piezod.model.parts.Parts`)
+    from the frame's middle, where the fitted sensitivity is.
+
+    Attributes
+    ----------
+    scan
+        The repeated scan's name.
+    change_pct, unc_pct
+        Sensitivity of the repeat over the first, minus 1 (%), and its standard uncertainty.
+    first_unix_s, repeat_unix_s
+        Middle of each image (Unix time, s).
+    frame_mid_unix_s, frame_start_unix_s
+        Middle and start of the calibration frame (Unix time, s).
+    adopted
+        Whether the change is material (:data:`RECHECK_MIN_PCT`, :data:`RECHECK_SIGMAS`).
+    """
+
+    scan: str
+    change_pct: float
+    unc_pct: float
+    first_unix_s: float
+    repeat_unix_s: float
+    frame_mid_unix_s: float
+    frame_start_unix_s: float
+    adopted: bool
+
+    @property
+    def rate_pct_per_hour(self) -> float:
+        """The sensitivity's change per hour between the two images (%/h)."""
+        return self.change_pct * 3600.0 / max(self.repeat_unix_s - self.first_unix_s, 1.0)
+
+    @property
+    def horizon_s(self) -> float:
+        """How long the trend is followed (:data:`piezod.extensions.TREND_HORIZON_FACTOR` times the
+        session from the frame's start to the repeat)."""
+        from piezod.extensions import TREND_HORIZON_FACTOR
+
+        return TREND_HORIZON_FACTOR * max(self.repeat_unix_s - self.frame_start_unix_s, 1.0)
+
+    def thermal(self) -> dict[str, float] | None:
+        """The thermal part's values (``extensions: thermal:``), or None when not adopted."""
+        if not self.adopted:
+            return None
+        return {
+            "rate_pct_per_hour": self.rate_pct_per_hour,
+            "horizon_s": self.horizon_s,
+            "since_unix_s": self.frame_mid_unix_s,
+        }
+
+    def note(self) -> str:
+        """One line for the user."""
+        dt = self.repeat_unix_s - self.first_unix_s
+        head = (
+            f"sensitivity re-check: {self.scan} repeated {dt:.0f} s later moves "
+            f"{self.change_pct:+.3f} +-{self.unc_pct:.3f} % more per volt"
+        )
+        if self.adopted:
+            return (
+                f"{head}: a trend of {self.rate_pct_per_hour:+.3f} %/h adopted (thermal part, from "
+                f"the frame's middle, followed for {self.horizon_s:.0f} s)"
+            )
+        return (
+            f"{head}: not material (< {RECHECK_MIN_PCT:g} % or < {RECHECK_SIGMAS:g} sigma), no trend adopted"
+        )
+
+
+def sensitivity_recheck(
+    frame: Sequence[str | Path], first: str | Path, repeat: str | Path, pitch_um: float
+) -> SensitivityRecheck:
+    """Compare a frame scan (``first``, one of ``frame``) with its uncorrected repeat.
+
+    Raises
+    ------
+    RecordingError
+        A recording without time or image (names the file).
+    """
+    spans = [recording_span_unix_s(p) for p in frame]
+    a0, a1 = recording_span_unix_s(first)
+    b0, b1 = recording_span_unix_s(repeat)
+    ds, sd = image_scale_change(first, repeat, pitch_um)
+    change, unc = 100.0 * ds, 100.0 * sd
+    starts = [s for s, _ in spans]
+    ends = [e for _, e in spans]
+    return SensitivityRecheck(
+        scan=Path(first).stem,
+        change_pct=change,
+        unc_pct=unc,
+        first_unix_s=0.5 * (a0 + a1),
+        repeat_unix_s=0.5 * (b0 + b1),
+        frame_mid_unix_s=0.5 * (min(starts) + max(ends)),
+        frame_start_unix_s=min(starts),
+        adopted=abs(change) >= max(RECHECK_MIN_PCT, RECHECK_SIGMAS * unc),
+    )
+
+
 __all__ = [
+    "RECHECK_MIN_PCT",
+    "RECHECK_SIGMAS",
     "FlankEvents",
     "ImageScan",
+    "SensitivityRecheck",
     "ThesisFromFlanks",
     "default_image_frame",
     "drop_outlier_flanks",
@@ -890,9 +1136,13 @@ __all__ = [
     "fit_thesis_from_flanks",
     "flank_events",
     "flank_session",
+    "image_scale_change",
     "merged_positions",
     "read_truth_log",
+    "recheck_scan",
+    "recording_span_unix_s",
     "run_image_scans",
+    "sensitivity_recheck",
     "thesis_data",
     "timed_layout",
     "verification_scans",

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -317,3 +318,49 @@ def test_sensorless_calibration_on_a_stage_of_other_physics(tmp_path: Path) -> N
                 assert m["nonlinearity_pct"] <= 0.1 and abs(m["length_error_pct"]) <= 0.2, r
             else:
                 assert abs(m["length_error_pct"]) <= 1.0, r
+
+
+@pytest.mark.parametrize("warming_pct_per_hour", [0.0, 3.0])
+def test_a_repeated_image_measures_a_warming_scanner_and_only_then(
+    warming_pct_per_hour: float, tmp_path: Path
+) -> None:
+    """The Prandtl-Ishlinskii microscope's x axis scans the same uncorrected image twice, five
+    minutes apart: the ratio of the two images' lengths is the sensitivity's change, whatever the
+    model gets wrong (there is none here), and only a material one becomes a thermal trend."""
+    import calendar
+
+    import yaml
+
+    from piezod.imagecal import RECHECK_MIN_PCT, sensitivity_recheck
+    from piezod.recording_writer import write_recording
+
+    doc = yaml.safe_load((config_dir() / "sim-pi-microscope.yaml").read_text())
+    doc["simulation"]["effects"] = (
+        {"thermal": {"rate_pct_per_hour": warming_pct_per_hour}} if warming_pct_per_hour else {}
+    )
+    path = tmp_path / "stage.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    recs, _ = _frame(str(path), ((300.0, 1.0), (300.0, 1.0)), hold_s=300.0, settle_lines=2)
+    origin = calendar.timegm((2026, 11, 26, 12, 0, 0, 0, 0, 0))
+    paths = []
+    for i, rec in enumerate(recs):
+        t0 = float(rec.t_s[0])
+        started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(origin + round(t0)))
+        # the writer's clock: t counts from the session's start, started_utc is its first sample
+        p = tmp_path / f"scan{i}.csv"
+        write_recording(p, rec, metadata={"started_utc": started})
+        paths.append(p)
+    rc = sensitivity_recheck(paths[:1], paths[0], paths[1], 3.0)
+    dt_h = (rc.repeat_unix_s - rc.first_unix_s) / 3600.0
+    assert dt_h == pytest.approx((float(recs[1].t_s.mean()) - float(recs[0].t_s.mean())) / 3600.0, abs=1e-3)
+    assert rc.unc_pct < 0.01
+    if warming_pct_per_hour:
+        assert rc.adopted
+        assert rc.change_pct == pytest.approx(warming_pct_per_hour * dt_h, rel=0.1)
+        thermal = rc.thermal()
+        assert thermal is not None
+        assert thermal["rate_pct_per_hour"] == pytest.approx(warming_pct_per_hour, rel=0.1)
+        assert thermal["since_unix_s"] == rc.frame_mid_unix_s
+    else:
+        assert abs(rc.change_pct) < RECHECK_MIN_PCT / 2
+        assert not rc.adopted and rc.thermal() is None

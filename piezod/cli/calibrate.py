@@ -119,6 +119,12 @@ def register(sub: Any) -> None:
     images.add_argument(
         "--sample", metavar="NAME", help="with --sim: the simulated reference (default line-3um)"
     )
+    images.add_argument(
+        "--no-recheck",
+        action="store_true",
+        help="do not repeat a frame scan after the fits (by default a material change of the "
+        "sensitivity since the frame - a scanner that warms - is adopted as a thermal trend)",
+    )
     p.set_defaults(func=run)
 
 

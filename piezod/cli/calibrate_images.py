@@ -33,8 +33,10 @@ from piezod.imagecal import (
     drop_outlier_flanks,
     frame_flank_session,
     read_truth_log,
+    recheck_scan,
     run_image_scans,
     search_polarity,
+    sensitivity_recheck,
     verification_scans,
     with_truth,
 )
@@ -216,6 +218,37 @@ def _scan_with_retry(engine: Any, scans: list[Any], out_dir: Path, say: Any, **k
     return paths
 
 
+def _recheck(
+    engine: Any,
+    worker: ProcessPoolExecutor,
+    frame: list[Any],
+    paths: list[Path],
+    out_dir: Path,
+    pitch_um: float,
+    calibrated: ScannerConfig,
+    say: Any,
+) -> tuple[ScannerConfig, dict[str, Any]]:
+    """Repeat one frame scan, uncorrected, after the fits; a material change of the sensitivity
+    becomes the thermal part of the calibrated config (:class:`piezod.imagecal.SensitivityRecheck`).
+    Without a sensor nothing else sees a scanner that warms between the frame and the scans."""
+    from piezod.extensions import Adoption, extended_config
+
+    sc = recheck_scan(frame)
+    first = paths[frame.index(sc)]
+    repeat = _scan_with_retry(engine, [sc], out_dir, say)[0]
+    rc = worker.submit(sensitivity_recheck, paths, first, repeat, pitch_um).result()
+    print(rc.note(), file=say)
+    summary: dict[str, Any] = {
+        **dataclasses.asdict(rc),
+        "rate_pct_per_hour": rc.rate_pct_per_hour,
+        "recording": str(repeat),
+    }
+    thermal = rc.thermal()
+    if thermal is not None:
+        calibrated = extended_config(calibrated, "x", Adoption({"thermal": thermal}))
+    return calibrated, summary
+
+
 def run_from_images(args: argparse.Namespace) -> int:
     """Run the sensorless calibration on the stage."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -279,6 +312,10 @@ def run_from_images(args: argparse.Namespace) -> int:
             print(summary["choice"]["table"], file=say)
             for note in summary["polarity"]["notes"]:
                 print(note, file=say)
+            if not args.no_recheck:
+                calibrated, summary["recheck"] = _recheck(
+                    engine, worker, frame, paths, recdir / "recheck", args.pitch_um, calibrated, say
+                )
             dump_config(
                 calibrated,
                 out,
