@@ -598,6 +598,135 @@ def _profile(
     return best_p, best_v
 
 
+def _fitted(
+    data: DynamicCalibrationData,
+    which: tuple[str, str, int | None],
+    mask: NDArray[np.bool_] | None,
+    alpha_per_v: float | None,
+) -> FamilyFit | None:
+    from piezod import calibrate_family as cf
+
+    law, driver, plays = which
+    try:
+        return cf.fit_family(
+            data,
+            law,
+            train=mask,
+            plays=plays or cf.DEFAULT_PLAYS,
+            alpha_per_v=alpha_per_v,
+            creep_driver=driver,
+        )
+    except (CalibrationError, ModelError):
+        return None
+
+
+@dataclass(frozen=True)
+class _Part:
+    """One runtime part the image path searches: how the session looks through it."""
+
+    effect: str
+    name: str
+    unit: str
+    #: The profiled variable's grid, bounds, and its map to the part's value.
+    grid: tuple[float, ...]
+    bounds: tuple[float, float]
+    value: Callable[[float], float]
+    variable: Callable[[float], float]
+    through: Callable[[DynamicCalibrationData, float], DynamicCalibrationData]
+    #: Why a profiled value is not material (None: it is).
+    immaterial: Callable[[float], str | None]
+    #: Told the member fitted through the profiled value (a part that places the session by a
+    #: fitted model takes the better one), which is then refitted.
+    settle: Callable[[FamilyFit], None] | None = None
+
+
+def _search_part(
+    part: _Part,
+    data: DynamicCalibrationData,
+    choice: ModelChoice,
+    *,
+    alpha_per_v: float | None,
+    adoptable_drivers: Sequence[str] | None,
+    laws: Sequence[str] | None,
+    creep_drivers: Sequence[str] | None,
+) -> tuple[float | None, ModelChoice, tuple[float, float], tuple[str, ...]]:
+    """Profile ``part`` on the chosen member, keep it when material and better on the held-out
+    scans, redo the choice through it and refine the value (see :func:`search_polarity`).
+    Returns the profiled variable (None: not adopted), the choice, the held-out RMS before and
+    after, and the notes."""
+    from piezod import calibrate_family as cf
+    from piezod.extensions import refine_parts
+    from piezod.model.family import CREEP_DRIVERS
+
+    drivers = tuple(adoptable_drivers) if adoptable_drivers is not None else CREEP_DRIVERS
+    member = cf.parse_member(choice.chosen)
+    before = float(choice.heldout_rms_um.get(choice.chosen, math.nan))
+    if member is None:
+        note = f"{part.effect}: not searched (not a family member)"
+        return None, choice, (before, math.nan), (note,)
+    train = cf.holdout_mask(data.n_experiments)
+
+    def train_rms(which: tuple[str, str, int | None]) -> Callable[[float], float]:
+        def rms(u: float) -> float:
+            f = _fitted(part.through(data, float(u)), which, train, alpha_per_v)
+            return math.inf if f is None else float(f.rms_um)
+
+        return rms
+
+    u1, _ = _profile(train_rms(member), *part.bounds, part.grid)
+    f1 = _fitted(part.through(data, u1), member, train, alpha_per_v)
+    if f1 is not None and part.settle is not None:
+        part.settle(f1)
+        f1 = _fitted(part.through(data, u1), member, train, alpha_per_v)
+    held1 = math.inf if f1 is None else float(f1.heldout_rms_um)
+    notes = [
+        f"{part.effect} profiled on {choice.chosen}: {part.name} {part.value(u1):.4g} {part.unit},"
+        f" held-out {1e3 * before:.2f} -> {1e3 * held1:.2f} nm"
+    ]
+    why = part.immaterial(u1)
+    if why is not None:
+        notes.append(f"{part.effect}: not adopted ({why})")
+        return None, choice, (before, math.nan), tuple(notes)
+    if not held1 < before * (1.0 - cf.CHOICE_TIE_FRACTION):
+        notes.append(f"{part.effect}: not adopted (held-out not better by the tie fraction)")
+        return None, choice, (before, math.nan), tuple(notes)
+    seen = part.through(data, u1)
+    redone = cf.choose_model(
+        seen,
+        laws=tuple(laws) if laws is not None else cf.LAWS,
+        alpha_per_v=alpha_per_v,
+        creep_drivers=tuple(creep_drivers) if creep_drivers is not None else CREEP_DRIVERS,
+        adoptable_drivers=drivers,
+    )
+    member2 = cf.parse_member(redone.chosen)
+    if member2 is None:
+        raise CalibrationError(
+            f"the choice through the {part.effect} part chose {redone.chosen!r}, not a family member"
+        )
+    refined, _ = refine_parts(
+        {part.effect: {part.name: part.value(u1)}},
+        lambda trial: train_rms(member2)(part.variable(trial[part.effect][part.name])),
+        model=redone.chosen,
+    )
+    u2 = part.variable(float(refined[part.effect][part.name]))
+    f2 = _fitted(part.through(data, u2), member2, train, alpha_per_v)
+    final = _fitted(part.through(data, u2), member2, None, alpha_per_v)
+    if f2 is None or final is None:
+        raise CalibrationError(
+            f"{redone.chosen} through a {part.effect} part of {part.value(u2):.4g} {part.unit} failed to fit"
+        )
+    held2 = float(f2.heldout_rms_um)
+    notes.append(
+        f"choice redone through it: {redone.chosen}; {part.name} refined on it: "
+        f"{part.value(u2):.4g} {part.unit}, held-out {1e3 * held2:.2f} nm"
+    )
+    heldout = dict(redone.heldout_rms_um)
+    trains = dict(redone.train_rms_um)
+    heldout[redone.chosen], trains[redone.chosen] = held2, float(f2.rms_um)
+    out = dataclasses.replace(redone, fit=final, heldout_rms_um=heldout, train_rms_um=trains)
+    return u2, out, (before, held2), tuple(notes)
+
+
 def search_polarity(
     data: DynamicCalibrationData,
     choice: ModelChoice,
@@ -627,90 +756,139 @@ def search_polarity(
     alpha_per_v, adoptable_drivers, laws, creep_drivers
         As for the choice (None: :func:`~piezod.calibrate_family.choose_model`'s defaults).
     """
-    from piezod import calibrate_family as cf
-    from piezod.extensions import refine_parts
-    from piezod.model.family import CREEP_DRIVERS
     from piezod.model.registry import spec
 
-    drivers = tuple(adoptable_drivers) if adoptable_drivers is not None else CREEP_DRIVERS
-    member = cf.parse_member(choice.chosen)
-    before = float(choice.heldout_rms_um.get(choice.chosen, math.nan))
-    if member is None:
-        return PolaritySearch(
-            0.0, choice, (before, math.nan), ("polarity: not searched (not a family member)",)
-        )
     lo, hi = next(p.physical for p in spec("polarity").params if p.name == "negative_sensitivity_pct")
-    lo, hi = max(lo, min(POLARITY_GRID_PCT)), min(hi, max(POLARITY_GRID_PCT))
-    train = cf.holdout_mask(data.n_experiments)
-
-    def fitted(
-        which: tuple[str, str, int | None], pct: float, mask: NDArray[np.bool_] | None
-    ) -> FamilyFit | None:
-        law, driver, plays = which
-        try:
-            return cf.fit_family(
-                session_through_polarity(data, pct),
-                law,
-                train=mask,
-                plays=plays or cf.DEFAULT_PLAYS,
-                alpha_per_v=alpha_per_v,
-                creep_driver=driver,
-            )
-        except (CalibrationError, ModelError):
-            return None
-
-    def train_rms(which: tuple[str, str, int | None]) -> Callable[[float], float]:
-        def rms(pct: float) -> float:
-            f = fitted(which, float(pct), train)
-            return math.inf if f is None else float(f.rms_um)
-
-        return rms
-
-    p1, _ = _profile(train_rms(member), lo, hi, POLARITY_GRID_PCT)
-    f1 = fitted(member, p1, train)
-    held1 = math.inf if f1 is None else float(f1.heldout_rms_um)
-    notes = [
-        f"polarity profiled on {choice.chosen}: {p1:+.3g} %,"
-        f" held-out {1e3 * before:.2f} -> {1e3 * held1:.2f} nm"
-    ]
-    if abs(p1) < POLARITY_MIN_PCT:
-        notes.append(f"polarity: not adopted (below {POLARITY_MIN_PCT:g} %)")
-        return PolaritySearch(0.0, choice, (before, math.nan), tuple(notes))
-    if not held1 < before * (1.0 - cf.CHOICE_TIE_FRACTION):
-        notes.append("polarity: not adopted (held-out not better by the tie fraction)")
-        return PolaritySearch(0.0, choice, (before, math.nan), tuple(notes))
-    redone = cf.choose_model(
-        session_through_polarity(data, p1),
-        laws=tuple(laws) if laws is not None else cf.LAWS,
+    part = _Part(
+        "polarity",
+        "negative_sensitivity_pct",
+        "%",
+        POLARITY_GRID_PCT,
+        (max(lo, min(POLARITY_GRID_PCT)), min(hi, max(POLARITY_GRID_PCT))),
+        float,
+        float,
+        session_through_polarity,
+        lambda u: None if abs(u) >= POLARITY_MIN_PCT else f"below {POLARITY_MIN_PCT:g} %",
+    )
+    u, out, held, notes = _search_part(
+        part,
+        data,
+        choice,
         alpha_per_v=alpha_per_v,
-        creep_drivers=tuple(creep_drivers) if creep_drivers is not None else CREEP_DRIVERS,
-        adoptable_drivers=drivers,
+        adoptable_drivers=adoptable_drivers,
+        laws=laws,
+        creep_drivers=creep_drivers,
     )
-    member2 = cf.parse_member(redone.chosen)
-    if member2 is None:
-        raise CalibrationError(
-            f"the choice through the polarity part chose {redone.chosen!r}, not a family member"
+    return PolaritySearch(0.0 if u is None else u, out, held, notes)
+
+
+#: The saturation profile's variable is ``1000 / x_sat`` (0: none; 1/mm): a grid from none to
+#: the registry's strongest realistic part, then a bounded search between the best's neighbours.
+SATURATION_GRID_PER_MM: tuple[float, ...] = (0.0, 2.5, 5.0, 8.0, 12.0, 17.0, 24.0, 32.0)
+#: The smallest saturation adopted: it must compress the frame's farthest position by at least
+#: this much (%), ``1 - tanh(u) / u`` at ``u = max |x| / x_sat`` (as :data:`POLARITY_MIN_PCT`).
+SATURATION_MIN_PCT = 0.25
+
+
+@dataclass(frozen=True)
+class SaturationSearch:
+    """The outcome of :func:`search_saturation`.
+
+    Attributes
+    ----------
+    x_sat_um
+        The adopted saturation scale (``inf``: none adopted).
+    choice, heldout_rms_um, notes
+        As for :class:`PolaritySearch`.
+    """
+
+    x_sat_um: float
+    choice: ModelChoice
+    heldout_rms_um: tuple[float, float]
+    notes: tuple[str, ...]
+
+
+def session_through_saturation(
+    data: DynamicCalibrationData, x_sat_um: float, model_um: F64
+) -> DynamicCalibrationData:
+    """The session as a model inside a saturation part of ``x_sat_um`` sees it.
+
+    The flank positions are known up to an offset per scan and flank family; the part acts on
+    absolute positions, so each group is first placed where ``model_um`` (a fitted model's
+    positions at the compared samples, before the part) puts it through the part, then taken
+    through the part's inverse, ``x_sat atanh(x / x_sat)`` (:meth:`piezod.model.parts.Parts.position_in`).
+    """
+    if not math.isfinite(x_sat_um):
+        return data
+    p = data.position_um
+    _, inv = np.unique(data.groups(), return_inverse=True)
+    cnt = np.bincount(inv).astype(np.float64)
+    offsets = np.bincount(inv, x_sat_um * np.tanh(model_um / x_sat_um) - p) / cnt
+    a = np.clip((p + offsets[inv]) / x_sat_um, -1.0 + 1e-9, 1.0 - 1e-9)
+    return dataclasses.replace(data, position_um=x_sat_um * np.arctanh(a))
+
+
+def search_saturation(
+    data: DynamicCalibrationData,
+    choice: ModelChoice,
+    *,
+    alpha_per_v: float | None = None,
+    adoptable_drivers: Sequence[str] | None = None,
+    laws: Sequence[str] | None = None,
+    creep_drivers: Sequence[str] | None = None,
+) -> SaturationSearch:
+    """Search the flanks for a saturation part (a response that flattens towards the ends of the
+    range, odd in the position) and redo the choice, as :func:`search_polarity` does.
+
+    No law of the family flattens its static curve symmetrically (the static map is quadratic),
+    and the play laws' envelopes take only part of it. The profile's fits see the session through
+    :func:`session_through_saturation`, the offsets placed by the chosen member's fit.
+    """
+    from piezod import calibrate_family as cf
+    from piezod.model.registry import spec
+
+    if choice.fit is None:
+        before = float(choice.heldout_rms_um.get(choice.chosen, math.nan))
+        return SaturationSearch(
+            math.inf, choice, (before, math.nan), ("saturation: not searched (not a family member)",)
         )
-    refined, _ = refine_parts(
-        {"polarity": {"negative_sensitivity_pct": p1}},
-        lambda trial: train_rms(member2)(trial["polarity"]["negative_sensitivity_pct"]),
-        model=redone.chosen,
+    placed = {"model_um": cf.session_positions(data, choice.fit.params)}
+    reach = float(np.max(np.abs(placed["model_um"])))
+    lo_um, _ = next(p.physical for p in spec("saturation").params if p.name == "x_sat_um")
+
+    def x_sat(u: float) -> float:
+        return 1000.0 / u if u > 0.0 else math.inf
+
+    def immaterial(u: float) -> str | None:
+        r = reach / x_sat(u)
+        squeeze = 100.0 * (1.0 - math.tanh(r) / r) if r > 0.0 else 0.0
+        if squeeze >= SATURATION_MIN_PCT:
+            return None
+        return f"compresses the farthest position, {reach:.3g} um, by {squeeze:.3g} %"
+
+    grid = SATURATION_GRID_PER_MM
+    part = _Part(
+        "saturation",
+        "x_sat_um",
+        "um",
+        grid,
+        (0.0, min(max(grid), 1000.0 / lo_um)),
+        x_sat,
+        lambda x: 1000.0 / x if math.isfinite(x) and x > 0.0 else 0.0,
+        lambda d, u: session_through_saturation(d, x_sat(u), placed["model_um"]),
+        immaterial,
+        lambda f: placed.update(model_um=cf.session_positions(data, f.params)),
     )
-    p2 = float(refined["polarity"]["negative_sensitivity_pct"])
-    f2 = fitted(member2, p2, train)
-    final = fitted(member2, p2, None)
-    if f2 is None or final is None:
-        raise CalibrationError(f"{redone.chosen} through a polarity part of {p2:+.3g} % failed to fit")
-    held2 = float(f2.heldout_rms_um)
-    notes.append(
-        f"choice redone through it: {redone.chosen}; polarity refined on it: {p2:+.4g} %, "
-        f"held-out {1e3 * held2:.2f} nm"
+    u, out, held, notes = _search_part(
+        part,
+        data,
+        choice,
+        alpha_per_v=alpha_per_v,
+        adoptable_drivers=adoptable_drivers,
+        laws=laws,
+        creep_drivers=creep_drivers,
     )
-    heldout = dict(redone.heldout_rms_um)
-    trains = dict(redone.train_rms_um)
-    heldout[redone.chosen], trains[redone.chosen] = held2, float(f2.rms_um)
-    out = dataclasses.replace(redone, fit=final, heldout_rms_um=heldout, train_rms_um=trains)
-    return PolaritySearch(float(p2), out, (before, held2), tuple(notes))
+    return SaturationSearch(math.inf if u is None else x_sat(u), out, held, notes)
 
 
 def fit_dynamic_from_flanks(

@@ -25,6 +25,7 @@ from piezod.imagecal import (
     flank_events,
     flank_session,
     search_polarity,
+    search_saturation,
 )
 from piezod.model.dynamic import DynamicParams, dynamic_forward, dynamic_rest_state
 from piezod.recording import Recording
@@ -199,6 +200,33 @@ def test_the_images_find_a_depoled_ceramic_and_only_then(depoled_pct: float, tmp
         )
     else:
         assert found.pct == 0.0 and found.choice is choice, found.notes
+
+
+@pytest.mark.parametrize("x_sat_um", [60.0, None])
+def test_the_images_find_a_saturating_response_and_only_then(x_sat_um: float | None, tmp_path: Path) -> None:
+    """The Prandtl-Ishlinskii microscope's x axis with (and without) a response that flattens
+    towards the ends of the range (``x_sat tanh(x / x_sat)``, the registry's strongest realistic
+    scale): no law of the family flattens symmetrically, so the image path profiles the part on
+    the flanks, placed by the chosen member; adopted near the stage's value, else not at all."""
+    import yaml
+
+    doc = yaml.safe_load((config_dir() / "sim-pi-microscope.yaml").read_text())
+    if x_sat_um is not None:
+        doc["simulation"]["effects"]["saturation"] = {"x_sat_um": x_sat_um}
+    path = tmp_path / "stage.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    recs, _ = _frame(str(path), PI_PLAN)
+    events = [flank_events(r, 3.0) for r in recs]
+    th = fit_thesis_from_flanks(recs, events)
+    data = flank_session(recs, events, th.line_width_um, slew_rate_v_per_s=SLEW)
+    laws, drivers = ("prandtl-ishlinskii", "coleman-hodgdon"), ("voltage",)
+    choice = cf.choose_model(data, laws=laws, creep_drivers=drivers)
+    found = search_saturation(data, choice, laws=laws, creep_drivers=drivers)
+    if x_sat_um is not None:
+        assert found.x_sat_um == pytest.approx(x_sat_um, rel=0.15), found.notes
+        assert found.heldout_rms_um[1] < 0.7 * found.heldout_rms_um[0], found.notes
+    else:
+        assert found.x_sat_um == float("inf") and found.choice is choice, found.notes
 
 
 def test_a_flank_only_one_line_shows_is_dropped_even_in_the_line_with_most_flanks() -> None:

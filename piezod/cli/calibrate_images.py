@@ -36,7 +36,9 @@ from piezod.imagecal import (
     recheck_scan,
     run_image_scans,
     search_polarity,
+    search_saturation,
     sensitivity_recheck,
+    session_through_polarity,
     verification_scans,
     with_truth,
 )
@@ -161,7 +163,13 @@ def _fit_here(
     polarity = search_polarity(
         session, choice, alpha_per_v=dp.alpha_per_v, adoptable_drivers=REALTIME_CREEP_DRIVERS
     )
-    choice = polarity.choice
+    saturation = search_saturation(
+        session_through_polarity(session, polarity.pct),
+        polarity.choice,
+        alpha_per_v=dp.alpha_per_v,
+        adoptable_drivers=REALTIME_CREEP_DRIVERS,
+    )
+    choice = saturation.choice
     cal_ax = calibrated.axes["x"]
     if choice.fit is not None:
         section = cf.family_model_config(choice.fit.params)
@@ -171,9 +179,13 @@ def _fit_here(
     calibrated = calibrated.model_copy(
         update={"microscope": base.microscope, "axes": {**calibrated.axes, "x": cal_ax}}
     )
+    parts: dict[str, dict[str, float]] = {}
     if polarity.pct != 0.0:
-        found = Adoption({"polarity": {"negative_sensitivity_pct": polarity.pct}})
-        calibrated = extended_config(calibrated, "x", found)
+        parts["polarity"] = {"negative_sensitivity_pct": polarity.pct}
+    if np.isfinite(saturation.x_sat_um):
+        parts["saturation"] = {"x_sat_um": saturation.x_sat_um}
+    if parts:
+        calibrated = extended_config(calibrated, "x", Adoption(parts))
     summary = {
         "flanks": sum(len(e) for e in events),
         "flanks_dropped": dropped,
@@ -192,6 +204,11 @@ def _fit_here(
             "negative_sensitivity_pct": polarity.pct,
             "heldout_rms_um": list(polarity.heldout_rms_um),
             "notes": list(polarity.notes),
+        },
+        "saturation": {
+            "x_sat_um": saturation.x_sat_um if np.isfinite(saturation.x_sat_um) else None,
+            "heldout_rms_um": list(saturation.heldout_rms_um),
+            "notes": list(saturation.notes),
         },
     }
     return calibrated, summary
@@ -310,7 +327,7 @@ def run_from_images(args: argparse.Namespace) -> int:
             )
             print("model chosen by held-out images (flank positions):", file=say)
             print(summary["choice"]["table"], file=say)
-            for note in summary["polarity"]["notes"]:
+            for note in (*summary["polarity"]["notes"], *summary["saturation"]["notes"]):
                 print(note, file=say)
             if not args.no_recheck:
                 calibrated, summary["recheck"] = _recheck(
