@@ -25,7 +25,7 @@ from piezod.calibrate_dynamic import calibrated_config as dynamic_config
 from piezod.calibrate_dynamic import fit_dynamic
 from piezod.cli._common import board_url, human_stream, scanner_config_path, with_microscope, write_json
 from piezod.config import MicroscopeSection, ScannerConfig, dump_config, load_config
-from piezod.errors import CalibrationError, PiezodError
+from piezod.errors import CalibrationError, PiezodError, SafetyError
 from piezod.image import images, raster_samples
 from piezod.image_linearity import find_flanks, flank_sampled_linearity, image_linearity, window_linearity
 from piezod.imagecal import (
@@ -216,7 +216,8 @@ def _fit_here(
 
 def _scan_with_retry(engine: Any, scans: list[Any], out_dir: Path, say: Any, **kw: Any) -> list[Path]:
     """Scan each image; one ended by a fault (an underrun or a lost link on a loaded machine: the
-    board ramped to safe) is repeated, at most twice, after clearing the fault. The repeat is a new
+    board ramped to safe) is repeated, at most twice, after clearing the fault; one the safety
+    check refuses (voltages beyond the limits) is not. The repeat is a new
     measurement under a new name (the faulted recording is kept, never overwritten)."""
     paths = []
     for sc in scans:
@@ -228,6 +229,8 @@ def _scan_with_retry(engine: Any, scans: list[Any], out_dir: Path, say: Any, **k
             try:
                 paths += run_image_scans(engine, [sc], out_dir, **kw)
                 break
+            except SafetyError:
+                raise  # the scan's check refused it: the same scan would be refused again
             except PiezodError as exc:
                 if attempt == 2:
                     raise
