@@ -333,9 +333,14 @@ def run_from_images(args: argparse.Namespace) -> int:
             for note in (*summary["polarity"]["notes"], *summary["saturation"]["notes"]):
                 print(note, file=say)
             if not args.no_recheck:
-                calibrated, summary["recheck"] = _recheck(
-                    engine, worker, frame, paths, recdir / "recheck", args.pitch_um, calibrated, say
-                )
+                try:
+                    calibrated, summary["recheck"] = _recheck(
+                        engine, worker, frame, paths, recdir / "recheck", args.pitch_um, calibrated, say
+                    )
+                except PiezodError as exc:
+                    # the fitted model is kept: a re-check that cannot be made adopts nothing
+                    print(f"sensitivity re-check failed, no trend adopted: {exc}", file=say)
+                    summary["recheck"] = {"error": str(exc)}
             dump_config(
                 calibrated,
                 out,
