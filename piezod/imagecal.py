@@ -1065,6 +1065,10 @@ def run_image_scans(
 RECHECK_MIN_PCT = 0.03
 #: See :data:`RECHECK_MIN_PCT`.
 RECHECK_SIGMAS = 3.0
+#: The repeat is scanned at least this long after the first image (s): the two images' different
+#: histories (the frame's scans before one, a hold before the other) move the ratio by ~0.01 %
+#: (the built-in microscope: -0.014 % 70 s later), which over a minute reads as ~0.7 %/h.
+RECHECK_MIN_INTERVAL_S = 300.0
 
 
 def recheck_scan(frame: Sequence[ImageScan]) -> ImageScan:
@@ -1302,6 +1306,7 @@ def sensitivity_recheck(
 
 
 __all__ = [
+    "RECHECK_MIN_INTERVAL_S",
     "RECHECK_MIN_PCT",
     "RECHECK_SIGMAS",
     "FlankEvents",

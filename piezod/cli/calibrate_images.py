@@ -29,11 +29,13 @@ from piezod.errors import CalibrationError, PiezodError, SafetyError
 from piezod.image import images, raster_samples
 from piezod.image_linearity import find_flanks, flank_sampled_linearity, image_linearity, window_linearity
 from piezod.imagecal import (
+    RECHECK_MIN_INTERVAL_S,
     default_image_frame,
     drop_outlier_flanks,
     frame_flank_session,
     read_truth_log,
     recheck_scan,
+    recording_span_unix_s,
     run_image_scans,
     search_polarity,
     search_saturation,
@@ -255,6 +257,10 @@ def _recheck(
 
     sc = recheck_scan(frame)
     first = paths[frame.index(sc)]
+    wait = RECHECK_MIN_INTERVAL_S - (time.time() - recording_span_unix_s(first)[1])
+    if wait > 0:
+        print(f"  the re-check waits {wait:.0f} s (a trend needs time to show)", file=say)
+        time.sleep(wait)
     repeat = _scan_with_retry(engine, [sc], out_dir, say)[0]
     rc = worker.submit(sensitivity_recheck, paths, first, repeat, pitch_um).result()
     print(rc.note(), file=say)
