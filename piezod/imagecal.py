@@ -1065,9 +1065,10 @@ def run_image_scans(
 RECHECK_MIN_PCT = 0.03
 #: See :data:`RECHECK_MIN_PCT`.
 RECHECK_SIGMAS = 3.0
-#: The repeat is scanned at least this long after the first image (s): the two images' different
-#: histories (the frame's scans before one, a hold before the other) move the ratio by ~0.01 %
-#: (the built-in microscope: -0.014 % 70 s later), which over a minute reads as ~0.7 %/h.
+#: The repeat is scanned at least this long after the first image (s): without any warming the
+#: two images' ratio is off by ~0.015 % (their histories differ: the frame's scans before one, a
+#: hold before the other; the built-in microscope: -0.014 % 70 s later, -0.015 % 306 s later),
+#: which read as a trend over a minute is ~0.7 %/h, over five minutes ~0.2 %/h.
 RECHECK_MIN_INTERVAL_S = 300.0
 
 
