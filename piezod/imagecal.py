@@ -558,13 +558,12 @@ POLARITY_MIN_PCT = 0.25
 
 
 @dataclass(frozen=True)
-class PolaritySearch:
-    """The outcome of :func:`search_polarity`.
+class PartSearch:
+    """What a search for one runtime part on the flanks leaves (:func:`search_polarity`,
+    :func:`search_saturation`).
 
     Attributes
     ----------
-    pct
-        The adopted ``negative_sensitivity_pct`` (0: none adopted).
     choice
         The model choice to use: redone on the session through the part when adopted, else the
         one passed in.
@@ -575,10 +574,17 @@ class PolaritySearch:
         One line per step, for the report.
     """
 
-    pct: float
     choice: ModelChoice
     heldout_rms_um: tuple[float, float]
     notes: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class PolaritySearch(PartSearch):
+    """The outcome of :func:`search_polarity`: ``pct``, the adopted ``negative_sensitivity_pct``
+    (0: none adopted)."""
+
+    pct: float = 0.0
 
 
 def _profile(
@@ -779,7 +785,7 @@ def search_polarity(
         laws=laws,
         creep_drivers=creep_drivers,
     )
-    return PolaritySearch(0.0 if u is None else u, out, held, notes)
+    return PolaritySearch(out, held, notes, pct=0.0 if u is None else u)
 
 
 #: The saturation profile's variable is ``1000 / x_sat`` (0: none; 1/mm): a grid from none to
@@ -791,21 +797,11 @@ SATURATION_MIN_PCT = 0.25
 
 
 @dataclass(frozen=True)
-class SaturationSearch:
-    """The outcome of :func:`search_saturation`.
+class SaturationSearch(PartSearch):
+    """The outcome of :func:`search_saturation`: ``x_sat_um``, the adopted saturation scale
+    (``inf``: none adopted)."""
 
-    Attributes
-    ----------
-    x_sat_um
-        The adopted saturation scale (``inf``: none adopted).
-    choice, heldout_rms_um, notes
-        As for :class:`PolaritySearch`.
-    """
-
-    x_sat_um: float
-    choice: ModelChoice
-    heldout_rms_um: tuple[float, float]
-    notes: tuple[str, ...]
+    x_sat_um: float = math.inf
 
 
 def session_through_saturation(
@@ -849,9 +845,8 @@ def search_saturation(
 
     if choice.fit is None:
         before = float(choice.heldout_rms_um.get(choice.chosen, math.nan))
-        return SaturationSearch(
-            math.inf, choice, (before, math.nan), ("saturation: not searched (not a family member)",)
-        )
+        note = "saturation: not searched (not a family member)"
+        return SaturationSearch(choice, (before, math.nan), (note,))
     placed = {"model_um": cf.session_positions(data, choice.fit.params)}
     reach = float(np.max(np.abs(placed["model_um"])))
     lo_um, _ = next(p.physical for p in spec("saturation").params if p.name == "x_sat_um")
@@ -888,7 +883,7 @@ def search_saturation(
         laws=laws,
         creep_drivers=creep_drivers,
     )
-    return SaturationSearch(math.inf if u is None else x_sat(u), out, held, notes)
+    return SaturationSearch(out, held, notes, x_sat_um=math.inf if u is None else x_sat(u))
 
 
 def fit_dynamic_from_flanks(

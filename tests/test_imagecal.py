@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -171,6 +172,23 @@ def test_flanks_on_a_stage_of_other_physics_choose_its_law() -> None:
 
 
 PI_PLAN = ((260.0, 0.5), (260.0, 2.0), (330.0, 1.0), (400.0, 0.5), (400.0, 2.0))
+PI_LAWS, PI_DRIVERS = ("prandtl-ishlinskii", "coleman-hodgdon"), ("voltage",)
+
+
+def _pi_flank_choice(effects: dict[str, dict[str, float]], tmp_path: Path) -> tuple[Any, cf.ModelChoice]:
+    """The flank session of a frame on the Prandtl-Ishlinskii microscope's x axis with ``effects``
+    added to its simulation, and the model choice on it (two laws, voltage creep)."""
+    import yaml
+
+    doc = yaml.safe_load((config_dir() / "sim-pi-microscope.yaml").read_text())
+    doc["simulation"]["effects"].update(effects)
+    path = tmp_path / "stage.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    recs, _ = _frame(str(path), PI_PLAN)
+    events = [flank_events(r, 3.0) for r in recs]
+    th = fit_thesis_from_flanks(recs, events)
+    data = flank_session(recs, events, th.line_width_um, slew_rate_v_per_s=SLEW)
+    return data, cf.choose_model(data, laws=PI_LAWS, creep_drivers=PI_DRIVERS)
 
 
 @pytest.mark.parametrize("depoled_pct", [-5.0, 0.0])
@@ -178,20 +196,9 @@ def test_the_images_find_a_depoled_ceramic_and_only_then(depoled_pct: float, tmp
     """The Prandtl-Ishlinskii microscope's x axis with (and without) a 5 % weaker response below 0 V:
     no hysteresis law bends at a fixed voltage, so the sensorless path profiles the polarity part
     on the flanks; it is adopted when it predicts the held-out scans better, at the stage's value."""
-    import yaml
-
-    doc = yaml.safe_load((config_dir() / "sim-pi-microscope.yaml").read_text())
-    if depoled_pct:
-        doc["simulation"]["effects"]["polarity"] = {"negative_sensitivity_pct": depoled_pct}
-    path = tmp_path / "stage.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    recs, _ = _frame(str(path), PI_PLAN)
-    events = [flank_events(r, 3.0) for r in recs]
-    th = fit_thesis_from_flanks(recs, events)
-    data = flank_session(recs, events, th.line_width_um, slew_rate_v_per_s=SLEW)
-    laws, drivers = ("prandtl-ishlinskii", "coleman-hodgdon"), ("voltage",)
-    choice = cf.choose_model(data, laws=laws, creep_drivers=drivers)
-    found = search_polarity(data, choice, laws=laws, creep_drivers=drivers)
+    effects = {"polarity": {"negative_sensitivity_pct": depoled_pct}} if depoled_pct else {}
+    data, choice = _pi_flank_choice(effects, tmp_path)
+    found = search_polarity(data, choice, laws=PI_LAWS, creep_drivers=PI_DRIVERS)
     if depoled_pct:
         assert found.pct == pytest.approx(depoled_pct, abs=0.5), found.notes
         assert found.heldout_rms_um[1] < 0.5 * found.heldout_rms_um[0], found.notes
@@ -208,20 +215,9 @@ def test_the_images_find_a_saturating_response_and_only_then(x_sat_um: float | N
     towards the ends of the range (``x_sat tanh(x / x_sat)``, the registry's strongest realistic
     scale): no law of the family flattens symmetrically, so the image path profiles the part on
     the flanks, placed by the chosen member; adopted near the stage's value, else not at all."""
-    import yaml
-
-    doc = yaml.safe_load((config_dir() / "sim-pi-microscope.yaml").read_text())
-    if x_sat_um is not None:
-        doc["simulation"]["effects"]["saturation"] = {"x_sat_um": x_sat_um}
-    path = tmp_path / "stage.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    recs, _ = _frame(str(path), PI_PLAN)
-    events = [flank_events(r, 3.0) for r in recs]
-    th = fit_thesis_from_flanks(recs, events)
-    data = flank_session(recs, events, th.line_width_um, slew_rate_v_per_s=SLEW)
-    laws, drivers = ("prandtl-ishlinskii", "coleman-hodgdon"), ("voltage",)
-    choice = cf.choose_model(data, laws=laws, creep_drivers=drivers)
-    found = search_saturation(data, choice, laws=laws, creep_drivers=drivers)
+    effects = {"saturation": {"x_sat_um": x_sat_um}} if x_sat_um is not None else {}
+    data, choice = _pi_flank_choice(effects, tmp_path)
+    found = search_saturation(data, choice, laws=PI_LAWS, creep_drivers=PI_DRIVERS)
     if x_sat_um is not None:
         assert found.x_sat_um == pytest.approx(x_sat_um, rel=0.15), found.notes
         assert found.heldout_rms_um[1] < 0.7 * found.heldout_rms_um[0], found.notes
