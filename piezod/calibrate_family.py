@@ -286,9 +286,13 @@ class _Session:
         train: NDArray[np.bool_],
         skip_s: float = 0.0,
         max_lag_s: float = _MAX_LAG_S,
+        max_kappa: float = _MAX_KAPPA,
+        max_creep: float = MAX_TOTAL_CREEP,
     ) -> None:
         self.data = data
         self.max_lag_s = max_lag_s
+        self.max_kappa = max_kappa
+        self.max_creep = max_creep
         self.taus = taus
         self.dev = _Deviations(data, taus)
         self.y = data.position_um
@@ -408,8 +412,8 @@ def _alternate(
         total = float(w.sum())
         a = np.column_stack([(1.0 + total) * f[:, j] + e_f[j] @ w for j in range(n_f)] + [xc * xc])
         ac = _centre(data, a)[tr]
-        lower = np.concatenate([np.full(n_f, 0.0), [-_MAX_KAPPA]])
-        upper = np.concatenate([np.full(n_f, np.inf), [_MAX_KAPPA]])
+        lower = np.concatenate([np.full(n_f, 0.0), [-s.max_kappa]])
+        upper = np.concatenate([np.full(n_f, np.inf), [s.max_kappa]])
         lower[0] = 1e-9
         dead = _dead(ac)
         lower[dead] = 0.0
@@ -432,7 +436,7 @@ def _alternate(
             bc[tr],
             target[tr],
             lower=np.zeros(m),
-            upper=np.full(m, MAX_TOTAL_CREEP / m),
+            upper=np.full(m, s.max_creep / m),
             ridge=math.sqrt(lam) * scale * s.creep_reg,
             method="bvls",
         )
@@ -499,8 +503,8 @@ def _voltage_fit(
         extra = np.zeros((theta_reg.shape[0], n_f + m + 2))
         extra[:, :n_f] = theta_reg
         ridge = np.vstack([ridge, extra])
-    lower = np.concatenate([np.zeros(n_f + m), [-_MAX_KAPPA, 0.0]])
-    upper = np.concatenate([np.full(n_f + m, np.inf), [_MAX_KAPPA, s.max_lag_s]])
+    lower = np.concatenate([np.zeros(n_f + m), [-s.max_kappa, 0.0]])
+    upper = np.concatenate([np.full(n_f + m, np.inf), [s.max_kappa, s.max_lag_s]])
     lower[0] = 1e-9
     dead = _dead(_centre(data, f)[tr])
     lower[:n_f][dead] = 0.0
@@ -515,7 +519,7 @@ def _voltage_fit(
     def feasible(p: F64) -> F64:
         # w_k = c_k / s <= MAX_TOTAL_CREEP / m with the slope s of this very point
         out = p.copy()
-        cap = MAX_TOTAL_CREEP / m * max(float(slope_of_theta @ p[:n_f]), 0.0)
+        cap = s.max_creep / m * max(float(slope_of_theta @ p[:n_f]), 0.0)
         out[n_f : n_f + m] = np.minimum(out[n_f : n_f + m], cap)
         return out
 
@@ -546,7 +550,7 @@ def _voltage_fit(
         target = (s.yc - _centre(data, x0))[tr] + jc @ p
         slope = float(slope_of_theta @ p[:n_f])
         if slope > 0.0:
-            upper[n_f : n_f + m] = MAX_TOTAL_CREEP / m * slope
+            upper[n_f : n_f + m] = s.max_creep / m * slope
         lo, hi = lower.copy(), upper.copy()
         if it == 1:
             # without creep the static map and the lag have no column yet: they start at zero
@@ -569,7 +573,7 @@ def _voltage_fit(
             break
     theta, c, kappa, tau = p[:n_f], p[n_f : n_f + m], float(p[-2]), float(p[-1])
     slope = float(slope_of_theta @ theta)
-    w = np.minimum(c / slope, MAX_TOTAL_CREEP / m) if slope > 0.0 else np.zeros(m)
+    w = np.minimum(c / slope, s.max_creep / m) if slope > 0.0 else np.zeros(m)
     if keep is not None:
         keep[:] = [resid.copy()]
     rms = float(np.sqrt(np.mean(resid**2)))
@@ -632,8 +636,8 @@ def _joint_refine(
     theta, w = theta.copy(), w.copy()
     if not math.isfinite(rms):
         return start
-    lower = np.concatenate([np.zeros(n_f), np.zeros(m), [-_MAX_KAPPA, 0.0]])
-    upper = np.concatenate([np.full(n_f, np.inf), np.full(m, MAX_TOTAL_CREEP / m), [_MAX_KAPPA, s.max_lag_s]])
+    lower = np.concatenate([np.zeros(n_f), np.zeros(m), [-s.max_kappa, 0.0]])
+    upper = np.concatenate([np.full(n_f, np.inf), np.full(m, s.max_creep / m), [s.max_kappa, s.max_lag_s]])
     lower[0] = 1e-9
     b = parts(theta, w, kappa, tau)[3]
     ridge_scale = float(np.linalg.norm(_centre(data, b)[tr])) / math.sqrt(m)
@@ -968,6 +972,8 @@ def fit_family(
     nodes: F64 | None = None,
     centre_smoothing: float = GP_CENTRE_SMOOTHING,
     fit_lag: bool = True,
+    fit_stiffness: bool = True,
+    fit_creep: bool = True,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -1004,6 +1010,11 @@ def fit_family(
         Fit the drive lag (in its first-order form ``x - tau_lag dx/dt``, good while the drive
         changes slowly against ``tau_lag``); False holds it at 0, for a caller that runs the exact
         lag over the voltages itself (steps: :func:`piezod.heights.fit_z_model`).
+    fit_stiffness
+        Fit the static stiffness map; False holds it at 0 (what the held-out data lose without
+        it: :func:`piezod.family_heldout.part_gains`).
+    fit_creep
+        Fit the creep spectrum; False holds its weights at 0.
 
     Raises
     ------
@@ -1022,7 +1033,15 @@ def fit_family(
     if not mask.any():
         raise CalibrationError("no experiment left to fit")
     t0 = time.perf_counter()
-    s = _Session(data, taus, mask, skip_s, _MAX_LAG_S if fit_lag else 0.0)
+    s = _Session(
+        data,
+        taus,
+        mask,
+        skip_s,
+        _MAX_LAG_S if fit_lag else 0.0,
+        _MAX_KAPPA if fit_stiffness else 0.0,
+        MAX_TOTAL_CREEP if fit_creep else 0.0,
+    )
     rest_v = data.rest_voltage_v
     hyst: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams
     searched = 0
