@@ -258,6 +258,50 @@ def experiments_through_sensor(experiments: Sequence[Experiment], path: SensorPa
     return out
 
 
+#: Recording metadata key: the readback's known delay behind the drive (s), e.g. from the
+#: instrument's documentation (docs/formats.md).
+SENSOR_DELAY_KEY = "sensor_delay_s"
+
+
+def align_known_delay(experiments: Sequence[Experiment]) -> tuple[list[Experiment], str | None]:
+    """The experiments with the readback aligned by their recordings' ``sensor_delay_s`` metadata.
+
+    A delay the recording documents is not something to estimate: the analysis (audit, family
+    fits, calibration) sees the stage's position at the time of the drive
+    (:meth:`~piezod.model.sensor.SensorPath.align`; the last ``d`` of every experiment is lost).
+
+    Returns
+    -------
+    experiments, note
+        The aligned experiments and one line saying what was aligned (None when no recording
+        has the key).
+
+    Raises
+    ------
+    RecordingError
+        The value is not a number inside the delay effect's physical range (names the file).
+    """
+    out: list[Experiment] = []
+    seen: dict[str, float] = {}
+    for e in experiments:
+        raw = e.metadata.get(SENSOR_DELAY_KEY)
+        if raw is None:
+            out.append(e)
+            continue
+        try:
+            path = SensorPath(delay_s=float(raw))
+        except (ValueError, ModelError) as exc:
+            raise RecordingError(
+                f"metadata {SENSOR_DELAY_KEY}: {raw!r} is not a valid delay ({exc})", e.path
+            ) from exc
+        seen[e.path or e.label] = path.delay_s
+        out.extend(experiments_through_sensor([e], path))
+    if not seen:
+        return out, None
+    where = ", ".join(f"{Path(k).name} {v * 1e3:g} ms" for k, v in seen.items())
+    return out, f"readback aligned by the recordings' documented sensor delay ({SENSOR_DELAY_KEY}: {where})"
+
+
 def experiments_through(
     experiments: Sequence[Experiment], effects: Mapping[str, Mapping[str, float]]
 ) -> list[Experiment]:
@@ -463,11 +507,13 @@ def write_extended_config(
 __all__ = [
     "NO_PART_REASON",
     "REFINE_EVALUATIONS",
+    "SENSOR_DELAY_KEY",
     "SENSOR_LAG_EVALUATIONS",
     "SENSOR_LAG_FACTORS",
     "TREND_HORIZON_FACTOR",
     "Adoption",
     "adopt_findings",
+    "align_known_delay",
     "experiments_through",
     "experiments_through_parts",
     "experiments_through_sensor",

@@ -32,7 +32,9 @@ A recording is a UTF-8 CSV file::
 Well-known metadata keys (all optional): ``range_um`` (nominal fast-axis scan range,
 the image width) and ``overscan`` (extra travel at each turning point as a fraction of
 ``range_um``, as :class:`piezod.scan.RasterParams`); ``piezod linearity`` uses the
-first when there is no ``target`` column and excludes the overscan from its regression.
+first when there is no ``target`` column and excludes the overscan from its regression;
+``sensor_delay_s`` (a readback delay the instrument documents, aligned by
+:func:`piezod.extensions.align_known_delay` before any fit).
 
 Crash tolerance
 ---------------

@@ -31,7 +31,8 @@ def delay_csv(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_json_report_and_plots(delay_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "audit.json"
     plots = tmp_path / "plots"
-    assert main(["audit", str(delay_csv), "--json", str(out), "--plots", str(plots)]) == 0
+    family = ["--family-laws", "prandtl-ishlinskii"]
+    assert main(["audit", str(delay_csv), "--json", str(out), "--plots", str(plots), *family]) == 0
     doc = json.loads(out.read_text())
     assert doc["cause"] == "delay"
     f = doc["findings"][0]
@@ -60,6 +61,12 @@ def test_json_report_and_plots(delay_csv: Path, tmp_path: Path, capsys: pytest.C
         "creep",
     ]
     assert all("gain" in c and "heldout_rms_after_um" in c for c in doc["candidates"])
+    # the stage follows the audit's own law: its model, not the play law, predicts best
+    assert [m["name"] for m in doc["family"]["members"]] == [
+        "family/prandtl-ishlinskii",
+        "family/prandtl-ishlinskii/voltage-creep",
+    ]
+    assert doc["best_model"]["source"] == "audit" and doc["best_model"]["name"].endswith("+ delay")
     text = capsys.readouterr().out
     assert "cause: delay" in text and "finding 1: delay" in text
     assert sorted(p.name for p in plots.iterdir()) == [
@@ -75,7 +82,7 @@ def test_json_report_and_plots(delay_csv: Path, tmp_path: Path, capsys: pytest.C
 def test_json_on_stdout_sends_the_report_to_stderr(
     delay_csv: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["audit", str(delay_csv), "--json", "-", "--effects", "delay", "drift"]) == 0
+    assert main(["audit", str(delay_csv), "--json", "-", "--effects", "delay", "drift", "--no-family"]) == 0
     cap = capsys.readouterr()
     doc = json.loads(cap.out)
     assert doc["cause"] == "delay"
@@ -85,7 +92,17 @@ def test_json_on_stdout_sends_the_report_to_stderr(
 
 def test_validate_recordings_are_the_held_out_data(delay_csv: Path, tmp_path: Path) -> None:
     out = tmp_path / "a.json"
-    args = ["audit", str(delay_csv), "--validate", str(delay_csv), "--json", str(out), "--effects", "delay"]
+    args = [
+        "audit",
+        str(delay_csv),
+        "--validate",
+        str(delay_csv),
+        "--json",
+        str(out),
+        "--effects",
+        "delay",
+        "--no-family",
+    ]
     assert main(args) == 0
     doc = json.loads(out.read_text())
     assert doc["heldout"]["method"].startswith("validation recordings")
@@ -111,7 +128,13 @@ def test_too_few_samples_names_the_experiment(tmp_path: Path, capsys: pytest.Cap
 
 def test_base_effects_are_fitted_into_the_baseline_never_named(capsys: pytest.CaptureFixture[str]) -> None:
     data = Path(__file__).resolve().parents[1] / "piezod" / "data" / "real" / "pi-p885"
-    args = ["audit", str(data / "identification.csv"), "--validate", str(data / "validation.csv")]
+    args = [
+        "audit",
+        str(data / "identification.csv"),
+        "--validate",
+        str(data / "validation.csv"),
+        "--no-family",
+    ]
     assert main([*args, "--base-effects", "creep", "--effects", "delay", "stiffness"]) == 0
     out = capsys.readouterr().out
     baseline = next(line for line in out.splitlines() if line.startswith("baseline parameters:"))

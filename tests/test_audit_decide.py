@@ -100,7 +100,11 @@ def test_p885_real_stack_names_a_cause_with_a_held_out_gain() -> None:
     first = result.findings[0]
     assert first.gain >= 1.2
     lag = first.params["delay_s"] + first.params["lag_time_constant_s"]
-    assert 0.005 <= lag <= 0.03  # the documented one-sample (5 ms) sensor lag plus the amplifier's
+    # The documented one-sample (5 ms) sensor delay is aligned from the recordings' metadata; the
+    # ODE baseline still needs a lag to widen its loop, which the model family does not confirm
+    # (piezod audit drops it: tests/test_audit_realdata.py).
+    assert 0.005 <= lag <= 0.03
+    assert any("documented sensor delay" in n for n in result.notes)
 
 
 def test_a_single_recording_is_split_in_time() -> None:

@@ -54,7 +54,7 @@ def test_audit_out_writes_a_scanner_yaml_the_daemon_loads(
     write_recording(rec, session.recording)
     out = tmp_path / "extended.yaml"
     base = default_sim_config_path()
-    assert main(["audit", str(rec), "--config", str(base), "--out", str(out)]) == 0
+    assert main(["audit", str(rec), "--config", str(base), "--out", str(out), "--no-family"]) == 0
     text = out.read_text()
     assert text.startswith("# Extended by piezod audit frame.csv")
     assert "# adopted stiffness: sensitivity_pct_per_um = " in text

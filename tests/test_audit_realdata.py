@@ -15,6 +15,7 @@ from piezod.audit import run_audit
 from piezod.audit.bounds import implausible
 from piezod.audit.decide import AuditResult
 from piezod.audit.standins import actuator_5khz, butterfly_session, decimate, pnzt_hold_session
+from piezod.family_heldout import audit_with_family
 from piezod.recording import Experiment, read_experiments
 
 DATA = Path(__file__).resolve().parents[1] / "piezod" / "data" / "real" / "pi-p885"
@@ -114,19 +115,41 @@ def test_split_in_time_gives_the_same_cause() -> None:
     assert _lag(split) == pytest.approx(_lag(whole), rel=0.15)
 
 
-def test_p885_decimated_and_split_by_validation_file_keep_the_cause() -> None:
+def test_p885_held_out_three_ways_names_what_the_better_model_confirms() -> None:
+    """Real data: the audit checked against the model family (what ``piezod audit`` does).
+
+    The ODE baseline widens its loop with a first-order lag of 11-12 ms; the play law, which
+    predicts the held-out data better, needs none, so the lag is not a candidate. What is named
+    is what the play law's own parts are worth on the held-out data: its static stiffness map
+    and its creep spectrum. Which of the two comes first depends on the held-out data (the
+    validation run rests between loops, where the creep shows; the identification run is one
+    constant amplitude), so the verdict is stable within the two splits of one run and one of
+    the two confirmed effects across all three."""
     ident = read_experiments([DATA / "identification.csv"])
     val = read_experiments([DATA / "validation.csv"])
-    by_file = run_audit(ident, val)
-    blocked = run_audit(ident)
-    halved = run_audit([decimate(e, 2) for e in ident])
-    assert by_file.cause == blocked.cause == halved.cause == "delay"
-    assert by_file.findings[0].gain - 2.0 * by_file.findings[0].gain_se >= 1.2
-    lags = np.array([_lag(r) for r in (by_file, blocked, halved)])
-    assert np.ptp(lags) <= 0.2 * lags.mean()
-    for r in (by_file, blocked, halved):
+    laws = ("prandtl-ishlinskii",)
+    by_file = audit_with_family(ident, val, laws=laws)
+    blocked = audit_with_family(ident, laws=laws)
+    halved = audit_with_family([decimate(e, 2) for e in ident], laws=laws)
+    assert blocked.result.cause == halved.result.cause
+    for checked in (by_file, blocked, halved):
+        r = checked.result
+        assert r.cause in ("creep", "stiffness")
+        assert checked.rejected == ("delay",)
+        assert "delay" not in [f.effect for f in r.findings]
+        assert all(c["confirmed"] for c in checked.checks if c["effect"] != "delay")
+        first = r.findings[0]
+        assert first.gain - 2.0 * first.gain_se > 1.05
         _all_plausible(r)
         assert r.degeneracy is not None and not r.degeneracy.degenerate
+        assert checked.best["source"] == "family"
+    stiffness = [
+        f.params["sensitivity_pct_per_um"]
+        for c in (blocked, halved)
+        for f in c.result.findings
+        if f.effect == "stiffness"
+    ]
+    assert len(stiffness) == 2 and np.ptp(stiffness) <= 0.05 * abs(np.mean(stiffness))
 
 
 def test_a_baseline_the_data_cannot_determine_names_no_cause() -> None:

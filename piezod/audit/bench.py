@@ -94,9 +94,18 @@ def _decimated(exps: Sequence[Experiment], k: int) -> list[Experiment]:
     return [decimate(e, k) for e in exps]
 
 
-def _audit(exps: Sequence[Experiment], val: Sequence[Experiment] = ()) -> tuple[AuditResult, float]:
+def _audit(
+    exps: Sequence[Experiment], val: Sequence[Experiment] = (), family_laws: Sequence[str] = ()
+) -> tuple[AuditResult, float]:
+    """The audit and its CPU time; with ``family_laws``, checked against those laws of the family
+    as ``piezod audit`` does (:func:`piezod.family_heldout.audit_with_family`)."""
     t0 = time.process_time()
-    r = run_audit(exps, val)
+    if family_laws:
+        from piezod.family_heldout import audit_with_family
+
+        r = audit_with_family(exps, val, laws=family_laws).result
+    else:
+        r = run_audit(exps, val)
     return r, time.process_time() - t0
 
 
@@ -174,19 +183,26 @@ def run_corpus(
                     )
     standins: list[dict[str, Any]] = []
 
-    def stand(name: str, expect: str, exps: Sequence[Experiment], val: Sequence[Experiment] = ()) -> str:
-        r, s = _audit(exps, val)
+    def stand(
+        name: str,
+        expect: str | tuple[str, ...],
+        exps: Sequence[Experiment],
+        val: Sequence[Experiment] = (),
+        family_laws: Sequence[str] = (),
+    ) -> str:
+        r, s = _audit(exps, val, family_laws)
+        expected = (expect,) if isinstance(expect, str) else expect
         record(name, r, s)
         f0 = r.findings[0] if r.findings else None
         standins.append(
             {
                 "name": name,
-                "expected": expect,
+                "expected": " or ".join(expected),
                 "cause": r.cause,
                 "params": {} if f0 is None else {k: _round(v) for k, v in f0.params.items()},
                 "gain": None if f0 is None else _round(f0.gain),
                 "gain_se": None if f0 is None else _round(f0.gain_se),
-                "ok": r.cause == expect,
+                "ok": r.cause in expected,
             }
         )
         return r.cause
@@ -203,9 +219,16 @@ def run_corpus(
         if P885.is_dir():
             ident = read_experiments([P885 / "identification.csv"])
             val = read_experiments([P885 / "validation.csv"])
-            a = stand("P-885, validation file", "delay", ident, val)
-            b = stand("P-885, blocked split", "delay", ident)
-            c = stand("P-885, decimated to 100 Hz", "delay", _decimated(ident, 2))
+            # Real data, no hidden truth: a cause is right when the model family's best member,
+            # which predicts the held-out data 2.7 x better than the audit's baseline, carries it
+            # (a stiffness of -0.2 to -0.37 %/um in every law, a creep spectrum; SOURCE.md
+            # documents the creep). The lag the ODE baseline needs (11-16 ms) it does not: the
+            # audits are checked against the family as `piezod audit` does.
+            p885 = ("creep", "stiffness")
+            laws = ("prandtl-ishlinskii",)
+            a = stand("P-885, validation file", p885, ident, val, laws)
+            b = stand("P-885, blocked split", p885, ident, family_laws=laws)
+            c = stand("P-885, decimated to 100 Hz", p885, _decimated(ident, 2), family_laws=laws)
             if len({a, b, c}) > 1:
                 invariance.append(f"P-885: validation {a}, blocked {b}, decimated {c}")
     other: list[dict[str, Any]] = []

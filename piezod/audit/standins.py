@@ -144,9 +144,9 @@ def actuator_5khz(*, seconds: float = 12.0, lag_s: float = 2e-3, seed: int = 1) 
 
 
 def decimate(e: Experiment, factor: int) -> Experiment:
-    """Every ``factor``-th sample (what a slower logger records)."""
+    """Every ``factor``-th sample (what a slower logger records; the metadata are kept)."""
     sl = slice(None, None, factor)
-    return Experiment(e.label, e.axis, e.t_s[sl], e.voltage_v[sl], e.position_um[sl])
+    return Experiment(e.label, e.axis, e.t_s[sl], e.voltage_v[sl], e.position_um[sl], metadata=e.metadata)
 
 
 def butterfly_session(

@@ -6,7 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from piezod.audit import EFFECTS, AuditOptions, print_summary, result_json, run_audit
+from piezod.audit import EFFECTS, AuditOptions, print_summary, result_json
+from piezod.calibrate_family import LAWS
 from piezod.cli._common import (
     add_json_option,
     add_reading_options,
@@ -16,6 +17,7 @@ from piezod.cli._common import (
     write_json,
 )
 from piezod.errors import PiezodError
+from piezod.family_heldout import audit_with_family
 from piezod.progress import progress_bar
 from piezod.recording import AXES, Experiment, read_experiments
 
@@ -87,6 +89,22 @@ def register(sub: Any) -> None:
         action="store_true",
         help="a few Gauss-Newton steps from the full fit per fold instead of a refit (faster, optimistic)",
     )
+    fam = p.add_argument_group("the model family (docs/model-family.md)")
+    fam.add_argument(
+        "--no-family",
+        action="store_true",
+        help="do not fit and score the model family's members on the held-out data (by default every"
+        " law with both creep drivers is, and the best model is the one of them or the audit's that"
+        " predicts best)",
+    )
+    fam.add_argument(
+        "--family-laws",
+        nargs="+",
+        choices=LAWS,
+        default=list(LAWS),
+        metavar="LAW",
+        help=f"the family's laws to score ({', '.join(LAWS)})",
+    )
     add_reading_options(p)
     p.set_defaults(func=run)
 
@@ -123,15 +141,37 @@ def run(args: argparse.Namespace) -> int:
         def tick(_label: str) -> None:
             bar.update(1)
 
-        result = run_audit(exps, val, options=options, on_step=tick)
+        checked = audit_with_family(
+            exps, val, options=options, family=not args.no_family, laws=args.family_laws, on_step=tick
+        )
+    result, family, best = checked.result, checked.family, checked.best
     out = human_stream(args)
     print_summary(result, out)
+    if family is not None:
+        print(f"\nthe model family on held-out data ({family.method}):", file=out)
+        print(family.table(), file=out)
+    elif checked.family_error:
+        print(f"\nthe model family: not scored ({checked.family_error})", file=out)
+    for c in checked.checks:
+        print(f"finding {c['text']}", file=out)
+    print(
+        f"best model on the held-out data: {best['name']} ({best['source']}), "
+        f"{best['heldout_rms_um']:.4g} um = {best['ratio_to_noise_floor']:.2f} x the noise floor",
+        file=out,
+    )
     if args.plots:
         from piezod.audit.plots import write_plots
 
         files = write_plots(result, args.plots)
         print(f"plots: {', '.join(str(f) for f in files)}", file=out)
     doc = result_json(result, inputs=list(args.recordings), validate=list(args.validate))
+    if family is not None:
+        doc["family"] = family.to_json()
+    else:
+        doc["family"] = {"error": checked.family_error} if checked.family_error else None
+    doc["best_model"] = best
+    doc["finding_checks"] = list(checked.checks)
+    doc["rejected_candidates"] = list(checked.rejected)
     write_json(args.json, doc)
     if args.out:
         from piezod.extensions import session_origin_unix_s, trend_horizon_s, write_extended_config
