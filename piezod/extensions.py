@@ -295,7 +295,10 @@ def align_known_delay(experiments: Sequence[Experiment]) -> tuple[list[Experimen
                 f"metadata {SENSOR_DELAY_KEY}: {raw!r} is not a valid delay ({exc})", e.path
             ) from exc
         seen[e.path or e.label] = path.delay_s
-        out.extend(experiments_through_sensor([e], path))
+        # the key moves to sensor_delay_aligned_s: aligning twice would shift the readback twice
+        meta = {k: v for k, v in e.metadata.items() if k != SENSOR_DELAY_KEY}
+        meta[f"{SENSOR_DELAY_KEY.removesuffix('_s')}_aligned_s"] = raw
+        out.extend(experiments_through_sensor([dataclasses.replace(e, metadata=meta)], path))
     if not seen:
         return out, None
     where = ", ".join(f"{Path(k).name} {v * 1e3:g} ms" for k, v in seen.items())

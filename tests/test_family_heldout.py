@@ -10,8 +10,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from piezod.calibrate_family import fit_family, session_positions
+from piezod.calibrate_family import fit_family, session_positions, settled_rows
 from piezod.cli import main
+from piezod.config import load_config
 from piezod.errors import CalibrationError, RecordingError
 from piezod.extensions import align_known_delay
 from piezod.family_heldout import (
@@ -22,6 +23,7 @@ from piezod.family_heldout import (
     check_findings,
     compare_family,
     heldout_mask,
+    prediction_error,
     session,
     time_blocks,
 )
@@ -106,6 +108,10 @@ def test_a_documented_sensor_delay_aligns_the_readback(tmp_path: Path) -> None:
     # the position recorded one sample later is the stage's at the drive's time
     np.testing.assert_allclose(a.position_um, e.position_um[1:], atol=1e-9)
     assert len(a) == len(e) - 1
+    # once aligned, the key is spent: aligning again changes nothing
+    assert a.metadata.get("sensor_delay_aligned_s") == "0.005" and "sensor_delay_s" not in a.metadata
+    (again,), note_again = align_known_delay([a])
+    assert again is a and note_again is None
     plain = dataclasses.replace(e, metadata={})
     assert align_known_delay([plain]) == ([plain], None)
     bad = tmp_path / "bad.csv"
@@ -169,3 +175,34 @@ def test_audit_cli_reports_the_family_and_the_best_model(
     # the lag the ODE baseline needed is not a candidate: the play law, better, does not need it
     assert doc["rejected_candidates"] == ["delay"] and doc["cause"] != "delay"
     assert all(not c["confirmed"] for c in doc["finding_checks"] if c["effect"] == "delay")
+
+
+def test_calibrate_model_family_writes_the_member_that_predicts_best(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out, report = tmp_path / "p885.yaml", tmp_path / "c.json"
+    args = ["calibrate", str(P885 / "identification.csv"), "--validate", str(P885 / "validation.csv")]
+    laws = ["--family-laws", "prandtl-ishlinskii", "coleman-hodgdon"]
+    assert main([*args, "--model", "family", *laws, "--out", str(out), "--json", str(report)]) == 0
+    text = capsys.readouterr().out
+    assert "model: family (family/prandtl-ishlinskii" in text and "documented sensor delay" in text
+    doc = json.loads(report.read_text())
+    assert doc["model"] == "family" and doc["chosen"].startswith("family/prandtl-ishlinskii")
+    assert len(doc["family"]["members"]) == 4
+    config = load_config(out)
+    assert config.axes["x"].model == "family"
+    family = config.axes["x"].family
+    assert family is not None and family.law == "prandtl-ishlinskii"
+    # the written model is the one scored: it predicts the validation run as the table says
+    val, _ = align_known_delay(read_experiments([P885 / "validation.csv"]))
+    data = session(val)
+    rows = settled_rows(data, doc["family"]["skip_s"])
+    resid, _ = prediction_error(data, family.params(), rows, np.zeros(len(val), dtype=np.intp))
+    scored = {m["name"]: m["heldout_rms_um"] for m in doc["family"]["members"]}
+    assert float(np.sqrt(np.mean(resid**2))) == pytest.approx(scored[doc["chosen"]], rel=1e-3)
+
+
+def test_calibrate_validate_needs_model_family(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["calibrate", str(P885 / "identification.csv"), "--validate", str(P885 / "validation.csv")]
+    assert main(args) == 2
+    assert "--model family" in capsys.readouterr().err

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -16,6 +16,7 @@ from piezod import calibrate_any
 from piezod.calibrate import LOSSES, PARAM_NAMES, CalibrationResult
 from piezod.calibrate_dynamic import PARAM_NAMES as DYNAMIC_PARAM_NAMES
 from piezod.calibrate_dynamic import DynamicCalibrationResult
+from piezod.calibrate_family import LAWS, family_model_config, fit_family
 from piezod.cli._common import (
     add_json_option,
     add_port_options,
@@ -26,10 +27,13 @@ from piezod.cli._common import (
     positive_float,
     write_json,
 )
-from piezod.config import dump_config, load_config
+from piezod.config import AxisName, dump_config, load_config
 from piezod.errors import CalibrationError
+from piezod.extensions import align_known_delay
+from piezod.family_heldout import FamilyComparison, MemberScore, compare_family, session
+from piezod.model.family import FamilyParams
 from piezod.progress import progress_bar
-from piezod.recording import AXES, read_experiments
+from piezod.recording import AXES, Experiment, read_experiments
 
 
 def register(sub: Any) -> None:
@@ -61,9 +65,28 @@ def register(sub: Any) -> None:
     )
     p.add_argument(
         "--model",
-        choices=calibrate_any.MODEL_CHOICES,
+        choices=(*calibrate_any.MODEL_CHOICES, "family"),
         default="auto",
-        help="auto (default): (3.8) for triangular scans, else dynamic; or force one",
+        help="auto (default): (3.8) for triangular scans, else dynamic; or force one; family: every law "
+        "of the model family fitted and the one that predicts held-out data best written "
+        "(docs/model-family.md)",
+    )
+    p.add_argument(
+        "--validate",
+        nargs="+",
+        default=[],
+        type=input_file,
+        metavar="REC.csv",
+        help="--model family: held-out recordings the members are scored on (default: every 4th "
+        "experiment, or every 4th of 5 time blocks of a single recording)",
+    )
+    p.add_argument(
+        "--family-laws",
+        nargs="+",
+        choices=LAWS,
+        default=list(LAWS),
+        metavar="LAW",
+        help=f"--model family: the laws to fit ({', '.join(LAWS)}; each with both creep drivers)",
     )
     p.add_argument("--loss", choices=LOSSES, default="linear", help="loss function (default: linear)")
     p.add_argument(
@@ -155,16 +178,31 @@ def run(args: argparse.Namespace) -> int:
     if args.axis is None and len(axes) > 1:
         raise CalibrationError(f"the recordings contain axes {', '.join(axes)}: choose one with --axis")
     axis = args.axis or (axes[0] if axes else "x")
+    exps, aligned = align_known_delay(exps)
     start = base.axes[axis].thesis.params() if base is not None and axis in base.axes else None
+    if args.validate and args.model != "family":
+        raise CalibrationError("--validate scores the model family's members: use it with --model family")
 
+    family: FamilyComparison | None = None
     with progress_bar(desc="calibrate", total=None, unit="eval") as bar:
 
         def tick(_n: int) -> None:
             bar.update(1)
 
+        if args.model == "family":
+            val: list[Experiment] = []
+            if args.validate:
+                val = read_experiments(
+                    args.validate,
+                    axis=axis,
+                    allow_truncated_tail=args.allow_truncated_tail,
+                    encoding=args.encoding,
+                )
+            val, _ = align_known_delay(val)
+            family = compare_family(exps, val, laws=args.family_laws, on_step=lambda _name: tick(1))
         result = calibrate_any.calibrate_any(
             exps,
-            model=args.model,
+            model="dynamic" if args.model == "family" else args.model,
             start=start,
             loss=args.loss,
             f_scale=args.f_scale,
@@ -174,11 +212,34 @@ def run(args: argparse.Namespace) -> int:
             on_eval=tick,
         )
     out = human_stream(args)
-    print(f"model: {result.choice.model} ({result.choice.reason})", file=out)
-    if result.thesis is not None:
-        _print_summary(result.thesis, axis, out)
-    elif result.dynamic is not None:
-        _print_dynamic(result.dynamic, axis, out)
+    if aligned:
+        print(f"note: {aligned}", file=out)
+    chosen = None if family is None else _chosen_member(family)
+    if family is not None and chosen is not None:
+        print(f"model: family ({chosen.name}: the member that predicts the held-out data best)", file=out)
+        print(f"held out: {family.method}", file=out)
+        print(family.table(), file=out)
+        print(
+            f"dynamic model (the config's thesis section and provenance): fit error "
+            f"{result.fit.fit_error_pct:.4f} %",
+            file=out,
+        )
+    else:
+        print(f"model: {result.choice.model} ({result.choice.reason})", file=out)
+        if result.thesis is not None:
+            _print_summary(result.thesis, axis, out)
+        elif result.dynamic is not None:
+            _print_dynamic(result.dynamic, axis, out)
+    doc = calibrate_any.result_json(result, inputs=list(args.recordings))
+    if family is not None and chosen is not None:
+        params = _refit(exps, chosen, family.skip_s)
+        doc.update(
+            model="family",
+            model_reason=f"{chosen.name} predicts the held-out data best ({family.method})",
+            family=family.to_json(),
+            chosen=chosen.name,
+            family_params=family_model_config(params).model_dump(),
+        )
     if args.out:
         span = (
             float(min(np.min(e.voltage_v) for e in exps)),
@@ -187,19 +248,43 @@ def run(args: argparse.Namespace) -> int:
         cfg = calibrate_any.calibrated_config(
             result, axis=axis, base=base, inputs=list(args.recordings), voltage_span_v=span
         )
+        model_name: str = result.choice.model
+        if family is not None and chosen is not None:
+            axes_cfg = dict(cfg.axes)
+            name = cast(AxisName, axis)
+            axes_cfg[name] = axes_cfg[name].model_copy(
+                update={"model": "family", "family": family_model_config(params)}
+            )
+            cfg = cfg.model_copy(update={"axes": axes_cfg})
+            model_name = f"family ({chosen.name}, held out: {family.method})"
         header = (
-            f"scanner config written by piezod calibrate (axis {axis}, {result.choice.model} model) "
+            f"scanner config written by piezod calibrate (axis {axis}, {model_name} model) "
             f"from {', '.join(args.recordings)}"
         )
         if args.config:
             header += f"\nbase: {args.config} (limits and other axes kept)"
         dump_config(cfg, args.out, header=header)
+        load_config(args.out)
         print(f"wrote {args.out}", file=out)
-    write_json(args.json, calibrate_any.result_json(result, inputs=list(args.recordings)))
+    write_json(args.json, doc)
     if not result.success:
         print(f"piezod calibrate: the fit did not converge: {result.message}", file=out)
         return 1
     return 0
+
+
+def _chosen_member(family: FamilyComparison) -> MemberScore:
+    """The member that predicts the held-out data best (both creep drivers stream in real time)."""
+    best = family.best
+    if best is None:
+        reasons = "; ".join(f"{m.name}: {m.error}" for m in family.members if m.error)
+        raise CalibrationError(f"no member of the model family could be fitted: {reasons}")
+    return best
+
+
+def _refit(exps: Sequence[Experiment], chosen: MemberScore, skip_s: float) -> FamilyParams:
+    """The chosen member refitted on every training experiment."""
+    return fit_family(session(exps), chosen.law, creep_driver=chosen.creep_driver, skip_s=skip_s).params
 
 
 def _print_dynamic(result: DynamicCalibrationResult, axis: str, out: Any) -> None:
