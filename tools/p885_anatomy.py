@@ -24,6 +24,13 @@ removed and an exact one-sample drive lag (the best setting of ``tools/model_fam
    ``tau`` 0.3-30 s, weights of either sign), fitted by least squares to the play law's residual
    on the identification run and carried to the validation run; and, as an upper bound of what
    such a term can do, fitted on the validation run itself.
+6. **What a law can fit at all**: every member fitted on the validation run itself (its training
+   RMS: a lower bound of what that member can reach on it), and a full Preisach density -- every
+   relay of a 30 x 30 grid over the drive span (465 relays, signed weights) plus voltage-creep
+   columns (8 relaxation times, 10 ms-30 s), by ridge least squares -- fitted on the validation
+   run itself, on the identification run with the validation run's compensated part (nested
+   loops in the training data) predicting its open-loop part, and on the identification run
+   alone predicting the validation run.
 
 Every score is an RMS in um; "x" is the ratio to the validation run's noise floor (third
 differences, :func:`piezod.audit.residuals.noise_floor`).
@@ -46,6 +53,7 @@ from model_family_p885 import _prepare, prediction_error
 from piezod.audit.residuals import noise_floor
 from piezod.calibrate_data import DynamicCalibrationData
 from piezod.calibrate_family import fit_family, settled_rows
+from piezod.errors import CalibrationError
 from piezod.model.family import FamilyParams
 
 F64 = NDArray[np.float64]
@@ -95,6 +103,51 @@ def _centred(data: DynamicCalibrationData, a: F64, rows: NDArray[np.bool_]) -> F
         sl = slice(int(s), int(s + c))
         out[sl] -= out[sl][rows[sl]].mean(axis=0)
     return out
+
+
+PREISACH_GRID = 30
+PREISACH_TAUS_S = tuple(float(t) for t in np.logspace(-2.0, 1.5, 8))
+PREISACH_RIDGE = 1e-5
+
+
+def _preisach_columns(data: DynamicCalibrationData, lo: float, hi: float) -> F64:
+    """Relay states (+-1) of a triangular Preisach grid and voltage-creep deviations, at the
+    compared samples; the relays start demagnetised at the session's rest voltage."""
+    g = np.linspace(lo, hi, PREISACH_GRID + 1)
+    up, down = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+    keep = up >= down
+    up, down = up[keep], down[keep]
+    v = data.grid_voltage_v
+    v0 = data.rest_voltage_v
+    state = np.where(up + down < 2.0 * v0, 1.0, -1.0)
+    state[up <= v0], state[down >= v0] = 1.0, -1.0
+    states = np.empty((v.size, up.size))
+    for n, x in enumerate(v):
+        state[x >= up] = 1.0
+        state[x <= down] = -1.0
+        states[n] = state
+    creep = []
+    for tau in PREISACH_TAUS_S:
+        k = np.exp(-0.005 / tau)
+        creep.append(v - lfilter([1.0 - k], [1.0, -k], v, zi=[k * v[0]])[0])
+    cols: F64 = np.column_stack([v, v * v, states, np.column_stack(creep)])[data.compared]
+    return cols
+
+
+def _ridge(x: F64, y: F64) -> F64:
+    a = x.T @ x
+    lam = PREISACH_RIDGE * float(np.trace(a)) / a.shape[0]
+    out: F64 = np.linalg.solve(a + lam * np.eye(a.shape[0]), x.T @ y)
+    return out
+
+
+def _scored(data: DynamicCalibrationData, pred: F64, rows: NDArray[np.bool_]) -> float:
+    """RMS of the measurement against a prediction on ``rows``, one offset per experiment and one
+    gain fitted there (the nuisance parameters of the family tool)."""
+    exp = np.repeat(np.arange(data.n_experiments), data.counts)[rows]
+    a = np.column_stack([pred[rows], *(exp == k for k in range(data.n_experiments))]).astype(float)
+    coef, *_ = np.linalg.lstsq(a, data.position_um[rows], rcond=None)
+    return _rms(data.position_um[rows] - a @ coef)
 
 
 def main() -> int:
@@ -203,6 +256,54 @@ def main() -> int:
             f" ({_rms(carried[keep_v]) / floor:.2f}x); fitted on the validation run itself"
             f" {_rms(bound[keep_v]):.4f} ({_rms(bound[keep_v]) / floor:.2f}x)"
         )
+
+    print("\n6. what a law can fit at all: fitted on the validation run itself, and a full Preisach density")
+    for law in ("prandtl-ishlinskii", "generalised-play", "coleman-hodgdon", "bouc-wen"):
+        for driver in ("position", "voltage"):
+            try:
+                fit = fit_family(
+                    valid, law, plays=args.plays, skip_s=SKIP_S, creep_driver=driver, fit_lag=False
+                )
+            except CalibrationError as exc:
+                print(f"   {law} ({driver} creep) fitted on the validation run: failed ({exc})")
+                continue
+            ratio = fit.rms_um / floor
+            print(f"   {law} ({driver} creep) fitted on the validation run: {fit.rms_um:.4f} ({ratio:.2f}x)")
+    lo = min(float(ident.grid_voltage_v.min()), float(valid.grid_voltage_v.min())) - 0.05
+    hi = max(float(ident.grid_voltage_v.max()), float(valid.grid_voltage_v.max())) + 0.05
+    xi, xv = _preisach_columns(ident, lo, hi), _preisach_columns(valid, lo, hi)
+    keep_i = settled_rows(ident, SKIP_S)
+    exp_i = np.repeat(np.arange(ident.n_experiments), ident.counts)
+    exp_v = np.repeat(np.arange(valid.n_experiments), valid.counts)
+
+    def with_offsets(x: F64, exp: NDArray[np.intp], n: int, shift: int) -> F64:
+        ind = np.zeros((x.shape[0], n_offsets))
+        ind[np.arange(x.shape[0]), exp + shift] = 1.0
+        return np.column_stack([x, ind])
+
+    n_offsets = ident.n_experiments + valid.n_experiments
+    own = _ridge(with_offsets(xv, exp_v, valid.n_experiments, 0)[keep_v], valid.position_um[keep_v])
+    own_rms = _scored(valid, with_offsets(xv, exp_v, valid.n_experiments, 0) @ own, keep_v)
+    comp = keep_v & (exp_v == 1)
+    both_x = np.vstack(
+        [
+            with_offsets(xi, exp_i, ident.n_experiments, 0)[keep_i],
+            with_offsets(xv, exp_v, valid.n_experiments, ident.n_experiments)[comp],
+        ]
+    )
+    both = _ridge(both_x, np.concatenate([ident.position_um[keep_i], valid.position_um[comp]]))
+    n_cols = xv.shape[1]
+    open_rows = keep_v & (exp_v == 0)
+    nested = _scored(valid, xv @ both[:n_cols], open_rows)
+    alone = _ridge(with_offsets(xi, exp_i, ident.n_experiments, 0)[keep_i], ident.position_um[keep_i])
+    carried = _scored(valid, xv @ alone[:n_cols], keep_v)
+    print(
+        f"   full Preisach density ({xv.shape[1] - 2 - len(PREISACH_TAUS_S)} relays) + voltage creep:"
+        f" fitted on the validation run {own_rms:.4f} ({own_rms / floor:.2f}x);"
+        f" fitted on the identification run and the compensated part, the open-loop part"
+        f" {nested:.4f} ({nested / floor:.2f}x); fitted on the identification run alone, the"
+        f" validation run {carried:.4f} ({carried / floor:.2f}x)"
+    )
     return 0
 
 
