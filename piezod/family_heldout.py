@@ -67,8 +67,8 @@ SKIP_FRACTION = 0.1
 #: Time blocks of a single recording (the audit's default folds).
 DEFAULT_BLOCKS = 5
 #: Grid density of the family's session (samples per loop / per non-periodic experiment, at most).
-MAX_SAMPLES_PER_LOOP = 4096
-MAX_SAMPLES_PER_EXPERIMENT = 1 << 16
+MAX_SAMPLES_PER_LOOP = 512
+MAX_SAMPLES_PER_EXPERIMENT = 1 << 14
 
 
 @dataclass(frozen=True)
