@@ -8,7 +8,8 @@ stiffness, drive lag) and scores each on held-out data, split the way the audit 
 
 * ``--validate`` recordings: the members are fitted on all training recordings and run through
   the validation session from rest; per experiment a position offset and per validation file one
-  sensor gain are nuisance parameters (a separate session: as :func:`piezod.audit.fitting.heldout_validate`);
+  sensor gain are nuisance parameters (a separate session, as
+  :func:`piezod.audit.fitting.heldout_validate`);
 * several experiments: every :data:`HOLDOUT_EVERY`-th experiment is held out (the last one when
   there are fewer), the others fitted, the model run through the whole session;
 * one recording: it is cut into ``blocks`` contiguous time blocks (the model still runs through
@@ -18,9 +19,15 @@ The first :data:`SKIP_S` seconds of every experiment (at most :data:`SKIP_FRACTI
 left out of the fits and the scores: the stage's state before a recording is unknown.
 
 A readback delay the recordings document (``sensor_delay_s`` metadata) is aligned first
-(:func:`piezod.extensions.align_known_delay`).
+(:func:`piezod.readback.align_known_delay`).
 
-Used by ``piezod audit`` (its "model family" table and ``best_model``) and by ``piezod
+The best member is then refitted without each of its parts (:data:`PARTS`: the static stiffness
+map, the creep spectrum, the drive lag) and each part's held-out gain measured
+(:class:`PartGain`). :func:`check_findings` holds the audit's findings against those parts, and
+:func:`audit_with_family` runs the audit, the family and the check together, dropping a
+candidate the better model contradicts (what ``piezod audit`` does).
+
+Used by ``piezod audit`` (the family table, the part gains, ``best_model``) and by ``piezod
 calibrate`` on recordings (``--model family``).
 """
 
@@ -52,8 +59,8 @@ from piezod.calibrate_family import (
     settled_rows,
 )
 from piezod.errors import CalibrationError
-from piezod.extensions import align_known_delay
 from piezod.model.family import FamilyParams
+from piezod.readback import align_known_delay
 from piezod.recording import Experiment
 
 F64 = NDArray[np.float64]

@@ -34,7 +34,7 @@ the image width) and ``overscan`` (extra travel at each turning point as a fract
 ``range_um``, as :class:`piezod.scan.RasterParams`); ``piezod linearity`` uses the
 first when there is no ``target`` column and excludes the overscan from its regression;
 ``sensor_delay_s`` (a readback delay the instrument documents, aligned by
-:func:`piezod.extensions.align_known_delay` before any fit).
+:func:`piezod.readback.align_known_delay` before any fit).
 
 Crash tolerance
 ---------------

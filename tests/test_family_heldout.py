@@ -14,7 +14,6 @@ from piezod.calibrate_family import fit_family, session_positions, settled_rows
 from piezod.cli import main
 from piezod.config import load_config
 from piezod.errors import CalibrationError, RecordingError
-from piezod.extensions import align_known_delay
 from piezod.family_heldout import (
     FamilyComparison,
     MemberScore,
@@ -29,6 +28,7 @@ from piezod.family_heldout import (
 )
 from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.model.play import PlayParams
+from piezod.readback import align_known_delay
 from piezod.recording import read_experiments
 
 P885 = Path(__file__).resolve().parents[1] / "piezod" / "data" / "real" / "pi-p885"

@@ -71,7 +71,7 @@ from piezod.audit.outside import Outside
 from piezod.audit.outside import check as check_outside
 from piezod.audit.residuals import noise_floor_data
 from piezod.errors import CalibrationError, PiezodError
-from piezod.extensions import align_known_delay
+from piezod.readback import align_known_delay
 from piezod.recording import Experiment
 from piezod.scan_inference import ScanInfo
 

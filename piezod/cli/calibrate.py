@@ -29,10 +29,10 @@ from piezod.cli._common import (
 )
 from piezod.config import AxisName, dump_config, load_config
 from piezod.errors import CalibrationError
-from piezod.extensions import align_known_delay
 from piezod.family_heldout import FamilyComparison, MemberScore, compare_family, session
 from piezod.model.family import FamilyParams
 from piezod.progress import progress_bar
+from piezod.readback import align_known_delay
 from piezod.recording import AXES, Experiment, read_experiments
 
 
