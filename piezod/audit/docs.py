@@ -22,6 +22,7 @@ import tempfile
 from pathlib import Path
 
 from piezod.audit.standins import decimate
+from piezod.calibrate_family import LAWS
 from piezod.errors import PiezodError
 from piezod.family_heldout import FamilyAudit, audit_with_family
 from piezod.recording import read_experiments
@@ -39,7 +40,7 @@ def p885_results() -> tuple[FamilyAudit, FamilyAudit, FamilyAudit]:
     val = read_experiments([P885 / "validation.csv"])
     fast = ("prandtl-ishlinskii",)
     return (
-        audit_with_family(ident, val),
+        audit_with_family(ident, val, laws=LAWS),
         audit_with_family(ident, laws=fast),
         audit_with_family([decimate(e, 2) for e in ident], laws=fast),
     )
