@@ -93,9 +93,9 @@ def register(sub: Any) -> None:
     fam.add_argument(
         "--no-family",
         action="store_true",
-        help="do not fit and score the model family's members on the held-out data (by default every"
-        " law with both creep drivers is, and the best model is the one of them or the audit's that"
-        " predicts best)",
+        help="do not fit and score the model family's members on the held-out data (by default the"
+        " --family-laws are, each with both creep drivers; the best model is the one of them or the"
+        " audit's that predicts best, and a finding the better model contradicts is not named)",
     )
     fam.add_argument(
         "--family-laws",
