@@ -148,6 +148,9 @@ class PartGain:
     material
         The gain passes the audit's rule (at least ``gain_min`` and more than ``gain_sigmas``
         standard errors above 1, :class:`piezod.audit.AuditOptions`).
+    error
+        Why the member could not be refitted without the part (None when it could); such a part
+        checks no finding.
     """
 
     effect: str
@@ -155,6 +158,7 @@ class PartGain:
     gain: float
     gain_se: float
     material: bool
+    error: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         """JSON of the part's gain."""
@@ -164,6 +168,7 @@ class PartGain:
             "gain": _num(self.gain),
             "gain_se": _num(self.gain_se),
             "material": self.material,
+            "error": self.error,
         }
 
 
@@ -232,6 +237,9 @@ class FamilyComparison:
             )
         lines.append(f"{'noise floor of the held-out data':<42} {'':>13} {floor:>16.4f}")
         for p in self.parts:
+            if p.error is not None:
+                lines.append(f"  without its {p.effect:<9} not measured ({p.error})")
+                continue
             mark = "material" if p.material else "not material"
             lines.append(
                 f"  without its {p.effect:<9} held-out RMS {p.heldout_rms_without_um:.4f} um: gain "
@@ -317,7 +325,7 @@ def check_findings(
     out: list[dict[str, Any]] = []
     for f in findings:
         part = comparison.part(f.effect)
-        if part is None:
+        if part is None or part.error is not None:
             continue
         if f.effect == "delay":
             value = 1e3 * (
@@ -647,7 +655,7 @@ def compare_family(
             name = member_name(law, driver)
             try:
                 fit, resid, gains = fitted(law, driver)
-            except CalibrationError as exc:
+            except (CalibrationError, np.linalg.LinAlgError) as exc:
                 members.append(MemberScore(name, law, driver, math.nan, math.nan, None, str(exc)))
                 step(name)
                 continue
@@ -667,7 +675,8 @@ def compare_family(
     for effect in PARTS:
         try:
             _, resid, _ = fitted(best.law, best.creep_driver, without=effect)
-        except CalibrationError:
+        except (CalibrationError, np.linalg.LinAlgError) as exc:
+            parts.append(PartGain(effect, math.nan, math.nan, math.nan, False, str(exc)))
             continue
         rms = float(np.sqrt(np.mean(resid**2))) if resid.size else math.nan
         gain, se = gain_with_se(HeldOut(rms, resid, np.ones(1, dtype=bool)), with_part)

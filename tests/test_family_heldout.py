@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -152,6 +153,11 @@ def test_findings_are_checked_against_a_better_predicting_member_only() -> None:
     assert check_findings(lagged, [finding], 0.47)[0]["confirmed"] is True
     small = FamilyComparison("m", (_member(0.17, 0.001),), 0.074, 1.0, (), parts=_parts(delay=True))
     assert "far less" in check_findings(small, [finding], 0.47)[0]["text"]
+    # a part the member could not be refitted without checks nothing
+    unmeasured = (PartGain("delay", math.nan, math.nan, math.nan, False, "no admissible law"),)
+    failed = FamilyComparison("m", (_member(0.17, 0.0),), 0.074, 1.0, (), parts=unmeasured)
+    assert check_findings(failed, [finding], 0.47) == []
+    assert "not measured (no admissible law)" in failed.table()
     # a member that predicts worse than the audit's model checks nothing
     assert check_findings(lagless, [finding], audit_heldout_rms_um=0.1) == []
     best = best_model(lagless, "audit: hysteresis ODE (2.21) + delay", 0.47, 0.07)

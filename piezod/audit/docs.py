@@ -119,7 +119,7 @@ def p885_block(by_file_checked: FamilyAudit, blocked: FamilyAudit, halved: Famil
             "|---|---|---|---|",
             *(
                 f"| {p.effect} | {_g(p.heldout_rms_without_um)} | {_g(p.gain)} +- {_g(p.gain_se, 2)} | "
-                f"{'yes' if p.material else 'no'} |"
+                f"{'yes' if p.material else 'no' if p.error is None else 'not measured: ' + p.error} |"
                 for p in family.parts
             ),
         ]
