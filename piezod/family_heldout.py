@@ -193,6 +193,8 @@ class FamilyComparison:
         Per validation file, the best member's fitted sensor gain (validation only).
     parts
         What each part of the best member (:data:`PARTS`) is worth on the held-out data.
+    others
+        Held-out RMS of the models passed as ``others`` to :func:`compare_family`.
     """
 
     method: str
@@ -202,6 +204,7 @@ class FamilyComparison:
     heldout: tuple[str, ...]
     gains: dict[str, float] = field(default_factory=dict)
     parts: tuple[PartGain, ...] = ()
+    others: dict[str, float] = field(default_factory=dict)
 
     def part(self, effect: str) -> PartGain | None:
         """The best member's part for ``effect`` (None when not measured)."""
@@ -235,6 +238,9 @@ class FamilyComparison:
                 f"{m.name:<42} {m.train_rms_um:>13.4f} {m.heldout_rms_um:>16.4f} {ratio:>8.2f}"
                 f" {1e3 * m.params.lag_time_constant_s:>7.2f} {m.params.stiffness_pct_per_um:>7.3f}{mark}"
             )
+        for name, rms in self.others.items():
+            ratio = rms / floor if floor > 0 else math.inf
+            lines.append(f"{name + ' (fitted on all)':<42} {'':>13} {rms:>16.4f} {ratio:>8.2f}")
         lines.append(f"{'noise floor of the held-out data':<42} {'':>13} {floor:>16.4f}")
         for p in self.parts:
             if p.error is not None:
@@ -259,6 +265,7 @@ class FamilyComparison:
             "best": None if best is None else best.name,
             "gains": self.gains,
             "parts": [p.to_json() for p in self.parts],
+            "others": {k: _num(v) for k, v in self.others.items()},
         }
 
 
@@ -557,6 +564,7 @@ def compare_family(
     creep_drivers: Sequence[str] = CREEP_DRIVERS,
     plays: int = DEFAULT_PLAYS,
     on_step: Callable[[str], None] | None = None,
+    others: dict[str, FamilyParams] | None = None,
 ) -> FamilyComparison:
     """Fit every member of the family and score it on held-out data (module docstring).
 
@@ -574,6 +582,10 @@ def compare_family(
         Play operators of the play laws.
     on_step
         Called with the member's name after every fit.
+    others
+        Models fitted elsewhere (e.g. the dynamic model, on all the training data), scored on the
+        same held-out data as :attr:`FamilyComparison.others` (name -> held-out RMS); they take
+        no part in :attr:`FamilyComparison.best`.
 
     Raises
     ------
@@ -665,7 +677,11 @@ def compare_family(
                 gains_by[name] = dict(zip(keys, gains, strict=True))
             members.append(MemberScore(name, law, driver, fit.rms_um, held, fit.params))
             step(name)
-    result = FamilyComparison(method, tuple(members), floor, skip, heldout)
+    scored_others: dict[str, float] = {}
+    for name, params in (others or {}).items():
+        resid, _ = heldout_residual(params)
+        scored_others[name] = float(np.sqrt(np.mean(resid**2))) if resid.size else math.nan
+    result = FamilyComparison(method, tuple(members), floor, skip, heldout, others=scored_others)
     best = result.best
     if best is None:
         return result

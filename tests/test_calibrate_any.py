@@ -146,3 +146,5 @@ def test_cli_says_which_model_and_writes_it(tmp_path: Path) -> None:
     doc = json.loads((tmp_path / "c.json").read_text())
     assert doc["model"] == "dynamic" and "sine" in doc["model_reason"]
     assert "model: dynamic" in (tmp_path / "c.yaml").read_text()
+    # the stage follows the dynamic model's own law: no member of the family predicts it better
+    assert "dynamic" in doc["family"]["others"] and "the dynamic model is written" in doc["model_reason"]

@@ -208,7 +208,25 @@ def test_calibrate_model_family_writes_the_member_that_predicts_best(
     assert float(np.sqrt(np.mean(resid**2))) == pytest.approx(scored[doc["chosen"]], rel=1e-3)
 
 
-def test_calibrate_validate_needs_model_family(capsys: pytest.CaptureFixture[str]) -> None:
+def test_calibrate_auto_writes_the_family_member_when_it_predicts_the_held_out_data_better(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Real data, not triangular scans: the dynamic model (the ODE with log creep) and the family's
+    members are scored on the validation run; the play law predicts it better and is written."""
+    out, report = tmp_path / "auto.yaml", tmp_path / "auto.json"
     args = ["calibrate", str(P885 / "identification.csv"), "--validate", str(P885 / "validation.csv")]
-    assert main(args) == 2
+    laws = ["--family-laws", "prandtl-ishlinskii"]
+    assert main([*args, *laws, "--out", str(out), "--json", str(report)]) == 0
+    text = capsys.readouterr().out
+    assert "model: family (family/prandtl-ishlinskii" in text and "auto: not every experiment" in text
+    doc = json.loads(report.read_text())
+    dynamic = doc["family"]["others"]["dynamic"]
+    scored = {m["name"]: m["heldout_rms_um"] for m in doc["family"]["members"]}
+    assert doc["model"] == "family" and scored[doc["chosen"]] < 0.98 * dynamic
+    assert load_config(out).axes["x"].model == "family"
+
+
+def test_calibrate_validate_needs_a_model_it_scores(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["calibrate", str(P885 / "identification.csv"), "--validate", str(P885 / "validation.csv")]
+    assert main([*args, "--model", "dynamic"]) == 2
     assert "--model family" in capsys.readouterr().err

@@ -7,6 +7,7 @@ for any other waveform (:mod:`piezod.calibrate_any` chooses and says which).
 from __future__ import annotations
 
 import argparse
+import math
 from collections.abc import Sequence
 from typing import Any, cast
 
@@ -16,7 +17,7 @@ from piezod import calibrate_any
 from piezod.calibrate import LOSSES, PARAM_NAMES, CalibrationResult
 from piezod.calibrate_dynamic import PARAM_NAMES as DYNAMIC_PARAM_NAMES
 from piezod.calibrate_dynamic import DynamicCalibrationResult
-from piezod.calibrate_family import LAWS, family_model_config, fit_family
+from piezod.calibrate_family import CHOICE_TIE_FRACTION, LAWS, family_model_config, fit_family
 from piezod.cli._common import (
     add_json_option,
     add_port_options,
@@ -30,7 +31,8 @@ from piezod.cli._common import (
 from piezod.config import AxisName, dump_config, load_config
 from piezod.errors import CalibrationError
 from piezod.family_heldout import FamilyComparison, MemberScore, compare_family, session
-from piezod.model.family import FamilyParams
+from piezod.model.dynamic import DynamicParams
+from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.progress import progress_bar
 from piezod.readback import align_known_delay
 from piezod.recording import AXES, Experiment, read_experiments
@@ -67,9 +69,9 @@ def register(sub: Any) -> None:
         "--model",
         choices=(*calibrate_any.MODEL_CHOICES, "family"),
         default="auto",
-        help="auto (default): (3.8) for triangular scans, else dynamic; or force one; family: every law "
-        "of the model family fitted and the one that predicts held-out data best written "
-        "(docs/model-family.md)",
+        help="auto (default): (3.8) for triangular scans, else the dynamic model or the model family's "
+        "best member, whichever predicts held-out data better; or force one; family: the member that "
+        "predicts held-out data best (docs/model-family.md 3.1)",
     )
     p.add_argument(
         "--validate",
@@ -77,8 +79,8 @@ def register(sub: Any) -> None:
         default=[],
         type=input_file,
         metavar="REC.csv",
-        help="--model family: held-out recordings the members are scored on (default: every 4th "
-        "experiment, or every 4th of 5 time blocks of a single recording)",
+        help="--model family / auto (not on triangular scans): held-out recordings the models are "
+        "scored on (default: every 4th experiment, or every 4th of 5 time blocks of a single recording)",
     )
     p.add_argument(
         "--family-laws",
@@ -86,7 +88,8 @@ def register(sub: Any) -> None:
         choices=LAWS,
         default=list(LAWS),
         metavar="LAW",
-        help=f"--model family: the laws to fit ({', '.join(LAWS)}; each with both creep drivers)",
+        help=f"--model family / auto: the family's laws to fit ({', '.join(LAWS)}; each with both creep "
+        "drivers)",
     )
     p.add_argument("--loss", choices=LOSSES, default="linear", help="loss function (default: linear)")
     p.add_argument(
@@ -180,26 +183,22 @@ def run(args: argparse.Namespace) -> int:
     axis = args.axis or (axes[0] if axes else "x")
     exps, aligned = align_known_delay(exps)
     start = base.axes[axis].thesis.params() if base is not None and axis in base.axes else None
-    if args.validate and args.model != "family":
-        raise CalibrationError("--validate scores the model family's members: use it with --model family")
+    if args.validate and (
+        args.model in ("thesis", "dynamic")
+        or (args.model == "auto" and calibrate_any.choose_model(exps, "auto").model == "thesis")
+    ):
+        raise CalibrationError(
+            "--validate scores the model family's members: use it with --model family (or auto on "
+            "recordings that are not all triangular scans)"
+        )
 
     family: FamilyComparison | None = None
+    family_note = ""
     with progress_bar(desc="calibrate", total=None, unit="eval") as bar:
 
         def tick(_n: int) -> None:
             bar.update(1)
 
-        if args.model == "family":
-            val: list[Experiment] = []
-            if args.validate:
-                val = read_experiments(
-                    args.validate,
-                    axis=axis,
-                    allow_truncated_tail=args.allow_truncated_tail,
-                    encoding=args.encoding,
-                )
-            val, _ = align_known_delay(val)
-            family = compare_family(exps, val, laws=args.family_laws, on_step=lambda _name: tick(1))
         result = calibrate_any.calibrate_any(
             exps,
             model="dynamic" if args.model == "family" else args.model,
@@ -211,12 +210,45 @@ def run(args: argparse.Namespace) -> int:
             max_samples_per_loop=args.max_samples_per_loop or None,
             on_eval=tick,
         )
+        dyn = result.dynamic
+        if dyn is not None and args.model in ("family", "auto"):
+            # The dynamic model is a candidate too (fitted on all the data, so it wins ties).
+            incumbent = {"dynamic": FamilyParams(dyn.params.hysteresis, _spectrum(dyn.params))}
+            val: list[Experiment] = []
+            if args.validate:
+                val = read_experiments(
+                    args.validate,
+                    axis=axis,
+                    allow_truncated_tail=args.allow_truncated_tail,
+                    encoding=args.encoding,
+                )
+            val, _ = align_known_delay(val)
+            try:
+                family = compare_family(
+                    exps, val, laws=args.family_laws, on_step=lambda _name: tick(1), others=incumbent
+                )
+            except CalibrationError as exc:
+                if args.model == "family":
+                    raise
+                family_note = f"the model family was not scored ({exc}): the dynamic model is written"
     out = human_stream(args)
     if aligned:
         print(f"note: {aligned}", file=out)
     chosen = None if family is None else _chosen_member(family)
+    if family is not None and chosen is not None and args.model == "auto":
+        dynamic_rms = family.others.get("dynamic", math.inf)
+        if not chosen.heldout_rms_um < dynamic_rms * (1.0 - CHOICE_TIE_FRACTION):
+            family_note = (
+                f"the dynamic model predicts the held-out data ({dynamic_rms:.4g} um) as well as the "
+                f"family's best member {chosen.name} ({chosen.heldout_rms_um:.4g} um): the dynamic model "
+                "is written"
+            )
+            chosen = None
     if family is not None and chosen is not None:
-        print(f"model: family ({chosen.name}: the member that predicts the held-out data best)", file=out)
+        why = "requested" if args.model == "family" else "auto: not every experiment is a triangular scan"
+        print(
+            f"model: family ({chosen.name}: the member that predicts the held-out data best; {why})", file=out
+        )
         print(f"held out: {family.method}", file=out)
         print(family.table(), file=out)
         print(
@@ -230,13 +262,21 @@ def run(args: argparse.Namespace) -> int:
             _print_summary(result.thesis, axis, out)
         elif result.dynamic is not None:
             _print_dynamic(result.dynamic, axis, out)
+        if family is not None:
+            print(f"the model family on held-out data ({family.method}):", file=out)
+            print(family.table(), file=out)
+        if family_note:
+            print(f"note: {family_note}", file=out)
     doc = calibrate_any.result_json(result, inputs=list(args.recordings))
+    if family is not None:
+        doc["family"] = family.to_json()
+    if family_note:
+        doc["model_reason"] = f"{doc['model_reason']}; {family_note}"
     if family is not None and chosen is not None:
         params = _refit(exps, chosen, family.skip_s)
         doc.update(
             model="family",
             model_reason=f"{chosen.name} predicts the held-out data best ({family.method})",
-            family=family.to_json(),
             chosen=chosen.name,
             family_params=family_model_config(params).model_dump(),
         )
@@ -280,6 +320,11 @@ def _chosen_member(family: FamilyComparison) -> MemberScore:
         reasons = "; ".join(f"{m.name}: {m.error}" for m in family.members if m.error)
         raise CalibrationError(f"no member of the model family could be fitted: {reasons}")
     return best
+
+
+def _spectrum(params: DynamicParams) -> CreepSpectrum:
+    """The dynamic model's creep as a family creep spectrum (the same modal bank)."""
+    return CreepSpectrum(tuple(map(float, params.taus_s)), tuple(map(float, params.weights)))
 
 
 def _refit(exps: Sequence[Experiment], chosen: MemberScore, skip_s: float) -> FamilyParams:
