@@ -120,11 +120,18 @@ class CreepStructure:
 
 
 def _hysteresis_unit(data: DynamicCalibrationData, alpha: float) -> F64:
-    """``Y_alpha`` at the grid samples: ``x_h - b V`` of the ODE with ``delta = 1``, from rest."""
+    """``Y_alpha`` at the grid samples: ``x_h - b V`` of the ODE with ``delta = 1``, from rest.
+
+    ``h = x_h - b V`` obeys ``dh = -alpha (|dV| h + delta dV)``: it depends on ``alpha`` and
+    ``delta = (b - u) / alpha`` only, so ``b = 1 + alpha, u = 1`` gives it for any ``alpha > 0``
+    (``u = 1 - alpha`` with ``b = 1`` was not a law for ``alpha >= 1`` 1/V, which a session
+    spanning a few volts searches).
+    """
     v = data.hysteresis_voltage_v
     v0 = data.rest_voltage_v
-    xh, _ = hysteresis_step(HysteresisParams(alpha, 1.0, 1.0 - alpha), v, HysteresisState(v0, v0))
-    y: F64 = (xh - v)[data.grid_index]
+    b = 1.0 + alpha
+    xh, _ = hysteresis_step(HysteresisParams(alpha, b, 1.0), v, HysteresisState(v0, b * v0))
+    y: F64 = (xh - b * v)[data.grid_index]
     return y
 
 
