@@ -256,9 +256,13 @@ class FamilyFit(FitResult):
     ----------
     params
         The frozen model parameters.
+    heldout_residuals_um
+        Measured minus fitted position on the held-out rows (offsets removed per experiment;
+        empty without held-out experiments): what :attr:`heldout_rms_um` is the RMS of.
     """
 
     params: FamilyParams
+    heldout_residuals_um: F64 = field(default_factory=lambda: np.zeros(0))
 
     @property
     def law(self) -> str:
@@ -705,6 +709,7 @@ def _result(s: _Session, params: FamilyParams, iterations: int, n_coefficients: 
         message="converged",
         seconds=time.perf_counter() - t0,
         heldout_rms_um=float(np.sqrt(np.mean(held**2))) if held.size else math.nan,
+        heldout_residuals_um=held,
     )
 
 

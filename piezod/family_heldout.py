@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 
 from piezod.audit import AuditOptions, AuditResult, run_audit
 from piezod.audit.fitting import HeldOut, gain_with_se
-from piezod.audit.residuals import noise_floor
+from piezod.audit.residuals import pooled_noise_floor
 from piezod.calibrate_data import DynamicCalibrationData, prepare_dynamic
 from piezod.calibrate_family import (
     CHOICE_TIE_FRACTION,
@@ -54,6 +54,7 @@ from piezod.calibrate_family import (
     LAWS,
     FamilyFit,
     fit_family,
+    holdout_mask,
     member_name,
     session_positions,
     settled_rows,
@@ -411,9 +412,8 @@ class FamilyAudit:
 
 def audit_model_name(result: AuditResult) -> str:
     """``audit: <baseline> + <finding> + ...`` (the audit's final model)."""
-    base = "thesis (3.8)" if result.base_kind == "thesis" else "hysteresis ODE (2.21)"
     named = [f.effect for f in result.findings if f.round > 0]
-    return " + ".join([f"audit: {base}", *named])
+    return " + ".join([f"audit: {result.baseline_name}", *named])
 
 
 def audit_with_family(
@@ -482,6 +482,10 @@ def _num(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
 
 
+def _rms(resid: F64) -> float:
+    return float(np.sqrt(np.mean(resid**2))) if resid.size else math.nan
+
+
 def skip_for(experiments: Sequence[Experiment]) -> float:
     """Start-up time left out of every experiment: :data:`SKIP_S`, at most :data:`SKIP_FRACTION` of
     the shortest experiment."""
@@ -502,31 +506,19 @@ def session(experiments: Sequence[Experiment]) -> DynamicCalibrationData:
 
 def time_blocks(experiment: Experiment, blocks: int) -> list[Experiment]:
     """``experiment`` cut into ``blocks`` contiguous experiments (labels ``<label>[i/blocks]``)."""
-    n = len(experiment)
-    edges = np.linspace(0, n, blocks + 1).round().astype(int)
-    out = []
-    for i, (a, b) in enumerate(itertools.pairwise(edges)):
-        sl = slice(int(a), int(b))
-        out.append(
-            dataclasses.replace(
-                experiment,
-                label=f"{experiment.label}[{i + 1}/{blocks}]",
-                t_s=experiment.t_s[sl],
-                voltage_v=experiment.voltage_v[sl],
-                position_um=experiment.position_um[sl],
-                target_um=None if experiment.target_um is None else experiment.target_um[sl],
-                line_numbers=None if experiment.line_numbers is None else experiment.line_numbers[sl],
-            )
-        )
-    return out
+    edges = np.linspace(0, len(experiment), blocks + 1).round().astype(int)
+    return [
+        experiment.rows(slice(int(a), int(b)), label=f"{experiment.label}[{i + 1}/{blocks}]")
+        for i, (a, b) in enumerate(itertools.pairwise(edges))
+    ]
 
 
 def heldout_mask(n: int, every: int = HOLDOUT_EVERY) -> NDArray[np.bool_]:
-    """Training mask of ``n`` experiments: every ``every``-th held out (the last one when ``n < every``)."""
-    train = np.ones(n, dtype=bool)
+    """Training mask of ``n`` experiments: :func:`~piezod.calibrate_family.holdout_mask`, and the last
+    one held out when ``n < every`` (that one holds out none)."""
     if n < 2:
         raise CalibrationError("the held-out test needs at least two experiments, time blocks or --validate")
-    train[every - 1 :: every] = False
+    train = holdout_mask(n, every)
     if train.all():
         train[-1] = False
     return train
@@ -625,10 +617,7 @@ def compare_family(
         ordered = sorted(train_exps, key=lambda e: float(e.t_s[0]))
         floor_exps = [e for e, t in zip(ordered, train_mask, strict=True) if not t]
         heldout = tuple(e.label for e in floor_exps)
-    floors = [noise_floor(np.asarray(e.position_um, dtype=np.float64)) for e in floor_exps]
-    w = np.array([len(e) for e in floor_exps], dtype=np.float64)
-    ok = np.isfinite(floors)
-    floor = math.sqrt(float(np.sum(w[ok] * np.square(floors)[ok]) / np.sum(w[ok]))) if ok.any() else math.nan
+    floor, _ = pooled_noise_floor([e.position_um for e in floor_exps])
     if validate:
 
         def heldout_residual(params: FamilyParams) -> tuple[F64, list[float]]:
@@ -640,6 +629,7 @@ def compare_family(
         y_centred = train_data.centred(train_data.position_um)
 
         def heldout_residual(params: FamilyParams) -> tuple[F64, list[float]]:
+            # a model fitted elsewhere (``others``); a member's fit carries its own residuals
             x = train_data.centred(session_positions(train_data, params))
             out: F64 = (x - y_centred)[test_rows]
             return out, []
@@ -656,6 +646,8 @@ def compare_family(
             fit_creep=without != "creep",
             fit_lag=without != "delay",
         )
+        if not validate:
+            return fit, fit.heldout_residuals_um, []
         resid, gains = heldout_residual(fit.params)
         return fit, resid, gains
 
@@ -671,7 +663,7 @@ def compare_family(
                 members.append(MemberScore(name, law, driver, math.nan, math.nan, None, str(exc)))
                 step(name)
                 continue
-            held = float(np.sqrt(np.mean(resid**2))) if resid.size else math.nan
+            held = _rms(resid)
             resid_by[name] = resid
             if validate:
                 gains_by[name] = dict(zip(keys, gains, strict=True))
@@ -679,8 +671,7 @@ def compare_family(
             step(name)
     scored_others: dict[str, float] = {}
     for name, params in (others or {}).items():
-        resid, _ = heldout_residual(params)
-        scored_others[name] = float(np.sqrt(np.mean(resid**2))) if resid.size else math.nan
+        scored_others[name] = _rms(heldout_residual(params)[0])
     result = FamilyComparison(method, tuple(members), floor, skip, heldout, others=scored_others)
     best = result.best
     if best is None:
@@ -694,7 +685,7 @@ def compare_family(
         except (CalibrationError, np.linalg.LinAlgError) as exc:
             parts.append(PartGain(effect, math.nan, math.nan, math.nan, False, str(exc)))
             continue
-        rms = float(np.sqrt(np.mean(resid**2))) if resid.size else math.nan
+        rms = _rms(resid)
         gain, se = gain_with_se(HeldOut(rms, resid, np.ones(1, dtype=bool)), with_part)
         material = bool(
             gain >= opts.gain_min and gain - opts.gain_sigmas * (se if math.isfinite(se) else 0.0) > 1.0

@@ -32,16 +32,7 @@ def experiments_through_sensor(experiments: Sequence[Experiment], path: SensorPa
         n = t.size
         if n < 2:
             raise ModelError(f"experiment {e.describe()}: shorter than the sensor delay {path.delay_s:g} s")
-        out.append(
-            dataclasses.replace(
-                e,
-                t_s=t,
-                voltage_v=np.asarray(e.voltage_v, dtype=np.float64)[:n],
-                position_um=x,
-                target_um=None if e.target_um is None else e.target_um[:n],
-                line_numbers=None if e.line_numbers is None else e.line_numbers[:n],
-            )
-        )
+        out.append(e.rows(slice(0, n), t_s=t, position_um=x))
     return out
 
 

@@ -62,6 +62,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -254,6 +255,17 @@ class Experiment:
                 self.first_line,
             )
         return info
+
+    def rows(self, sl: slice, **changes: Any) -> Experiment:
+        """The experiment's rows ``sl`` (every per-sample column sliced), with ``changes`` replaced."""
+        columns: dict[str, Any] = {
+            "t_s": self.t_s[sl],
+            "voltage_v": self.voltage_v[sl],
+            "position_um": self.position_um[sl],
+            "target_um": None if self.target_um is None else self.target_um[sl],
+            "line_numbers": None if self.line_numbers is None else self.line_numbers[sl],
+        }
+        return replace(self, **{**columns, **changes})
 
     def describe(self) -> str:
         """``'label'`` plus the axis, for messages."""

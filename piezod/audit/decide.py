@@ -247,6 +247,11 @@ class AuditResult:
     degeneracy: Degeneracy | None = None
 
     @property
+    def baseline_name(self) -> str:
+        """``thesis (3.8)`` or ``hysteresis ODE (2.21)``."""
+        return "thesis (3.8)" if self.base_kind == THESIS else "hysteresis ODE (2.21)"
+
+    @property
     def structure_ratio(self) -> float:
         """Baseline training RMS over the noise floor."""
         return self.base_fit.rms_um / self.noise_floor_um if self.noise_floor_um > 0 else math.inf

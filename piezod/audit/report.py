@@ -95,7 +95,7 @@ def result_json(
             for f in result.findings
         ],
         "baseline": {
-            "model": "thesis (3.8)" if result.base_kind == "thesis" else "hysteresis ODE (2.21)",
+            "model": result.baseline_name,
             "params": base_params,
             "rms_um": result.base_fit.rms_um,
             "heldout_rms_um": result.base_heldout.rms_um,

@@ -7,6 +7,7 @@ numbers serve as evidence in the report and as the axes of the plots.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,13 +48,19 @@ def noise_floor(x: F64, order: int = _DIFF_ORDER) -> float:
     return float(np.sqrt(np.mean(q**2))) / scale
 
 
-def noise_floor_data(data: AuditData) -> tuple[float, F64]:
-    """Noise floor of every experiment and the pooled value (RMS over experiments, weighted by samples)."""
-    per = np.array([noise_floor(data.position_um[data.slice(i)]) for i in range(data.n_experiments)])
-    w = data.counts.astype(np.float64)
+def pooled_noise_floor(segments: Sequence[F64]) -> tuple[float, F64]:
+    """Noise floor of every segment (an experiment's positions) and the pooled value (RMS over the
+    segments, weighted by their samples; nan when none has one)."""
+    per = np.array([noise_floor(np.asarray(x, dtype=np.float64)) for x in segments])
+    w = np.array([len(x) for x in segments], dtype=np.float64)
     ok = np.isfinite(per)
     pooled = math.sqrt(float(np.sum(w[ok] * per[ok] ** 2) / np.sum(w[ok]))) if ok.any() else math.nan
     return pooled, per
+
+
+def noise_floor_data(data: AuditData) -> tuple[float, F64]:
+    """Noise floor of every experiment and the pooled value (:func:`pooled_noise_floor`)."""
+    return pooled_noise_floor([data.position_um[data.slice(i)] for i in range(data.n_experiments)])
 
 
 @dataclass(frozen=True, eq=False)

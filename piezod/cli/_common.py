@@ -7,7 +7,7 @@ import contextlib
 import json
 import math
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +62,22 @@ def add_reading_options(parser: argparse.ArgumentParser) -> None:
         "--allow-truncated-tail",
         action="store_true",
         help="drop an unterminated last line (crash while writing)",
+    )
+
+
+def add_family_laws_option(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: Sequence[str], what: str
+) -> None:
+    """``--family-laws LAW...``: which laws of the model family are fitted (``what`` starts the help)."""
+    from piezod.calibrate_family import LAWS  # the fitting stack only for the commands that fit
+
+    parser.add_argument(
+        "--family-laws",
+        nargs="+",
+        choices=LAWS,
+        default=list(default),
+        metavar="LAW",
+        help=f"{what} ({', '.join(LAWS)}; each with both creep drivers; default {', '.join(default)})",
     )
 
 

@@ -7,8 +7,8 @@ from pathlib import Path
 from typing import Any
 
 from piezod.audit import EFFECTS, AuditOptions, print_summary, result_json
-from piezod.calibrate_family import LAWS
 from piezod.cli._common import (
+    add_family_laws_option,
     add_json_option,
     add_reading_options,
     human_stream,
@@ -97,14 +97,10 @@ def register(sub: Any) -> None:
         " --family-laws are, each with both creep drivers; the best model is the one of them or the"
         " audit's that predicts best, and a finding the better model contradicts is not named)",
     )
-    fam.add_argument(
-        "--family-laws",
-        nargs="+",
-        choices=LAWS,
-        default=list(AUDIT_LAWS),
-        metavar="LAW",
-        help=f"the family's laws to score ({', '.join(LAWS)}; default {', '.join(AUDIT_LAWS)}: the"
-        " Bouc-Wen law's search takes minutes on a large frame)",
+    add_family_laws_option(
+        fam,
+        AUDIT_LAWS,
+        "the family's laws to score (the Bouc-Wen law's search takes minutes on a large frame)",
     )
     add_reading_options(p)
     p.set_defaults(func=run)

@@ -19,6 +19,7 @@ from piezod.calibrate_dynamic import PARAM_NAMES as DYNAMIC_PARAM_NAMES
 from piezod.calibrate_dynamic import DynamicCalibrationResult
 from piezod.calibrate_family import CHOICE_TIE_FRACTION, LAWS, family_model_config, fit_family
 from piezod.cli._common import (
+    add_family_laws_option,
     add_json_option,
     add_port_options,
     add_reading_options,
@@ -82,15 +83,7 @@ def register(sub: Any) -> None:
         help="--model family / auto (not on triangular scans): held-out recordings the models are "
         "scored on (default: every 4th experiment, or every 4th of 5 time blocks of a single recording)",
     )
-    p.add_argument(
-        "--family-laws",
-        nargs="+",
-        choices=LAWS,
-        default=list(LAWS),
-        metavar="LAW",
-        help=f"--model family / auto: the family's laws to fit ({', '.join(LAWS)}; each with both creep "
-        "drivers)",
-    )
+    add_family_laws_option(p, LAWS, "--model family / auto: the family's laws to fit")
     p.add_argument("--loss", choices=LOSSES, default="linear", help="loss function (default: linear)")
     p.add_argument(
         "--f-scale", type=positive_float, metavar="UM", help="residual scale of a robust loss (um)"
@@ -222,7 +215,6 @@ def run(args: argparse.Namespace) -> int:
                     allow_truncated_tail=args.allow_truncated_tail,
                     encoding=args.encoding,
                 )
-            val, _ = align_known_delay(val)
             try:
                 family = compare_family(
                     exps, val, laws=args.family_laws, on_step=lambda _name: tick(1), others=incumbent
@@ -273,12 +265,12 @@ def run(args: argparse.Namespace) -> int:
     if family_note:
         doc["model_reason"] = f"{doc['model_reason']}; {family_note}"
     if family is not None and chosen is not None:
-        params = _refit(exps, chosen, family.skip_s)
+        section = family_model_config(_written(exps, chosen, family.skip_s, refit=not args.validate))
         doc.update(
             model="family",
             model_reason=f"{chosen.name} predicts the held-out data best ({family.method})",
             chosen=chosen.name,
-            family_params=family_model_config(params).model_dump(),
+            family_params=section.model_dump(),
         )
     if args.out:
         span = (
@@ -292,9 +284,7 @@ def run(args: argparse.Namespace) -> int:
         if family is not None and chosen is not None:
             axes_cfg = dict(cfg.axes)
             name = cast(AxisName, axis)
-            axes_cfg[name] = axes_cfg[name].model_copy(
-                update={"model": "family", "family": family_model_config(params)}
-            )
+            axes_cfg[name] = axes_cfg[name].model_copy(update={"model": "family", "family": section})
             cfg = cfg.model_copy(update={"axes": axes_cfg})
             model_name = f"family ({chosen.name}, held out: {family.method})"
         header = (
@@ -327,8 +317,11 @@ def _spectrum(params: DynamicParams) -> CreepSpectrum:
     return CreepSpectrum(tuple(map(float, params.taus_s)), tuple(map(float, params.weights)))
 
 
-def _refit(exps: Sequence[Experiment], chosen: MemberScore, skip_s: float) -> FamilyParams:
-    """The chosen member refitted on every training experiment."""
+def _written(exps: Sequence[Experiment], chosen: MemberScore, skip_s: float, *, refit: bool) -> FamilyParams:
+    """The chosen member as fitted on every training experiment: its scored fit when that already
+    was (``--validate``), else refitted on all of them (the held-out ones included)."""
+    if not refit and chosen.params is not None:
+        return chosen.params
     return fit_family(session(exps), chosen.law, creep_driver=chosen.creep_driver, skip_s=skip_s).params
 
 
