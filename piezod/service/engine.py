@@ -532,7 +532,8 @@ class Engine:
             )
 
     def recordings(self) -> list[RecordingInfo]:
-        """The recordings in the recording directory."""
+        """The recordings in the recording directory (``complete`` once the recorder has closed it)."""
+        writing = self._recorder.open_names()
         out = []
         for p in sorted(self.recording_dir.glob("*.csv")):
             try:
@@ -546,7 +547,7 @@ class Engine:
                     name=p.name,
                     size_bytes=st.st_size,
                     modified_unix=st.st_mtime,
-                    complete=p.name != self._recording_name,
+                    complete=p.name != self._recording_name and p.name not in writing,
                 )
             )
         return out

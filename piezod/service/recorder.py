@@ -214,6 +214,12 @@ class Recorder(threading.Thread):
                 ident, path, writer, axes, targets, z_monitor_ratio=z_monitor_ratio
             )
 
+    def open_names(self) -> set[str]:
+        """File names of the recordings still open (a stopped scan's stays open until its readback,
+        up to a FIFO's lead behind, is written)."""
+        with self.lock:
+            return {rec.path.name for rec in self.recordings.values()}
+
     def discard(self, ident: int) -> None:
         """Close and delete a recording that never started (its scan was refused)."""
         with self.lock:
