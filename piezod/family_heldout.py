@@ -61,6 +61,7 @@ from piezod.calibrate_family import (
 )
 from piezod.errors import CalibrationError
 from piezod.model.family import FamilyParams
+from piezod.model.params import ThesisParams
 from piezod.readback import align_known_delay
 from piezod.recording import Experiment
 
@@ -195,7 +196,10 @@ class FamilyComparison:
     parts
         What each part of the best member (:data:`PARTS`) is worth on the held-out data.
     others
-        Held-out RMS of the models passed as ``others`` to :func:`compare_family`.
+        Held-out RMS of the models passed as ``others`` to :func:`compare_family` (or scored on
+        its split afterwards, e.g. :func:`thesis_heldout_rms`).
+    fitted_on
+        What each of ``others`` was fitted on, when not all the training data.
     """
 
     method: str
@@ -206,6 +210,7 @@ class FamilyComparison:
     gains: dict[str, float] = field(default_factory=dict)
     parts: tuple[PartGain, ...] = ()
     others: dict[str, float] = field(default_factory=dict)
+    fitted_on: dict[str, str] = field(default_factory=dict)
 
     def part(self, effect: str) -> PartGain | None:
         """The best member's part for ``effect`` (None when not measured)."""
@@ -241,7 +246,8 @@ class FamilyComparison:
             )
         for name, rms in self.others.items():
             ratio = rms / floor if floor > 0 else math.inf
-            lines.append(f"{name + ' (fitted on all)':<42} {'':>13} {rms:>16.4f} {ratio:>8.2f}")
+            label = f"{name} (fitted on {self.fitted_on.get(name, 'all')})"
+            lines.append(f"{label:<42} {'':>13} {rms:>16.4f} {ratio:>8.2f}")
         lines.append(f"{'noise floor of the held-out data':<42} {'':>13} {floor:>16.4f}")
         for p in self.parts:
             if p.error is not None:
@@ -267,6 +273,7 @@ class FamilyComparison:
             "gains": self.gains,
             "parts": [p.to_json() for p in self.parts],
             "others": {k: _num(v) for k, v in self.others.items()},
+            "others_fitted_on": {k: self.fitted_on.get(k, "all") for k in self.others},
         }
 
 
@@ -557,6 +564,7 @@ def compare_family(
     plays: int = DEFAULT_PLAYS,
     on_step: Callable[[str], None] | None = None,
     others: dict[str, FamilyParams] | None = None,
+    parts: bool = True,
 ) -> FamilyComparison:
     """Fit every member of the family and score it on held-out data (module docstring).
 
@@ -578,6 +586,9 @@ def compare_family(
         Models fitted elsewhere (e.g. the dynamic model, on all the training data), scored on the
         same held-out data as :attr:`FamilyComparison.others` (name -> held-out RMS); they take
         no part in :attr:`FamilyComparison.best`.
+    parts
+        Measure the best member's parts (:attr:`FamilyComparison.parts`: one refit per part; the
+        audit's check needs them, the choice of a model does not).
 
     Raises
     ------
@@ -676,23 +687,86 @@ def compare_family(
     best = result.best
     if best is None:
         return result
-    parts: list[PartGain] = []
+    result = dataclasses.replace(result, gains=gains_by.get(best.name, {}))
+    if not parts:
+        return result
+    part_gains: list[PartGain] = []
     opts = AuditOptions()
     with_part = HeldOut(best.heldout_rms_um, resid_by[best.name], np.ones(1, dtype=bool))
     for effect in PARTS:
         try:
             _, resid, _ = fitted(best.law, best.creep_driver, without=effect)
         except (CalibrationError, np.linalg.LinAlgError) as exc:
-            parts.append(PartGain(effect, math.nan, math.nan, math.nan, False, str(exc)))
+            part_gains.append(PartGain(effect, math.nan, math.nan, math.nan, False, str(exc)))
             continue
         rms = _rms(resid)
         gain, se = gain_with_se(HeldOut(rms, resid, np.ones(1, dtype=bool)), with_part)
         material = bool(
             gain >= opts.gain_min and gain - opts.gain_sigmas * (se if math.isfinite(se) else 0.0) > 1.0
         )
-        parts.append(PartGain(effect, rms, gain, se, material))
+        part_gains.append(PartGain(effect, rms, gain, se, material))
         step(f"{best.name} without {effect}")
-    return dataclasses.replace(result, gains=gains_by.get(best.name, {}), parts=tuple(parts))
+    return dataclasses.replace(result, parts=tuple(part_gains))
+
+
+def thesis_heldout_rms(
+    experiments: Sequence[Experiment],
+    validate: Sequence[Experiment],
+    comparison: FamilyComparison,
+    *,
+    blocks: int = DEFAULT_BLOCKS,
+    start: ThesisParams | None = None,
+    max_samples_per_loop: int | None = 2048,
+) -> float:
+    """Held-out prediction RMS of the thesis model (3.8) on the split of ``comparison`` (um).
+
+    The model is fitted (:func:`piezod.calibrate.calibrate`) on the training experiments only --
+    all of ``experiments`` with ``validate``, else those whose labels are not in
+    ``comparison.heldout`` (time blocks of a single recording as :func:`compare_family` cuts them)
+    -- and predicts the held-out experiments' loops after their first: (3.8) is a model of steady
+    loops, so the start-up loop the family's fits skip by time is skipped by loop (when an
+    experiment has only one, it is scored whole). As for the family, each held-out experiment has
+    its own position offset and each validation file one sensor gain.
+
+    Raises
+    ------
+    CalibrationError
+        No training or no held-out experiment, or the fit failed.
+    RecordingError
+        A held-out or training experiment is not a periodic triangular scan (file:line).
+    """
+    from piezod.calibrate import calibrate, model_positions
+    from piezod.calibrate_data import prepare
+
+    train_exps, _ = align_known_delay(experiments)
+    if validate:
+        held, _ = align_known_delay(validate)
+        train = list(train_exps)
+    else:
+        pool = time_blocks(train_exps[0], blocks) if len(train_exps) == 1 else list(train_exps)
+        names = set(comparison.heldout)
+        held = [e for e in pool if e.label in names]
+        train = [e for e in pool if e.label not in names]
+    if not held or not train:
+        raise CalibrationError("the thesis model needs training and held-out experiments to be scored")
+    fit = calibrate(train, start=start, max_samples_per_loop=max_samples_per_loop)
+    try:
+        data = prepare(held, skip_loops=1, max_samples_per_loop=max_samples_per_loop)
+    except CalibrationError:
+        data = prepare(held, skip_loops=0, max_samples_per_loop=max_samples_per_loop)
+    exp_of = np.repeat(np.arange(data.n_experiments), data.counts)
+    x = model_positions(data, fit.params)
+    x = x - (np.add.reduceat(x, data.starts) / data.counts)[exp_of]
+    y = data.position_um - (np.add.reduceat(data.position_um, data.starts) / data.counts)[exp_of]
+    files: list[str | None] = list(dict.fromkeys(data.paths)) if validate else [None]
+    group = np.array([files.index(p) if validate else 0 for p in data.paths], dtype=np.intp)[exp_of]
+    resid = np.empty_like(y)
+    for g in range(len(files)):
+        sel = group == g
+        den = float(x[sel] @ x[sel])
+        gain = float(x[sel] @ y[sel]) / den if validate and den > 0 else 1.0
+        resid[sel] = gain * x[sel] - y[sel]
+    return _rms(resid)
 
 
 __all__ = [
@@ -717,5 +791,6 @@ __all__ = [
     "prediction_error",
     "session",
     "skip_for",
+    "thesis_heldout_rms",
     "time_blocks",
 ]

@@ -56,6 +56,12 @@ def test_calibrate_writes_config_and_json(frame: tuple[Path, Path], tmp_path: Pa
     for key in ("label", "range_v", "offset_v", "frequency_hz", "range_um", "fit_error_pct", "n"):
         assert key in doc["experiments"][0]
     assert doc["fit_error_pct"] < 0.5
+    # the stage follows (3.8) itself: refitted on the training experiments it predicts the held-out
+    # ones better than any member of the family, so it is written
+    family = doc["family"]
+    best = min(m["heldout_rms_um"] for m in family["members"] if m["heldout_rms_um"] is not None)
+    assert family["others"]["thesis (3.8)"] < best
+    assert "the thesis (3.8) model is written" in doc["model_reason"]
     cfg = load_config(out)
     assert cfg.axes["x"].thesis.params().alpha_per_v == pytest.approx(doc["params"]["alpha_per_v"])
     assert cfg.calibration is not None and cfg.calibration["n_experiments"] == 10
@@ -81,6 +87,8 @@ def test_calibrate_keeps_the_base_config(frame: tuple[Path, Path], tmp_path: Pat
             str(frame[1]),
             "--config",
             str(tmp_path / "base.yaml"),
+            "--model",
+            "thesis",
             "--out",
             str(out),
         ]
@@ -94,7 +102,7 @@ def test_calibrate_keeps_the_base_config(frame: tuple[Path, Path], tmp_path: Pat
 def test_json_to_stdout_moves_the_table_to_stderr(
     frame: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["calibrate", str(frame[0]), str(frame[1]), "--json", "-"]) == 0
+    assert main(["calibrate", str(frame[0]), str(frame[1]), "--model", "thesis", "--json", "-"]) == 0
     cap = capsys.readouterr()
     assert json.loads(cap.out)["params"]
     assert "worst fit error" in cap.err

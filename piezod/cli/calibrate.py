@@ -1,12 +1,16 @@
 """``piezod calibrate``: fit the hysteresis + creep model to recordings (offline).
 
 The thesis model (3.8) for periodic triangular scans, the dynamic model (ODE (2.21) + log creep)
-for any other waveform (:mod:`piezod.calibrate_any` chooses and says which).
+for any other waveform (:mod:`piezod.calibrate_any` chooses and says which); with ``--model auto``
+the model family's members are scored beside that model on the same held-out data
+(:func:`piezod.family_heldout.compare_family`; (3.8) refitted on the training part,
+:func:`piezod.family_heldout.thesis_heldout_rms`) and the one that predicts best is written.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any, cast
@@ -17,7 +21,7 @@ from piezod import calibrate_any
 from piezod.calibrate import LOSSES, PARAM_NAMES, CalibrationResult
 from piezod.calibrate_dynamic import PARAM_NAMES as DYNAMIC_PARAM_NAMES
 from piezod.calibrate_dynamic import DynamicCalibrationResult
-from piezod.calibrate_family import CHOICE_TIE_FRACTION, LAWS, family_model_config, fit_family
+from piezod.calibrate_family import CHOICE_TIE_FRACTION, family_model_config, fit_family
 from piezod.cli._common import (
     add_family_laws_option,
     add_json_option,
@@ -30,8 +34,15 @@ from piezod.cli._common import (
     write_json,
 )
 from piezod.config import AxisName, dump_config, load_config
-from piezod.errors import CalibrationError
-from piezod.family_heldout import FamilyComparison, MemberScore, compare_family, session
+from piezod.errors import CalibrationError, RecordingError
+from piezod.family_heldout import (
+    AUDIT_LAWS,
+    FamilyComparison,
+    MemberScore,
+    compare_family,
+    session,
+    thesis_heldout_rms,
+)
 from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.progress import progress_bar
@@ -48,8 +59,10 @@ def register(sub: Any) -> None:
             "Least-squares fit with one position offset per experiment: the 7-parameter hysteresis + "
             "creep model (3.8) when every experiment is a periodic triangular scan (one-period "
             "triangles included; range, offset and frequency inferred from the voltage), else the "
-            "dynamic model (hysteresis ODE (2.21) + log creep), which takes any waveform. The report "
-            "says which model and why. Writes the scanner YAML (--out) and a JSON report (--json)."
+            "dynamic model (hysteresis ODE (2.21) + log creep), which takes any waveform; with --model "
+            "auto (default) the model family's members are scored beside it on held-out data and the "
+            "one that predicts them best is written. The report says which model and why. Writes the "
+            "scanner YAML (--out) and a JSON report (--json)."
         ),
     )
     p.add_argument(
@@ -70,9 +83,9 @@ def register(sub: Any) -> None:
         "--model",
         choices=(*calibrate_any.MODEL_CHOICES, "family"),
         default="auto",
-        help="auto (default): (3.8) for triangular scans, else the dynamic model or the model family's "
-        "best member, whichever predicts held-out data better; or force one; family: the member that "
-        "predicts held-out data best (docs/model-family.md 3.1)",
+        help="auto (default): whichever predicts held-out data best of the model family's best member "
+        "and (3.8) for triangular scans, else the dynamic model; or force one (thesis, dynamic: no "
+        "held-out scoring); family: the member that predicts held-out data best (docs/model-family.md 3.1)",
     )
     p.add_argument(
         "--validate",
@@ -80,10 +93,11 @@ def register(sub: Any) -> None:
         default=[],
         type=input_file,
         metavar="REC.csv",
-        help="--model family / auto (not on triangular scans): held-out recordings the models are "
+        help="--model family / auto: held-out recordings the models are "
         "scored on (default: every 4th experiment, or every 4th of 5 time blocks of a single recording)",
     )
-    add_family_laws_option(p, LAWS, "--model family / auto: the family's laws to fit")
+    # Bouc-Wen's rate search takes minutes per creep driver on a calibration frame: asked for only.
+    add_family_laws_option(p, AUDIT_LAWS, "--model family / auto: the family's laws to fit")
     p.add_argument("--loss", choices=LOSSES, default="linear", help="loss function (default: linear)")
     p.add_argument(
         "--f-scale", type=positive_float, metavar="UM", help="residual scale of a robust loss (um)"
@@ -176,13 +190,9 @@ def run(args: argparse.Namespace) -> int:
     axis = args.axis or (axes[0] if axes else "x")
     exps, aligned = align_known_delay(exps)
     start = base.axes[axis].thesis.params() if base is not None and axis in base.axes else None
-    if args.validate and (
-        args.model in ("thesis", "dynamic")
-        or (args.model == "auto" and calibrate_any.choose_model(exps, "auto").model == "thesis")
-    ):
+    if args.validate and args.model in ("thesis", "dynamic"):
         raise CalibrationError(
-            "--validate scores the model family's members: use it with --model family (or auto on "
-            "recordings that are not all triangular scans)"
+            "--validate scores the models on held-out recordings: use it with --model auto or family"
         )
 
     family: FamilyComparison | None = None
@@ -204,47 +214,79 @@ def run(args: argparse.Namespace) -> int:
             on_eval=tick,
         )
         dyn = result.dynamic
-        if dyn is not None and args.model in ("family", "auto"):
-            # The dynamic model is a candidate too (fitted on all the data, so it wins ties).
-            incumbent = {"dynamic": FamilyParams(dyn.params.hysteresis, _spectrum(dyn.params))}
-            val: list[Experiment] = []
-            if args.validate:
-                val = read_experiments(
-                    args.validate,
-                    axis=axis,
-                    allow_truncated_tail=args.allow_truncated_tail,
-                    encoding=args.encoding,
-                )
+        val: list[Experiment] = []
+        if args.validate:
+            val = read_experiments(
+                args.validate,
+                axis=axis,
+                allow_truncated_tail=args.allow_truncated_tail,
+                encoding=args.encoding,
+            )
+        incumbent_name = "dynamic" if dyn is not None else "thesis (3.8)"
+        if args.model in ("family", "auto"):
+            # The dynamic model is a candidate too (fitted on all the data, so it wins ties); the
+            # thesis model is refitted on the training part of the split below.
+            incumbent = (
+                {} if dyn is None else {"dynamic": FamilyParams(dyn.params.hysteresis, _spectrum(dyn.params))}
+            )
             try:
                 family = compare_family(
-                    exps, val, laws=args.family_laws, on_step=lambda _name: tick(1), others=incumbent
+                    exps,
+                    val,
+                    laws=args.family_laws,
+                    on_step=lambda _name: tick(1),
+                    others=incumbent,
+                    parts=False,
                 )
             except CalibrationError as exc:
                 if args.model == "family":
                     raise
-                family_note = f"the model family was not scored ({exc}): the dynamic model is written"
+                family_note = (
+                    f"the model family was not scored ({exc}): the {incumbent_name} model is written"
+                )
+        if family is not None and result.thesis is not None and args.model == "auto":
+            try:
+                thesis_rms = thesis_heldout_rms(
+                    exps, val, family, start=start, max_samples_per_loop=args.max_samples_per_loop or None
+                )
+            except (CalibrationError, RecordingError) as exc:
+                family_note = (
+                    f"the thesis model (3.8) was not scored on the held-out data ({exc}): it is written"
+                )
+                family = None
+            else:
+                family = dataclasses.replace(
+                    family,
+                    others={**family.others, incumbent_name: thesis_rms},
+                    fitted_on={**family.fitted_on, incumbent_name: "all" if val else "the training part"},
+                )
     out = human_stream(args)
     if aligned:
         print(f"note: {aligned}", file=out)
     chosen = None if family is None else _chosen_member(family)
     if family is not None and chosen is not None and args.model == "auto":
-        dynamic_rms = family.others.get("dynamic", math.inf)
-        if not chosen.heldout_rms_um < dynamic_rms * (1.0 - CHOICE_TIE_FRACTION):
+        incumbent_rms = family.others.get(incumbent_name, math.inf)
+        if not chosen.heldout_rms_um < incumbent_rms * (1.0 - CHOICE_TIE_FRACTION):
             family_note = (
-                f"the dynamic model predicts the held-out data ({dynamic_rms:.4g} um) as well as the "
-                f"family's best member {chosen.name} ({chosen.heldout_rms_um:.4g} um): the dynamic model "
-                "is written"
+                f"the {incumbent_name} model predicts the held-out data ({incumbent_rms:.4g} um) at least as well as "
+                f"the family's best member {chosen.name} ({chosen.heldout_rms_um:.4g} um): the "
+                f"{incumbent_name} model is written"
             )
             chosen = None
     if family is not None and chosen is not None:
-        why = "requested" if args.model == "family" else "auto: not every experiment is a triangular scan"
+        why = (
+            "requested"
+            if args.model == "family"
+            else f"auto: it predicts the held-out data better than the {incumbent_name} model "
+            f"({family.others.get(incumbent_name, math.nan):.4g} um)"
+        )
         print(
             f"model: family ({chosen.name}: the member that predicts the held-out data best; {why})", file=out
         )
         print(f"held out: {family.method}", file=out)
         print(family.table(), file=out)
         print(
-            f"dynamic model (the config's thesis section and provenance): fit error "
+            f"{incumbent_name} model (the config's thesis section and provenance): fit error "
             f"{result.fit.fit_error_pct:.4f} %",
             file=out,
         )
