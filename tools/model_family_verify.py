@@ -4,6 +4,7 @@ Usage::
 
     python tools/model_family_verify.py --stage pi-stage [--json out.json]
     python tools/model_family_verify.py --markdown out.json    # the docs tables of a saved run
+    python tools/model_family_verify.py --stage pi-stage --offline   # calibrated from the frame's CSV
 
 The same steps as ``piezod calibrate --sim --config configs/sim-NAME.yaml`` with the full frame,
 but the stage (:class:`hil_sim.stage.Stage`, the preset's ``simulation:`` section) is stepped in
@@ -18,6 +19,10 @@ this process instead of behind the pty, so a loaded machine cannot spoil the run
    :class:`piezod.service.axes.AxisDriver` with the chosen model and with the dynamic model
    (one unrecorded warm-up loop, then 4 recorded loops; the stage keeps its whole history),
    scored by :func:`piezod.linearity.experiment_linearity`.
+
+``--offline`` replaces step 2 by what a lab with recordings does: the frame written to one CSV and
+``piezod calibrate FRAME.csv --config STAGE`` (its held-out choice among (3.8) and the family,
+docs/model-family.md 3.1) writes the config that is verified.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -34,15 +40,17 @@ import numpy as np
 from hil_sim.stage import Stage, StageConfig, resolve_stage
 from piezod import calibrate_dynamic as cd
 from piezod.calibrate import calibrate, calibrated_config
+from piezod.cli import main as cli_main
 from piezod.config import load_config
 from piezod.effects_bench import StageBench
 from piezod.errors import RangeUnreachableError, SafetyError
 from piezod.extensions import experiments_through_sensor
 from piezod.linearity import experiment_linearity
-from piezod.recording import Experiment
+from piezod.recording import Experiment, Recording, write_recording
 from piezod.service.axes import AxisDriver
 from piezod.stagecal import (
     FRAME_END_SAMPLES,
+    ThesisFit,
     audit_and_extend,
     check_points,
     choose_for_experiments,
@@ -99,6 +107,35 @@ def summary_table(paths: list[str]) -> str:
     return "\n".join(lines)
 
 
+def _offline(exps: list[Experiment], stage_path: Path, axis: str) -> ThesisFit:
+    """The frame written as one recording and calibrated by ``piezod calibrate`` on it (offline)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        rec, out, js = Path(tmp) / "frame.csv", Path(tmp) / "cal.yaml", Path(tmp) / "cal.json"
+        write_recording(
+            rec,
+            Recording(
+                t_s=np.concatenate([e.t_s for e in exps]),
+                voltage_v=np.concatenate([e.voltage_v for e in exps]),
+                position_um=np.concatenate([e.position_um for e in exps]),
+                experiment=np.concatenate([[e.label] * len(e.t_s) for e in exps]),
+            ),
+        )
+        argv = ["calibrate", str(rec), "--config", str(stage_path), "--axis", axis]
+        if cli_main([*argv, "--out", str(out), "--json", str(js)]) != 0:
+            raise SystemExit("piezod calibrate failed on the frame")
+        doc = json.loads(js.read_text())
+        config = load_config(out)
+    fam = doc.get("family", {})
+    others = fam.get("others", {})
+    held = {m["name"]: m["heldout_rms_um"] for m in fam.get("members", []) if m["heldout_rms_um"] is not None}
+    train = {m["name"]: m["train_rms_um"] for m in fam.get("members", []) if m["heldout_rms_um"] is not None}
+    held.update(others)
+    train.update({k: float("nan") for k in others})
+    chosen = doc.get("chosen") or next(iter(others), "thesis (3.8)")
+    report = {"chosen": chosen, "heldout_rms_um": held, "train_rms_um": train, "offline": doc["model_reason"]}
+    return ThesisFit(report, config, float(held.get(chosen, float("nan"))))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--stage", default="pi-stage", help="preset name or scanner YAML with simulation:")
@@ -110,6 +147,12 @@ def main() -> int:
         help="audit the frame and adopt its findings, as piezod calibrate does",
     )
     ap.add_argument("--skip-dynamic", action="store_true", help="verify the chosen model only")
+    ap.add_argument(
+        "--offline",
+        action="store_true",
+        help="calibrate as a lab does from recordings: the frame written to a CSV and the config from "
+        "`piezod calibrate FRAME.csv --config STAGE --out F.yaml` (its held-out choice), then verified",
+    )
     ap.add_argument(
         "--choice-only", action="store_true", help="stop after the held-out model choice (no verification)"
     )
@@ -140,12 +183,18 @@ def main() -> int:
     # where the frame left the stage: its last voltage and readback (noise averaged, as frame_end)
     last_x = float(np.mean(exps[-1].position_um[-FRAME_END_SAMPLES:]))
     print(f"frame: {len(exps)} experiments, {bench.t:.0f} s simulated")
-    thesis = calibrated_config(calibrate(exps), axis=axis, base=base)
-    dyn = cd.calibrate_dynamic(exps, slew_rate_v_per_s=ramp, rest_voltage_v=base.axes[axis].safe_voltage_v)
-    with_dyn = cd.calibrated_config(dyn, axis=axis, base=thesis)
-    choice = choose_for_experiments(exps, axis, with_dyn, ramp, base.axes[axis].safe_voltage_v)
-    print(choice.report["table"])
-    if args.audit:
+    if args.offline:
+        choice = _offline(exps, path, axis)
+        args.skip_dynamic = args.skip_dynamic or choice.config.axes[axis].dynamic is None
+    else:
+        thesis = calibrated_config(calibrate(exps), axis=axis, base=base)
+        dyn = cd.calibrate_dynamic(
+            exps, slew_rate_v_per_s=ramp, rest_voltage_v=base.axes[axis].safe_voltage_v
+        )
+        with_dyn = cd.calibrated_config(dyn, axis=axis, base=thesis)
+        choice = choose_for_experiments(exps, axis, with_dyn, ramp, base.axes[axis].safe_voltage_v)
+        print(choice.report["table"])
+    if args.audit and not args.offline:
         # as piezod calibrate does by default: the frame audited, the findings with a runtime part
         # adopted when the extended model predicts the held-out experiments better
         audited = audit_and_extend(exps, axis, choice, with_dyn, ramp, base.axes[axis].safe_voltage_v)
