@@ -83,9 +83,10 @@ def register(sub: Any) -> None:
         "--model",
         choices=(*calibrate_any.MODEL_CHOICES, "family"),
         default="auto",
-        help="auto (default): whichever predicts held-out data best of the model family's best member "
-        "and (3.8) for triangular scans, else the dynamic model; or force one (thesis, dynamic: no "
-        "held-out scoring); family: the member that predicts held-out data best (docs/model-family.md 3.1)",
+        help="auto (default): the model family's best member or the incumbent -- (3.8) on triangular "
+        "scans, else the dynamic model -- whichever predicts held-out data better; thesis / dynamic: "
+        "that model, no held-out scoring; family: the member that predicts held-out data best "
+        "(docs/model-family.md 3.1)",
     )
     p.add_argument(
         "--validate",
@@ -268,8 +269,8 @@ def run(args: argparse.Namespace) -> int:
         incumbent_rms = family.others.get(incumbent_name, math.inf)
         if not chosen.heldout_rms_um < incumbent_rms * (1.0 - CHOICE_TIE_FRACTION):
             family_note = (
-                f"the {incumbent_name} model predicts the held-out data ({incumbent_rms:.4g} um) at least as well as "
-                f"the family's best member {chosen.name} ({chosen.heldout_rms_um:.4g} um): the "
+                f"the {incumbent_name} model predicts the held-out data ({incumbent_rms:.4g} um) at least "
+                f"as well as the family's best member {chosen.name} ({chosen.heldout_rms_um:.4g} um): the "
                 f"{incumbent_name} model is written"
             )
             chosen = None
