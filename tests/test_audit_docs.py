@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -19,7 +20,35 @@ def test_generated_p885_block_is_current_in_docs_and_readme() -> None:
     body = p885_block(*p885_results())
     for path in (ROOT / "docs" / "audit.md", ROOT / "README.md"):
         current = block(path.read_text(encoding="utf-8"), "p885")
-        assert current == body, f"{path.name} is out of date: run `{COMMAND}`"
+        assert _same_up_to_the_last_digit(current, body), f"{path.name} is out of date: run `{COMMAND}`"
+
+
+_NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
+
+
+def _unit(token: str) -> float:
+    mantissa, _, exp = token.lower().partition("e")
+    decimals = len(mantissa.partition(".")[2])
+    return 10.0 ** (-decimals + (int(exp) if exp else 0))
+
+
+def _same_up_to_the_last_digit(current: str, fresh: str) -> bool:
+    """The same text, numbers equal to within one unit of their last printed digit: the
+    multithreaded BLAS sums in a machine-dependent order, which moves a third digit now and then
+    (session 15's CI: one family row 0.318 -> 0.319 um, -0.25 -> -0.247 %/um)."""
+    if _NUMBER.split(current) != _NUMBER.split(fresh):
+        return False
+    a, b = _NUMBER.findall(current), _NUMBER.findall(fresh)
+    return len(a) == len(b) and all(
+        abs(float(x) - float(y)) <= max(_unit(x), _unit(y)) * (1 + 1e-9) for x, y in zip(a, b, strict=True)
+    )
+
+
+def test_the_block_comparison_allows_the_last_digit_only() -> None:
+    assert _same_up_to_the_last_digit("| a | 0.318 | 4.28 | -0.25 |", "| a | 0.319 | 4.29 | -0.247 |")
+    assert not _same_up_to_the_last_digit("| a | 0.318 |", "| a | 0.321 |")
+    assert not _same_up_to_the_last_digit("| a | 0.318 | x", "| b | 0.318 | x")
+    assert not _same_up_to_the_last_digit("cause creep", "cause stiffness")
 
 
 def test_block_replacement_keeps_the_rest_and_needs_its_markers() -> None:
