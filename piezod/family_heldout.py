@@ -735,6 +735,7 @@ def thesis_heldout_rms(
     RecordingError
         A held-out or training experiment is not a periodic triangular scan (file:line).
     """
+    from piezod.calibrate import _centre as centre_per_experiment
     from piezod.calibrate import calibrate, model_positions
     from piezod.calibrate_data import prepare
 
@@ -755,9 +756,8 @@ def thesis_heldout_rms(
     except CalibrationError:
         data = prepare(held, skip_loops=0, max_samples_per_loop=max_samples_per_loop)
     exp_of = np.repeat(np.arange(data.n_experiments), data.counts)
-    x = model_positions(data, fit.params)
-    x = x - (np.add.reduceat(x, data.starts) / data.counts)[exp_of]
-    y = data.position_um - (np.add.reduceat(data.position_um, data.starts) / data.counts)[exp_of]
+    x = centre_per_experiment(data, model_positions(data, fit.params))
+    y = centre_per_experiment(data, data.position_um)
     files: list[str | None] = list(dict.fromkeys(data.paths)) if validate else [None]
     group = np.array([files.index(p) if validate else 0 for p in data.paths], dtype=np.intp)[exp_of]
     resid = np.empty_like(y)

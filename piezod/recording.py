@@ -151,6 +151,17 @@ class Recording:
     ignored_columns: tuple[str, ...] = ()
     dropped_tail: bool = False
 
+    @classmethod
+    def of_experiments(cls, experiments: Sequence[Experiment]) -> Recording:
+        """One recording of ``experiments`` in order: time, voltage, position and the experiment
+        labels (what a lab writes of a session with :func:`write_recording`)."""
+        return cls(
+            t_s=np.concatenate([e.t_s for e in experiments]),
+            voltage_v=np.concatenate([e.voltage_v for e in experiments]),
+            position_um=np.concatenate([e.position_um for e in experiments]),
+            experiment=np.concatenate([np.full(len(e.t_s), e.label) for e in experiments]),
+        )
+
     def __post_init__(self) -> None:
         n = np.shape(self.t_s)[0] if np.ndim(self.t_s) == 1 else -1
         set_ = object.__setattr__

@@ -242,15 +242,7 @@ def test_calibrate_auto_on_triangular_scans_writes_what_predicts_held_out_scans_
     on the same held-out scans; the play law predicts them far better and is written, not (3.8)."""
     exps = preset_session("pi-stage")
     path = tmp_path / "frame.csv"
-    write_recording(
-        path,
-        Recording(
-            t_s=np.concatenate([e.t_s for e in exps]),
-            voltage_v=np.concatenate([e.voltage_v for e in exps]),
-            position_um=np.concatenate([e.position_um for e in exps]),
-            experiment=np.concatenate([[e.label] * len(e.t_s) for e in exps]),
-        ),
-    )
+    write_recording(path, Recording.of_experiments(exps))
     out, report = tmp_path / "tri.yaml", tmp_path / "tri.json"
     laws = ["--family-laws", "prandtl-ishlinskii", "coleman-hodgdon"]
     assert main(["calibrate", str(path), *laws, "--out", str(out), "--json", str(report)]) == 0

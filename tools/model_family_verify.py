@@ -111,15 +111,7 @@ def _offline(exps: list[Experiment], stage_path: Path, axis: str) -> ThesisFit:
     """The frame written as one recording and calibrated by ``piezod calibrate`` on it (offline)."""
     with tempfile.TemporaryDirectory() as tmp:
         rec, out, js = Path(tmp) / "frame.csv", Path(tmp) / "cal.yaml", Path(tmp) / "cal.json"
-        write_recording(
-            rec,
-            Recording(
-                t_s=np.concatenate([e.t_s for e in exps]),
-                voltage_v=np.concatenate([e.voltage_v for e in exps]),
-                position_um=np.concatenate([e.position_um for e in exps]),
-                experiment=np.concatenate([[e.label] * len(e.t_s) for e in exps]),
-            ),
-        )
+        write_recording(rec, Recording.of_experiments(exps))
         argv = ["calibrate", str(rec), "--config", str(stage_path), "--axis", axis]
         if cli_main([*argv, "--out", str(out), "--json", str(js)]) != 0:
             raise SystemExit("piezod calibrate failed on the frame")
