@@ -72,25 +72,36 @@ def qemu(elf: Path) -> Iterator[Any]:
         yield board
 
 
-def _frames(port: Any, want: type, timeout_s: float, dec: FrameDecoder, got: list[Any]) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for item in dec.feed(port.read(4096)):
-            if isinstance(item, Frame):
-                got.append(item.msg)
-                if isinstance(item.msg, want):
-                    return item.msg
-            else:
-                got.append(item)  # a decode error: kept, so a missing frame says whether bytes were spoilt
-    raise AssertionError(f"no {want.__name__} within {timeout_s} s: {[type(m).__name__ for m in got]}")
+class _Reader:
+    """Everything the board sent, in order, and a cursor past the last message handed out.
+
+    One read can complete several frames (a FAULT and the SENSOR rows after it arrive together
+    on a busy machine), so nothing decoded is dropped when the wanted one is found."""
+
+    def __init__(self, port: Any) -> None:
+        self.port, self.dec, self.got, self._next = port, FrameDecoder(), [], 0
+
+    def next(self, want: type, timeout_s: float) -> Any:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            while self._next < len(self.got):
+                item = self.got[self._next]
+                self._next += 1
+                if isinstance(item, want):
+                    return item
+            if time.monotonic() >= deadline:
+                names = [type(m).__name__ for m in self.got]
+                raise AssertionError(f"no {want.__name__} within {timeout_s} s: {names}")
+            # a decode error is kept too, so a missing frame says whether bytes were spoilt
+            self.got.extend(i.msg if isinstance(i, Frame) else i for i in self.dec.feed(self.port.read(4096)))
 
 
 def test_emulated_mcu_plays_a_queued_run_clamps_and_reports_the_underrun(qemu: Any) -> None:
     n = 200
     with serial.Serial(qemu.path, timeout=0.05) as port:
-        dec, got = FrameDecoder(), []
+        link = _Reader(port)
         port.write(b"\x00" + encode(Hello(session_id=7), seq=0))
-        caps = _frames(port, Capabilities, 10.0, dec, got)
+        caps = link.next(Capabilities, 10.0)
         assert caps.n_channels == 3 and caps.sample_clock_hz % QEMU_RATE_HZ == 0
         lo, hi = caps.amplifier_ranges_v[0]
         scale = float(np.float32((hi - lo) / 65536.0))
@@ -107,21 +118,22 @@ def test_emulated_mcu_plays_a_queued_run_clamps_and_reports_the_underrun(qemu: A
         conf = Configure(QEMU_RATE_HZ, 60_000, 50, 1, (channel,) * 3)
         assert conf.check(caps) is None
         port.write(encode(conf, seq=1))
-        assert _frames(port, Ack, 10.0, dec, got).acked_seq == 1
-        while _frames(port, Status, 10.0, dec, got).state != BoardState.IDLE:
+        assert link.next(Ack, 10.0).acked_seq == 1
+        while link.next(Status, 10.0).state != BoardState.IDLE:
             pass
         port.write(encode(Start(start_index=1000, prefill_samples=n), seq=2))
-        assert _frames(port, Ack, 10.0, dec, got).acked_seq == 2
+        assert link.next(Ack, 10.0).acked_seq == 2
         ch = conf.channels
         codes = np.zeros((n, 3), dtype=np.int16)
         codes[:, 0] = np.linspace(ch[0].code_min // 2, ch[0].code_max // 2, n).astype(np.int16)
         codes[150, 1] = ch[1].code_max + 1
         port.write(encode(Samples(first_index=1000, codes=codes), seq=3))
-        fault = _frames(port, Fault, 10.0, dec, got)
+        fault = link.next(Fault, 10.0)
         assert fault.code == FaultCode.LIMIT_VIOLATION and (fault.channel, fault.index) == (1, 1150)
-        underrun = _frames(port, Fault, 20.0, dec, got)
+        underrun = link.next(Fault, 20.0)
         assert underrun.code == FaultCode.UNDERRUN and underrun.index == 1000 + n - 1
-        _frames(port, Status, 5.0, dec, got)
+        link.next(Status, 5.0)
+    got = link.got
     rows = [m for m in got if isinstance(m, Sensor)]
     indices = np.concatenate([m.first_index + m.stride * np.arange(m.n_samples) for m in rows])
     spoilt = [m for m in got if not isinstance(m, Message)]
