@@ -330,6 +330,38 @@ def test_engine_calls_do_not_block_the_event_loop(client: httpx.Client, fake: Fa
     assert answer == [202]
 
 
+def test_one_scan_check_at_a_time_others_429_then_busy_is_409_without_a_check(
+    client: httpx.Client, fake: FakeEngine
+) -> None:
+    """A scan check renders seconds of samples; concurrent ones are refused at once (429, nothing
+    changed, retry), and a scan request while scanning is 409 before any check is computed."""
+    fake.block_start = threading.Event()
+    answer: list[int] = []
+    first = threading.Thread(
+        target=lambda: answer.append(
+            client.post("/v1/scan", json={"range_um": 10, "line_rate_hz": 2}).status_code
+        )
+    )
+    first.start()
+    try:
+        deadline = time.monotonic() + 10
+        while not any(c[0] == "start_scan" for c in fake.calls) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        r = client.patch("/v1/scan", json={"line_rate_hz": 4})
+        assert r.status_code == 409  # not scanning yet: the state is checked first
+        r = client.post("/v1/scan", json={"range_um": 5, "line_rate_hz": 2})
+        assert r.status_code == 429 and r.headers["retry-after"] == "1"
+        assert r.json()["error"] == "Busy" and "another scan is being checked" in r.json()["detail"]
+    finally:
+        fake.block_start.set()
+        first.join(10)
+    assert answer == [202]
+    assert [c[1].range_um for c in fake.calls if c[0] == "check_scan"] == [10]
+    fake.calls.clear()
+    assert client.post("/v1/scan", json={"range_um": 5, "line_rate_hz": 2}).status_code == 409
+    assert not fake.calls
+
+
 # ---------------------------------------------------------------------------- recordings
 
 

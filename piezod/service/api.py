@@ -28,7 +28,7 @@ import os
 import re
 import stat
 import threading
-from collections.abc import AsyncIterator, Callable, Coroutine
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterator
 from dataclasses import dataclass, field
 from typing import Annotated, Any, TypeVar
 
@@ -83,11 +83,14 @@ MAX_EVENT_RATE_HZ = 50.0
 class _RefusedError(Exception):
     """Answered as ``{"detail": ..., "error": ...}`` with ``status_code``."""
 
-    def __init__(self, status_code: int, detail: str, error: str | None = None) -> None:
+    def __init__(
+        self, status_code: int, detail: str, error: str | None = None, headers: dict[str, str] | None = None
+    ) -> None:
         super().__init__(detail)
         self.status_code = status_code
         self.detail = detail
         self.error = error
+        self.headers = headers
 
 
 def http_status_for(exc: PiezodError) -> int:
@@ -334,6 +337,9 @@ _TAGS = [
 _E409: dict[int | str, dict[str, Any]] = {
     409: {"model": ErrorBody, "description": "the engine's state does not allow it (busy, fault)"}
 }
+_E429: dict[int | str, dict[str, Any]] = {
+    429: {"model": ErrorBody, "description": "another scan is being checked: nothing changed; retry"}
+}
 _E422_ENGINE = "invalid body (naming the field), or refused by the engine's limits or model (with the reason)"
 _E503: dict[int | str, dict[str, Any]] = {
     503: {"model": ErrorBody, "description": "the board is unavailable"}
@@ -423,6 +429,32 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     yield
 
 
+class _OneAtATime:
+    """Admits one scan check at a time; a request arriving meanwhile is answered 429 at once.
+
+    Checking a scan renders its start (seconds of samples) on copies of the axis drivers. Under
+    the GIL those renders share the CPU with the streamer's, so concurrent checks from several
+    clients could starve the stream into an underrun; refused, they change nothing and the
+    client may send them again (``Retry-After``)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+
+    @contextlib.contextmanager
+    def __call__(self, action: str) -> Iterator[None]:
+        if not self._lock.acquire(blocking=False):
+            raise _RefusedError(
+                429,
+                f"cannot {action} now: another scan is being checked; retry in a moment",
+                "Busy",
+                {"retry-after": "1"},
+            )
+        try:
+            yield
+        finally:
+            self._lock.release()
+
+
 def create_app(
     engine: EngineControl,
     *,
@@ -461,6 +493,7 @@ def create_app(
     app.router.route_class = _LoggedRoute
     app.state.engine = engine
     app.state.events = hub
+    heavy = _OneAtATime()
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -479,7 +512,8 @@ def create_app(
 
     @app.exception_handler(_RefusedError)
     async def _refusal(request: Request, exc: _RefusedError) -> JSONResponse:
-        return JSONResponse(ErrorBody(detail=exc.detail, error=exc.error).model_dump(), exc.status_code)
+        body = ErrorBody(detail=exc.detail, error=exc.error).model_dump()
+        return JSONResponse(body, exc.status_code, headers=exc.headers)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
@@ -499,27 +533,29 @@ def create_app(
         status_code=202,
         summary="Start a scan",
         response_description="accepted: the status with the scan starting",
-        responses={**_E409, **_E503, 422: {"description": _E422_ENGINE}},
+        responses={**_E409, **_E429, **_E503, 422: {"description": _E422_ENGINE}},
     )
     def post_scan(request: ScanRequest) -> Status:
         """Check the scan against the limits and the model, then start it (the engine must be idle)."""
-        _engine_call("scan check", engine.check_scan, request)
         _require_state(_engine_call("status", engine.status), frozenset({"idle"}), "start a scan")
-        return _engine_call("scan start", engine.start_scan, request)
+        with heavy("start a scan"):
+            _engine_call("scan check", engine.check_scan, request)
+            return _engine_call("scan start", engine.start_scan, request)
 
     @app.patch(
         "/v1/scan",
         tags=["scan"],
         summary="Change the running scan",
         response_description="the status with the changed scan",
-        responses={**_E409, **_E503, 422: {"description": _E422_ENGINE}},
+        responses={**_E409, **_E429, **_E503, 422: {"description": _E422_ENGINE}},
     )
     def patch_scan(change: ScanChange) -> Status:
         """Change range, line rate, offsets or rotation of the running scan at its next line."""
         if not change.model_fields_set:
             raise _RefusedError(422, "nothing to change: give at least one field", "ValidationError")
         _require_state(_engine_call("status", engine.status), frozenset({"scanning"}), "change the scan")
-        return _engine_call("scan change", engine.change_scan, change)
+        with heavy("change the scan"):
+            return _engine_call("scan change", engine.change_scan, change)
 
     @app.post(
         "/v1/stop",
