@@ -1233,6 +1233,7 @@ def choose_model(
     alpha_per_v: float | None = None,
     creep_drivers: Sequence[str] = CREEP_DRIVERS,
     adoptable_drivers: Sequence[str] = CREEP_DRIVERS,
+    members: Sequence[tuple[str, str]] | None = None,
 ) -> ModelChoice:
     """Fit every law on the training experiments, compare held-out prediction RMS, refit the best.
 
@@ -1264,6 +1265,9 @@ def choose_model(
     adoptable_drivers
         Creep drivers the choice may adopt; the others are fitted and scored but never chosen
         (the daemon passes :data:`piezod.model.family.REALTIME_CREEP_DRIVERS`).
+    members
+        ``(law, creep driver)`` pairs to fit instead of every one of ``laws`` x ``creep_drivers``
+        (a choice redone on a shortlist, :func:`piezod.stagecal.audit_and_extend`).
 
     Raises
     ------
@@ -1277,19 +1281,19 @@ def choose_model(
     train_rms: dict[str, float] = {}
     fits: dict[str, FamilyFit] = {}
     failed: dict[str, str] = {}
-    for law in laws:
-        for driver in creep_drivers:
-            name = member_name(law, driver)
-            try:
-                fit = fit_family(
-                    data, law, train=train, plays=plays, alpha_per_v=alpha_per_v, creep_driver=driver
-                )
-            except CalibrationError as exc:
-                failed[name] = str(exc)
-                continue
-            fits[name] = fit
-            heldout[name] = fit.heldout_rms_um
-            train_rms[name] = fit.rms_um
+    pairs = [(law, driver) for law in laws for driver in creep_drivers] if members is None else members
+    for law, driver in pairs:
+        name = member_name(law, driver)
+        try:
+            fit = fit_family(
+                data, law, train=train, plays=plays, alpha_per_v=alpha_per_v, creep_driver=driver
+            )
+        except CalibrationError as exc:
+            failed[name] = str(exc)
+            continue
+        fits[name] = fit
+        heldout[name] = fit.heldout_rms_um
+        train_rms[name] = fit.rms_um
     for name, params in (others or {}).items():
         s = _Session(data, np.asarray(params.creep.taus_s), train)
         x = session_positions(data, params, s.dev)

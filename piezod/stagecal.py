@@ -15,7 +15,7 @@ import concurrent.futures
 import math
 import multiprocessing
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -655,12 +655,15 @@ def choose_for_experiments(
     base: ScannerConfig,
     ramp_v_per_s: float,
     rest_voltage_v: float,
+    members: Sequence[tuple[str, str]] | None = None,
 ) -> ThesisFit:
     """Fit the family's laws, score them and the dynamic model of ``base`` on held-out experiments.
 
     Returns the config using the model that predicts the held-out experiments best
     (``model: family`` with its section, or ``model: dynamic``), the report (``table``,
     ``chosen``, RMS per candidate) and, as ``fit_error_pct``, the chosen model's held-out RMS in um.
+    ``members`` (``(law, creep driver)`` pairs) restricts the family members fitted
+    (:func:`piezod.calibrate_family.choose_model`); default every one.
     """
     from piezod import calibrate_family as cf
     from piezod.model.family import REALTIME_CREEP_DRIVERS, CreepSpectrum, FamilyParams
@@ -674,7 +677,9 @@ def choose_for_experiments(
         alpha = dyn.alpha_per_v
         spectrum = CreepSpectrum(tuple(map(float, dyn.taus_s)), tuple(map(float, dyn.weights)))
         others["dynamic"] = FamilyParams(dyn.hysteresis, spectrum)
-    choice = cf.choose_model(data, others=others, alpha_per_v=alpha, adoptable_drivers=REALTIME_CREEP_DRIVERS)
+    choice = cf.choose_model(
+        data, others=others, alpha_per_v=alpha, adoptable_drivers=REALTIME_CREEP_DRIVERS, members=members
+    )
     report: dict[str, Any] = {
         "chosen": choice.chosen,
         "held_out_experiments": list(choice.holdout),
@@ -771,7 +776,12 @@ def audit_and_extend(
     )
     report["refined"] = refined
     redone = choose_for_experiments(
-        experiments_through(experiments, adoption.effects), axis, base, ramp_v_per_s, rest_voltage_v
+        experiments_through(experiments, adoption.effects),
+        axis,
+        base,
+        ramp_v_per_s,
+        rest_voltage_v,
+        members=redo_shortlist(chosen.report),
     )
     report["heldout_rms_um"]["extended"] = redone.fit_error_pct
     # A lag the held-out data cannot place (the sensor path predicts as well as the drive lag the
@@ -795,6 +805,37 @@ def audit_and_extend(
     return ThesisFit(report, chosen.config, chosen.fit_error_pct)
 
 
+#: The choice redone through adopted parts refits the family members whose held-out RMS was
+#: within this factor of the chosen one's (:func:`redo_shortlist`).
+REDO_SHORTLIST_FACTOR = 1.5
+
+
+def redo_shortlist(report: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """The ``(law, creep driver)`` pairs worth refitting when the choice is redone through the
+    audit's adopted parts: those whose held-out RMS in the first choice's ``report`` was within
+    :data:`REDO_SHORTLIST_FACTOR` of the chosen candidate's, the chosen member always.
+
+    The parts (a sensor lag, a thermal drift, a stiffening) change every member's residual alike;
+    a member predicting half again worse is not overtaken by them, and refitting every law (the
+    position-creep fits of a fine play grid take minutes each) made the audit step the longest
+    part of a calibration.
+    """
+    from piezod import calibrate_family as cf
+
+    rms = {str(k): float(v) for k, v in dict(report.get("heldout_rms_um") or {}).items()}
+    chosen = str(report.get("chosen", ""))
+    limit = REDO_SHORTLIST_FACTOR * rms.get(chosen, math.inf)
+    pairs: list[tuple[str, str]] = []
+    for name, value in rms.items():
+        member = cf.parse_member(name)
+        if member is None or not (value <= limit or name == chosen):
+            continue
+        pair = (member[0], member[1])
+        if pair not in pairs:
+            pairs.append(pair)
+    return pairs
+
+
 def refine_adoption(
     experiments: Sequence[Experiment],
     adoption: Adoption,
@@ -810,7 +851,9 @@ def refine_adoption(
     *training* RMS of the chosen family member refitted on the frame seen through them; the
     held-out experiments stay out of it. For the sensor path the member is fitted without a
     drive lag of its own, which would otherwise take any part of the lag the sensor path leaves.
-    A chosen model that is not a family member leaves the findings as the audit found them.
+    A member refined to a finer play grid is profiled at the default grid
+    (:data:`piezod.calibrate_family.DEFAULT_PLAYS`). A chosen model that is not a family member
+    leaves the findings as the audit found them.
 
     Returns
     -------
@@ -826,7 +869,10 @@ def refine_adoption(
     if member is None:
         return adoption, []
     law, driver, plays = member
-    plays = plays or cf.DEFAULT_PLAYS
+    # the profile refits the member a dozen times per part; a finer play grid moves the kinks of
+    # the loops, not a part's rate or lag, and costs several times as much per fit
+    plays = min(plays or cf.DEFAULT_PLAYS, cf.DEFAULT_PLAYS)
+    fitted = cf.member_name(law, driver, None if plays == cf.DEFAULT_PLAYS else plays)
 
     def train_rms(trial: dict[str, dict[str, float]], fit_lag: bool = True) -> float:
         data = _frame_session(experiments_through(experiments, trial), ramp_v_per_s, rest_voltage_v)
@@ -842,8 +888,8 @@ def refine_adoption(
         adoption.effects,
         train_rms,
         lambda trial: train_rms(trial, fit_lag=False),
-        model=chosen,
-        sensor_model=f"{chosen} without a drive lag of its own",
+        model=fitted,
+        sensor_model=f"{fitted} without a drive lag of its own",
     )
     if not notes:
         return adoption, []

@@ -228,6 +228,31 @@ def test_verification_points_of_a_unipolar_stage_are_centred_on_the_frame() -> N
     assert all(abs(p.offset_um - q.offset_um) < 0.01 for p, q in zip(checked, planned[:3], strict=True))
 
 
+def test_the_choice_redone_through_adopted_parts_refits_only_the_close_members() -> None:
+    from piezod.stagecal import REDO_SHORTLIST_FACTOR, redo_shortlist
+
+    rms = {
+        "family/prandtl-ishlinskii": 0.043,
+        "family/generalised-play": 0.00410,
+        "family/generalised-play/voltage-creep": 0.0060,
+        "family/bouc-wen/voltage-creep": 0.0041 * REDO_SHORTLIST_FACTOR * 1.01,
+        "dynamic": 0.0041,
+        "family/generalised-play/64-plays": 0.00403,
+    }
+    report = {"chosen": "family/generalised-play/64-plays", "heldout_rms_um": rms}
+    assert redo_shortlist(report) == [("generalised-play", "position"), ("generalised-play", "voltage")]
+    # a chosen candidate outside the family: the members close to it
+    assert redo_shortlist({**report, "chosen": "dynamic"}) == [
+        ("generalised-play", "position"),
+        ("generalised-play", "voltage"),
+    ]
+    # no held-out figure for the chosen one: it alone
+    nan = {**rms, "family/prandtl-ishlinskii": float("nan")}
+    assert redo_shortlist({"chosen": "family/prandtl-ishlinskii", "heldout_rms_um": nan}) == [
+        ("prandtl-ishlinskii", "position")
+    ]
+
+
 def test_an_adopted_part_is_refined_on_the_chosen_members_fit() -> None:
     """The audit estimates a part against its own baseline, which absorbs part of the effect (on
     tube-holdout-stage 3.98 % of a 5 % depoling); profiling the part's parameter on the chosen
