@@ -810,10 +810,11 @@ def audit_and_extend(
 REDO_SHORTLIST_FACTOR = 1.5
 
 
-def redo_shortlist(report: Mapping[str, Any]) -> list[tuple[str, str]]:
+def redo_shortlist(report: Mapping[str, Any]) -> list[tuple[str, str]] | None:
     """The ``(law, creep driver)`` pairs worth refitting when the choice is redone through the
     audit's adopted parts: those whose held-out RMS in the first choice's ``report`` was within
-    :data:`REDO_SHORTLIST_FACTOR` of the chosen candidate's, the chosen member always.
+    :data:`REDO_SHORTLIST_FACTOR` of the chosen candidate's, the chosen member always; None (every
+    member) for a report without the choice's table.
 
     The parts (a sensor lag, a thermal drift, a stiffening) change every member's residual alike;
     a member predicting half again worse is not overtaken by them, and refitting every law (the
@@ -824,6 +825,8 @@ def redo_shortlist(report: Mapping[str, Any]) -> list[tuple[str, str]]:
 
     rms = {str(k): float(v) for k, v in dict(report.get("heldout_rms_um") or {}).items()}
     chosen = str(report.get("chosen", ""))
+    if chosen not in rms:
+        return None
     limit = REDO_SHORTLIST_FACTOR * rms.get(chosen, math.inf)
     pairs: list[tuple[str, str]] = []
     for name, value in rms.items():

@@ -247,6 +247,7 @@ def test_the_choice_redone_through_adopted_parts_refits_only_the_close_members()
         ("generalised-play", "voltage"),
     ]
     # no held-out figure for the chosen one: it alone
+    assert redo_shortlist({"chosen": "family/generalised-play"}) is None  # no table: every member
     nan = {**rms, "family/prandtl-ishlinskii": float("nan")}
     assert redo_shortlist({"chosen": "family/prandtl-ishlinskii", "heldout_rms_um": nan}) == [
         ("prandtl-ishlinskii", "position")
