@@ -610,8 +610,9 @@ class Streamer:
     def _plausible(self, st: Status, st_count: int) -> bool:
         """Whether ``st`` can describe this run: it reports no sample the host never sent.
 
-        A STATUS claiming samples received or played beyond the highest index sent, or more
-        free FIFO than the board has, comes from a confused (or forged) board. Acting on it,
+        A STATUS claiming samples received or played beyond the highest index sent, a running
+        board's write index before the run's start, or more free FIFO than the board has, comes
+        from a confused (or forged) board. Acting on it,
         the host computed and queued samples up to the index it claimed played (minutes of
         samples ahead of the clock, played out after the next rewind: a scan started meanwhile
         waited for them). It is counted (:attr:`StreamStats.implausible_status`), logged once,
@@ -626,6 +627,10 @@ class Streamer:
             reason = f"write_index {st.write_index} beyond the samples sent (up to {self._sent_hw - 1})"
         elif played != NO_INDEX and played >= self._sent_hw:
             reason = f"last_played_index {played} beyond the samples sent (up to {self._sent_hw - 1})"
+        elif st.state in (BoardState.ARMED, BoardState.RUNNING) and st.write_index < self._run_start():
+            # a board that took this run's START holds its samples from the start index on; a
+            # rewind to an index before it resent minutes of samples and underran a scan (fuzz)
+            reason = f"write_index {st.write_index} before this run's start index {self._run_start()}"
         elif depth is not None and st.fifo_free_samples > depth:
             reason = f"fifo_free_samples {st.fifo_free_samples} beyond the FIFO depth {depth}"
         if reason is None:
