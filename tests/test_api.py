@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import grp
 import json
 import logging
@@ -309,7 +310,10 @@ def test_bug_in_a_route_is_a_logged_500_and_the_connection_survives(
     assert client.get("/v1/status").status_code == 200  # same keep-alive connection
 
 
-def test_engine_calls_do_not_block_the_event_loop(client: httpx.Client, fake: FakeEngine) -> None:
+@contextlib.contextmanager
+def _scan_start_blocked(client: httpx.Client, fake: FakeEngine) -> Iterator[list[int]]:
+    """A ``POST /v1/scan`` held inside the engine's ``start_scan`` for the block; its status code
+    is in the yielded list afterwards."""
     fake.block_start = threading.Event()
     answer: list[int] = []
     waiter = threading.Thread(
@@ -322,11 +326,16 @@ def test_engine_calls_do_not_block_the_event_loop(client: httpx.Client, fake: Fa
         deadline = time.monotonic() + 10
         while not any(c[0] == "start_scan" for c in fake.calls) and time.monotonic() < deadline:
             time.sleep(0.005)
-        assert waiter.is_alive()  # start_scan is blocked ...
-        assert client.get("/v1/status").status_code == 200  # ... and the API still answers
+        assert waiter.is_alive()  # start_scan is blocked
+        yield answer
     finally:
         fake.block_start.set()
         waiter.join(10)
+
+
+def test_engine_calls_do_not_block_the_event_loop(client: httpx.Client, fake: FakeEngine) -> None:
+    with _scan_start_blocked(client, fake) as answer:
+        assert client.get("/v1/status").status_code == 200  # the API still answers
     assert answer == [202]
 
 
@@ -335,26 +344,12 @@ def test_one_scan_check_at_a_time_others_429_then_busy_is_409_without_a_check(
 ) -> None:
     """A scan check renders seconds of samples; concurrent ones are refused at once (429, nothing
     changed, retry), and a scan request while scanning is 409 before any check is computed."""
-    fake.block_start = threading.Event()
-    answer: list[int] = []
-    first = threading.Thread(
-        target=lambda: answer.append(
-            client.post("/v1/scan", json={"range_um": 10, "line_rate_hz": 2}).status_code
-        )
-    )
-    first.start()
-    try:
-        deadline = time.monotonic() + 10
-        while not any(c[0] == "start_scan" for c in fake.calls) and time.monotonic() < deadline:
-            time.sleep(0.005)
+    with _scan_start_blocked(client, fake) as answer:
         r = client.patch("/v1/scan", json={"line_rate_hz": 4})
         assert r.status_code == 409  # not scanning yet: the state is checked first
         r = client.post("/v1/scan", json={"range_um": 5, "line_rate_hz": 2})
         assert r.status_code == 429 and r.headers["retry-after"] == "1"
         assert r.json()["error"] == "Busy" and "another scan is being checked" in r.json()["detail"]
-    finally:
-        fake.block_start.set()
-        first.join(10)
     assert answer == [202]
     assert [c[1].range_um for c in fake.calls if c[0] == "check_scan"] == [10]
     fake.calls.clear()
