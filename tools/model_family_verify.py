@@ -41,7 +41,7 @@ from hil_sim.stage import Stage, StageConfig, resolve_stage
 from piezod import calibrate_dynamic as cd
 from piezod.calibrate import calibrate, calibrated_config
 from piezod.cli import main as cli_main
-from piezod.config import load_config
+from piezod.config import dump_config, load_config
 from piezod.effects_bench import StageBench
 from piezod.errors import RangeUnreachableError, SafetyError
 from piezod.extensions import experiments_through_sensor
@@ -149,6 +149,15 @@ def main() -> int:
         "--choice-only", action="store_true", help="stop after the held-out model choice (no verification)"
     )
     ap.add_argument(
+        "--config-out", default=None, metavar="F.yaml", help="write the calibrated config (before verifying)"
+    )
+    ap.add_argument(
+        "--verify",
+        default=None,
+        metavar="F.yaml",
+        help="skip the calibration: verify this scanner config (e.g. an edited --config-out) after the frame",
+    )
+    ap.add_argument(
         "--markdown", default=None, metavar="F.json", help="print the tables of a saved --json run"
     )
     ap.add_argument(
@@ -175,7 +184,10 @@ def main() -> int:
     # where the frame left the stage: its last voltage and readback (noise averaged, as frame_end)
     last_x = float(np.mean(exps[-1].position_um[-FRAME_END_SAMPLES:]))
     print(f"frame: {len(exps)} experiments, {bench.t:.0f} s simulated")
-    if args.offline:
+    if args.verify:
+        choice = ThesisFit({"chosen": f"given: {args.verify}"}, load_config(args.verify), float("nan"))
+        args.skip_dynamic = args.skip_dynamic or choice.config.axes[axis].dynamic is None
+    elif args.offline:
         choice = _offline(exps, path, axis)
         args.skip_dynamic = args.skip_dynamic or choice.config.axes[axis].dynamic is None
     else:
@@ -186,7 +198,7 @@ def main() -> int:
         with_dyn = cd.calibrated_config(dyn, axis=axis, base=thesis)
         choice = choose_for_experiments(exps, axis, with_dyn, ramp, base.axes[axis].safe_voltage_v)
         print(choice.report["table"])
-    if args.audit and not args.offline:
+    if args.audit and not (args.offline or args.verify):
         # as piezod calibrate does by default: the frame audited, the findings with a runtime part
         # adopted when the extended model predicts the held-out experiments better
         audited = audit_and_extend(exps, axis, choice, with_dyn, ramp, base.axes[axis].safe_voltage_v)
@@ -198,6 +210,8 @@ def main() -> int:
             Path(args.json).write_text(json.dumps({"stage": str(path), "choice": choice.report}, indent=2))
         return 0
     calibrated = choice.config
+    if args.config_out:
+        dump_config(calibrated, args.config_out, header=f"calibrated in process on {path}")
     chosen_kind = calibrated.axes[axis].model
     rows: list[dict[str, Any]] = []
     # placed, then checked with the verified model's own inverse over each whole scan (as piezod
