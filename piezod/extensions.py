@@ -381,15 +381,80 @@ def refine_findings(
     model: str = "the refitted model",
     sensor_model: str | None = None,
 ) -> tuple[dict[str, dict[str, float]], list[str]]:
-    """:func:`refine_parts` on ``train_rms``, then :func:`refine_sensor_lag` on ``sensor_rms``
-    (default ``train_rms``: a model without a drive lag of its own, described by
-    ``sensor_model`` in the note); the refined effects and one line per change."""
-    out, notes = refine_parts(effects, train_rms, model)
+    """:func:`refine_sensor_lag` on ``sensor_rms`` (default ``train_rms``: a model without a drive
+    lag of its own, described by ``sensor_model`` in the note), then :func:`refine_parts` on
+    ``train_rms`` through the refined sensor path; the refined effects and one line per change.
+
+    The sensor path goes first: the audit's lag is the estimate furthest off (its baseline's misfit
+    of the rate dependence goes into it), and a part profiled through a wrong lag takes some of the
+    lag's misfit. On a held-out nPoint-like stage the audit's 1.22 ms sensor lag (0.34 ms once
+    profiled) left the member 15.5 nm in training, and the stiffness profiled through it went to
+    the search's bound (+0.094 %/um; the stage's is -0.025 %/um); the scans corrected with it were
+    0.12 % short (docs/model-family.md 6.2g).
+    """
+    out = {k: dict(v) for k, v in effects.items()}
+    notes: list[str] = []
     if any(e in SENSOR_EFFECTS for e in out):
         out, note = refine_sensor_lag(out, sensor_rms or train_rms)
         if note:
             notes.append(f"sensor path {note}" + (f", of {sensor_model}" if sensor_model else ""))
-    return out, notes
+    out, part_notes = refine_parts(out, train_rms, model)
+    return out, notes + part_notes
+
+
+def prune_parts(
+    effects: Mapping[str, Mapping[str, float]],
+    heldout_rms: Callable[[dict[str, dict[str, float]]], float],
+    model: str = "the refitted model",
+    tie_fraction: float | None = None,
+) -> tuple[dict[str, dict[str, float]], list[str]]:
+    """Leave out the runtime parts that do not lower a refitted model's held-out RMS.
+
+    The audit names effects against its own baseline; the model they are adopted into may have
+    the effect already (a family member fits its own static stiffness map), and a part the model
+    does not need still lowers its *training* RMS a little. So each runtime part (the sensor path
+    is not one: where a lag sits is decided by :func:`piezod.stagecal.audit_and_extend`) must earn
+    its place: while the model refitted through all the parts but one predicts the held-out
+    experiments no worse than through all of them (within ``tie_fraction``, default the model
+    choice's :data:`piezod.calibrate_family.CHOICE_TIE_FRACTION`), the part whose removal costs
+    least is left out.
+
+    Parameters
+    ----------
+    effects
+        ``{effect id: {parameter: value}}`` (refined, :func:`refine_findings`).
+    heldout_rms
+        Held-out RMS of the model refitted on the frame seen through the given effects (a
+        failed fit returns ``inf``).
+    model
+        The refitted model, for the notes.
+    tie_fraction
+        Relative held-out gain a part must bring.
+
+    Returns
+    -------
+    effects, left_out
+        The effects kept, and one line per part left out, with the held-out RMS with and without it.
+    """
+    if tie_fraction is None:
+        from piezod.calibrate_family import CHOICE_TIE_FRACTION
+
+        tie_fraction = CHOICE_TIE_FRACTION
+    out = {k: dict(v) for k, v in effects.items()}
+    left_out: list[str] = []
+    while parts := [e for e in out if e in PART_EFFECTS]:
+        with_all = heldout_rms(out)
+        without = {e: heldout_rms({k: v for k, v in out.items() if k != e}) for e in parts}
+        effect = min(without, key=lambda e: without[e])
+        if not with_all < without[effect] * (1.0 - tie_fraction):
+            left_out.append(
+                f"{effect}: held-out RMS of {model} {with_all * 1e3:.2f} nm with it, "
+                f"{without[effect] * 1e3:.2f} nm without"
+            )
+            del out[effect]
+            continue
+        break
+    return out, left_out
 
 
 def write_extended_config(
@@ -451,6 +516,7 @@ __all__ = [
     "experiments_through_parts",
     "experiments_through_sensor",
     "extended_config",
+    "prune_parts",
     "refine_findings",
     "refine_parts",
     "refine_sensor_lag",

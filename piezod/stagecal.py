@@ -716,8 +716,9 @@ def audit_and_extend(
     """Audit the frame, adopt the material findings that have a runtime part if they predict better.
 
     The audit (:func:`piezod.audit.run_audit`) names the effects; those with a runtime part
-    (:func:`piezod.extensions.adopt_findings`) are fixed and the model choice is redone on the frame
-    seen through their exact inverse (:func:`choose_for_experiments`). The extended model is
+    (:func:`piezod.extensions.adopt_findings`) are profiled on the chosen member, those its held-out
+    RMS does not need are left out (:func:`refine_adoption`), and the model choice is redone on the
+    frame seen through their exact inverse (:func:`choose_for_experiments`). The extended model is
     adopted when its held-out RMS is below the chosen model's, else the findings are reported
     as not adopted.
 
@@ -775,6 +776,10 @@ def audit_and_extend(
         experiments, adoption, str(chosen.report.get("chosen", "")), ramp_v_per_s, rest_voltage_v
     )
     report["refined"] = refined
+    report["skipped"] = list(adoption.skipped)
+    if not adoption.effects:
+        report["text"] = adoption.summary()
+        return ThesisFit(report, chosen.config, chosen.fit_error_pct)
     redone = choose_for_experiments(
         experiments_through(experiments, adoption.effects),
         axis,
@@ -846,14 +851,17 @@ def refine_adoption(
     ramp_v_per_s: float,
     rest_voltage_v: float,
 ) -> tuple[Adoption, list[str]]:
-    """Profile the adopted runtime parts and the sensor path on the chosen member's fit.
+    """Profile the adopted runtime parts and the sensor path on the chosen member's fit, and keep
+    the parts that predict held-out data better.
 
     The audit estimates them against its own baseline model, which absorbs part of an effect.
-    Each runtime part's primary parameter (:func:`piezod.extensions.refine_parts`) and the sensor
-    path's lag (:func:`piezod.extensions.refine_sensor_lag`) are searched for the smallest
+    The sensor path's lag (:func:`piezod.extensions.refine_sensor_lag`), then each runtime part's
+    primary parameter (:func:`piezod.extensions.refine_parts`) are searched for the smallest
     *training* RMS of the chosen family member refitted on the frame seen through them; the
     held-out experiments stay out of it. For the sensor path the member is fitted without a
     drive lag of its own, which would otherwise take any part of the lag the sensor path leaves.
+    Then a runtime part the member's held-out RMS does not need is left out
+    (:func:`piezod.extensions.prune_parts`; it goes to the adoption's ``skipped``).
     A member refined to a finer play grid is profiled at the default grid
     (:data:`piezod.calibrate_family.DEFAULT_PLAYS`). A chosen model that is not a family member
     leaves the findings as the audit found them.
@@ -861,12 +869,14 @@ def refine_adoption(
     Returns
     -------
     adoption, notes
-        The adoption with the refined values, and one line per refined part.
+        The adoption with the refined values and without the parts left out, and one line per
+        refined part.
     """
     import dataclasses
+    import json
 
     from piezod import calibrate_family as cf
-    from piezod.extensions import experiments_through, refine_findings
+    from piezod.extensions import experiments_through, prune_parts, refine_findings
 
     member = cf.parse_member(chosen)
     if member is None:
@@ -876,27 +886,34 @@ def refine_adoption(
     # the loops, not a part's rate or lag, and costs several times as much per fit
     plays = min(plays or cf.DEFAULT_PLAYS, cf.DEFAULT_PLAYS)
     fitted = cf.member_name(law, driver, None if plays == cf.DEFAULT_PLAYS else plays)
+    fits: dict[str, tuple[float, float]] = {}
 
-    def train_rms(trial: dict[str, dict[str, float]], fit_lag: bool = True) -> float:
-        data = _frame_session(experiments_through(experiments, trial), ramp_v_per_s, rest_voltage_v)
-        train = cf.holdout_mask(data.n_experiments)
-        try:
-            return cf.fit_family(
-                data, law, train=train, plays=plays, creep_driver=driver, fit_lag=fit_lag
-            ).rms_um
-        except (CalibrationError, ModelError):
-            return math.inf
+    def fit(trial: dict[str, dict[str, float]], fit_lag: bool = True) -> tuple[float, float]:
+        key = json.dumps([trial, fit_lag], sort_keys=True)
+        if key not in fits:
+            data = _frame_session(experiments_through(experiments, trial), ramp_v_per_s, rest_voltage_v)
+            train = cf.holdout_mask(data.n_experiments)
+            try:
+                f = cf.fit_family(data, law, train=train, plays=plays, creep_driver=driver, fit_lag=fit_lag)
+                fits[key] = (f.rms_um, f.heldout_rms_um)
+            except (CalibrationError, ModelError):
+                fits[key] = (math.inf, math.inf)
+        return fits[key]
 
     effects, notes = refine_findings(
         adoption.effects,
-        train_rms,
-        lambda trial: train_rms(trial, fit_lag=False),
+        lambda trial: fit(trial)[0],
+        lambda trial: fit(trial, fit_lag=False)[0],
         model=fitted,
         sensor_model=f"{fitted} without a drive lag of its own",
     )
-    if not notes:
+    effects, left_out = prune_parts(effects, lambda trial: fit(trial)[1], model=fitted)
+    if not notes and not left_out:
         return adoption, []
-    return dataclasses.replace(adoption, effects=effects), notes
+    gone = {line.split(":", 1)[0] for line in left_out}
+    notes = [n for n in notes if n.split(":", 1)[0] not in gone]
+    skipped = adoption.skipped + tuple(f"{line} (left out)" for line in left_out)
+    return dataclasses.replace(adoption, effects=effects, skipped=skipped), notes
 
 
 def _audit_here(

@@ -129,6 +129,49 @@ def test_the_sensor_lag_is_profiled_on_the_refit() -> None:
     assert math.isclose(same["delay"]["lag_time_constant_s"], lag, rel_tol=0.01)
 
 
+def test_the_sensor_path_is_profiled_before_the_parts() -> None:
+    """A part's best value through a wrong sensor lag is not its value: the lag goes first, the
+    parts are profiled through the refined lag."""
+    from piezod.extensions import refine_findings
+
+    found = {
+        "delay": {"delay_s": 0.0, "lag_time_constant_s": 0.935e-3},
+        "stiffness": {"sensitivity_pct_per_um": 0.09},
+    }
+
+    def rms(fx: dict[str, dict[str, float]]) -> float:
+        # the part's optimum moves with the lag's error (it takes part of the misfit)
+        err = sum(fx["delay"].values()) - 0.63e-3
+        return 1e-3 + (1e3 * err) ** 2 + (fx["stiffness"]["sensitivity_pct_per_um"] - 0.1 - 100 * err) ** 2
+
+    out, notes = refine_findings(found, rms)
+    assert math.isclose(out["delay"]["lag_time_constant_s"], 0.63e-3, rel_tol=0.02)
+    assert math.isclose(out["stiffness"]["sensitivity_pct_per_um"], 0.1, rel_tol=0.03)
+    assert [n.split(" ")[0] for n in notes] == ["sensor", "stiffness:"]
+
+
+def test_parts_the_held_out_rms_does_not_need_are_left_out() -> None:
+    """Backward elimination on the held-out RMS: a part that lowers it by less than the tie
+    fraction goes, one that lowers it more stays; the sensor path is not judged here."""
+    from piezod.extensions import prune_parts
+
+    found = {
+        "delay": {"delay_s": 1e-4, "lag_time_constant_s": 1e-4},
+        "polarity": {"negative_sensitivity_pct": -5.0},
+        "stiffness": {"sensitivity_pct_per_um": 0.09},
+    }
+
+    def held(fx: dict[str, dict[str, float]]) -> float:
+        return 3.0e-3 - (0.5e-3 if "polarity" in fx else 0.0) - (0.01e-3 if "stiffness" in fx else 0.0)
+
+    kept, left_out = prune_parts(found, held, model="M")
+    assert list(kept) == ["delay", "polarity"]
+    assert left_out == ["stiffness: held-out RMS of M 2.49 nm with it, 2.50 nm without"]
+    assert prune_parts({"delay": found["delay"]}, held) == ({"delay": found["delay"]}, [])
+    worse = prune_parts(found, lambda fx: 3.0e-3 + (1e-4 if "stiffness" in fx else 0.0))
+    assert list(worse[0]) == ["delay"] and len(worse[1]) == 2
+
+
 class TargetMissedError(AssertionError):
     """The extended model leaves more than 1/3 of the baseline's error (the known xfails: only this)."""
 

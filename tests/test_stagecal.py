@@ -280,6 +280,35 @@ def test_an_adopted_part_is_refined_on_the_chosen_members_fit() -> None:
     assert refine_adoption(exps, found, "dynamic", 2000.0, 0.0) == (found, [])
 
 
+def test_a_part_the_chosen_member_does_not_need_is_left_out() -> None:
+    """A part must lower the chosen member's held-out RMS to be adopted: a stiffness named beside a
+    real depoling is left out (the member fits its own static map; on a held-out stage a stiffness
+    adopted that way made every corrected scan 0.12 % short), the polarity is kept and refined."""
+    from hil_sim.session import calibration_plan, run_session
+    from hil_sim.stage import StageConfig, resolve_stage
+    from piezod.extensions import Adoption
+    from piezod.simulator import session_experiments
+    from piezod.stagecal import refine_adoption
+
+    path = resolve_stage("pi-stage")
+    assert path is not None
+    stage = StageConfig.from_file(path).with_effects("polarity=-5")
+    plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
+    sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-230.0, 230.0))
+    exps = session_experiments(sess)
+    found = Adoption(
+        {"polarity": {"negative_sensitivity_pct": -3.5}, "stiffness": {"sensitivity_pct_per_um": 0.07}},
+        ("drift: not material",),
+    )
+    refined, notes = refine_adoption(exps, found, "family/prandtl-ishlinskii/voltage-creep", 2000.0, 0.0)
+    assert list(refined.effects) == ["polarity"], refined
+    assert abs(refined.effects["polarity"]["negative_sensitivity_pct"] + 5.0) < 0.3, notes
+    assert refined.skipped[0] == "drift: not material"
+    assert len(refined.skipped) == 2 and refined.skipped[1].startswith("stiffness: held-out RMS of family/")
+    assert refined.skipped[1].endswith("without (left out)")
+    assert [n.split(":")[0] for n in notes] == ["polarity"]
+
+
 def test_verification_starts_where_the_frame_left_the_stage_in_the_sensors_coordinates() -> None:
     """A fitted law's positions are relative to the histories it was fitted on: the run adopts
     the model at the frame's last voltage and measured position, so the scan centres follow the
