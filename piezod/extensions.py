@@ -442,18 +442,18 @@ def prune_parts(
         tie_fraction = CHOICE_TIE_FRACTION
     out = {k: dict(v) for k, v in effects.items()}
     left_out: list[str] = []
+    with_all = heldout_rms(out)
     while parts := [e for e in out if e in PART_EFFECTS]:
-        with_all = heldout_rms(out)
         without = {e: heldout_rms({k: v for k, v in out.items() if k != e}) for e in parts}
         effect = min(without, key=lambda e: without[e])
-        if not with_all < without[effect] * (1.0 - tie_fraction):
-            left_out.append(
-                f"{effect}: held-out RMS of {model} {with_all * 1e3:.2f} nm with it, "
-                f"{without[effect] * 1e3:.2f} nm without"
-            )
-            del out[effect]
-            continue
-        break
+        if with_all < without[effect] * (1.0 - tie_fraction):
+            break
+        left_out.append(
+            f"{effect}: held-out RMS of {model} {with_all * 1e3:.2f} nm with it, "
+            f"{without[effect] * 1e3:.2f} nm without"
+        )
+        del out[effect]
+        with_all = without[effect]
     return out, left_out
 
 

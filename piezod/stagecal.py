@@ -907,11 +907,12 @@ def refine_adoption(
         model=fitted,
         sensor_model=f"{fitted} without a drive lag of its own",
     )
-    effects, left_out = prune_parts(effects, lambda trial: fit(trial)[1], model=fitted)
+    kept, left_out = prune_parts(effects, lambda trial: fit(trial)[1], model=fitted)
     if not notes and not left_out:
         return adoption, []
-    gone = {line.split(":", 1)[0] for line in left_out}
+    gone = set(effects) - set(kept)
     notes = [n for n in notes if n.split(":", 1)[0] not in gone]
+    effects = kept
     skipped = adoption.skipped + tuple(f"{line} (left out)" for line in left_out)
     return dataclasses.replace(adoption, effects=effects, skipped=skipped), notes
 

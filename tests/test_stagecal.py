@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import pytest
 from piezod.cli import main
 from piezod.config import default_sim_config_path, load_config
 from piezod.errors import CalibrationError
+from piezod.recording import Experiment
 from piezod.stagecal import default_frame, verification_points
 
 
@@ -254,22 +256,29 @@ def test_the_choice_redone_through_adopted_parts_refits_only_the_close_members()
     ]
 
 
-def test_an_adopted_part_is_refined_on_the_chosen_members_fit() -> None:
-    """The audit estimates a part against its own baseline, which absorbs part of the effect (on
-    tube-holdout-stage 3.98 % of a 5 % depoling); profiling the part's parameter on the chosen
-    family member's training fit recovers it (there: 4.99 %)."""
+@functools.cache
+def _depoled_pi_session() -> tuple[Experiment, ...]:
+    """A short calibration session of ``pi-stage`` with 5 % depoling (shared by the adoption tests)."""
     from hil_sim.session import calibration_plan, run_session
     from hil_sim.stage import StageConfig, resolve_stage
-    from piezod.extensions import Adoption
     from piezod.simulator import session_experiments
-    from piezod.stagecal import refine_adoption
 
     path = resolve_stage("pi-stage")
     assert path is not None
     stage = StageConfig.from_file(path).with_effects("polarity=-5")
     plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
     sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-230.0, 230.0))
-    exps = session_experiments(sess)
+    return tuple(session_experiments(sess))
+
+
+def test_an_adopted_part_is_refined_on_the_chosen_members_fit() -> None:
+    """The audit estimates a part against its own baseline, which absorbs part of the effect (on
+    tube-holdout-stage 3.98 % of a 5 % depoling); profiling the part's parameter on the chosen
+    family member's training fit recovers it (there: 4.99 %)."""
+    from piezod.extensions import Adoption
+    from piezod.stagecal import refine_adoption
+
+    exps = _depoled_pi_session()
     found = Adoption({"polarity": {"negative_sensitivity_pct": -3.5}})
     refined, notes = refine_adoption(exps, found, "family/prandtl-ishlinskii/voltage-creep", 2000.0, 0.0)
     value = refined.effects["polarity"]["negative_sensitivity_pct"]
@@ -284,18 +293,10 @@ def test_a_part_the_chosen_member_does_not_need_is_left_out() -> None:
     """A part must lower the chosen member's held-out RMS to be adopted: a stiffness named beside a
     real depoling is left out (the member fits its own static map; on a held-out stage a stiffness
     adopted that way made every corrected scan 0.12 % short), the polarity is kept and refined."""
-    from hil_sim.session import calibration_plan, run_session
-    from hil_sim.stage import StageConfig, resolve_stage
     from piezod.extensions import Adoption
-    from piezod.simulator import session_experiments
     from piezod.stagecal import refine_adoption
 
-    path = resolve_stage("pi-stage")
-    assert path is not None
-    stage = StageConfig.from_file(path).with_effects("polarity=-5")
-    plan = calibration_plan((150.0, 300.0), (0.5, 2.0), (-20.0, 20.0), cycles=2, settle_cycles=1)
-    sess = run_session(stage, plan, sample_rate_hz=1000.0, axis="x", voltage_limits_v=(-230.0, 230.0))
-    exps = session_experiments(sess)
+    exps = _depoled_pi_session()
     found = Adoption(
         {"polarity": {"negative_sensitivity_pct": -3.5}, "stiffness": {"sensitivity_pct_per_um": 0.07}},
         ("drift: not material",),

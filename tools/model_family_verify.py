@@ -184,11 +184,12 @@ def main() -> int:
     # where the frame left the stage: its last voltage and readback (noise averaged, as frame_end)
     last_x = float(np.mean(exps[-1].position_um[-FRAME_END_SAMPLES:]))
     print(f"frame: {len(exps)} experiments, {bench.t:.0f} s simulated")
-    if args.verify:
-        choice = ThesisFit({"chosen": f"given: {args.verify}"}, load_config(args.verify), float("nan"))
-        args.skip_dynamic = args.skip_dynamic or choice.config.axes[axis].dynamic is None
-    elif args.offline:
-        choice = _offline(exps, path, axis)
+    if args.verify or args.offline:
+        choice = (
+            ThesisFit({"chosen": f"given: {args.verify}"}, load_config(args.verify), float("nan"))
+            if args.verify
+            else _offline(exps, path, axis)
+        )
         args.skip_dynamic = args.skip_dynamic or choice.config.axes[axis].dynamic is None
     else:
         thesis = calibrated_config(calibrate(exps), axis=axis, base=base)
