@@ -22,13 +22,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from hil_sim.stage import Stage, StageConfig, resolve_stage
+from model_family_verify import play_default_frame, start_config
+
 from piezod import audit, stagecal
-from piezod import calibrate_dynamic as cd
 from piezod import calibrate_family as cf
-from piezod.calibrate import calibrate, calibrated_config
-from piezod.config import load_config
-from piezod.effects_bench import StageBench
 
 _TIMES: dict[str, list[float]] = {}
 
@@ -54,11 +51,8 @@ def main() -> int:
     ap.add_argument("--stage", default="preisach-stage", help="preset name or scanner YAML with simulation:")
     ap.add_argument("--json", default=None, help="write the phase times here")
     args = ap.parse_args()
-    path = resolve_stage(args.stage)
-    if path is None:
-        raise SystemExit(f"no stage {args.stage!r}")
-    base = load_config(path)
-    axis = "x"
+    played = play_default_frame(args.stage)
+    exps, axis, ramp, rest = played.experiments, played.axis, played.ramp_v_per_s, played.rest_voltage_v
 
     def member(data: Any, law: str, **k: Any) -> str:
         return f"{law} {k.get('creep_driver', 'position')} {k.get('plays', cf.DEFAULT_PLAYS)} plays"
@@ -66,13 +60,7 @@ def main() -> int:
     _timed(cf, "fit_family", member)
     _timed(audit, "run_audit", lambda *a, **k: "")
     _timed(stagecal, "refine_adoption", lambda *a, **k: "")
-    stage = Stage(StageConfig.from_file(path), axes=(axis,))
-    bench = StageBench(stage, base.sample_rate_hz, keep_history=False)
-    ramp, rest = base.service.ramp_rate_v_per_s, base.axes[axis].safe_voltage_v
-    exps = bench.play_frame(stagecal.default_frame(base, axis), axis, ramp)
-    thesis = calibrated_config(calibrate(exps), axis=axis, base=base)
-    dyn = cd.calibrate_dynamic(exps, slew_rate_v_per_s=ramp, rest_voltage_v=rest)
-    with_dyn = cd.calibrated_config(dyn, axis=axis, base=thesis)
+    with_dyn = start_config(played)
     t0 = time.perf_counter()
     choice = stagecal.choose_for_experiments(exps, axis, with_dyn, ramp, rest)
     t_choice = time.perf_counter() - t0

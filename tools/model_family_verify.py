@@ -41,7 +41,7 @@ from hil_sim.stage import Stage, StageConfig, resolve_stage
 from piezod import calibrate_dynamic as cd
 from piezod.calibrate import calibrate, calibrated_config
 from piezod.cli import main as cli_main
-from piezod.config import dump_config, load_config
+from piezod.config import AxisName, ScannerConfig, dump_config, load_config
 from piezod.effects_bench import StageBench
 from piezod.errors import RangeUnreachableError, SafetyError
 from piezod.extensions import experiments_through_sensor
@@ -50,6 +50,7 @@ from piezod.recording import Experiment, Recording, write_recording
 from piezod.service.axes import AxisDriver
 from piezod.stagecal import (
     FRAME_END_SAMPLES,
+    Frame,
     ThesisFit,
     audit_and_extend,
     check_points,
@@ -107,7 +108,47 @@ def summary_table(paths: list[str]) -> str:
     return "\n".join(lines)
 
 
-def _offline(exps: list[Experiment], stage_path: Path, axis: str) -> ThesisFit:
+@dataclasses.dataclass(frozen=True)
+class PlayedFrame:
+    """The default frame played on a preset's stage in this process, and what the calibration
+    starts from (shared with ``tools/audit_step_cost.py``)."""
+
+    path: Path
+    base: ScannerConfig
+    axis: AxisName
+    bench: StageBench
+    frame: Frame
+    experiments: list[Experiment]
+    ramp_v_per_s: float
+    rest_voltage_v: float
+
+
+def play_default_frame(stage: str, axis: AxisName = "x") -> PlayedFrame:
+    """:func:`piezod.stagecal.default_frame` played on the preset ``stage`` (name or YAML path)."""
+    path = resolve_stage(stage)
+    if path is None:
+        raise SystemExit(f"no stage {stage!r}")
+    base = load_config(path)
+    bench = StageBench(
+        Stage(StageConfig.from_file(path), axes=(axis,)), base.sample_rate_hz, keep_history=False
+    )
+    ramp = base.service.ramp_rate_v_per_s
+    frame = default_frame(base, axis)
+    exps = bench.play_frame(frame, axis, ramp)
+    return PlayedFrame(path, base, axis, bench, frame, exps, ramp, base.axes[axis].safe_voltage_v)
+
+
+def start_config(played: PlayedFrame) -> ScannerConfig:
+    """The thesis and dynamic fits on the frame: the config the model choice starts from."""
+    exps, axis = played.experiments, played.axis
+    thesis = calibrated_config(calibrate(exps), axis=axis, base=played.base)
+    dyn = cd.calibrate_dynamic(
+        exps, slew_rate_v_per_s=played.ramp_v_per_s, rest_voltage_v=played.rest_voltage_v
+    )
+    return cd.calibrated_config(dyn, axis=axis, base=thesis)
+
+
+def _offline(exps: list[Experiment], stage_path: Path, axis: AxisName) -> ThesisFit:
     """The frame written as one recording and calibrated by ``piezod calibrate`` on it (offline)."""
     with tempfile.TemporaryDirectory() as tmp:
         rec, out, js = Path(tmp) / "frame.csv", Path(tmp) / "cal.yaml", Path(tmp) / "cal.json"
@@ -170,17 +211,11 @@ def main() -> int:
     if args.markdown:
         print(markdown(json.loads(Path(args.markdown).read_text())))
         return 0
-    path = resolve_stage(args.stage)
-    assert path is not None
-    base = load_config(path)
-    axis = "x"
-    rate = base.sample_rate_hz
-    stage = Stage(StageConfig.from_file(path), axes=(axis,))
-    bench = StageBench(stage, rate, keep_history=False)
-    ramp = base.service.ramp_rate_v_per_s
     t0 = time.perf_counter()
-    frame = default_frame(base, axis)
-    exps = bench.play_frame(frame, axis, ramp)
+    played = play_default_frame(args.stage)
+    path, base, axis = played.path, played.base, played.axis
+    bench, frame, exps = played.bench, played.frame, played.experiments
+    rate, ramp, rest = base.sample_rate_hz, played.ramp_v_per_s, played.rest_voltage_v
     # where the frame left the stage: its last voltage and readback (noise averaged, as frame_end)
     last_x = float(np.mean(exps[-1].position_um[-FRAME_END_SAMPLES:]))
     print(f"frame: {len(exps)} experiments, {bench.t:.0f} s simulated")
@@ -192,17 +227,13 @@ def main() -> int:
         )
         args.skip_dynamic = args.skip_dynamic or choice.config.axes[axis].dynamic is None
     else:
-        thesis = calibrated_config(calibrate(exps), axis=axis, base=base)
-        dyn = cd.calibrate_dynamic(
-            exps, slew_rate_v_per_s=ramp, rest_voltage_v=base.axes[axis].safe_voltage_v
-        )
-        with_dyn = cd.calibrated_config(dyn, axis=axis, base=thesis)
-        choice = choose_for_experiments(exps, axis, with_dyn, ramp, base.axes[axis].safe_voltage_v)
+        with_dyn = start_config(played)
+        choice = choose_for_experiments(exps, axis, with_dyn, ramp, rest)
         print(choice.report["table"])
     if args.audit and not (args.offline or args.verify):
         # as piezod calibrate does by default: the frame audited, the findings with a runtime part
         # adopted when the extended model predicts the held-out experiments better
-        audited = audit_and_extend(exps, axis, choice, with_dyn, ramp, base.axes[axis].safe_voltage_v)
+        audited = audit_and_extend(exps, axis, choice, with_dyn, ramp, rest)
         print(f"audit of the frame: findings {', '.join(audited.report['findings']) or 'none'}")
         print(audited.report["text"])
         choice = dataclasses.replace(audited, report={**choice.report, "audit": audited.report})
@@ -297,10 +328,10 @@ def main() -> int:
                     "max_nonlinearity_pct": max(r["nonlinearity_pct"] for r in sel),
                     "max_abs_length_error_pct": max(abs(r["length_error_pct"]) for r in sel),
                 }
-    for k, s in summary.items():
+    for name, line in summary.items():
         print(
-            f"{k:<20} max nonlinearity {s['max_nonlinearity_pct']:.3f} %, max |length error| "
-            f"{s['max_abs_length_error_pct']:.3f} %"
+            f"{name:<20} max nonlinearity {line['max_nonlinearity_pct']:.3f} %, max |length error| "
+            f"{line['max_abs_length_error_pct']:.3f} %"
         )
     print(f"{time.perf_counter() - t0:.0f} s")
     if args.json:

@@ -300,13 +300,13 @@ def main() -> int:
     open_rows = keep_v & (exp_v == 0)
     nested = _scored(valid, xv @ both[:n_cols], open_rows)
     alone = _ridge(with_offsets(xi, exp_i, ident.n_experiments, 0)[keep_i], ident.position_um[keep_i])
-    carried = _scored(valid, xv @ alone[:n_cols], keep_v)
+    carried_rms = _scored(valid, xv @ alone[:n_cols], keep_v)
     print(
         f"   full Preisach density ({xv.shape[1] - 2 - len(PREISACH_TAUS_S)} relays) + voltage creep:"
         f" fitted on the validation run {own_rms:.4f} ({own_rms / floor:.2f}x);"
         f" fitted on the identification run and the compensated part, the open-loop part"
         f" {nested:.4f} ({nested / floor:.2f}x); fitted on the identification run alone, the"
-        f" validation run {carried:.4f} ({carried / floor:.2f}x)"
+        f" validation run {carried_rms:.4f} ({carried_rms / floor:.2f}x)"
     )
     _part7(valid, valid.position_um - with_offsets(xv, exp_v, valid.n_experiments, 0) @ own, keep_v)
     return 0
