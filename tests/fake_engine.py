@@ -109,6 +109,7 @@ class FakeEngine:
     def start_scan(self, request: ScanRequest) -> Status:
         """Start scanning (idle only)."""
         self.calls.append(("start_scan", request))
+        self.check_scan(request)
         if self.block_start is not None:
             self.block_start.wait(10.0)
         with self._lock:

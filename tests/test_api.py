@@ -254,7 +254,7 @@ def test_scan_out_of_limits_is_422_with_the_engine_reason(client: httpx.Client, 
         "detail": "range 100 um needs +/-250 V on x, beyond voltage_max_v 150 V",
         "error": "RangeUnreachableError",
     }
-    assert [c[0] for c in fake.calls] == ["check_scan"]
+    assert [c[0] for c in fake.calls] == ["start_scan", "check_scan"] and fake.state == "idle"
 
 
 def test_change_while_idle_is_409(client: httpx.Client, fake: FakeEngine) -> None:

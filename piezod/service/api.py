@@ -539,7 +539,6 @@ def create_app(
         """Check the scan against the limits and the model, then start it (the engine must be idle)."""
         _require_state(_engine_call("status", engine.status), frozenset({"idle"}), "start a scan")
         with heavy("start a scan"):
-            _engine_call("scan check", engine.check_scan, request)
             return _engine_call("scan start", engine.start_scan, request)
 
     @app.patch(

@@ -155,7 +155,7 @@ class EngineControl(Protocol):
         ...
 
     def start_scan(self, request: ScanRequest) -> Status:
-        """Start a scan (after :meth:`check_scan`)."""
+        """Refuse the scan as :meth:`check_scan` does, else start it (one check, not two)."""
         ...
 
     def change_scan(self, change: ScanChange) -> Status:
