@@ -221,6 +221,14 @@ class AxisConfig(StrictModel):
         "sensor path (the readback's delay and lag, piezod.model.sensor): the analysis aligns the "
         "readback with it, the drive is unchanged",
     )
+    tracking_min_line_s: float | None = Field(
+        default=None,
+        gt=0,
+        description="the sensitivity tracker learns only from lines of this axis at least this long (s); "
+        "piezod calibrate writes the calibration frame's shortest line: a faster line's length error is "
+        "the model's rate error beyond what the frame measured, not a change of sensitivity "
+        "(none: every line)",
+    )
 
     def parts(self) -> Parts:
         """The runtime parts of :attr:`extensions` (the drive side)."""

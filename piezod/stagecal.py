@@ -103,6 +103,16 @@ class Frame:
         return min(o), max(o)
 
 
+def with_tracking_bound(config: ScannerConfig, frame: Frame) -> ScannerConfig:
+    """``config`` with the frame axis's ``tracking_min_line_s`` set to the frame's shortest line.
+
+    The sensitivity tracker (:mod:`piezod.service.tracking`) then learns only from lines the
+    calibration measured the rate dependence for; a line of a triangle at ``f`` lasts ``1 / (2 f)``.
+    """
+    axis = config.axes[frame.axis].model_copy(update={"tracking_min_line_s": 0.5 / frame.frequencies_hz[1]})
+    return config.model_copy(update={"axes": {**config.axes, frame.axis: axis}})
+
+
 def default_frame(config: ScannerConfig, axis: AxisName = "x", *, reduced: bool = False) -> Frame:
     """A frame like thesis table 3.1 scaled to the axis: ranges 1/3..full x 0.2-2 Hz, +- offsets.
 

@@ -30,14 +30,41 @@ def test_tracker_converges_and_is_bounded() -> None:
     assert tr2.update(1.5) == tr2.scale and tr2.lines_ignored == 1  # an outlier is ignored
 
 
+def test_a_line_much_faster_than_the_calibration_is_not_taken() -> None:
+    """A line's length error beyond the calibrated rates is the model's rate error, not a sensitivity."""
+    tr = SensitivityTracker(gain=1.0, max_step=1e-3, limit=0.02)
+    for _ in range(20):
+        tr.update(0.993, line_s=0.025, min_line_s=0.25)  # 20 Hz lines, 0.7 % short from the lags
+    assert tr.scale == 1.0 and tr.lines_too_fast == 20 and tr.lines_used == 0
+    tr.update(1.001, line_s=0.21, min_line_s=0.25)  # a little faster than the frame's fastest: taken
+    tr.update(1.001, line_s=0.025)  # no bound: every line
+    assert tr.lines_used == 2 and tr.scale > 1.0
+
+
+def test_calibrate_bounds_the_tracker_at_the_frame_s_shortest_line() -> None:
+    from piezod.stagecal import default_frame, with_tracking_bound
+
+    base = load_config(CALIBRATED)
+    frame = default_frame(base, "x")
+    bounded = with_tracking_bound(base, frame)
+    assert bounded.axes["x"].tracking_min_line_s == pytest.approx(0.5 / frame.frequencies_hz[1])
+    assert bounded.axes["y"] == base.axes["y"]
+
+
 CALIBRATED = Path(__file__).resolve().parent.parent / "configs" / "sim-stage-calibrated.yaml"
 
 
-def _drift_run(tmp_path: Path, tracking: bool, seconds: float) -> tuple[float, dict[str, float]]:
+def _drift_run(
+    tmp_path: Path, tracking: bool, seconds: float, min_line_s: float | None = None
+) -> tuple[float, dict[str, float]]:
     """Scan under a fast thermal drift; return the last-line length error and the tracked scale."""
     base = load_config(os.environ.get("PIEZOD_TEST_CALIBRATED", CALIBRATED))
+    x = base.axes["x"].model_copy(update={"tracking_min_line_s": min_line_s})
     cfg = base.model_copy(
-        update={"service": base.service.model_copy(update={"sensitivity_tracking": tracking})}
+        update={
+            "service": base.service.model_copy(update={"sensitivity_tracking": tracking}),
+            "axes": {**base.axes, "x": x},
+        }
     )
     # 50 %/h: 0.7 % in 50 s (a day's warm-up compressed into the test)
     with spawn_sim(CALIBRATED, effects=("thermal=50",)) as sim:
@@ -62,6 +89,15 @@ def test_tracking_follows_a_thermal_drift(tmp_path: Path) -> None:
     assert scale["x"] > 1.002
     assert abs(err_on) < abs(err_off)
     assert abs(err_on) < 0.15
+
+
+def test_the_daemon_does_not_track_lines_faster_than_its_calibration(tmp_path: Path) -> None:
+    """The same drift with the config's shortest calibrated line (1 s) longer than the scan's (0.25 s):
+    not followed; with 0.2 s it is."""
+    _, scale = _drift_run(tmp_path / "slow", True, 8.0, min_line_s=1.0)
+    assert scale["x"] == 1.0
+    _, scale = _drift_run(tmp_path / "fast", True, 8.0, min_line_s=0.2)
+    assert scale["x"] > 1.0
 
 
 @pytest.mark.slow

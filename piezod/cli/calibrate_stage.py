@@ -23,6 +23,7 @@ from piezod.stagecal import (
     summary,
     verification_points,
     verify,
+    with_tracking_bound,
 )
 
 
@@ -110,6 +111,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 if audited.report["adopted"]:
                     names = ", ".join(a.split(":")[0] for a in audited.report["adopted"])
                     extra = f"; the audit's findings adopted as runtime parts: {names}"
+            calibrated = with_tracking_bound(calibrated, frame)
             dump_config(
                 calibrated,
                 out,

@@ -28,6 +28,7 @@ scan's start on copies of the axis drivers in :mod:`piezod.service.shadow`.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import stat
@@ -600,6 +601,11 @@ class Engine:
             else:
                 new.adopt(old.voltage_v, position_um)
             self.drivers[axis] = new
+            if axis in self._trackers:
+                # the tracked sensitivity is relative to the model it was learnt under
+                self._trackers[axis] = dataclasses.replace(
+                    self._trackers[axis], scale=1.0, lines_used=0, lines_ignored=0, lines_too_fast=0
+                )
             # the recordings' headers state the model in force (model, parameters, config hash)
             self.config = self.config.model_copy(update={"axes": {**self.config.axes, axis: config}})
 
@@ -807,7 +813,11 @@ class Engine:
         tracker = self._trackers.get("x")
         if corrected and tracker is not None:
             # the line was scanned with the scale in force then: its error is what remains
-            tracker.update(1.0 + value.length_error_pct / 100.0)
+            tracker.update(
+                1.0 + value.length_error_pct / 100.0,
+                math.inf if value.duration_s is None else value.duration_s,
+                self.config.axes["x"].tracking_min_line_s,
+            )
 
     def tracked_scale(self, axis: str) -> float:
         """The tracked sensitivity of ``axis`` relative to its model (1 without tracking)."""

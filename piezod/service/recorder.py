@@ -386,6 +386,7 @@ class Recorder(threading.Thread):
             self.engine.scan_events.line_done(acc.recording, acc.line, acc.direction)
         tgt = np.concatenate(acc.target)
         pos = np.concatenate(acc.position)
+        duration_s = tgt.size / self.engine.rate_hz
         ok = np.isfinite(tgt) & np.isfinite(pos)
         if ok.sum() < 8:
             return
@@ -402,6 +403,7 @@ class Recorder(threading.Thread):
                 direction="trace" if acc.direction > 0 else "retrace",
                 nonlinearity_pct=float(100.0 * np.std(resid) / measured) if measured else math.inf,
                 length_error_pct=float(100.0 * (measured - nominal) / nominal),
+                duration_s=duration_s,
             ),
             acc.corrected,
         )

@@ -87,6 +87,7 @@ class LineLinearity(_Body):
     direction: Literal["trace", "retrace"]
     nonlinearity_pct: float
     length_error_pct: float
+    duration_s: float | None = None
 
 
 class Status(_Body):
