@@ -34,7 +34,12 @@ def test_verification_tables_have_the_tool_format_and_the_held_out_stage_is_labe
     spec = importlib.util.spec_from_file_location("mfv", ROOT / "tools" / "model_family_verify.py")
     assert spec is not None and spec.loader is not None
     mfv = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mfv)
+    # registered first, as importlib's recipe does: its dataclasses look their module up by name
+    sys.modules[spec.name] = mfv
+    try:
+        spec.loader.exec_module(mfv)
+    finally:
+        del sys.modules[spec.name]
     result = {
         "choice": {
             "chosen": "a",
