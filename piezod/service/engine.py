@@ -28,7 +28,6 @@ scan's start on copies of the axis drivers in :mod:`piezod.service.shadow`.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import stat
@@ -603,9 +602,7 @@ class Engine:
             self.drivers[axis] = new
             if axis in self._trackers:
                 # the tracked sensitivity is relative to the model it was learnt under
-                self._trackers[axis] = dataclasses.replace(
-                    self._trackers[axis], scale=1.0, lines_used=0, lines_ignored=0, lines_too_fast=0
-                )
+                self._trackers[axis] = self._trackers[axis].restarted()
             # the recordings' headers state the model in force (model, parameters, config hash)
             self.config = self.config.model_copy(update={"axes": {**self.config.axes, axis: config}})
 

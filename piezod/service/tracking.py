@@ -53,6 +53,10 @@ class SensitivityTracker:
     lines_ignored: int = 0
     lines_too_fast: int = 0
 
+    def restarted(self) -> SensitivityTracker:
+        """The same settings from scale 1, no lines counted (a new model: the scale is relative to one)."""
+        return SensitivityTracker(self.gain, self.max_step, self.limit, self.outlier)
+
     def update(
         self, measured_over_nominal: float, line_s: float = math.inf, min_line_s: float | None = None
     ) -> float:
