@@ -150,6 +150,19 @@ def round_frame(scan: FrameScan) -> FrameScan:
     )
 
 
+#: Highest rate the calibration frame is recorded at (S/s). On a faster sample clock the frame is
+#: played at the full rate and every n-th sample recorded: the analysis needs no more (its fits
+#: decimate further, lags are resolved to a fraction of a sample), and a full frame at 100 kS/s
+#: would be 31 M rows (1.6 GB of CSV, tens of GB while parsed) on the analysis worker.
+FRAME_RECORD_RATE_HZ = 20000.0
+
+
+def frame_record_every(rate_hz: float) -> int:
+    """Every how many samples of a ``rate_hz`` clock the frame is recorded (1 up to
+    :data:`FRAME_RECORD_RATE_HZ`)."""
+    return max(1, math.ceil(rate_hz / FRAME_RECORD_RATE_HZ - 1e-9))
+
+
 def run_frame(
     engine: Engine,
     frame: Frame,
@@ -165,7 +178,7 @@ def run_frame(
         "axis": frame.axis,
         "experiments": len(frame.scans),
     }
-    engine.start_program(frame.axis, segments, path, meta)
+    engine.start_program(frame.axis, segments, path, meta, record_every=frame_record_every(engine.rate_hz))
     total = frame.duration_s
     t0 = time.monotonic()
     deadline = None if timeout_s is None else t0 + timeout_s

@@ -15,7 +15,9 @@ from piezod.config import ScannerConfig, default_sim_config_path, load_config
 from piezod.errors import EngineStateError, RangeUnreachableError, SafetyError
 from piezod.recording import read_recording
 from piezod.service.engine import Engine
+from piezod.service.jobs import Segment
 from piezod.service.schemas import MoveRequest, ScanChange, ScanRequest
+from piezod.stagecal import frame_record_every
 
 RATE_HZ = 10_000.0
 
@@ -57,6 +59,27 @@ def test_scan_is_streamed_recorded_and_measured(engine: Engine, tmp_path: Path) 
     # the stage followed: the readback spans about the commanded range (uncalibrated model: within 10 %)
     span = np.ptp(rec.position_um[x])
     assert 13.5 < span < 16.5
+
+
+def test_a_program_recorded_every_nth_sample_keeps_the_clocks_samples(engine: Engine, tmp_path: Path) -> None:
+    """A calibration frame on a fast clock is played at the full rate and recorded every n-th sample:
+    the rows are the board's own samples (their times on the clock's grid, n apart), and the
+    header says how they were taken."""
+    t = np.arange(6000) / RATE_HZ
+    volts = 20.0 * np.abs(((4.0 * t) % 2.0) - 1.0) - 10.0  # a 2 Hz triangle over +-10 V
+    path = tmp_path / "p.csv"
+    engine.start_program("x", [Segment(volts, "tri")], path, {"content": "test"}, record_every=3)
+    assert engine.wait_idle(20.0) == "idle"
+    engine.wait_recorded()
+    rec = read_recording(path)
+    assert rec.metadata["recorded_every"] == "3"
+    assert rec.metadata["sample_rate_hz"] == f"{RATE_HZ}"
+    steps = np.round(rec.t_s * RATE_HZ).astype(np.int64)
+    assert np.all(steps % 3 == 0) and np.all(np.diff(steps) == 3)
+    assert abs(len(rec) - 6000 / 3) <= 1
+    assert np.ptp(rec.voltage_v) == pytest.approx(20.0, abs=0.1)
+    # the frame's policy: the full rate up to 20 kS/s, else the smallest n that gets below it
+    assert [frame_record_every(r) for r in (10e3, 20e3, 25e3, 50e3, 100e3)] == [1, 1, 2, 3, 5]
 
 
 def test_change_mid_scan_and_stop(engine: Engine) -> None:

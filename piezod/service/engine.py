@@ -560,9 +560,21 @@ class Engine:
         return p
 
     def start_program(
-        self, axis: AxisName, segments: list[Segment], path: Path, metadata: Mapping[str, object]
+        self,
+        axis: AxisName,
+        segments: list[Segment],
+        path: Path,
+        metadata: Mapping[str, object],
+        *,
+        record_every: int = 1,
     ) -> Status:
-        """Play a voltage program on ``axis`` (e.g. a calibration frame), recorded to ``path``."""
+        """Play a voltage program on ``axis`` (e.g. a calibration frame), recorded to ``path``.
+
+        ``record_every`` > 1 records every that many samples of the sample clock (the header says
+        so: ``recorded_every``); the program itself is played at the full rate.
+        """
+        if record_every < 1:
+            raise ValueError(f"record_every must be >= 1, got {record_every}")
         job = ProgramJob(self, axis, segments, self.config.service.ramp_rate_v_per_s)
         with self._lock:
             if self._state != "idle":
@@ -575,7 +587,9 @@ class Engine:
                 "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 **metadata,
             }
-            self._recorder.open(ident, path, meta, (axis,), targets=False)  # exclusive
+            if record_every > 1:
+                meta["recorded_every"] = record_every
+            self._recorder.open(ident, path, meta, (axis,), targets=False, every=record_every)  # exclusive
             self._recording_id = ident
             self._recording_name = path.name
             self._job = job

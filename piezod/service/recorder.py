@@ -153,6 +153,7 @@ class _OpenRecording:
     done: bool = False
     labels_seen: set[int] = field(default_factory=set)
     z_monitor_ratio: float | None = None
+    every: int = 1
 
 
 @dataclass
@@ -187,11 +188,13 @@ class Recorder(threading.Thread):
         *,
         targets: bool = True,
         z_monitor_ratio: float | None = None,
+        every: int = 1,
     ) -> None:
         """Create the recording ``path`` (exclusively: an existing file is never reused or truncated).
 
         With ``z_monitor_ratio`` (a microscope) every row also carries ``z_voltage``: the z channel's
-        reading (the z-piezo voltage monitor) times the ratio.
+        reading (the z-piezo voltage monitor) times the ratio. With ``every`` > 1 only the samples
+        whose index is a multiple of it are written.
 
         Raises
         ------
@@ -211,7 +214,7 @@ class Recorder(threading.Thread):
             raise RecordingError(f"cannot create the recording: {exc.strerror or exc}", str(path)) from exc
         with self.lock:
             self.recordings[ident] = _OpenRecording(
-                ident, path, writer, axes, targets, z_monitor_ratio=z_monitor_ratio
+                ident, path, writer, axes, targets, z_monitor_ratio=z_monitor_ratio, every=every
             )
 
     def open_names(self) -> set[str]:
@@ -304,6 +307,10 @@ class Recorder(threading.Thread):
             if rec is None:
                 continue
             rows = np.flatnonzero(record & (rec_id == ident))
+            if rec.every > 1:
+                rows = rows[block.indices[rows] % rec.every == 0]
+                if rows.size == 0:
+                    continue
             try:
                 self._write_rows(rec, block, rows, t, targets, label)
             except OSError as exc:  # a full disk, an I/O error: this recording ends here
