@@ -14,6 +14,7 @@ and returns which it was. Pure dispatch: no fitting code of its own.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -235,6 +236,25 @@ def calibrated_config(
     )
 
 
+def shortest_line_s(experiments: Sequence[Experiment]) -> float | None:
+    """The shortest line (rising or falling half period) of the experiments' periodic waveforms (s).
+
+    What an offline calibration writes as the axis's ``tracking_min_line_s``: the daemon's
+    sensitivity tracker then learns only from lines the recordings measured the rate dependence
+    for, as after ``piezod calibrate --sim/--port`` (:func:`piezod.stagecal.with_tracking_bound`).
+    None when no experiment has a complete half period.
+    """
+    lines = []
+    for e in experiments:
+        info = e.scan()
+        f = info.frequency_hz
+        if not (math.isfinite(f) and f > 0):
+            continue
+        duty = info.duty if math.isfinite(info.duty) and 0.0 < info.duty < 1.0 else 0.5
+        lines.append(min(duty, 1.0 - duty) / f)
+    return min(lines) if lines else None
+
+
 __all__ = [
     "MODEL_CHOICES",
     "AnyCalibration",
@@ -243,4 +263,5 @@ __all__ = [
     "calibrated_config",
     "choose_model",
     "result_json",
+    "shortest_line_s",
 ]

@@ -65,6 +65,9 @@ def test_calibrate_writes_config_and_json(frame: tuple[Path, Path], tmp_path: Pa
     cfg = load_config(out)
     assert cfg.axes["x"].thesis.params().alpha_per_v == pytest.approx(doc["params"]["alpha_per_v"])
     assert cfg.calibration is not None and cfg.calibration["n_experiments"] == 10
+    # the tracker learns only from lines as long as the recordings' shortest (symmetric triangles)
+    fastest = max(e["frequency_hz"] for e in doc["experiments"])
+    assert cfg.axes["x"].tracking_min_line_s == pytest.approx(0.5 / fastest, rel=1e-3)
 
 
 def test_calibrate_keeps_the_base_config(frame: tuple[Path, Path], tmp_path: Path) -> None:

@@ -330,6 +330,16 @@ def run(args: argparse.Namespace) -> int:
             axes_cfg[name] = axes_cfg[name].model_copy(update={"model": "family", "family": section})
             cfg = cfg.model_copy(update={"axes": axes_cfg})
             model_name = f"family ({chosen.name}, held out: {family.method})"
+        line_s = calibrate_any.shortest_line_s(exps)
+        if line_s is not None:
+            name = cast(AxisName, axis)
+            bounded = cfg.axes[name].model_copy(update={"tracking_min_line_s": line_s})
+            cfg = cfg.model_copy(update={"axes": {**cfg.axes, name: bounded}})
+            print(
+                f"the sensitivity tracker takes lines of at least ~{line_s:.3g} s on axis {axis} "
+                "(the recordings' shortest; tracking_min_line_s)",
+                file=out,
+            )
         header = (
             f"scanner config written by piezod calibrate (axis {axis}, {model_name} model) "
             f"from {', '.join(args.recordings)}"
