@@ -368,10 +368,37 @@ def read_recording(
     except OSError as exc:
         raise RecordingError(f"cannot read: {exc.strerror or exc}", name) from exc
     text, used = decode_text(raw, encoding, name)
+    del raw  # a large recording: its bytes are not needed beside the text
     rec = parse_recording(text, path=name, allow_truncated_tail=allow_truncated_tail)
     if used.replace("-", "").lower() not in ("utf8", "ascii"):
         rec = replace(rec, metadata={**rec.metadata, "encoding": used})
     return rec
+
+
+#: Characters of the body parsed at a time (whole lines): the memory of a parse is the columns
+#: plus about this much text in per-line objects, not the whole file's lines at once.
+PARSE_CHUNK_CHARS = 1 << 24
+
+
+@dataclass
+class _Columns:
+    """The rows parsed so far, chunk by chunk; text cells as codes into per-column label tables."""
+
+    numeric: list[NDArray[np.float64]] = field(default_factory=list)
+    line_numbers: list[NDArray[np.int64]] = field(default_factory=list)
+    codes: dict[str, list[NDArray[np.intp]]] = field(default_factory=dict)
+    tables: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    def add_text(self, name: str, cells: NDArray[np.str_]) -> None:
+        table = self.tables.setdefault(name, {})
+        uniq, inverse = np.unique(cells, return_inverse=True)
+        known = np.array([table.setdefault(str(u), len(table)) for u in uniq], dtype=np.intp)
+        self.codes.setdefault(name, []).append(known[inverse.reshape(-1)])
+
+    def text(self, name: str) -> NDArray[np.str_]:
+        table = self.tables[name]
+        labels = np.array(list(table), dtype=np.str_) if table else np.zeros(0, dtype=np.str_)
+        return labels[np.concatenate(self.codes[name])]
 
 
 def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail: bool = False) -> Recording:
@@ -380,96 +407,88 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
         text = text[1:]
     if "\r" in text:
         text = text.replace("\r\n", "\n").replace("\r", "\n")
-    if not text.strip():
+    if not text or text.isspace():
         raise RecordingError("empty file (no header line)", path, 1)
     terminated = text.endswith("\n")
-    lines = text.split("\n")
-    if terminated:
-        lines.pop()
+    last_line = text.count("\n") + (0 if terminated else 1)
 
     metadata: dict[str, str] = {}
-    i = 0
-    while i < len(lines) and (not lines[i] or lines[i][0] == "#"):
-        m = _META_RE.match(lines[i])
+    pos = 0
+    header_line = 0
+    while True:
+        if pos >= len(text):
+            raise RecordingError("no header line (only comments)", path, last_line)
+        cut = text.find("\n", pos)
+        cut = len(text) if cut < 0 else cut
+        line = text[pos:cut]
+        header_line += 1
+        pos = cut + 1
+        if line and line[0] != "#":
+            break
+        m = _META_RE.match(line)
         if m:
             metadata[m.group(1)] = m.group(2)
-        i += 1
-    if i == len(lines):
-        raise RecordingError("no header line (only comments)", path, len(lines))
-    header_line = i + 1
-    names = [c.strip() for c in lines[i].split(",")]
+    names = [c.strip() for c in line.split(",")]
     _check_header(names, path, header_line, sensorless=not metadata_position_sensor(metadata))
-
-    body = lines[i + 1 :]
-    first = header_line + 1
-    dropped_tail = False
-    unterminated_last = not terminated and len(body) > 0
-    if unterminated_last and allow_truncated_tail:
-        body.pop()
-        dropped_tail = True
-        unterminated_last = False
-    header_end = sum(len(line) + 1 for line in lines[: i + 1])
-    if text.find("#", header_end) >= 0 or text.find("\n\n", header_end - 1) >= 0:
-        keep = [k for k, line in enumerate(body) if line and line[0] != "#"]
-        body = [body[k] for k in keep]
-        line_numbers = np.asarray(keep, dtype=np.int64) + first
-    else:
-        line_numbers = np.arange(first, first + len(body), dtype=np.int64)
-    last_line = len(lines)
-    if not body:
-        raise RecordingError("no data rows after the header", path, header_line)
-
-    def fail(reason: str, row: int) -> RecordingError:
-        line = int(line_numbers[row])
-        if unterminated_last and line == last_line:
-            reason += _TRUNCATED_HINT
-        return RecordingError(reason, path, line)
-
-    ncells = len(names)
-    counts = np.fromiter((line.count(",") for line in body), dtype=np.int64, count=len(body))
-    bad = np.flatnonzero(counts != ncells - 1)
-    if bad.size:
-        r = int(bad[0])
-        raise fail(
-            f"wrong number of cells: {counts[r] + 1}, expected {ncells} (header line {header_line})", r
-        )
 
     num_idx = [names.index(c) for c in NUMERIC_COLUMNS if c in names]
     num_names = [c for c in NUMERIC_COLUMNS if c in names]
-    try:
-        values = np.loadtxt(body, delimiter=",", usecols=num_idx, dtype=np.float64, ndmin=2, comments=None)
-    except ValueError as exc:
-        for r, line in enumerate(body):
-            cells = line.split(",")
-            for c, k in zip(num_names, num_idx, strict=True):
-                if not _is_float(cells[k]):
-                    raise fail(f"column {c!r}: not a number: {cells[k].strip()!r}", r) from exc
-        raise RecordingError(f"cannot parse the numeric columns: {exc}", path) from exc
-    finite = np.isfinite(values)
-    if not finite.all():
-        rr, cc = (int(a[0]) for a in np.nonzero(~finite))
-        raise fail(f"column {num_names[cc]!r}: non-finite value {float(values[rr, cc])!r}", rr)
-    cols = {c: np.ascontiguousarray(values[:, j]) for j, c in enumerate(num_names)}
-
-    text_cols: dict[str, NDArray[np.str_]] = {}
     txt_names = [c for c in TEXT_COLUMNS if c in names]
-    if txt_names:
-        txt_idx = [names.index(c) for c in txt_names]
-        raw_txt = np.loadtxt(body, delimiter=",", usecols=txt_idx, dtype=str, ndmin=2, comments=None)
-        for j, c in enumerate(txt_names):
-            text_cols[c] = np.char.strip(raw_txt[:, j])
-    if "axis" in text_cols:
-        bad = np.flatnonzero(~np.isin(text_cols["axis"], AXES))
-        if bad.size:
-            r = int(bad[0])
-            raise fail(f"column 'axis': {str(text_cols['axis'][r])!r} is not one of x, y, z", r)
-    if "experiment" in text_cols:
-        bad = np.flatnonzero(np.char.str_len(text_cols["experiment"]) == 0)
-        if bad.size:
-            raise fail("column 'experiment': empty label", int(bad[0]))
+    txt_idx = [names.index(c) for c in txt_names]
+    ncells = len(names)
+    unterminated_last = not terminated and pos < len(text)
+    dropped_tail = False
+    cols = _Columns()
+    first = header_line + 1
+    while pos < len(text):
+        cut = text.find("\n", pos + PARSE_CHUNK_CHARS)
+        cut = len(text) if cut < 0 else cut + 1
+        chunk = text[pos:cut]
+        pos = cut
+        body = chunk.split("\n")
+        if chunk.endswith("\n"):
+            body.pop()
+        numbers = np.arange(first, first + len(body), dtype=np.int64)
+        first += len(body)
+        if pos >= len(text) and unterminated_last and allow_truncated_tail:
+            body.pop()
+            numbers = numbers[:-1]
+            dropped_tail = True
+            unterminated_last = False
+        if "#" in chunk or "\n\n" in chunk or chunk.startswith("\n"):
+            keep = [k for k, row in enumerate(body) if row and row[0] != "#"]
+            body = [body[k] for k in keep]
+            numbers = numbers[np.asarray(keep, dtype=np.intp)]
+        if body:
+            _parse_rows(
+                body,
+                numbers,
+                cols,
+                path,
+                ncells,
+                header_line,
+                num_idx,
+                num_names,
+                txt_idx,
+                txt_names,
+                last_line if unterminated_last else None,
+            )
+    if not cols.numeric:
+        raise RecordingError("no data rows after the header", path, header_line)
+    line_numbers = np.concatenate(cols.line_numbers)
+
+    def fail(reason: str, row: int) -> RecordingError:
+        return RecordingError(reason, path, int(line_numbers[row]))
+
+    values = np.concatenate(cols.numeric)
+    cols.numeric.clear()
+    num = {c: np.ascontiguousarray(values[:, j]) for j, c in enumerate(num_names)}
+    del values
+    text_cols = {c: cols.text(c) for c in txt_names}
+    cols.codes.clear()
 
     axis = text_cols.get("axis")
-    t = cols["t"]
+    t = num["t"]
     groups = [np.arange(t.size)] if axis is None else [np.flatnonzero(axis == a) for a in np.unique(axis)]
     for rows in groups:
         dt = np.diff(t[rows])
@@ -482,10 +501,10 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
 
     rec = Recording(
         t_s=t,
-        voltage_v=cols["voltage"],
-        position_um=cols["position"] if "position" in cols else np.full(t.size, np.nan),
-        target_um=cols.get("target"),
-        z_voltage_v=cols.get("z_voltage"),
+        voltage_v=num["voltage"],
+        position_um=num["position"] if "position" in num else np.full(t.size, np.nan),
+        target_um=num.get("target"),
+        z_voltage_v=num.get("z_voltage"),
         axis=axis,
         experiment=text_cols.get("experiment"),
         metadata=metadata,
@@ -496,6 +515,65 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
     )
     split_experiments(rec)  # validates contiguity
     return rec
+
+
+def _parse_rows(
+    body: list[str],
+    numbers: NDArray[np.int64],
+    cols: _Columns,
+    path: str | None,
+    ncells: int,
+    header_line: int,
+    num_idx: list[int],
+    num_names: list[str],
+    txt_idx: list[int],
+    txt_names: list[str],
+    unterminated_line: int | None,
+) -> None:
+    """Parse and check one chunk of data lines (file lines ``numbers``) into ``cols``."""
+
+    def fail(reason: str, row: int) -> RecordingError:
+        line = int(numbers[row])
+        if line == unterminated_line:
+            reason += _TRUNCATED_HINT
+        return RecordingError(reason, path, line)
+
+    counts = np.fromiter((row.count(",") for row in body), dtype=np.int64, count=len(body))
+    bad = np.flatnonzero(counts != ncells - 1)
+    if bad.size:
+        r = int(bad[0])
+        raise fail(
+            f"wrong number of cells: {counts[r] + 1}, expected {ncells} (header line {header_line})", r
+        )
+    try:
+        values = np.loadtxt(body, delimiter=",", usecols=num_idx, dtype=np.float64, ndmin=2, comments=None)
+    except ValueError as exc:
+        for r, row in enumerate(body):
+            cells = row.split(",")
+            for c, k in zip(num_names, num_idx, strict=True):
+                if not _is_float(cells[k]):
+                    raise fail(f"column {c!r}: not a number: {cells[k].strip()!r}", r) from exc
+        raise RecordingError(f"cannot parse the numeric columns: {exc}", path) from exc
+    finite = np.isfinite(values)
+    if not finite.all():
+        rr, cc = (int(a[0]) for a in np.nonzero(~finite))
+        raise fail(f"column {num_names[cc]!r}: non-finite value {float(values[rr, cc])!r}", rr)
+    if txt_names:
+        raw_txt = np.loadtxt(body, delimiter=",", usecols=txt_idx, dtype=str, ndmin=2, comments=None)
+        for j, c in enumerate(txt_names):
+            labels = np.char.strip(raw_txt[:, j])
+            if c == "axis":
+                bad = np.flatnonzero(~np.isin(labels, AXES))
+                if bad.size:
+                    r = int(bad[0])
+                    raise fail(f"column 'axis': {str(labels[r])!r} is not one of x, y, z", r)
+            elif c == "experiment":
+                bad = np.flatnonzero(np.char.str_len(labels) == 0)
+                if bad.size:
+                    raise fail("column 'experiment': empty label", int(bad[0]))
+            cols.add_text(c, labels)
+    cols.numeric.append(values)
+    cols.line_numbers.append(numbers)
 
 
 def metadata_position_sensor(metadata: Mapping[str, str]) -> bool:

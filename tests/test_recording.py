@@ -175,6 +175,39 @@ def test_malformed_file_gives_file_line_and_reason(tmp_path: Path, text: str, li
     assert reason in err.reason
 
 
+@pytest.mark.parametrize("chunk", [1, 5, 13])
+def test_a_body_parsed_in_chunks_gives_the_same_rows_and_errors(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, chunk: int
+) -> None:
+    """The body is parsed a few MB at a time (a 100 kS/s recording is millions of rows): chunks of
+    a few characters give the same columns, labels, line numbers and first error as one chunk."""
+    import piezod.recording as recording
+
+    rows = [f"{k},{k % 7 - 3},{0.5 * k},{'xy'[k % 2]},{'abc'[k // 10]}" for k in range(30)]
+    rows[4:4] = ["# change: a note", ""]
+    rows[17:17] = ["#", "", "# another"]
+    text = f"# k: v\n{HEADER},axis,experiment\n" + "\n".join(rows) + "\n"
+    whole = parse_recording(text, path="w.csv")
+    monkeypatch.setattr(recording, "PARSE_CHUNK_CHARS", chunk)
+    part = parse_recording(text, path="w.csv")
+    for name in ("t_s", "voltage_v", "position_um", "axis", "experiment", "line_numbers"):
+        np.testing.assert_array_equal(getattr(part, name), getattr(whole, name))
+    assert part.metadata == whole.metadata and len(part) == 30
+    for bad, line, reason in [
+        (f"{HEADER},experiment\n0,1,2,a\n1,1,2,a\n# c\n2,1,2,b\n3,1,2, \n", 6, "empty label"),
+        (f"{HEADER},axis\n0,1,2,x\n1,1,2,x\n\n2,1,2,q\n", 5, "'q' is not one of"),
+        (f"{HEADER}\n0,1,2\n0.2,1,2\n\n0.1,1,2\n", 5, "not strictly increasing"),
+        (f"{HEADER}\n0,1,2\n1,2,3\n2,3", 4, "crash"),
+        (f"{HEADER},experiment\n0,1,2,a\n1,1,2,b\n2,1,2,a\n", 4, "experiment 'a' resumes"),
+        ("# only\n# comments\n", 2, "no header"),
+    ]:
+        with pytest.raises(RecordingError) as info:
+            parse_recording(bad, path="b.csv")
+        assert info.value.line == line and reason in info.value.reason, (bad, info.value)
+    tail = parse_recording(f"{HEADER}\n0,1,2\n1,2,3\n2,3", allow_truncated_tail=True)
+    assert tail.dropped_tail and tail.t_s.tolist() == [0, 1]
+
+
 def test_bytes_outside_the_given_encoding_name_the_line(tmp_path: Path) -> None:
     p = tmp_path / "bin.csv"
     p.write_bytes(b"t,voltage,position\n0,1,2\n1,\xff,2\n")
