@@ -153,7 +153,7 @@ def round_frame(scan: FrameScan) -> FrameScan:
 #: Highest rate the calibration frame is recorded at (S/s). On a faster sample clock the frame is
 #: played at the full rate and every n-th sample recorded: the analysis needs no more (its fits
 #: decimate further, lags are resolved to a fraction of a sample), and a full frame at 100 kS/s
-#: would be 31 M rows (1.6 GB of CSV, tens of GB while parsed) on the analysis worker.
+#: would be 31 M rows (1.6 GB of CSV, several GB in memory on the analysis worker).
 FRAME_RECORD_RATE_HZ = 20000.0
 
 

@@ -336,8 +336,8 @@ def run(args: argparse.Namespace) -> int:
             bounded = cfg.axes[name].model_copy(update={"tracking_min_line_s": line_s})
             cfg = cfg.model_copy(update={"axes": {**cfg.axes, name: bounded}})
             print(
-                f"the sensitivity tracker takes lines of at least ~{line_s:.3g} s on axis {axis} "
-                "(the recordings' shortest; tracking_min_line_s)",
+                f"the sensitivity tracker learns from lines of axis {axis} about as long as the recordings' "
+                f"shortest or longer (tracking_min_line_s: {line_s:.3g} s)",
                 file=out,
             )
         header = (
