@@ -14,6 +14,7 @@ from __future__ import annotations
 import concurrent.futures
 import math
 import multiprocessing
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -986,6 +987,20 @@ def _synth_here(path: Path) -> None:
     write_recording(path, session.recording)
 
 
+#: Niceness added to the analysis worker: on a machine short of cores the streaming threads of the
+#: daemon's process (and a simulator beside it) get the CPU first, the fits wait.
+WORKER_NICENESS = 5
+
+
+def _yield_to_streaming() -> None:
+    if hasattr(os, "nice"):
+        os.nice(WORKER_NICENESS)
+
+
+def _niceness() -> int:
+    return os.nice(0) if hasattr(os, "nice") else 0
+
+
 class AnalysisWorker:
     """A persistent worker process for the CPU-heavy analysis a daemon process must not run.
 
@@ -997,7 +1012,13 @@ class AnalysisWorker:
 
     def __init__(self) -> None:
         ctx = multiprocessing.get_context("spawn")
-        self._pool = concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+        self._pool = concurrent.futures.ProcessPoolExecutor(
+            max_workers=1, mp_context=ctx, initializer=_yield_to_streaming
+        )
+
+    def niceness(self) -> int:
+        """The worker process's scheduling niceness (POSIX; 0 elsewhere)."""
+        return self._pool.submit(_niceness).result()
 
     def fit_thesis(self, frame_path: Path, base: ScannerConfig, axis: AxisName = "x") -> ThesisFit:
         """Fit the thesis model (3.8) to the frame recording."""

@@ -429,3 +429,15 @@ def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fa
     assert rows[0]["faults_before"] == ["board/UNDERRUN: run ended by underrun"]
     assert "faults_before" not in rows[1]
     assert [r["length_error_pct"] for r in rows] == [-0.02, -0.02]
+
+
+def test_the_analysis_worker_yields_the_cpu_to_streaming() -> None:
+    """The fits run in a worker process niced below the daemon's: on a machine short of cores the
+    streaming threads (and a simulator beside them) are scheduled first (a 100 kS/s board's FIFO
+    holds 0.65 s)."""
+    import os
+
+    from piezod.stagecal import WORKER_NICENESS, AnalysisWorker
+
+    with AnalysisWorker() as worker:
+        assert worker.niceness() == min(19, os.nice(0) + WORKER_NICENESS)
