@@ -51,6 +51,26 @@ def test_calibrate_bounds_the_tracker_at_the_frame_s_shortest_line() -> None:
     assert bounded.axes["y"] == base.axes["y"]
 
 
+def test_offline_calibration_bounds_the_tracker_at_the_recordings_shortest_line() -> None:
+    """An offline calibration's bound is the recordings' shortest half period: the falling line
+    of an 80 % duty triangle at 1 Hz (0.2 s), not the 0.5 s a symmetric line at the fastest rate
+    has; a hold (no half period) adds nothing."""
+    import numpy as np
+
+    from piezod.calibrate_any import shortest_line_s
+    from piezod.recording import Experiment
+
+    k = np.arange(4 * 1000 + 1)
+    ph = (k / 1000) % 1
+    sawtooth = 100 * np.where(ph < 0.8, ph / 0.8, (1 - ph) / 0.2)
+    saw = Experiment("saw", "x", k / 1000.0, sawtooth, np.zeros(k.size))
+    tri = Experiment("tri", "x", k / 1000.0, 100 * np.abs(2 * ph - 1), np.zeros(k.size))
+    hold = Experiment("hold", "x", k / 1000.0, np.full(k.size, 5.0), np.zeros(k.size))
+    assert shortest_line_s([tri, hold]) == pytest.approx(0.5, rel=1e-3)
+    assert shortest_line_s([tri, saw, hold]) == pytest.approx(0.2, rel=1e-2)
+    assert shortest_line_s([hold]) is None
+
+
 CALIBRATED = Path(__file__).resolve().parent.parent / "configs" / "sim-stage-calibrated.yaml"
 
 
