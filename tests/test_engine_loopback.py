@@ -82,6 +82,26 @@ def test_a_program_recorded_every_nth_sample_keeps_the_clocks_samples(engine: En
     assert [frame_record_every(r) for r in (10e3, 20e3, 25e3, 50e3, 100e3)] == [1, 1, 2, 3, 5]
 
 
+def test_the_reading_at_rest_is_the_sensors_mean_while_the_voltage_holds(engine: Engine) -> None:
+    """What ``piezod calibrate`` starts its verification from after a fault moved the stage: the
+    held voltage and the sensor's mean reading there; nothing while the voltage changes."""
+    deadline = time.monotonic() + 20.0
+    while (rest := engine.measured_at_rest("x")) is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert rest is not None
+    held = engine.status().voltage_v["x"]
+    assert rest[0] == held
+    assert abs(rest[1] - engine.status().position_um["x"]) < 0.5  # the model's idea of it, uncalibrated
+    engine.start_scan(ScanRequest(range_um=15.0, line_rate_hz=2.0, lines=20, record=False))
+    deadline = time.monotonic() + 5.0
+    moving = False
+    while time.monotonic() < deadline and not moving:
+        moving = engine.measured_at_rest("x") is None
+        time.sleep(0.01)
+    engine.stop()
+    assert moving
+
+
 def test_change_mid_scan_and_stop(engine: Engine) -> None:
     engine.start_scan(ScanRequest(range_um=10.0, line_rate_hz=5.0, lines=0 + 100, frames=0, record=False))
     time.sleep(1.0)

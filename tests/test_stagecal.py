@@ -441,3 +441,38 @@ def test_the_analysis_worker_yields_the_cpu_to_streaming() -> None:
 
     with AnalysisWorker() as worker:
         assert worker.niceness() == min(19, os.nice(0) + WORKER_NICENESS)
+
+
+@pytest.mark.slow
+def test_a_fault_while_fitting_starts_the_verification_from_the_sensor(tmp_path: Path) -> None:
+    """An unplug while the stage holds during the fits ramps the outputs to the safe values: the
+    stage no longer holds the frame's last voltage, so the verification starts from the sensor's
+    reading where the stage rests now (the real daemon and simulator over the pty; ~4 min on a
+    loaded machine, so slow: the reading itself is tested in the default run,
+    ``test_engine_loopback.py::test_the_reading_at_rest_is_the_sensors_mean_while_the_voltage_holds``)."""
+    import os
+    import subprocess
+    import sys
+
+    from hil_sim.server import spawn_sim
+
+    link = tmp_path / "board"
+    config = str(default_sim_config_path())
+    with spawn_sim(config, link=str(link), extra_args=("--unplug-s", "1")) as sim:
+        cmd = [sys.executable, "-m", "piezod", "calibrate", "--port", str(link), "--config", config]
+        cmd += ["--frame", "reduced", "--out", str(tmp_path / "cal.yaml")]
+        cmd += ["--json", str(tmp_path / "cal.json")]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        assert proc.stdout is not None
+        out = []
+        for line in proc.stdout:
+            out.append(line)
+            if line.startswith("thesis model (3.8) fitted"):
+                sim.unplug()
+        assert proc.wait(timeout=60) == 0, "".join(out)
+    doc = json.loads((tmp_path / "cal.json").read_text())
+    assert doc["faults_while_fitting"], "".join(out)
+    assert "from the sensor's reading now" in doc["verification_start"], doc["verification_start"]
+    rows = [r for r in doc["verification"] if r["model"] == doc["verification"][0]["model"]]
+    assert rows and all(r.get("nonlinearity_pct") is not None for r in rows)

@@ -97,6 +97,10 @@ FloatArray = NDArray[np.float64]
 SLOW_BLOCK_S = 0.05
 
 
+#: Samples at the end of the latest readback averaged by :meth:`Engine.measured_at_rest`.
+REST_READ_SAMPLES = 50
+
+
 class Engine:
     """The daemon's streaming engine (implements :class:`~piezod.service.schemas.EngineControl`).
 
@@ -161,6 +165,7 @@ class Engine:
         self._closing = threading.Event()
         self._supervisor: threading.Thread | None = None
         self._idle_cb: list[Callable[[], None]] = []
+        self._rest_read: dict[str, tuple[float, float]] = {}
         svc = config.service
         self._trackers: dict[str, SensitivityTracker] = (
             {
@@ -787,7 +792,27 @@ class Engine:
     # -- readback and events (link reader thread) ------------------------------------------------
 
     def _on_block(self, block: MatchedBlock) -> None:
+        self._note_rest(block)
         self._recorder.queue.put((block, self._ring.get(block.indices)))
+
+    def _note_rest(self, block: MatchedBlock) -> None:
+        n = min(REST_READ_SAMPLES, int(block.indices.size))
+        if n == 0:
+            return
+        for i, axis in enumerate(block.axes):
+            v, p = block.commanded_v[i, -n:], block.position_um[i, -n:]
+            if np.all(np.isfinite(v)) and np.all(np.isfinite(p)) and float(np.ptp(v)) == 0.0:
+                self._rest_read[axis] = (float(v[-1]), float(np.mean(p)))
+            else:
+                self._rest_read.pop(axis, None)
+
+    def measured_at_rest(self, axis: AxisName) -> tuple[float, float] | None:
+        """The voltage ``axis`` holds and the sensor's mean reading there (um), from the last
+        :data:`REST_READ_SAMPLES` samples of the latest readback; None while the voltage changes,
+        without a position sensor, or before any readback."""
+        if not self.position_sensor:
+            return None
+        return self._rest_read.get(axis)
 
     def label_id(self, name: str) -> int:
         """The id of an experiment label (registered on first use)."""
