@@ -801,7 +801,10 @@ class Engine:
             return
         for i, axis in enumerate(block.axes):
             v, p = block.commanded_v[i, -n:], block.position_um[i, -n:]
-            if np.all(np.isfinite(v)) and np.all(np.isfinite(p)) and float(np.ptp(v)) == 0.0:
+            driver = self.drivers.get(axis)
+            # a held voltage may still move by a runtime part's slow correction (drift, warming)
+            still = 1e-4 * (driver.limits[1] - driver.limits[0]) if driver is not None else 0.0
+            if np.all(np.isfinite(v)) and np.all(np.isfinite(p)) and float(np.ptp(v)) <= still:
                 self._rest_read[axis] = (float(v[-1]), float(np.mean(p)))
             else:
                 self._rest_read.pop(axis, None)
