@@ -811,8 +811,9 @@ class Engine:
 
     def measured_at_rest(self, axis: AxisName) -> tuple[float, float] | None:
         """The voltage ``axis`` holds and the sensor's mean reading there (um), from the last
-        :data:`REST_READ_SAMPLES` samples of the latest readback; None while the voltage changes,
-        without a position sensor, or before any readback."""
+        :data:`REST_READ_SAMPLES` samples of the latest readback; None while the voltage changes
+        (by more than 1e-4 of the axis's span over those samples), without a position sensor, or
+        before any readback."""
         if not self.position_sensor:
             return None
         return self._rest_read.get(axis)
