@@ -40,6 +40,7 @@ def _run(tmp_path: Path, frame: str) -> dict[str, object]:
     return doc
 
 
+@pytest.mark.timeout(1200)  # 214 s in a full-suite run beside two CPU-bound jobs (session 19)
 def test_reduced_frame_calibrates_and_verifies_inside_the_frame(tmp_path: Path) -> None:
     doc = _run(tmp_path, "reduced")
     assert set(doc["params"]) == {"alpha_per_v", "b_um_per_v", "u_um_per_v", "tau_s", "a1", "a2_per_v", "a3"}  # type: ignore[arg-type]
@@ -444,6 +445,7 @@ def test_the_analysis_worker_yields_the_cpu_to_streaming() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)
 def test_a_fault_while_fitting_starts_the_verification_from_the_sensor(tmp_path: Path) -> None:
     """An unplug while the stage holds during the fits ramps the outputs to the safe values: the
     stage no longer holds the frame's last voltage, so the verification starts from the sensor's
