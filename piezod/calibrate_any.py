@@ -17,11 +17,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 from piezod import calibrate as thesis_cal
 from piezod import calibrate_dynamic as dynamic_cal
-from piezod.config import ScannerConfig
+from piezod.config import AxisName, ScannerConfig
 from piezod.errors import CalibrationError
 from piezod.model.params import ThesisParams
 from piezod.recording import Experiment
@@ -236,6 +236,14 @@ def calibrated_config(
     )
 
 
+def with_tracking_bound(config: ScannerConfig, axis: str, min_line_s: float) -> ScannerConfig:
+    """``config`` with ``axis``'s ``tracking_min_line_s`` set: the sensitivity tracker
+    (:mod:`piezod.service.tracking`) learns only from lines about that long or longer."""
+    name = cast(AxisName, axis)
+    bounded = config.axes[name].model_copy(update={"tracking_min_line_s": min_line_s})
+    return config.model_copy(update={"axes": {**config.axes, name: bounded}})
+
+
 def shortest_line_s(experiments: Sequence[Experiment]) -> float | None:
     """The shortest line (rising or falling half period) of the experiments' periodic waveforms (s).
 
@@ -264,4 +272,5 @@ __all__ = [
     "choose_model",
     "result_json",
     "shortest_line_s",
+    "with_tracking_bound",
 ]

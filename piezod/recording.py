@@ -382,12 +382,22 @@ PARSE_CHUNK_CHARS = 1 << 24
 
 @dataclass
 class _Columns:
-    """The rows parsed so far, chunk by chunk; text cells as codes into per-column label tables."""
+    """The file's column layout and the rows parsed so far, chunk by chunk (text cells as codes
+    into per-column label tables)."""
 
+    names: list[str]
+    path: str | None
+    header_line: int
     numeric: list[NDArray[np.float64]] = field(default_factory=list)
     line_numbers: list[NDArray[np.int64]] = field(default_factory=list)
     codes: dict[str, list[NDArray[np.intp]]] = field(default_factory=dict)
     tables: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.num_names = [c for c in NUMERIC_COLUMNS if c in self.names]
+        self.num_idx = [self.names.index(c) for c in self.num_names]
+        self.txt_names = [c for c in TEXT_COLUMNS if c in self.names]
+        self.txt_idx = [self.names.index(c) for c in self.txt_names]
 
     def add_text(self, name: str, cells: NDArray[np.str_]) -> None:
         table = self.tables.setdefault(name, {})
@@ -399,6 +409,54 @@ class _Columns:
         table = self.tables[name]
         labels = np.array(list(table), dtype=np.str_) if table else np.zeros(0, dtype=np.str_)
         return labels[np.concatenate(self.codes[name])]
+
+    def parse(self, body: list[str], numbers: NDArray[np.int64], unterminated_line: int | None) -> None:
+        """Parse and check one chunk of data lines (file lines ``numbers``)."""
+        path, ncells = self.path, len(self.names)
+
+        def fail(reason: str, row: int) -> RecordingError:
+            line = int(numbers[row])
+            if line == unterminated_line:
+                reason += _TRUNCATED_HINT
+            return RecordingError(reason, path, line)
+
+        counts = np.fromiter((row.count(",") for row in body), dtype=np.int64, count=len(body))
+        bad = np.flatnonzero(counts != ncells - 1)
+        if bad.size:
+            r = int(bad[0])
+            got = f"wrong number of cells: {counts[r] + 1}, expected {ncells}"
+            raise fail(f"{got} (header line {self.header_line})", r)
+        try:
+            values = np.loadtxt(
+                body, delimiter=",", usecols=self.num_idx, dtype=np.float64, ndmin=2, comments=None
+            )
+        except ValueError as exc:
+            for r, row in enumerate(body):
+                cells = row.split(",")
+                for c, k in zip(self.num_names, self.num_idx, strict=True):
+                    if not _is_float(cells[k]):
+                        raise fail(f"column {c!r}: not a number: {cells[k].strip()!r}", r) from exc
+            raise RecordingError(f"cannot parse the numeric columns: {exc}", path) from exc
+        finite = np.isfinite(values)
+        if not finite.all():
+            rr, cc = (int(a[0]) for a in np.nonzero(~finite))
+            raise fail(f"column {self.num_names[cc]!r}: non-finite value {float(values[rr, cc])!r}", rr)
+        if self.txt_names:
+            raw_txt = np.loadtxt(body, delimiter=",", usecols=self.txt_idx, dtype=str, ndmin=2, comments=None)
+            for j, c in enumerate(self.txt_names):
+                labels = np.char.strip(raw_txt[:, j])
+                if c == "axis":
+                    bad = np.flatnonzero(~np.isin(labels, AXES))
+                    if bad.size:
+                        r = int(bad[0])
+                        raise fail(f"column 'axis': {str(labels[r])!r} is not one of x, y, z", r)
+                elif c == "experiment":
+                    bad = np.flatnonzero(np.char.str_len(labels) == 0)
+                    if bad.size:
+                        raise fail("column 'experiment': empty label", int(bad[0]))
+                self.add_text(c, labels)
+        self.numeric.append(values)
+        self.line_numbers.append(numbers)
 
 
 def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail: bool = False) -> Recording:
@@ -431,14 +489,9 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
     names = [c.strip() for c in line.split(",")]
     _check_header(names, path, header_line, sensorless=not metadata_position_sensor(metadata))
 
-    num_idx = [names.index(c) for c in NUMERIC_COLUMNS if c in names]
-    num_names = [c for c in NUMERIC_COLUMNS if c in names]
-    txt_names = [c for c in TEXT_COLUMNS if c in names]
-    txt_idx = [names.index(c) for c in txt_names]
-    ncells = len(names)
     unterminated_last = not terminated and pos < len(text)
     dropped_tail = False
-    cols = _Columns()
+    cols = _Columns(names, path, header_line)
     first = header_line + 1
     while pos < len(text):
         cut = text.find("\n", pos + PARSE_CHUNK_CHARS)
@@ -460,19 +513,7 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
             body = [body[k] for k in keep]
             numbers = numbers[np.asarray(keep, dtype=np.intp)]
         if body:
-            _parse_rows(
-                body,
-                numbers,
-                cols,
-                path,
-                ncells,
-                header_line,
-                num_idx,
-                num_names,
-                txt_idx,
-                txt_names,
-                last_line if unterminated_last else None,
-            )
+            cols.parse(body, numbers, last_line if unterminated_last else None)
     if not cols.numeric:
         raise RecordingError("no data rows after the header", path, header_line)
     line_numbers = np.concatenate(cols.line_numbers)
@@ -482,9 +523,9 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
 
     values = np.concatenate(cols.numeric)
     cols.numeric.clear()
-    num = {c: np.ascontiguousarray(values[:, j]) for j, c in enumerate(num_names)}
+    num = {c: np.ascontiguousarray(values[:, j]) for j, c in enumerate(cols.num_names)}
     del values
-    text_cols = {c: cols.text(c) for c in txt_names}
+    text_cols = {c: cols.text(c) for c in cols.txt_names}
     cols.codes.clear()
 
     axis = text_cols.get("axis")
@@ -515,65 +556,6 @@ def parse_recording(text: str, *, path: str | None = None, allow_truncated_tail:
     )
     split_experiments(rec)  # validates contiguity
     return rec
-
-
-def _parse_rows(
-    body: list[str],
-    numbers: NDArray[np.int64],
-    cols: _Columns,
-    path: str | None,
-    ncells: int,
-    header_line: int,
-    num_idx: list[int],
-    num_names: list[str],
-    txt_idx: list[int],
-    txt_names: list[str],
-    unterminated_line: int | None,
-) -> None:
-    """Parse and check one chunk of data lines (file lines ``numbers``) into ``cols``."""
-
-    def fail(reason: str, row: int) -> RecordingError:
-        line = int(numbers[row])
-        if line == unterminated_line:
-            reason += _TRUNCATED_HINT
-        return RecordingError(reason, path, line)
-
-    counts = np.fromiter((row.count(",") for row in body), dtype=np.int64, count=len(body))
-    bad = np.flatnonzero(counts != ncells - 1)
-    if bad.size:
-        r = int(bad[0])
-        raise fail(
-            f"wrong number of cells: {counts[r] + 1}, expected {ncells} (header line {header_line})", r
-        )
-    try:
-        values = np.loadtxt(body, delimiter=",", usecols=num_idx, dtype=np.float64, ndmin=2, comments=None)
-    except ValueError as exc:
-        for r, row in enumerate(body):
-            cells = row.split(",")
-            for c, k in zip(num_names, num_idx, strict=True):
-                if not _is_float(cells[k]):
-                    raise fail(f"column {c!r}: not a number: {cells[k].strip()!r}", r) from exc
-        raise RecordingError(f"cannot parse the numeric columns: {exc}", path) from exc
-    finite = np.isfinite(values)
-    if not finite.all():
-        rr, cc = (int(a[0]) for a in np.nonzero(~finite))
-        raise fail(f"column {num_names[cc]!r}: non-finite value {float(values[rr, cc])!r}", rr)
-    if txt_names:
-        raw_txt = np.loadtxt(body, delimiter=",", usecols=txt_idx, dtype=str, ndmin=2, comments=None)
-        for j, c in enumerate(txt_names):
-            labels = np.char.strip(raw_txt[:, j])
-            if c == "axis":
-                bad = np.flatnonzero(~np.isin(labels, AXES))
-                if bad.size:
-                    r = int(bad[0])
-                    raise fail(f"column 'axis': {str(labels[r])!r} is not one of x, y, z", r)
-            elif c == "experiment":
-                bad = np.flatnonzero(np.char.str_len(labels) == 0)
-                if bad.size:
-                    raise fail("column 'experiment': empty label", int(bad[0]))
-            cols.add_text(c, labels)
-    cols.numeric.append(values)
-    cols.line_numbers.append(numbers)
 
 
 def metadata_position_sensor(metadata: Mapping[str, str]) -> bool:

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from piezod import calibrate_any
 from piezod.calibrate import calibrate, calibrated_config, result_json
 from piezod.config import AxisName, ScannerConfig
 from piezod.errors import CalibrationError, ModelError, PiezodError
@@ -110,8 +111,7 @@ def with_tracking_bound(config: ScannerConfig, frame: Frame) -> ScannerConfig:
     The sensitivity tracker (:mod:`piezod.service.tracking`) then learns only from lines the
     calibration measured the rate dependence for; a line of a triangle at ``f`` lasts ``1 / (2 f)``.
     """
-    axis = config.axes[frame.axis].model_copy(update={"tracking_min_line_s": 0.5 / frame.frequencies_hz[1]})
-    return config.model_copy(update={"axes": {**config.axes, frame.axis: axis}})
+    return calibrate_any.with_tracking_bound(config, frame.axis, 0.5 / frame.frequencies_hz[1])
 
 
 def default_frame(config: ScannerConfig, axis: AxisName = "x", *, reduced: bool = False) -> Frame:

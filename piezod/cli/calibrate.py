@@ -332,9 +332,7 @@ def run(args: argparse.Namespace) -> int:
             model_name = f"family ({chosen.name}, held out: {family.method})"
         line_s = calibrate_any.shortest_line_s(exps)
         if line_s is not None:
-            name = cast(AxisName, axis)
-            bounded = cfg.axes[name].model_copy(update={"tracking_min_line_s": line_s})
-            cfg = cfg.model_copy(update={"axes": {**cfg.axes, name: bounded}})
+            cfg = calibrate_any.with_tracking_bound(cfg, axis, line_s)
             print(
                 f"the sensitivity tracker learns from lines of axis {axis} about as long as the recordings' "
                 f"shortest or longer (tracking_min_line_s: {line_s:.3g} s)",

@@ -142,15 +142,18 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 v_end, x_end = worker.frame_end(frame_path, axis)
                 held = engine.status().voltage_v.get(axis)
                 span_v = base.axes[axis].voltage_max_v - base.axes[axis].voltage_min_v
-                holds = held is not None and abs(held - v_end) <= 1e-3 * span_v
+
+                def at_held(v: float) -> bool:
+                    return held is not None and abs(held - v) <= 1e-3 * span_v
+
+                holds = at_held(v_end)
                 start = (v_end, x_end) if holds else None
                 if not holds:
                     # a fault while the stage held ramped the outputs to the safe values: the run
                     # starts from the sensor's reading where the stage rests now, not from the
                     # fitted law's rest curve (unidentified: 10 um off on a unipolar stack)
                     now = engine.measured_at_rest(axis)
-                    if now is not None and held is not None and abs(now[0] - held) <= 1e-3 * span_v:
-                        start = now
+                    start = now if now is not None and at_held(now[0]) else None
                     report["verification_start"] = (
                         f"the stage left the frame's last voltage ({v_end:.4g} V): "
                         + (

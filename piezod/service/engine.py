@@ -165,7 +165,7 @@ class Engine:
         self._closing = threading.Event()
         self._supervisor: threading.Thread | None = None
         self._idle_cb: list[Callable[[], None]] = []
-        self._rest_read: dict[str, tuple[float, float]] = {}
+        self._last_block: MatchedBlock | None = None
         svc = config.service
         self._trackers: dict[str, SensitivityTracker] = (
             {
@@ -792,31 +792,25 @@ class Engine:
     # -- readback and events (link reader thread) ------------------------------------------------
 
     def _on_block(self, block: MatchedBlock) -> None:
-        self._note_rest(block)
+        self._last_block = block  # kept for measured_at_rest: the readback path does no more
         self._recorder.queue.put((block, self._ring.get(block.indices)))
-
-    def _note_rest(self, block: MatchedBlock) -> None:
-        n = min(REST_READ_SAMPLES, int(block.indices.size))
-        if n == 0:
-            return
-        for i, axis in enumerate(block.axes):
-            v, p = block.commanded_v[i, -n:], block.position_um[i, -n:]
-            driver = self.drivers.get(axis)
-            # a held voltage may still move by a runtime part's slow correction (drift, warming)
-            still = 1e-4 * (driver.limits[1] - driver.limits[0]) if driver is not None else 0.0
-            if np.all(np.isfinite(v)) and np.all(np.isfinite(p)) and float(np.ptp(v)) <= still:
-                self._rest_read[axis] = (float(v[-1]), float(np.mean(p)))
-            else:
-                self._rest_read.pop(axis, None)
 
     def measured_at_rest(self, axis: AxisName) -> tuple[float, float] | None:
         """The voltage ``axis`` holds and the sensor's mean reading there (um), from the last
         :data:`REST_READ_SAMPLES` samples of the latest readback; None while the voltage changes
         (by more than 1e-4 of the axis's span over those samples), without a position sensor, or
         before any readback."""
-        if not self.position_sensor:
+        block = self._last_block
+        if not self.position_sensor or block is None or axis not in block.axes or axis not in self.drivers:
             return None
-        return self._rest_read.get(axis)
+        i = block.axes.index(axis)
+        v, p = block.commanded_v[i, -REST_READ_SAMPLES:], block.position_um[i, -REST_READ_SAMPLES:]
+        lo, hi = self.drivers[axis].limits
+        # a held voltage may still move by a runtime part's slow correction (drift, warming)
+        finite = v.size > 0 and bool(np.all(np.isfinite(v)) and np.all(np.isfinite(p)))
+        if not finite or np.ptp(v) > 1e-4 * (hi - lo):
+            return None
+        return float(v[-1]), float(np.mean(p))
 
     def label_id(self, name: str) -> int:
         """The id of an experiment label (registered on first use)."""
