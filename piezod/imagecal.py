@@ -1053,7 +1053,6 @@ def run_image_scans(
     return paths
 
 
-
 #: A repeated image's sensitivity change is adopted as a warming trend when it is at least this
 #: large (%) - below it a trend over the minutes of a calibration is not worth extrapolating -
 #: and :data:`RECHECK_SIGMAS` times its standard uncertainty.

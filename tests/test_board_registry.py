@@ -31,7 +31,8 @@ def _ignore(_: LinkEvent) -> None:
 
 
 @pytest.mark.parametrize(
-    "url", ["/dev/ttyACM0", "socket://localhost:7777", "loop://", "rfc2217://h:1", "unix:///s", "usb://1209:0001"]
+    "url",
+    ["/dev/ttyACM0", "socket://localhost:7777", "loop://", "rfc2217://h:1", "unix:///s", "usb://1209:0001"],
 )
 def test_transport_urls_get_the_serial_board(config: ScannerConfig, url: str) -> None:
     board = open_board(url, config, _ignore)

@@ -53,8 +53,10 @@ def _knee(
 def _voltages(n: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     t = np.linspace(0.0, 10.0, n)
-    return 150 * np.sin(2 * np.pi * 0.7 * t) * np.exp(-t / 8) + 20 * np.sin(2 * np.pi * 3.1 * t) + np.cumsum(
-        rng.normal(0, 0.3, n)
+    return (
+        150 * np.sin(2 * np.pi * 0.7 * t) * np.exp(-t / 8)
+        + 20 * np.sin(2 * np.pi * 3.1 * t)
+        + np.cumsum(rng.normal(0, 0.3, n))
     )
 
 
@@ -209,7 +211,11 @@ def test_config_section_round_trips() -> None:
     assert kernels._warm
     with pytest.raises(ValueError, match="bw_rates_per_v"):
         FamilyModelConfig(
-            law="bouc-wen", b_um_per_v=0.1, bw_c_um_per_v=-0.01, bw_amp_down=1.0, creep_taus_s=[1.0],
+            law="bouc-wen",
+            b_um_per_v=0.1,
+            bw_c_um_per_v=-0.01,
+            bw_amp_down=1.0,
+            creep_taus_s=[1.0],
             creep_weights=[0.0],
         )
 

@@ -43,14 +43,42 @@ def test_the_compiled_loops_equal_the_python_reference(seed: int, scale: float, 
         out = np.empty(x.size)
         if ch:
             fn = kernels.ch_loop if compiled else kernels._ch_loop
-            end = fn(x, CH.b_um_per_v, CH.alpha_per_v, CH.delta_um, g, wa, wb, a, ob0, e, 10.0,
-                     s0.law.position_um, out)
+            end = fn(
+                x,
+                CH.b_um_per_v,
+                CH.alpha_per_v,
+                CH.delta_um,
+                g,
+                wa,
+                wb,
+                a,
+                ob0,
+                e,
+                10.0,
+                s0.law.position_um,
+                out,
+            )
             plays = np.zeros(0)
         else:
             fn = kernels.pi_loop if compiled else kernels._pi_loop
             plays = s0.law.plays_v.copy()  # type: ignore[union-attr]
-            end = fn(x, PI.b_um_per_v, PI.rho0, PI.r, PI.w, g, wa, wb, a, ob0, e, plays, 10.0,
-                     s0.law.position_um, out)
+            end = fn(
+                x,
+                PI.b_um_per_v,
+                PI.rho0,
+                PI.r,
+                PI.w,
+                g,
+                wa,
+                wb,
+                a,
+                ob0,
+                e,
+                plays,
+                10.0,
+                s0.law.position_um,
+                out,
+            )
         results.append((out, e, plays, end))
     (o1, e1, p1, end1), (o2, e2, p2, end2) = results
     np.testing.assert_allclose(o1, o2, rtol=0, atol=1e-10)

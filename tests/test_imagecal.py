@@ -202,8 +202,9 @@ def test_the_images_find_a_depoled_ceramic_and_only_then(depoled_pct: float, tmp
     if depoled_pct:
         assert found.pct == pytest.approx(depoled_pct, abs=0.5), found.notes
         assert found.heldout_rms_um[1] < 0.5 * found.heldout_rms_um[0], found.notes
-        assert found.choice.fit is not None and found.choice.heldout_rms_um[found.choice.chosen] == (
-            found.heldout_rms_um[1]
+        assert (
+            found.choice.fit is not None
+            and found.choice.heldout_rms_um[found.choice.chosen] == (found.heldout_rms_um[1])
         )
     else:
         assert found.pct == 0.0 and found.choice is choice, found.notes

@@ -52,6 +52,7 @@ IO_MODULES = frozenset(
     }
 )
 
+
 def _module_name(path: Path) -> str:
     parts = list(path.relative_to(ROOT).with_suffix("").parts)
     if parts[-1] == "__init__":

@@ -159,8 +159,16 @@ def _run_link_stream(args: argparse.Namespace) -> dict[str, Any]:
         raise
     result: dict[str, Any] = module.run_stream_bench(args)
     keys = (
-        "axes", "rate_hz", "seconds", "samples_sent", "samples_read", "underruns", "crc_errors",
-        "model", "model_ns_per_sample", "host_clamped_samples",
+        "axes",
+        "rate_hz",
+        "seconds",
+        "samples_sent",
+        "samples_read",
+        "underruns",
+        "crc_errors",
+        "model",
+        "model_ns_per_sample",
+        "host_clamped_samples",
     )
     print(", ".join(f"{k} {result[k]}" for k in keys if k in result), file=human_stream(args))
     return result

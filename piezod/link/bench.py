@@ -244,9 +244,7 @@ def run_stream_bench(args: argparse.Namespace) -> dict[str, Any]:
     model = getattr(args, "model", None)
     if port:
         lead_s = None if lead_ms is None else float(lead_ms) / 1000.0
-        result = stream_bench(
-            str(port), config, rate_hz=rate_hz, seconds=seconds, lead_s=lead_s, model=model
-        )
+        result = stream_bench(str(port), config, rate_hz=rate_hz, seconds=seconds, lead_s=lead_s, model=model)
         result["simulator"] = f"the board at {port}"
         return result
     with spawn_sim(config_path, seed=int(getattr(args, "seed", 0) or 0), extra_args=extra) as sim:

@@ -140,9 +140,7 @@ class BoucWenParams:
         return cls(b_um_per_v, -b_um_per_v * a, k_same, k_back, k_same, k_back, 1.0)
 
     @classmethod
-    def from_coleman_hodgdon(
-        cls, alpha_per_v: float, b_um_per_v: float, u_um_per_v: float
-    ) -> BoucWenParams:
+    def from_coleman_hodgdon(cls, alpha_per_v: float, b_um_per_v: float, u_um_per_v: float) -> BoucWenParams:
         """The Coleman-Hodgdon ODE (2.21) with ``delta = (b - u) / alpha``."""
         delta = (b_um_per_v - u_um_per_v) / alpha_per_v
         a = alpha_per_v

@@ -450,8 +450,21 @@ def _gplay_inverse(h: GeneralisedPlayParams, xh: F64, state: PlayState) -> tuple
     vc = np.empty(xh.size)
     none = np.empty(0)
     u, x_end = kernels.gpi_loop(
-        xh, h.r, h.c, h.mu, h.zero, 0.0, none, 0.0, none, none, none, plays, state.voltage_v,
-        state.position_um, vc,
+        xh,
+        h.r,
+        h.c,
+        h.mu,
+        h.zero,
+        0.0,
+        none,
+        0.0,
+        none,
+        none,
+        none,
+        plays,
+        state.voltage_v,
+        state.position_um,
+        vc,
     )
     return vc, PlayState(u, plays, x_end)
 
@@ -516,23 +529,60 @@ def _voltage_creep_inverse(
         assert isinstance(state.law, PlayState)
         plays = np.array(state.law.plays_v, dtype=np.float64)
         u, xh = kernels.gpi_loop(
-            xc, h.r, h.c, h.mu, h.zero, g, wa, wb, disc.a, ob0, e, plays,
-            state.drive_v, state.law.position_um, vc,
+            xc,
+            h.r,
+            h.c,
+            h.mu,
+            h.zero,
+            g,
+            wa,
+            wb,
+            disc.a,
+            ob0,
+            e,
+            plays,
+            state.drive_v,
+            state.law.position_um,
+            vc,
         )
         law = PlayState(u, plays, xh)
     elif isinstance(h, PlayParams):
         assert isinstance(state.law, PlayState)
         plays = np.array(state.law.plays_v, dtype=np.float64)
         u, xh = kernels.pi_loop(
-            xc, h.b_um_per_v, h.rho0, h.r, h.w, g, wa, wb, disc.a, ob0, e, plays,
-            state.drive_v, state.law.position_um, vc,
+            xc,
+            h.b_um_per_v,
+            h.rho0,
+            h.r,
+            h.w,
+            g,
+            wa,
+            wb,
+            disc.a,
+            ob0,
+            e,
+            plays,
+            state.drive_v,
+            state.law.position_um,
+            vc,
         )
         law = PlayState(u, plays, xh)
     else:
         assert isinstance(state.law, HysteresisState)
         u, xh = kernels.ch_loop(
-            xc, h.b_um_per_v, h.alpha_per_v, h.delta_um, g, wa, wb, disc.a, ob0, e,
-            state.drive_v, state.law.position_um, vc,
+            xc,
+            h.b_um_per_v,
+            h.alpha_per_v,
+            h.delta_um,
+            g,
+            wa,
+            wb,
+            disc.a,
+            ob0,
+            e,
+            state.drive_v,
+            state.law.position_um,
+            vc,
         )
         law = HysteresisState(u, xh)
     return vc, law, e

@@ -428,8 +428,17 @@ def _bw_h(h0: float, d: float, sigma: float, amp: float, k_same: float, k_back: 
 
 
 def _bw_forward(
-    v: F64, b: float, c: float, amp_down: float, k_us: float, k_ub: float, k_ds: float, k_db: float,
-    u_prev: float, h: float, out: F64,
+    v: F64,
+    b: float,
+    c: float,
+    amp_down: float,
+    k_us: float,
+    k_ub: float,
+    k_ds: float,
+    k_db: float,
+    u_prev: float,
+    h: float,
+    out: F64,
 ) -> float:
     """The Bouc-Wen (Duhem) law forward, exact per sample: ``out[j] = x_h``; returns the last ``h``."""
     for j in range(v.shape[0]):
@@ -552,6 +561,7 @@ def _bw_loop(
         u_prev = u
     return u_prev, h
 
+
 def _bwn_pow(x: float, n: float) -> float:
     """``x^n`` for ``x >= 0``, multiplied out for the integer exponents (a ``pow`` call costs ~20 ns)."""
     if n == 2.0:
@@ -587,8 +597,18 @@ def _bwn_u(u: float, d: float, amp: float, k_same: float, k_back: float, n: floa
 
 
 def _bwn_forward(
-    v: F64, b: float, c: float, amp_down: float, k_us: float, k_ub: float, k_ds: float, k_db: float,
-    n: float, u_prev: float, h: float, out: F64,
+    v: F64,
+    b: float,
+    c: float,
+    amp_down: float,
+    k_us: float,
+    k_ub: float,
+    k_ds: float,
+    k_db: float,
+    n: float,
+    u_prev: float,
+    h: float,
+    out: F64,
 ) -> float:
     """The Bouc-Wen (Duhem) law of exponent ``n`` forward: ``out[j] = x_h``; returns the last ``h``."""
     for j in range(v.shape[0]):
@@ -689,7 +709,6 @@ def _bwn_loop(
 Loop = Callable[..., tuple[float, float]]
 
 
-
 def _jit(fn: Any) -> Any:
     """``numba.njit`` with the on-disk cache, or without it where no cache directory is writable
     (numba refuses ``cache=True`` then, e.g. in a hardened service without ``NUMBA_CACHE_DIR``):
@@ -698,6 +717,7 @@ def _jit(fn: Any) -> Any:
         return numba.njit(cache=True, nogil=True)(fn)
     except RuntimeError:
         return numba.njit(nogil=True)(fn)
+
 
 # _ch_loop calls ch_solve by its global name, resolved when _ch_loop compiles
 ch_solve = cast(Callable[..., float], _jit(_ch_solve_py))
@@ -739,18 +759,63 @@ def warm_up() -> None:
     ch_loop(one, 1.0, 1e-3, 0.5, 0.1, one, 0.0, one, one, np.zeros(1), 0.0, 0.0, np.empty(1))
     nodes, dens = np.array([-1.0, 1.0]), np.ones((2, 2))
     gpi_loop(
-        one, one, nodes, dens, np.zeros(2), 0.1, one, 0.0, one, one, np.zeros(1), np.zeros(1), 0.0, 0.0,
+        one,
+        one,
+        nodes,
+        dens,
+        np.zeros(2),
+        0.1,
+        one,
+        0.0,
+        one,
+        one,
+        np.zeros(1),
+        np.zeros(1),
+        0.0,
+        0.0,
         np.empty(1),
     )
     bw_forward(one, 1.0, -0.5, 1.0, 0.01, 0.005, 0.01, 0.005, 0.0, 0.0, np.empty(1))
     bw_loop(
-        one, 1.0, -0.5, 1.0, 0.01, 0.005, 0.01, 0.005, 0.1, one, 0.0, one, one, np.zeros(1), 0.0, 0.0,
+        one,
+        1.0,
+        -0.5,
+        1.0,
+        0.01,
+        0.005,
+        0.01,
+        0.005,
+        0.1,
+        one,
+        0.0,
+        one,
+        one,
+        np.zeros(1),
+        0.0,
+        0.0,
         np.empty(1),
     )
     bwn_forward(one, 1.0, -0.5, 1.0, 0.01, 0.005, 0.01, 0.005, 2.0, 0.0, 0.0, np.empty(1))
     bwn_loop(
-        one, 1.0, -0.5, 1.0, 0.01, 0.005, 0.01, 0.005, 2.0, 0.5, 0.1, one, 0.0, one, one, np.zeros(1), 0.0,
-        0.0, np.empty(1),
+        one,
+        1.0,
+        -0.5,
+        1.0,
+        0.01,
+        0.005,
+        0.01,
+        0.005,
+        2.0,
+        0.5,
+        0.1,
+        one,
+        0.0,
+        one,
+        one,
+        np.zeros(1),
+        0.0,
+        0.0,
+        np.empty(1),
     )
     _warm = True
 

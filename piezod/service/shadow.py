@@ -30,8 +30,13 @@ FloatArray = NDArray[np.float64]
 class ShadowEngine:
     """What a job needs of the engine, on copies of its axis drivers: to try a job without effect."""
 
-    def __init__(self, engine: Engine | None, *, drivers: dict[str, AxisDriver] | None = None,
-                 rate_hz: float | None = None) -> None:
+    def __init__(
+        self,
+        engine: Engine | None,
+        *,
+        drivers: dict[str, AxisDriver] | None = None,
+        rate_hz: float | None = None,
+    ) -> None:
         self._engine = engine
         if engine is not None:
             self.rate_hz = engine.rate_hz

@@ -30,6 +30,7 @@ from piezod.scan import ScanBlock
 
 PIXEL, LINE, FRAME = 0b001, 0b010, 0b100
 
+
 class SyncSchedule:
     """Sync events by absolute sample index, merged per index (a later event wins its bits).
 
