@@ -215,3 +215,61 @@ class RealDaemon:
         # SIGTERM must stop the daemon (ramp to safe, flush, exit): a hang is a failure, not a kill
         if hung and exc_type is None:
             raise AssertionError(f"the daemon outlived SIGTERM by {30 * SLOW:g} s: {self.log_path}")
+
+
+def _busy_s() -> float:
+    """CPU seconds the whole machine has spent busy since boot (``/proc/stat``)."""
+    with open("/proc/stat") as f:
+        fields = [int(v) for v in f.readline().split()[1:]]
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)
+    return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU seconds (user + system, all threads) process ``pid`` has used; 0 once it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class OtherWork:
+    """How much of the machine work other than the test's own processes took, over a window.
+
+    The load average lags by a minute and counts the test's own processes; this measures the
+    window itself: the machine's busy CPU time (``/proc/stat``) less what this process and ``pids``
+    (the daemon, the simulator) used.
+
+    Parameters
+    ----------
+    pids
+        The test's child processes.
+    """
+
+    def __init__(self, pids: Sequence[int]) -> None:
+        self.pids = tuple(pids)
+        self._t0 = time.monotonic()
+        self._busy0 = _busy_s()
+        self._own0 = self._own()
+        self._end: tuple[float, float, float] | None = None
+
+    def stop(self) -> None:
+        """End the window (before the test's processes exit: their CPU time goes with them)."""
+        self._end = (time.monotonic(), _busy_s(), self._own())
+
+    def _own(self) -> float:
+        return _cpu_s(os.getpid()) + sum(_cpu_s(p) for p in self.pids)
+
+    def cores(self) -> tuple[float, float]:
+        """(cores the machine kept busy, cores other work kept busy) on average since the start."""
+        t, busy_s, own_s = self._end or (time.monotonic(), _busy_s(), self._own())
+        span = max(t - self._t0, 1e-3)
+        busy = (busy_s - self._busy0) / span
+        return busy, max(busy - (own_s - self._own0) / span, 0.0)
+
+    def saturated(self) -> bool:
+        """The machine was busy on (nearly) every core, at least a quarter of one of them by others."""
+        busy, others = self.cores()
+        return busy >= 0.9 * (os.cpu_count() or 1) and others >= 0.25
