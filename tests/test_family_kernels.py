@@ -91,3 +91,40 @@ def test_the_compiled_loops_equal_the_python_reference(seed: int, scale: float, 
 def test_a_voltage_creep_model_compiles_its_loop_when_it_is_loaded() -> None:
     FamilyAxisModel(FamilyParams(PI, SPEC, 2e-4, 0.05, "voltage"))
     assert kernels._warm
+
+
+_NO_COMPILE_AFTER_WARM_UP = """
+import numpy as np
+from piezod.bench import bench_models
+from piezod.model import kernels
+
+kernels.warm_up()
+loops = [n for n in kernels.__all__ if hasattr(getattr(kernels, n), "signatures")]
+known = {n: set(getattr(kernels, n).signatures) for n in loops}
+for name, m in bench_models().items():
+    st = m.rest(0.0)
+    v, after = m.inverse(np.linspace(0.0, 1.0, 50), 2e-5, st)
+    m.forward(v, 2e-5, st)
+    m.hold(10, 2e-5, after)
+    for n in loops:
+        new = set(getattr(kernels, n).signatures) - known[n]
+        assert not new, f"{name}: {n} compiled {sorted(map(str, new))} after warm_up"
+print("ok", len(loops))
+"""
+
+
+def test_warm_up_compiles_every_signature_the_models_stream_with() -> None:
+    """A compilation after ``warm_up`` would fall into the first streamed block (4 s on a cold cache).
+
+    In a fresh process (this one's loops may have been compiled by other tests): every model of
+    ``piezod bench`` (each family member, the richest with voltage creep and every part) runs its
+    inverse, forward and hold after ``warm_up`` without a new signature.
+    """
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-c", _NO_COMPILE_AFTER_WARM_UP], capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.startswith("ok"), done.stdout

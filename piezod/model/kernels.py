@@ -750,20 +750,55 @@ _warm = False
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) the loops: call it when a model is loaded, not per block."""
+    """Compile (or load from the cache) the loops: call it when a model is loaded, not per block.
+
+    Each loop is compiled once per argument signature, and the frozen parameter objects hold
+    read-only arrays: a signature of its own. Both the read-only version (what the models pass)
+    and the writable one (fits that build arrays on the fly) are compiled here; left to the first
+    block, a cold compilation takes seconds.
+    """
     global _warm
     if _warm:
         return
+    for frozen in (True, False):
+        _compile_all(frozen)
+    _warm = True
+
+
+def _compile_all(frozen: bool) -> None:
+    """Call every loop once, the parameter arrays read-only when ``frozen`` (as the models pass them)."""
+
+    def param(a: F64) -> F64:
+        a = a.copy()
+        a.flags.writeable = not frozen
+        return a
+
     one = np.zeros(1)
-    pi_loop(one, 1.0, 0.5, one, one, 0.1, one, 0.0, one, one, np.zeros(1), np.zeros(1), 0.0, 0.0, np.empty(1))
+    pi_loop(
+        one,
+        1.0,
+        0.5,
+        param(one),
+        param(one),
+        0.1,
+        one,
+        0.0,
+        one,
+        one,
+        np.zeros(1),
+        np.zeros(1),
+        0.0,
+        0.0,
+        np.empty(1),
+    )
     ch_loop(one, 1.0, 1e-3, 0.5, 0.1, one, 0.0, one, one, np.zeros(1), 0.0, 0.0, np.empty(1))
     nodes, dens = np.array([-1.0, 1.0]), np.ones((2, 2))
     gpi_loop(
         one,
-        one,
-        nodes,
-        dens,
-        np.zeros(2),
+        param(one),
+        param(nodes),
+        param(dens),
+        param(np.zeros(2)),
         0.1,
         one,
         0.0,
@@ -817,7 +852,6 @@ def warm_up() -> None:
         0.0,
         np.empty(1),
     )
-    _warm = True
 
 
 __all__ = [

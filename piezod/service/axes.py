@@ -175,10 +175,10 @@ class AxisDriver:
 
         A model may prepare itself lazily on its first call with given argument types: the
         compiled per-sample loops of the family (numba) compile one machine-code version per
-        argument signature, and the frozen parameters' read-only arrays are another signature than
-        the one :func:`piezod.model.kernels.warm_up` compiles. Left to the first block, that
-        compilation (about 1 s, more on a loaded machine) ran in the streaming thread under the
-        engine lock, and the board's FIFO underran at the hand-over from the hold to the first
+        argument signature (:func:`piezod.model.kernels.warm_up` compiles those the family's
+        models pass; a model of another kind may have its own). Left to the first block, such a
+        compilation (seconds on a loaded machine) runs in the streaming thread under the engine
+        lock, and the board's FIFO underran at the hand-over from the hold to the first
         corrected scan. Here it runs where the driver is built (outside the engine lock).
         """
         dt = self._dt_s
