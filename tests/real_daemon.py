@@ -173,10 +173,21 @@ class RealDaemon:
         st = self.status()
         while st.state not in states:
             if time.monotonic() > deadline:
-                raise AssertionError(f"state {st.state}, not {states} within {timeout_s} s: {st.faults[-3:]}")
+                raise AssertionError(
+                    f"state {st.state}, not {states} within {timeout_s} s: {st.faults[-3:]}\n{self.stacks()}"
+                )
             time.sleep(0.1)
             st = self.status()
         return st
+
+    def stacks(self) -> str:
+        """The daemon's threads' stacks (SIGUSR1 writes them to its log): what a wedged daemon waits for."""
+        if self.proc is None or self.proc.poll() is not None:
+            return "(the daemon is not running)"
+        before = len(self.log_text())
+        self.proc.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        return self.log_text()[before:]
 
     def log_text(self) -> str:
         return self.log_path.read_text(encoding="utf-8", errors="replace")

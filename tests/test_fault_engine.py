@@ -55,6 +55,19 @@ def test_a_refused_change_has_no_effect(daemon: RealDaemon) -> None:
         c.stop()
 
 
+def test_sigusr1_writes_the_threads_stacks_and_changes_nothing(daemon: RealDaemon) -> None:
+    """Tried: SIGUSR1 to the running daemon (what to send one that answers but no longer streams).
+    Held: every thread's stack in its log (the supervisor's loop among them), the daemon still up and
+    answering, nothing latched.
+    """
+    before = daemon.status()
+    stacks = daemon.stacks()
+    assert "most recent call first" in stacks and "in _supervise" in stacks, stacks[-2000:]
+    after = daemon.status()
+    assert after.state == before.state and after.uptime_s > before.uptime_s
+    assert len(after.faults) == len(before.faults), after.faults[-3:]
+
+
 def test_refusals_leak_no_descriptors(daemon: RealDaemon) -> None:
     """Tried: 60 refused scans, 8 started-and-stopped scans. Held: no file descriptor leaked, no file left
     by a refused scan, the next scan starts.

@@ -344,7 +344,7 @@ def _board_fuzz(tmp: Path, seconds: float, rate_hz: float) -> None:
                 st = c.stop()
                 if st.state == "idle":
                     break
-                assert time.monotonic() < deadline, f"wedged in {st.state}: {st.faults[-3:]}"
+                assert time.monotonic() < deadline, f"wedged in {st.state}: {st.faults[-3:]}\n{d.stacks()}"
                 time.sleep(0.5)
             c.scan(range_um=5.0, line_rate_hz=8.0, lines=1, name="after-fuzz")
             d.wait_state({"idle"}, 60.0)

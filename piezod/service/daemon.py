@@ -11,9 +11,11 @@ exit 0.
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -126,8 +128,13 @@ def running_daemon(
 
 
 def stop_on_signals() -> threading.Event:
-    """An event set by SIGTERM or SIGINT (installed in the main thread)."""
+    """An event set by SIGTERM or SIGINT (installed in the main thread).
+
+    SIGUSR1 writes every thread's stack to stderr (the journal) and changes nothing: what a
+    daemon that answers but no longer streams is waiting for (``systemctl kill -s USR1 piezod@x``).
+    """
     stop = threading.Event()
+    faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=True, chain=False)
 
     def handler(signum: int, _frame: FrameType | None) -> None:
         log.info("signal %s: shutting down", signal.Signals(signum).name)
