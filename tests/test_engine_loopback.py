@@ -131,3 +131,46 @@ def test_move_reaches_the_position(engine: Engine) -> None:
     st = engine.status()
     assert st.position_um["x"] == pytest.approx(5.0, abs=1e-6)
     assert st.position_um["y"] == pytest.approx(-3.0, abs=1e-6)
+
+
+def test_a_restart_whose_start_fails_is_tried_again(engine: Engine, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bug in the block source ends the run; the supervisor reports it and restarts the stream.
+    When that restart's START fails (a board still ramping refuses it, or no reply), it tries again
+    instead of waiting for the end of a run that never began. Before, the first killed the
+    supervisor thread and the second left it waiting: either way the daemon answered but never
+    streamed again (test_board_side_fuzz_short stayed 'scanning' once).
+    """
+    from piezod.errors import LinkTimeoutError
+
+    board: Any = engine._board
+    session = board.session
+    real_start = session.start
+    calls: list[int] = []
+
+    def start_once_refused(start_index: int, prefill_samples: int, **kw: Any) -> int:
+        calls.append(start_index)
+        if len(calls) == 1:
+            raise LinkTimeoutError(f"{session.url}: no reply to START within 1 s")
+        return int(real_start(start_index, prefill_samples, **kw))
+
+    monkeypatch.setattr(session, "start", start_once_refused)
+    real_next_block = engine.next_block
+    failed: list[bool] = []
+
+    def fail_once(n: int) -> Any:
+        if not failed:
+            failed.append(True)
+            raise RuntimeError("the block source failed once")  # ends the run: the supervisor restarts
+        return real_next_block(n)
+
+    monkeypatch.setattr(engine, "next_block", fail_once)
+    deadline = time.monotonic() + 30.0
+    while len(calls) < 2 or not board.running:
+        assert time.monotonic() < deadline, (calls, engine.status().faults[-3:])
+        time.sleep(0.05)
+    codes = [f.code for f in engine.status().faults]
+    assert "STREAM" in codes and "RESTART" in codes, codes
+    assert any("RuntimeError: the block source failed once" in f.message for f in engine.status().faults)
+    engine.stop()
+    engine.start_scan(ScanRequest(range_um=5.0, line_rate_hz=4.0, lines=1, name="after-restart"))
+    assert engine.wait_idle(20.0) == "idle", engine.status().faults[-3:]

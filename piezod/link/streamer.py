@@ -410,7 +410,12 @@ class Streamer:
         if not keep_staged:
             self._staged.clear()
             self._staged_rows = 0
-        self._begin_run(start_index, timeout_s)
+        try:
+            self._begin_run(start_index, timeout_s)
+        except BaseException:
+            # no run began: wait() says so at once, or a supervisor waits for its end forever
+            self._done.set()
+            raise
         self._quit.clear()
         self._done.clear()
         self._finishing = False
@@ -466,7 +471,10 @@ class Streamer:
         self._unsubscribe()
 
     def wait(self, timeout_s: float | None = None) -> bool:
-        """Wait for the current run to end (e.g. after an underrun without ``auto_restart``)."""
+        """Wait for the current run to end (e.g. after an underrun without ``auto_restart``).
+
+        True at once after a :meth:`start` that raised (no run began).
+        """
         return self._done.wait(timeout_s)
 
     def check(self) -> None:

@@ -243,6 +243,12 @@ class Engine:
                 board.check()
             except PiezodError as exc:
                 self.fault("host", "STREAM", f"streaming ended: {exc}")
+            except Exception as exc:
+                # a bug in a block source (a model, a job): reported with its traceback, and the
+                # stream restarted at the safe values like after any abnormal end; the supervisor
+                # must outlive it, or the daemon answers but never streams again
+                log.error("streaming ended by an unexpected error", exc_info=exc)
+                self.fault("host", "STREAM", f"streaming ended: {type(exc).__name__}: {exc}")
             if how not in (None, "stop"):
                 self.fault("host", "STREAM_END", f"streaming run ended by {how}")
             self._end_recording()
@@ -264,6 +270,10 @@ class Engine:
                 self._start_stream()
             except (LinkError, PiezodError) as exc:
                 self.fault("link", "RESTART", f"cannot restart streaming: {exc}")
+                time.sleep(0.5)
+            except Exception as exc:
+                log.error("restarting the stream failed unexpectedly", exc_info=exc)
+                self.fault("link", "RESTART", f"cannot restart streaming: {type(exc).__name__}: {exc}")
                 time.sleep(0.5)
 
     def close(self, *, ramp: bool = True, timeout_s: float = 20.0) -> None:
