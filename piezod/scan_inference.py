@@ -466,16 +466,15 @@ def _irregularities(
     rising = -kinds[:-1] > 0
     for name, sel in (("rising", rising), ("falling", ~rising)):
         d = seg_dur[sel]
+        if d.size < 2:
+            continue  # one half period (or none) cannot vary
         # Turning times of a rounded waveform jitter with the noise (flat tops); a triangle's do not.
         jitter = (
             0.0
             if halves.triangle
             else 4.0 * float(np.mean(d)) / math.pi * math.sqrt(2.0 * halves.noise / span)
         )
-        if (
-            d.size >= 2
-            and np.ptp(d) > _REGULAR_TOL * np.mean(d) + 4.0 * float(np.median(np.diff(t))) + jitter
-        ):
+        if np.ptp(d) > _REGULAR_TOL * np.mean(d) + 4.0 * float(np.median(np.diff(t))) + jitter:
             problems.append(f"{name} half periods last {d.min():.4g} s to {d.max():.4g} s")
     return problems
 
