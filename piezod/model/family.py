@@ -519,71 +519,27 @@ def _voltage_creep_inverse(
     wa, wb = s * (w * disc.a), s * float(w @ ob0)
     e = np.array(state.creep_um, dtype=np.float64)
     vc = np.empty(xc.size)
+    creep = (g, wa, wb, disc.a, ob0, e)
     h = params.hysteresis
     law: LawState
     if isinstance(h, BoucWenParams):
         assert isinstance(state.law, BoucWenState)
-        u, hv = bw_creep_loop(h, xc, g, wa, wb, disc.a, ob0, e, state.drive_v, state.law.h_v, vc)
+        u, hv = bw_creep_loop(h, xc, *creep, state.drive_v, state.law.h_v, vc)
         law = BoucWenState(u, hv, h.b_um_per_v * u + h.c_um_per_v * hv)
-    elif isinstance(h, GeneralisedPlayParams):
+    elif isinstance(h, GeneralisedPlayParams | PlayParams):
         assert isinstance(state.law, PlayState)
         plays = np.array(state.law.plays_v, dtype=np.float64)
-        u, xh = kernels.gpi_loop(
-            xc,
-            h.r,
-            h.c,
-            h.mu,
-            h.zero,
-            g,
-            wa,
-            wb,
-            disc.a,
-            ob0,
-            e,
-            plays,
-            state.drive_v,
-            state.law.position_um,
-            vc,
-        )
-        law = PlayState(u, plays, xh)
-    elif isinstance(h, PlayParams):
-        assert isinstance(state.law, PlayState)
-        plays = np.array(state.law.plays_v, dtype=np.float64)
-        u, xh = kernels.pi_loop(
-            xc,
-            h.b_um_per_v,
-            h.rho0,
-            h.r,
-            h.w,
-            g,
-            wa,
-            wb,
-            disc.a,
-            ob0,
-            e,
-            plays,
-            state.drive_v,
-            state.law.position_um,
-            vc,
-        )
+        law_args: tuple[float | F64, ...]
+        if isinstance(h, GeneralisedPlayParams):
+            loop, law_args = kernels.gpi_loop, (h.r, h.c, h.mu, h.zero)
+        else:
+            loop, law_args = kernels.pi_loop, (h.b_um_per_v, h.rho0, h.r, h.w)
+        u, xh = loop(xc, *law_args, *creep, plays, state.drive_v, state.law.position_um, vc)
         law = PlayState(u, plays, xh)
     else:
         assert isinstance(state.law, HysteresisState)
-        u, xh = kernels.ch_loop(
-            xc,
-            h.b_um_per_v,
-            h.alpha_per_v,
-            h.delta_um,
-            g,
-            wa,
-            wb,
-            disc.a,
-            ob0,
-            e,
-            state.drive_v,
-            state.law.position_um,
-            vc,
-        )
+        ch_args = (h.b_um_per_v, h.alpha_per_v, h.delta_um)
+        u, xh = kernels.ch_loop(xc, *ch_args, *creep, state.drive_v, state.law.position_um, vc)
         law = HysteresisState(u, xh)
     return vc, law, e
 

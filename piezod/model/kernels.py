@@ -774,84 +774,17 @@ def _compile_all(frozen: bool) -> None:
         return a
 
     one = np.zeros(1)
-    pi_loop(
-        one,
-        1.0,
-        0.5,
-        param(one),
-        param(one),
-        0.1,
-        one,
-        0.0,
-        one,
-        one,
-        np.zeros(1),
-        np.zeros(1),
-        0.0,
-        0.0,
-        np.empty(1),
-    )
-    ch_loop(one, 1.0, 1e-3, 0.5, 0.1, one, 0.0, one, one, np.zeros(1), 0.0, 0.0, np.empty(1))
+    creep = (0.1, one, 0.0, one, one, np.zeros(1))  # g, wa, wb, a, ob0, e
+    start = (0.0, 0.0, np.empty(1))  # previous voltage, previous state, out
+    bw = (1.0, -0.5, 1.0, 0.01, 0.005, 0.01, 0.005)  # b, c, amp_down, rates
+    pi_loop(one, 1.0, 0.5, param(one), param(one), *creep, np.zeros(1), *start)
+    ch_loop(one, 1.0, 1e-3, 0.5, *creep, *start)
     nodes, dens = np.array([-1.0, 1.0]), np.ones((2, 2))
-    gpi_loop(
-        one,
-        param(one),
-        param(nodes),
-        param(dens),
-        param(np.zeros(2)),
-        0.1,
-        one,
-        0.0,
-        one,
-        one,
-        np.zeros(1),
-        np.zeros(1),
-        0.0,
-        0.0,
-        np.empty(1),
-    )
-    bw_forward(one, 1.0, -0.5, 1.0, 0.01, 0.005, 0.01, 0.005, 0.0, 0.0, np.empty(1))
-    bw_loop(
-        one,
-        1.0,
-        -0.5,
-        1.0,
-        0.01,
-        0.005,
-        0.01,
-        0.005,
-        0.1,
-        one,
-        0.0,
-        one,
-        one,
-        np.zeros(1),
-        0.0,
-        0.0,
-        np.empty(1),
-    )
-    bwn_forward(one, 1.0, -0.5, 1.0, 0.01, 0.005, 0.01, 0.005, 2.0, 0.0, 0.0, np.empty(1))
-    bwn_loop(
-        one,
-        1.0,
-        -0.5,
-        1.0,
-        0.01,
-        0.005,
-        0.01,
-        0.005,
-        2.0,
-        0.5,
-        0.1,
-        one,
-        0.0,
-        one,
-        one,
-        np.zeros(1),
-        0.0,
-        0.0,
-        np.empty(1),
-    )
+    gpi_loop(one, param(one), param(nodes), param(dens), param(np.zeros(2)), *creep, np.zeros(1), *start)
+    bw_forward(one, *bw, *start)
+    bw_loop(one, *bw, *creep, *start)
+    bwn_forward(one, *bw, 2.0, *start)
+    bwn_loop(one, *bw, 2.0, 0.5, *creep, *start)
 
 
 __all__ = [
