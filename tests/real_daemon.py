@@ -22,6 +22,7 @@ from types import TracebackType
 from hil_sim.server import SimProcess, spawn_sim
 from piezod.client import PiezodClient
 from piezod.config import default_sim_config_path
+from piezod.link.bench import _proc_cpu_s
 from piezod.service.schemas import Status
 
 #: Slow machines (2 shared cores) get more time; tests wait on conditions, never on wall clock alone.
@@ -238,12 +239,7 @@ def _busy_s() -> float:
 
 def _cpu_s(pid: int) -> float:
     """CPU seconds (user + system, all threads) process ``pid`` has used; 0 once it is gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return _proc_cpu_s(pid) or 0.0
 
 
 class OtherWork:
