@@ -48,7 +48,7 @@ from numpy.typing import NDArray
 
 from piezod import calibrate_dynamic as cd
 from piezod.config import AxisName, ScannerConfig, default_sim_config_path, load_config
-from piezod.errors import CalibrationError
+from piezod.errors import CalibrationError, ConfigError
 from piezod.extensions import (
     Adoption,
     adopt_findings,
@@ -355,6 +355,42 @@ def score(case: dict[str, Any], floor: dict[str, float], resolution_pct: float) 
     return {"left": left, "below_resolution": below, "met": met and not below}
 
 
+def _case_key(specs: Sequence[str], reduced: bool, loops: int, seed: int) -> dict[str, Any]:
+    return {"specs": list(specs), "frame": "reduced" if reduced else "full", "loops": loops, "seed": seed}
+
+
+def _load_case(path: Path, key: dict[str, Any]) -> dict[str, Any] | None:
+    """A case saved by an earlier run with the same ``key``, None when there is none."""
+    import json
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path}:{exc.lineno}: not a saved effects case: {exc.msg}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("case"), dict):
+        raise ConfigError(f"{path}: not a saved effects case (no 'case')")
+    if doc.get("key") != key:
+        raise ConfigError(
+            f"{path}: saved for {doc.get('key')!r}, this run is {key!r} (another directory, or remove it)"
+        )
+    case: dict[str, Any] = doc["case"]
+    return case
+
+
+def _save_case(path: Path, key: dict[str, Any], case: dict[str, Any]) -> None:
+    import json
+
+    from piezod.config import atomic_write_text
+
+    atomic_write_text(path, json.dumps({"key": key, "case": case}, indent=1) + "\n")
+
+
 def run_effects_bench(
     effects: Sequence[str] | None = None,
     *,
@@ -364,33 +400,72 @@ def run_effects_bench(
     resolution_pct: float = 0.01,
     on_step: Callable[[str], None] | None = None,
     jobs: int = 1,
+    cases_dir: Path | None = None,
 ) -> dict[str, Any]:
     """The table of the module docstring for ``effects`` (default: every hil_sim effect).
 
     ``jobs > 1`` runs the cases (the floor and one per effect: each independent, deterministic
     for its seed) in that many worker processes; ``on_step`` then hears one ``"case"`` per
     finished case instead of every step.
+
+    ``cases_dir`` keeps every case as it ends (``floor.json``, ``<effect>.json``), so that a run
+    stopped half way loses only the cases still running: a later run with the same directory
+    and settings takes the saved cases instead of running them again.
+
+    Raises
+    ------
+    ConfigError
+        A file in ``cases_dir`` is not a saved case, or was saved with other specs, frame,
+        loops or seed.
     """
     from piezod.simulator import sim_effect_names
 
     names = list(effects) if effects else list(sim_effect_names())
+    labels = ["floor", *names]
     specs = [[], *(realistic_specs(name) for name in names)]
-    if jobs > 1:
+    keys = [_case_key(sp, reduced, loops, seed) for sp in specs]
+    paths = [cases_dir / f"{label}.json" if cases_dir is not None else None for label in labels]
+    cases: list[dict[str, Any] | None] = [
+        _load_case(path, key) if path is not None else None for path, key in zip(paths, keys, strict=True)
+    ]
+    if cases_dir is not None:
+        cases_dir.mkdir(parents=True, exist_ok=True)
+    todo = [i for i, c in enumerate(cases) if c is None]
+
+    def done(i: int, case: dict[str, Any]) -> None:
+        cases[i] = case
+        path = paths[i]
+        if path is not None:
+            _save_case(path, keys[i], case)
+
+    if jobs > 1 and len(todo) > 1:
         import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
+        from concurrent.futures import ProcessPoolExecutor, as_completed
 
         step = on_step or (lambda _s: None)
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
-            futures = [pool.submit(run_case, sp, reduced=reduced, loops=loops, seed=seed) for sp in specs]
-            for f in futures:
-                f.add_done_callback(lambda _f: step("case"))
-            cases = [f.result() for f in futures]
+            futures = {
+                pool.submit(run_case, specs[i], reduced=reduced, loops=loops, seed=seed): i for i in todo
+            }
+            failed: BaseException | None = None
+            for f in as_completed(futures):
+                # one failed case must not lose the others still running: they are saved as they end
+                exc = f.exception()
+                if exc is not None:
+                    failed = failed or exc
+                    continue
+                done(futures[f], f.result())
+                step("case")
+            if failed is not None:
+                raise failed
     else:
-        cases = [run_case(sp, reduced=reduced, loops=loops, seed=seed, on_step=on_step) for sp in specs]
-    floor = cases[0]["baseline"]["worst"]
+        for i in todo:
+            done(i, run_case(specs[i], reduced=reduced, loops=loops, seed=seed, on_step=on_step))
+    ready = [c for c in cases if c is not None]
+    floor = ready[0]["baseline"]["worst"]
     rows = []
-    for name, case in zip(names, cases[1:], strict=True):
+    for name, case in zip(names, ready[1:], strict=True):
         rows.append({"effect": name, **case, **score(case, floor, resolution_pct)})
     return {
         "stage": "built-in stage (configs/sim-stage.yaml) + one hil_sim effect: the baseline is the "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from functools import cache
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -216,3 +217,44 @@ def test_bench_effects_refuses_an_unknown_effect(capsys: pytest.CaptureFixture[s
 
     assert main(["bench", "effects", "--effects", "nope"]) == 2
     assert "--effects: unknown effect 'nope'" in capsys.readouterr().err
+
+
+class _StoppedError(Exception):
+    """A run stopped half way (the case running when it stopped raises)."""
+
+
+def test_saved_cases_are_taken_again_and_a_stopped_run_loses_only_what_was_running(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--cases-dir``: each case is kept as it ends; a run stopped half way is resumed from them.
+    (The cases are stand-ins here: what is tested is the bookkeeping, not the correction.)"""
+    from piezod import effects_bench as eb
+    from piezod.errors import ConfigError
+
+    ran: list[list[str]] = []
+    stop_at = ["thermal"]
+
+    def fake_case(specs: list[str], **_kw: Any) -> dict[str, Any]:
+        ran.append(list(specs))
+        if specs and specs[0].split(".")[0] in stop_at:
+            raise _StoppedError
+        worst = {"nonlinearity_pct": 0.01 * len(specs), "length_error_pct": 0.0}
+        return {"specs": list(specs), "baseline": {"worst": worst}, "extended": {"worst": worst}}
+
+    monkeypatch.setattr(eb, "run_case", fake_case)
+    with pytest.raises(_StoppedError):
+        run_effects_bench(["drift", "thermal"], cases_dir=tmp_path)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["drift.json", "floor.json"]
+    ran.clear()
+    stop_at.clear()
+    result = run_effects_bench(["drift", "thermal"], cases_dir=tmp_path)
+    assert ran == [realistic_specs("thermal")]
+    assert [r["effect"] for r in result["rows"]] == ["drift", "thermal"]
+    ran.clear()
+    run_effects_bench(["drift", "thermal"], cases_dir=tmp_path)
+    assert ran == []
+    with pytest.raises(ConfigError, match=r"floor\.json: saved for .*'loops': 3.*'loops': 2"):
+        run_effects_bench(["drift"], cases_dir=tmp_path, loops=2)
+    (tmp_path / "drift.json").write_text("{\n  nope\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"drift\.json:2: not a saved effects case"):
+        run_effects_bench(["drift"], cases_dir=tmp_path)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+from pathlib import Path
 from typing import Any
 
 from piezod.cli._common import add_json_option, human_stream, positive_float, positive_int, write_json
@@ -86,6 +87,12 @@ def register(sub: Any) -> None:
         default=1,
         metavar="N",
         help="run the cases in N worker processes (effects; each full-frame case takes 1-2 GB)",
+    )
+    eff.add_argument(
+        "--cases-dir",
+        metavar="DIR",
+        help="keep every case in DIR as it ends (effects); a later run with the same DIR and settings "
+        "takes the saved cases instead of running them again",
     )
     p.set_defaults(func=run)
 
@@ -205,7 +212,13 @@ def _run_effects(args: argparse.Namespace) -> dict[str, Any]:
         def tick(_step: str) -> None:
             bar.update(1)
 
-        result = run_effects_bench(names, reduced=not args.full_frame, on_step=tick, jobs=args.jobs)
+        result = run_effects_bench(
+            names,
+            reduced=not args.full_frame,
+            on_step=tick,
+            jobs=args.jobs,
+            cases_dir=Path(args.cases_dir) if args.cases_dir else None,
+        )
     print(format_table(result), file=human_stream(args))
     if args.plot:
         print(f"plot: {plot_effects(result, args.plot)}", file=human_stream(args))
