@@ -211,6 +211,10 @@ class SimServer:
         Longest select wait (s).
     clock
         Monotonic clock (s).
+    parent_fd
+        A pipe's read end whose other end the parent process holds: its end of file (the parent
+        gone, however it ended, SIGKILL included) stops the server as SIGTERM would. A simulator
+        left running by a killed parent would keep its pty, and a core, for nothing.
     """
 
     def __init__(
@@ -223,6 +227,7 @@ class SimServer:
         unplug_s: float = DEFAULT_UNPLUG_S,
         tick_s: float = DEFAULT_TICK_S,
         clock: Callable[[], float] = time.monotonic,
+        parent_fd: int | None = None,
     ) -> None:
         if not pty and usb_socket is None:
             raise SimLinkError("nothing to serve: --no-pty needs --usb-socket")
@@ -237,6 +242,8 @@ class SimServer:
         self.tick_s = tick_s
         self.clock = clock
         self._stop_signal: int | None = None
+        self._parent_fd = parent_fd
+        self._parent_gone = False
         self._unplug_requested = False
         self._replug_at: float | None = None
         self._last_step: float | None = None
@@ -298,13 +305,18 @@ class SimServer:
             self.close()
             for s, h in previous.items():
                 signal.signal(s, h)
-        log.info("stopped by %s", signal.Signals(self._stop_signal).name)
+        if self._parent_gone:
+            log.info("stopped: the parent process is gone (end of file on its pipe)")
+        else:
+            log.info("stopped by %s", signal.Signals(self._stop_signal).name)
         return 0
 
     def step(self) -> None:
         """One loop iteration: wait for input (at most one tick), feed, advance, write."""
         ports: list[PtyPort | UsbSocketServer] = [p for p in (self.pty, self.usb) if p is not None]
         rfds = [fd for p in ports for fd in p.read_fds()]
+        if self._parent_fd is not None:
+            rfds.append(self._parent_fd)
         wfds = [fd for p in ports for fd in p.write_fds()]
         if rfds or wfds:
             readable, _, _ = select.select(rfds, wfds, [], self.tick_s)
@@ -312,6 +324,9 @@ class SimServer:
             time.sleep(self.tick_s)
             readable = []
         ready = set(readable)
+        if self._parent_fd is not None and self._parent_fd in ready and not os.read(self._parent_fd, 4096):
+            self._parent_gone = True
+            self.request_stop()
         t_step = self.clock()
         arrival: float | None = None
         if self._last_step is not None and t_step - self._last_step > STALL_WARN_S:
@@ -392,6 +407,12 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"duration of a SIGUSR1 unplug (default {DEFAULT_UNPLUG_S:g} s)",
     )
     parser.add_argument("--usb-socket", metavar="PATH", help="also serve the USB bulk byte stream here")
+    parser.add_argument(
+        "--exit-with-stdin",
+        action="store_true",
+        help="stop when standard input reaches end of file: a parent holding the other end of a pipe "
+        "is gone (how spawn_sim starts the simulator: it never outlives the process that started it)",
+    )
     parser.add_argument("--no-pty", action="store_true", help="no pty (needs --usb-socket)")
     parser.add_argument(
         "--fifo-depth",
@@ -505,6 +526,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         unplug_s=args.unplug_s,
         tick_s=args.tick_ms * 1e-3,
         clock=clock,
+        parent_fd=sys.stdin.fileno() if args.exit_with_stdin else None,
     )
     log.info(
         "board %d channels (%s), serial 0x%08x, FIFO %d, faults: corrupt out %g in %g, drop %g",
@@ -584,15 +606,20 @@ class SimProcess:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
-        if self.process.stdout is not None:
-            self.process.stdout.close()
+        self._close_pipes()
         return self.process.returncode
+
+    def _close_pipes(self) -> None:
+        for pipe in (self.process.stdin, self.process.stdout):
+            if pipe is not None:
+                pipe.close()
 
     def kill(self) -> int:
         """SIGKILL and wait. Returns the exit status."""
         if self.process.poll() is None:
             self.process.kill()
             self.process.wait()
+        self._close_pipes()
         return self.process.returncode
 
     def stderr_text(self) -> str:
@@ -655,7 +682,7 @@ def spawn_sim(
     SimLinkTimeoutError
         No path line within ``timeout_s``.
     """
-    cmd = [sys.executable, "-m", "hil_sim", "--seed", str(seed)]
+    cmd = [sys.executable, "-m", "hil_sim", "--seed", str(seed), "--exit-with-stdin"]
     if config_path is not None:
         cmd += ["--config", str(config_path)]
     for effect in effects:
@@ -666,7 +693,8 @@ def spawn_sim(
     fd, name = tempfile.mkstemp(prefix="hil_sim-", suffix=".log")
     stderr_path = Path(name)
     with os.fdopen(fd, "wb") as err:
-        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=err)
+        # stdin a pipe nobody writes to: its end of file tells the simulator this process is gone
+        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err)
     sim = SimProcess(proc, "", stderr_path)
     try:
         sim.path = _read_path_line(proc, timeout_s, stderr_path)

@@ -149,7 +149,9 @@ def stream_forever(path: str) -> None:
         statuses = [e.msg for e in host.pump(0.005) if isinstance(e, Frame) and isinstance(e.msg, Status)]
         played = statuses[-1].last_played_index if statuses else None
         played = -1 if played is None or played >= 2**63 else played
-        while sent < played + 1 + rate // 5:
+        # half a second ahead, over twice the 200 ms watchdog: a stall of this process on a busy
+        # machine trips the watchdog (what the test checks), never an underrun first
+        while sent < played + 1 + rate // 2:
             host.ep.send(Samples(sent, sine(500, sent, rate)), time.monotonic())
             sent += 500
         if not announced and played > 2000:
@@ -279,6 +281,41 @@ def test_sigterm_exits_cleanly(sim: SimProcess) -> None:
     assert not os.path.lexists(link)
     assert not (Path(link).parent / "usb.sock").exists()
     assert "stopped by SIGTERM" in sim.stderr_text()
+
+
+def test_a_simulator_never_outlives_the_process_that_spawned_it(tmp_path: Path) -> None:
+    """A parent killed outright (SIGKILL: no handler, no context manager runs) must not leave its
+    simulator running: the simulator sees the end of file of the pipe on its stdin and stops."""
+    link = tmp_path / "pty"
+    code = (
+        "import sys, time; from hil_sim.server import spawn_sim; "
+        f"sim = spawn_sim(link={str(link)!r}); print(sim.pid, flush=True); time.sleep(600)"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert parent.stdout is not None
+        ready, _, _ = select.select([parent.stdout], [], [], 60.0)
+        line = parent.stdout.readline() if ready else b""
+        assert line.strip().isdigit(), parent.stderr.read().decode() if parent.poll() is not None else line
+        sim_pid = int(line)
+        assert os.path.lexists(link)
+    finally:
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+    deadline = time.monotonic() + 60.0
+    while _alive(sim_pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(sim_pid), "the simulator outlived its parent"
+    assert not os.path.lexists(link)
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, reparented to init and not yet reaped, counts as gone)."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
 
 
 def test_piezod_sim_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
