@@ -11,8 +11,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
+from types import FrameType
 from typing import NoReturn
 
 # One BLAS thread: the fits are small, and on the controller PC the streaming thread needs the
@@ -74,13 +77,54 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _TerminatedError(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread: the command unwinds as on Ctrl-C."""
+
+
+def _terminate_unwinds() -> Callable[[], None]:
+    """Make SIGTERM unwind the command as Ctrl-C does; returns what restores the previous handler.
+
+    Without it SIGTERM (``kill``, a job scheduler, a session's end) ends the process on the spot:
+    the recording being written loses its buffered rows, a simulator it started is left running
+    and the board's watchdog is what brings the outputs down. ``piezod serve`` and ``piezod sim``
+    install handlers of their own over this one. Only the main thread can, and only a handler
+    nobody else installed is replaced.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    previous = signal.getsignal(signal.SIGTERM)
+    if previous is not signal.SIG_DFL:
+        return lambda: None
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        raise _TerminatedError
+
+    signal.signal(signal.SIGTERM, handler)
+
+    def restore() -> None:
+        signal.signal(signal.SIGTERM, previous)
+
+    return restore
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; returns the process exit status."""
+    """Run the command line; returns the process exit status.
+
+    SIGTERM unwinds the command as Ctrl-C does (exit status 143, Ctrl-C's 130).
+    """
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, --version, or a one-line argument error already printed
         return exc.code if isinstance(exc.code, int) else 2
+    restore = _terminate_unwinds()
+    try:
+        return _run(args)
+    finally:
+        restore()
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         status: int = args.func(args)
     except PiezodError as exc:
@@ -94,6 +138,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"piezod {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
+    except _TerminatedError:
+        print(f"piezod {args.command}: terminated (SIGTERM)", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print(f"piezod {args.command}: interrupted", file=sys.stderr)
         return 130
