@@ -15,6 +15,7 @@ import concurrent.futures
 import math
 import multiprocessing
 import os
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -992,9 +993,19 @@ def _synth_here(path: Path) -> None:
 WORKER_NICENESS = 5
 
 
-def _yield_to_streaming() -> None:
+def _worker_init(parent_pid: int) -> None:
     if hasattr(os, "nice"):
         os.nice(WORKER_NICENESS)
+    threading.Thread(target=_exit_when_orphaned, args=(parent_pid,), name="orphan-watch", daemon=True).start()
+
+
+def _exit_when_orphaned(parent_pid: int) -> None:
+    # A parent killed outright (SIGKILL, an OOM kill) cannot stop its worker, which would go on
+    # fitting for minutes on a core the restarted daemon's streaming needs; nothing it computes
+    # has anywhere to go.
+    while os.getppid() == parent_pid:
+        time.sleep(1.0)
+    os._exit(1)
 
 
 def _niceness() -> int:
@@ -1013,7 +1024,7 @@ class AnalysisWorker:
     def __init__(self) -> None:
         ctx = multiprocessing.get_context("spawn")
         self._pool = concurrent.futures.ProcessPoolExecutor(
-            max_workers=1, mp_context=ctx, initializer=_yield_to_streaming
+            max_workers=1, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
         )
 
     def niceness(self) -> int:
