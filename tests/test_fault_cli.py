@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from orphans import children, ended_within
 
 from piezod.recording import read_recording
 
@@ -94,26 +95,6 @@ def test_an_output_path_with_spaces_simply_works(tmp_path: Path) -> None:
     assert rec.t_s.size > 100
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                stat = (entry / "stat").read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                out.append(int(entry.name))
-    return out
-
-
-def _running(pid: int) -> bool:
-    try:
-        return (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
-
-
 def test_sigterm_ends_a_command_as_ctrl_c_does(tmp_path: Path) -> None:
     """Tried: SIGTERM (a plain ``kill``) to piezod scan --sim while it records. Held: one line, exit
     143, no traceback; the recording so far is complete to its last row; the simulator it started is
@@ -134,7 +115,7 @@ def test_sigterm_ends_a_command_as_ctrl_c_does(tmp_path: Path) -> None:
                 break
             time.sleep(0.1)
         assert proc.poll() is None, proc.communicate()
-        sims = _children(proc.pid)
+        sims = children(proc.pid)
         assert sims, "no simulator process under piezod scan --sim"
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=120.0)
@@ -147,7 +128,4 @@ def test_sigterm_ends_a_command_as_ctrl_c_does(tmp_path: Path) -> None:
     assert err.strip().splitlines()[-1] == "piezod scan: terminated (SIGTERM)"
     assert out.read_bytes().endswith(b"\n")
     assert read_recording(out).t_s.size > 1000
-    deadline = time.monotonic() + 30.0
-    while any(_running(p) for p in sims) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert not any(_running(p) for p in sims)
+    assert ended_within(sims, 30.0)

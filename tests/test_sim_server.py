@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pytest
 import serial
+from orphans import ended_within, kill_parent_of
 
 from firmware_proto import (
     Acked,
@@ -287,35 +288,12 @@ def test_a_simulator_never_outlives_the_process_that_spawned_it(tmp_path: Path) 
     """A parent killed outright (SIGKILL: no handler, no context manager runs) must not leave its
     simulator running: the simulator sees the end of file of the pipe on its stdin and stops."""
     link = tmp_path / "pty"
-    code = (
+    sim_pid = kill_parent_of(
         "import sys, time; from hil_sim.server import spawn_sim; "
         f"sim = spawn_sim(link={str(link)!r}); print(sim.pid, flush=True); time.sleep(600)"
     )
-    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
-        assert parent.stdout is not None
-        ready, _, _ = select.select([parent.stdout], [], [], 60.0)
-        line = parent.stdout.readline() if ready else b""
-        assert line.strip().isdigit(), parent.stderr.read().decode() if parent.poll() is not None else line
-        sim_pid = int(line)
-        assert os.path.lexists(link)
-    finally:
-        parent.send_signal(signal.SIGKILL)
-        parent.wait()
-    deadline = time.monotonic() + 60.0
-    while _alive(sim_pid) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert not _alive(sim_pid), "the simulator outlived its parent"
+    assert ended_within([sim_pid], 60.0), "the simulator outlived its parent"
     assert not os.path.lexists(link)
-
-
-def _alive(pid: int) -> bool:
-    """Whether ``pid`` runs (a zombie, reparented to init and not yet reaped, counts as gone)."""
-    try:
-        with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
-            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
 
 
 def test_piezod_sim_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from orphans import ended_within, kill_parent_of
 
 from piezod.cli import main
 from piezod.config import default_sim_config_path, load_config
@@ -447,43 +448,12 @@ def test_the_analysis_worker_yields_the_cpu_to_streaming() -> None:
 def test_the_analysis_worker_does_not_outlive_its_process() -> None:
     """A daemon or ``piezod calibrate`` killed outright (SIGKILL) while its worker fits: the worker
     stops instead of fitting on for minutes on a core the restarted daemon needs."""
-    import os
-    import select
-    import signal
-    import subprocess
-    import sys
-    import time
-
-    code = (
-        "import os, time; from piezod.stagecal import AnalysisWorker; w = AnalysisWorker(); "
+    worker = kill_parent_of(
+        "import time; from piezod.stagecal import AnalysisWorker; w = AnalysisWorker(); "
         "w.niceness(); busy = w._pool.submit(time.sleep, 600); "
         "print(*w._pool._processes, flush=True); time.sleep(600)"
     )
-    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
-        assert parent.stdout is not None
-        ready, _, _ = select.select([parent.stdout], [], [], 120.0)
-        line = parent.stdout.readline() if ready else b""
-        assert line.strip().isdigit(), parent.stderr.read().decode() if parent.poll() is not None else line
-        worker = int(line)
-    finally:
-        parent.send_signal(signal.SIGKILL)
-        parent.wait()
-
-    def running() -> bool:
-        try:
-            with open(f"/proc/{worker}/stat", encoding="ascii") as fh:
-                return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
-        except FileNotFoundError:
-            return False
-
-    deadline = time.monotonic() + 60.0
-    while running() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    alive = running()
-    if alive:
-        os.kill(worker, signal.SIGKILL)
-    assert not alive, "the worker outlived its process"
+    assert ended_within([worker], 60.0), "the worker outlived its process"
 
 
 @pytest.mark.slow

@@ -1,0 +1,63 @@
+"""Test helpers: does a process started by another outlive it when that one is killed outright?"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def running(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, reparented to init and not yet reaped, counts as ended)."""
+    try:
+        stat = (Path("/proc") / str(pid) / "stat").read_text(encoding="ascii")
+    except FileNotFoundError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid``."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text(encoding="ascii")
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(entry.name))
+    return out
+
+
+def kill_parent_of(code: str, timeout_s: float = 120.0) -> int:
+    """Run ``python -c code``, which starts a process and prints its pid; SIGKILL it (no handler,
+    no context manager runs) and return the pid it printed."""
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert parent.stdout is not None
+        ready, _, _ = select.select([parent.stdout], [], [], timeout_s)
+        line = parent.stdout.readline() if ready else b""
+        assert parent.stderr is not None
+        assert line.strip().isdigit(), parent.stderr.read().decode() if parent.poll() is not None else line
+        return int(line)
+    finally:
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+
+
+def ended_within(pids: list[int], timeout_s: float) -> bool:
+    """Wait until none of ``pids`` runs; False (and every one still running SIGKILLed) after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while any(running(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    alive = [p for p in pids if running(p)]
+    for p in alive:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(p, signal.SIGKILL)
+    return not alive
