@@ -37,6 +37,7 @@ floor with the baseline already is reported as "below resolution" (nothing to re
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -47,7 +48,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod import calibrate_dynamic as cd
-from piezod.config import AxisName, ScannerConfig, default_sim_config_path, load_config
+from piezod.config import (
+    AxisName,
+    ScannerConfig,
+    atomic_write_text,
+    default_sim_config_path,
+    load_config,
+)
 from piezod.errors import CalibrationError, ConfigError
 from piezod.extensions import (
     Adoption,
@@ -361,8 +368,6 @@ def _case_key(specs: Sequence[str], reduced: bool, loops: int, seed: int) -> dic
 
 def _load_case(path: Path, key: dict[str, Any]) -> dict[str, Any] | None:
     """A case saved by an earlier run with the same ``key``, None when there is none."""
-    import json
-
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -384,10 +389,6 @@ def _load_case(path: Path, key: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def _save_case(path: Path, key: dict[str, Any], case: dict[str, Any]) -> None:
-    import json
-
-    from piezod.config import atomic_write_text
-
     atomic_write_text(path, json.dumps({"key": key, "case": case}, indent=1) + "\n")
 
 

@@ -12,13 +12,19 @@ import time
 from pathlib import Path
 
 
-def running(pid: int) -> bool:
-    """Whether ``pid`` runs (a zombie, reparented to init and not yet reaped, counts as ended)."""
+def _stat_fields(pid: int | str) -> list[str] | None:
+    """The fields of ``/proc/PID/stat`` after the command name (state first), None once it is gone."""
     try:
         stat = (Path("/proc") / str(pid) / "stat").read_text(encoding="ascii")
-    except FileNotFoundError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()
+
+
+def running(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, reparented to init and not yet reaped, counts as ended)."""
+    fields = _stat_fields(pid)
+    return fields is not None and fields[0] != "Z"
 
 
 def children(pid: int) -> list[int]:
@@ -26,11 +32,8 @@ def children(pid: int) -> list[int]:
     out = []
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
-            try:
-                stat = (entry / "stat").read_text(encoding="ascii")
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            fields = _stat_fields(entry.name)
+            if fields is not None and int(fields[1]) == pid:
                 out.append(int(entry.name))
     return out
 
