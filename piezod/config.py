@@ -9,6 +9,7 @@ finds them from a source checkout.
 from __future__ import annotations
 
 import contextlib
+import datetime as _dt
 import difflib
 import json
 import math
@@ -316,6 +317,22 @@ class ServiceConfig(StrictModel):
     )
     sensitivity_limit_pct: float = Field(
         default=3.0, gt=0, le=20, description="largest total correction of the tracked sensitivity (%)"
+    )
+    sensitivity_drift_pct_per_hour: float = Field(
+        default=2.0,
+        ge=0,
+        le=100,
+        description=(
+            "fastest sensitivity drift expected (%/h; warm-up): after a pause, or with a model fitted "
+            "long ago, the tracker weighs the next lines by what such a drift could have moved "
+            "meanwhile (0: always the bounded slow update)"
+        ),
+    )
+    sensitivity_line_scatter_pct: float = Field(
+        default=0.05,
+        gt=0,
+        le=5,
+        description="line-to-line scatter of a corrected line's measured length error (%: noise, model)",
     )
 
 
@@ -753,6 +770,37 @@ def calibrated_axes(config: ScannerConfig) -> frozenset[str]:
         found.add(str(dyn["axis"]))
     found.update(k for k in cal if k in config.axes)
     return frozenset(found & set(config.axes))
+
+
+def with_recorded_utc(config: ScannerConfig, unix_s: float) -> ScannerConfig:
+    """``config`` with ``calibration.recorded_utc``: when the data its model was fitted on were
+    measured (the middle of the calibration frame; the sensitivity tracker's starting
+    uncertainty grows with the time since, :class:`piezod.service.tracking.SensitivityTracker`)."""
+    stamp = _dt.datetime.fromtimestamp(unix_s, _dt.UTC).isoformat(timespec="seconds")
+    return config.model_copy(update={"calibration": {**(config.calibration or {}), "recorded_utc": stamp}})
+
+
+def recorded_age_s(config: ScannerConfig, now_unix_s: float) -> float | None:
+    """Seconds from ``calibration.recorded_utc`` to ``now_unix_s``; ``None`` when the config does
+    not say when its data were measured.
+
+    Raises
+    ------
+    ConfigError
+        ``recorded_utc`` is not an ISO 8601 time (names the field).
+    """
+    stamp = (config.calibration or {}).get("recorded_utc")
+    if stamp is None:
+        return None
+    try:
+        when = _dt.datetime.fromisoformat(str(stamp))
+    except ValueError as exc:
+        raise ConfigError(
+            f"scanner {config.name!r}: calibration.recorded_utc {stamp!r} is not an ISO 8601 time"
+        ) from exc
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=_dt.UTC)
+    return max(0.0, now_unix_s - when.timestamp())
 
 
 def uncalibrated_warning(

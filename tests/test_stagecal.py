@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ import pytest
 from orphans import ended_within, kill_parent_of
 
 from piezod.cli import main
-from piezod.config import default_sim_config_path, load_config
+from piezod.config import default_sim_config_path, load_config, recorded_age_s
 from piezod.errors import CalibrationError
 from piezod.recording import Experiment
 from piezod.stagecal import default_frame, verification_points
@@ -20,6 +21,7 @@ from piezod.stagecal import default_frame, verification_points
 def _run(tmp_path: Path, frame: str) -> dict[str, object]:
     out = tmp_path / "cal.yaml"
     report = tmp_path / "cal.json"
+    t0 = time.time()
     status = main(
         [
             "calibrate",
@@ -37,6 +39,9 @@ def _run(tmp_path: Path, frame: str) -> dict[str, object]:
     assert status == 0
     cfg = load_config(out)
     assert cfg.calibration is not None and cfg.simulation is not None
+    # when the frame was recorded: the tracker of a daemon started later from this YAML needs it
+    age = recorded_age_s(cfg, time.time())
+    assert age is not None and 0 < age < time.time() - t0
     doc: dict[str, object] = json.loads(report.read_text())
     return doc
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from piezod.cli._common import board_url, fresh_dir, human_stream, scanner_config_path, write_json
-from piezod.config import AxisName, dump_config, load_config
+from piezod.config import AxisName, dump_config, load_config, with_recorded_utc
 from piezod.errors import CalibrationError
 from piezod.progress import progress_bar
 from piezod.service.engine import Engine
@@ -71,7 +71,9 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     bar.update(round(t, 1) - shown[0])
                     shown[0] = round(t, 1)
 
+                frame_t0 = time.time()
                 frame_path = run_frame(engine, frame, recdir / "frame.csv", progress=tick)
+                frame_mid_unix_s = 0.5 * (frame_t0 + time.time())
             rest_v = base.axes[axis].safe_voltage_v
             fitted = worker.fit_thesis(frame_path, base, axis)
             print(f"thesis model (3.8) fitted: worst fit error {fitted.fit_error_pct:.3f} %", file=say)
@@ -111,7 +113,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 if audited.report["adopted"]:
                     names = ", ".join(a.split(":")[0] for a in audited.report["adopted"])
                     extra = f"; the audit's findings adopted as runtime parts: {names}"
-            calibrated = with_tracking_bound(calibrated, frame)
+            calibrated = with_recorded_utc(with_tracking_bound(calibrated, frame), frame_mid_unix_s)
             dump_config(
                 calibrated,
                 out,
@@ -176,6 +178,8 @@ def run_on_stage(args: argparse.Namespace) -> int:
                         axis,
                         calibrated.axes[axis].model_copy(update={"model": model}),
                         position_um=start[1] if k == 0 and start is not None else None,
+                        # the fits took a while: the stage's sensitivity may have drifted since the frame
+                        data_age_s=time.time() - frame_mid_unix_s,
                     )
                     sensor = calibrated.axes[axis].sensor_path()
                     rows += verify(engine, points, recdir, model, worker, sensor=sensor)

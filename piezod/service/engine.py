@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from piezod.config import AxisConfig, AxisName, ScannerConfig, calibrated_axes
+from piezod.config import AxisConfig, AxisName, ScannerConfig, calibrated_axes, recorded_age_s
 from piezod.errors import (
     EngineStateError,
     LinkError,
@@ -173,7 +173,9 @@ class Engine:
                     gain=svc.sensitivity_gain,
                     max_step=svc.sensitivity_max_step_pct / 100.0,
                     limit=svc.sensitivity_limit_pct / 100.0,
-                )
+                    drift_per_s=svc.sensitivity_drift_pct_per_hour / 100.0 / 3600.0,
+                    scatter=svc.sensitivity_line_scatter_pct / 100.0,
+                ).restarted(recorded_age_s(config, time.time()), 0.0)
             }
             if svc.sensitivity_tracking and "x" in config.axes
             else {}
@@ -611,13 +613,24 @@ class Engine:
             self._state = "scanning"
         return self.status()
 
-    def set_axis_model(self, axis: AxisName, config: AxisConfig, *, position_um: float | None = None) -> None:
+    def set_axis_model(
+        self,
+        axis: AxisName,
+        config: AxisConfig,
+        *,
+        position_um: float | None = None,
+        data_age_s: float | None = 0.0,
+    ) -> None:
         """Use new model parameters on ``axis`` from now on.
 
         The new model continues from the present voltage and the old model's position, or, with
         ``position_um``, from that position (the sensor's reading: a freshly fitted law's
         positions are defined only relative to the histories it was fitted on, and the old model's
         may be an uncalibrated guess).
+
+        ``data_age_s`` is how long ago the data the model was fitted on were measured (``None``:
+        unknown): the sensitivity tracker starts from scale 1 as uncertain as the expected drift
+        makes it over that time, so the first corrected lines count as much as it could have moved.
         """
         # Built outside the lock: building a model may compile its per-sample loop (seconds), and
         # the block producer needs the lock to keep the board's FIFO fed meanwhile.
@@ -631,7 +644,7 @@ class Engine:
             self.drivers[axis] = new
             if axis in self._trackers:
                 # the tracked sensitivity is relative to the model it was learnt under
-                self._trackers[axis] = self._trackers[axis].restarted()
+                self._trackers[axis] = self._trackers[axis].restarted(data_age_s, self.uptime_s)
             # the recordings' headers state the model in force (model, parameters, config hash)
             self.config = self.config.model_copy(update={"axes": {**self.config.axes, axis: config}})
 
@@ -849,18 +862,20 @@ class Engine:
             names = np.array([*self._labels, ""], dtype=str)
         return names[np.where(ids >= 0, ids, len(names) - 1)]
 
-    def set_line_linearity(self, value: LineLinearity, corrected: bool) -> None:
-        """Called by the recorder when a line of the fast axis completes (feeds the tracker)."""
+    def set_line_linearity(self, value: LineLinearity, corrected: bool, rendered_scale: float = 1.0) -> None:
+        """Called by the recorder when a line of the fast axis completes (feeds the tracker);
+        ``rendered_scale`` is the tracked scale the line was scanned with."""
         if not self.position_sensor:
             return
         self._last_line = value
         tracker = self._trackers.get("x")
         if corrected and tracker is not None:
-            # the line was scanned with the scale in force then: its error is what remains
             tracker.update(
                 1.0 + value.length_error_pct / 100.0,
                 math.inf if value.duration_s is None else value.duration_s,
                 self.config.axes["x"].tracking_min_line_s,
+                rendered=rendered_scale,
+                t_s=self.uptime_s,
             )
 
     def tracked_scale(self, axis: str) -> float:

@@ -60,6 +60,10 @@ class Chunk:
         Whether the sample is recorded.
     label
         Experiment label id of the chunk (:meth:`Engine.label_id`), -1 for none.
+    corrected
+        Whether the chunk is the model's correction (its lines feed the sensitivity tracker).
+    scale
+        The tracked sensitivity scale the fast axis's travel was divided by.
     """
 
     volts: FloatArray
@@ -69,6 +73,7 @@ class Chunk:
     record: NDArray[np.bool_]
     label: int = -1
     corrected: bool = False
+    scale: float = 1.0
 
     @classmethod
     def unlined(cls, volts: FloatArray, targets: FloatArray | None) -> Chunk:
@@ -256,12 +261,15 @@ class ScanJob(Job):
                 self._new_experiment(engine, engine.render_index)
         targets = np.full((len(engine.drivers), m), np.nan)
         volts = np.empty((len(engine.drivers), m))
+        x_scale = 1.0
         for i, (name, d) in enumerate(engine.drivers.items()):
             if name in ("x", "y"):
                 tgt = block.x_um if name == "x" else block.y_um
                 targets[i] = tgt
                 plan = self._plans.get(name)
                 scale = engine.tracked_scale(name) if self.request.correction else 1.0
+                if name == "x":
+                    x_scale = scale
                 if scale != 1.0 and plan is not None:
                     # the stage is `scale` times as sensitive as the model: shorten the travel
                     tgt = plan.center_um + (tgt - plan.center_um) / scale
@@ -283,7 +291,14 @@ class ScanJob(Job):
         record = np.full(m, self.request.record)
         self._scanned = True
         return Chunk(
-            volts, targets, block.line, block.fast_direction, record, self.label, self.request.correction
+            volts,
+            targets,
+            block.line,
+            block.fast_direction,
+            record,
+            self.label,
+            self.request.correction,
+            x_scale,
         )
 
     @property

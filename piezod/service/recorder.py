@@ -109,6 +109,7 @@ class TargetRing:
         self.recording = np.full(capacity, -1, dtype=np.int64)
         self.label = np.full(capacity, -1, dtype=np.int64)
         self.corrected = np.zeros(capacity, dtype=bool)
+        self.scale = np.ones(capacity)
         self.hi = 0
         self.lock = threading.Lock()
 
@@ -123,10 +124,12 @@ class TargetRing:
             self.recording[slots] = recording_id if chunk.record.any() else -1
             self.label[slots] = chunk.label
             self.corrected[slots] = chunk.corrected
+            self.scale[slots] = chunk.scale
             self.hi = max(self.hi, first + n)
 
     def get(self, idx: NDArray[np.int64]) -> tuple[Any, ...]:
-        """(targets, line, direction, record, recording id, label id) at the sample indices."""
+        """(targets, line, direction, record, recording id, label id, corrected, the fast axis's
+        tracked scale rendered) at the sample indices."""
         slots = idx % self.capacity
         with self.lock:
             known = (idx < self.hi) & (idx >= self.hi - self.capacity)
@@ -138,6 +141,7 @@ class TargetRing:
                 np.where(known, self.recording[slots], -1),
                 self.label[slots].copy(),
                 self.corrected[slots].copy(),
+                self.scale[slots].copy(),
             )
 
 
@@ -164,6 +168,7 @@ class _LineAccumulator:
     recording: int = -1
     target: list[FloatArray] = field(default_factory=list)
     position: list[FloatArray] = field(default_factory=list)
+    scale: list[FloatArray] = field(default_factory=list)
 
 
 class Recorder(threading.Thread):
@@ -295,10 +300,10 @@ class Recorder(threading.Thread):
             self.engine.scan_events.closed(ident)
 
     def _write(self, block: MatchedBlock, meta: tuple[Any, ...]) -> None:
-        targets, line, direction, record, rec_id, label, corrected = meta
+        targets, line, direction, record, rec_id, label, corrected, scale = meta
         rate = self.engine.rate_hz
         t = block.indices / rate
-        self._line_stats(block, targets, line, direction, corrected, np.where(record, rec_id, -1))
+        self._line_stats(block, targets, line, direction, corrected, np.where(record, rec_id, -1), scale)
         if not record.any():
             return
         for ident in np.unique(rec_id[record]):
@@ -363,6 +368,7 @@ class Recorder(threading.Thread):
         direction: NDArray[np.int8],
         corrected: NDArray[np.bool_],
         recording: NDArray[np.int64],
+        scale: FloatArray,
     ) -> None:
         if "x" not in block.axes:
             return
@@ -378,12 +384,13 @@ class Recorder(threading.Thread):
             if (ln, dr) != (acc.line, acc.direction):
                 self._finish_line()
                 acc.line, acc.direction = ln, dr
-                acc.target, acc.position = [], []
+                acc.target, acc.position, acc.scale = [], [], []
                 acc.corrected = bool(corrected[seg[0]])
                 acc.recording = int(recording[seg[0]])
             if ln >= 0:
                 acc.target.append(targets[ix, seg])
                 acc.position.append(block.position_um[ix, seg])
+                acc.scale.append(scale[seg])
 
     def _finish_line(self) -> None:
         acc = self._acc
@@ -393,6 +400,7 @@ class Recorder(threading.Thread):
             self.engine.scan_events.line_done(acc.recording, acc.line, acc.direction)
         tgt = np.concatenate(acc.target)
         pos = np.concatenate(acc.position)
+        rendered = float(np.mean(np.concatenate(acc.scale)))
         duration_s = tgt.size / self.engine.rate_hz
         ok = np.isfinite(tgt) & np.isfinite(pos)
         if ok.sum() < 8:
@@ -413,4 +421,5 @@ class Recorder(threading.Thread):
                 duration_s=duration_s,
             ),
             acc.corrected,
+            rendered,
         )
