@@ -23,6 +23,7 @@ from piezod import calibrate as thesis_cal
 from piezod import calibrate_dynamic as dynamic_cal
 from piezod.config import AxisName, ScannerConfig
 from piezod.errors import CalibrationError
+from piezod.extensions import session_origin_unix_s
 from piezod.model.params import ThesisParams
 from piezod.recording import Experiment
 
@@ -263,6 +264,33 @@ def shortest_line_s(experiments: Sequence[Experiment]) -> float | None:
     return min(lines) if lines else None
 
 
+def recorded_mid_unix_s(experiments: Sequence[Experiment]) -> float:
+    """When the experiments were measured, on the wall clock (Unix time, s): the sample-weighted
+    mean of their middles, each recording's clock placed by its header's ``started_utc``
+    (:func:`piezod.extensions.session_origin_unix_s`). What an offline calibration writes as
+    ``calibration.recorded_utc``; ``nan`` when a recording does not say when it started (other
+    tools' files) or an experiment has no file.
+
+    Raises
+    ------
+    RecordingError
+        A header's ``started_utc`` is unreadable (names the file).
+    """
+    origins: dict[str, float] = {}
+    total = weight = 0.0
+    for e in experiments:
+        if e.path is None or len(e.t_s) == 0:
+            return math.nan
+        if e.path not in origins:
+            origins[e.path] = session_origin_unix_s(e.path)
+        mid = origins[e.path] + 0.5 * (float(e.t_s[0]) + float(e.t_s[-1]))
+        if not math.isfinite(mid):
+            return math.nan
+        total += mid * len(e.t_s)
+        weight += len(e.t_s)
+    return total / weight if weight else math.nan
+
+
 __all__ = [
     "MODEL_CHOICES",
     "AnyCalibration",
@@ -270,6 +298,7 @@ __all__ = [
     "calibrate_any",
     "calibrated_config",
     "choose_model",
+    "recorded_mid_unix_s",
     "result_json",
     "shortest_line_s",
     "with_tracking_bound",

@@ -68,6 +68,36 @@ def test_calibrate_writes_config_and_json(frame: tuple[Path, Path], tmp_path: Pa
     # the tracker learns only from lines as long as the recordings' shortest (symmetric triangles)
     fastest = max(e["frequency_hz"] for e in doc["experiments"])
     assert cfg.axes["x"].tracking_min_line_s == pytest.approx(0.5 / fastest, rel=1e-3)
+    # the files do not say when they were measured: no recorded_utc (the daemon takes the age as unknown)
+    assert "recorded_utc" not in cfg.calibration
+
+
+def test_an_offline_calibration_says_when_its_recordings_were_measured(
+    frame: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """With ``started_utc`` in the headers (piezod's recordings) the written config carries
+    ``calibration.recorded_utc``: the sample-weighted middle of the experiments on the wall clock."""
+    import calendar
+    import time
+
+    from piezod.calibrate_any import recorded_mid_unix_s
+    from piezod.config import recorded_age_s
+    from piezod.recording import read_experiments, read_recording
+
+    stamped = []
+    for k, path in enumerate(frame):
+        rec = read_recording(path)
+        dest = tmp_path / path.name
+        write_recording(dest, rec, metadata={"started_utc": f"2026-11-0{k + 1}T10:00:00Z"})
+        stamped.append(dest)
+    exps = read_experiments(stamped)
+    mid = recorded_mid_unix_s(exps)
+    day1 = calendar.timegm(time.strptime("2026-11-01T10:00:00Z", "%Y-%m-%dT%H:%M:%SZ"))
+    assert day1 < mid < day1 + 2 * 86400
+    out = tmp_path / "cal.yaml"
+    assert main(["calibrate", str(stamped[0]), str(stamped[1]), "--out", str(out)]) == 0
+    age = recorded_age_s(load_config(out), mid)
+    assert age is not None and age == pytest.approx(0.0, abs=1.0)
 
 
 def test_calibrate_keeps_the_base_config(frame: tuple[Path, Path], tmp_path: Path) -> None:

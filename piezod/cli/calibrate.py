@@ -33,7 +33,7 @@ from piezod.cli._common import (
     positive_float,
     write_json,
 )
-from piezod.config import AxisName, dump_config, load_config
+from piezod.config import AxisName, dump_config, load_config, with_recorded_utc
 from piezod.errors import CalibrationError, RecordingError
 from piezod.family_heldout import (
     AUDIT_LAWS,
@@ -336,6 +336,15 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"the sensitivity tracker learns from lines of axis {axis} about as long as the recordings' "
                 f"shortest or longer (tracking_min_line_s: {line_s:.3g} s)",
+                file=out,
+            )
+        measured = calibrate_any.recorded_mid_unix_s(exps)
+        if math.isfinite(measured):
+            cfg = with_recorded_utc(cfg, measured)
+        else:
+            print(
+                "the recordings do not say when they were measured (no started_utc): the daemon's "
+                "sensitivity tracker will take the model's age as unknown",
                 file=out,
             )
         header = (
