@@ -43,6 +43,11 @@ def _run(tmp_path: Path, frame: str) -> dict[str, object]:
     age = recorded_age_s(cfg, time.time())
     assert age is not None and 0 < age < time.time() - t0
     doc: dict[str, object] = json.loads(report.read_text())
+    # where the time went, phase by phase
+    phases = doc["phase_seconds"]
+    assert isinstance(phases, dict)
+    assert set(phases) == {"frame", "thesis_fit", "dynamic_fit", "model_choice", "audit", "verification"}
+    assert sum(phases.values()) <= float(doc["seconds"]) + 1.0  # type: ignore[arg-type]
     return doc
 
 

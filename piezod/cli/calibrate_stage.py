@@ -49,6 +49,16 @@ def run_on_stage(args: argparse.Namespace) -> int:
     print(f"calibration frame: {frame_summary(frame)}", file=say)
     t_start = time.monotonic()
     report: dict[str, Any] = {}
+    # where the run's time goes (a lab waits for it; the stage may drift meanwhile)
+    phases: dict[str, float] = {}
+    last = [t_start]
+
+    def took(phase: str) -> str:
+        now = time.monotonic()
+        phases[phase] = round(now - last[0], 1)
+        last[0] = now
+        return f"{phases[phase]:.0f} s"
+
     with board_url(args, config_path) as url, AnalysisWorker() as worker:
         from piezod.link.session import LinkSettings
 
@@ -74,9 +84,14 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 frame_t0 = time.time()
                 frame_path = run_frame(engine, frame, recdir / "frame.csv", progress=tick)
                 frame_mid_unix_s = 0.5 * (frame_t0 + time.time())
+            took("frame")
             rest_v = base.axes[axis].safe_voltage_v
             fitted = worker.fit_thesis(frame_path, base, axis)
-            print(f"thesis model (3.8) fitted: worst fit error {fitted.fit_error_pct:.3f} %", file=say)
+            print(
+                f"thesis model (3.8) fitted: worst fit error {fitted.fit_error_pct:.3f} % "
+                f"({took('thesis_fit')})",
+                file=say,
+            )
             dynamic = worker.fit_dynamic(
                 frame_path,
                 fitted.config,
@@ -84,7 +99,11 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 ramp_v_per_s=base.service.ramp_rate_v_per_s,
                 rest_voltage_v=rest_v,
             )
-            print(f"dynamic model fitted: worst fit error {dynamic.fit_error_pct:.3f} %", file=say)
+            print(
+                f"dynamic model fitted: worst fit error {dynamic.fit_error_pct:.3f} % "
+                f"({took('dynamic_fit')})",
+                file=say,
+            )
             choice = worker.choose_model(
                 frame_path,
                 dynamic.config,
@@ -93,7 +112,11 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 rest_voltage_v=rest_v,
             )
             chosen = str(choice.report["chosen"])
-            print(f"model choice by held-out experiments of the frame:\n{choice.report['table']}", file=say)
+            print(
+                f"model choice by held-out experiments of the frame ({took('model_choice')}):\n"
+                f"{choice.report['table']}",
+                file=say,
+            )
             calibrated = choice.config
             audit_report: dict[str, Any] | None = None
             extra = ""
@@ -107,7 +130,10 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     rest_voltage_v=rest_v,
                 )
                 found = ", ".join(audited.report["findings"]) or "none"
-                print(f"audit of the frame: findings {found}\n{audited.report['text']}", file=say)
+                print(
+                    f"audit of the frame: findings {found} ({took('audit')})\n{audited.report['text']}",
+                    file=say,
+                )
                 calibrated = audited.config
                 audit_report = audited.report
                 if audited.report["adopted"]:
@@ -183,7 +209,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     )
                     sensor = calibrated.axes[axis].sensor_path()
                     rows += verify(engine, points, recdir, model, worker, sensor=sensor)
-                print(format_table(rows), file=say)
+                print(f"verification ({took('verification')}):\n{format_table(rows)}", file=say)
                 report["verification"] = rows
                 report["verification_summary"] = summary(rows)
                 if args.plot:
@@ -192,5 +218,6 @@ def run_on_stage(args: argparse.Namespace) -> int:
         finally:
             engine.close()
     report["seconds"] = time.monotonic() - t_start
+    report["phase_seconds"] = phases
     write_json(args.json, report)
     return 0
