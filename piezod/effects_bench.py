@@ -441,25 +441,48 @@ def run_effects_bench(
 
     if jobs > 1 and len(todo) > 1:
         import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, as_completed
+        import queue
 
         step = on_step or (lambda _s: None)
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
-            futures = {
-                pool.submit(run_case, specs[i], reduced=reduced, loops=loops, seed=seed): i for i in todo
-            }
+        ended: queue.Queue[tuple[int, dict[str, Any] | None, BaseException | None]] = queue.Queue()
+        # a Pool, not a ProcessPoolExecutor: stopped (Ctrl-C, SIGTERM) it terminates the cases
+        # still running at once; the executor's exit waited for them (half an hour a case)
+        pool = multiprocessing.get_context("spawn").Pool(processes=min(jobs, len(todo)))
+        try:
+
+            def report(i: int) -> tuple[Callable[[dict[str, Any]], None], Callable[[BaseException], None]]:
+                def ok(case: dict[str, Any]) -> None:
+                    ended.put((i, case, None))
+
+                def bad(exc: BaseException) -> None:
+                    ended.put((i, None, exc))
+
+                return ok, bad
+
+            for i in todo:
+                ok, bad = report(i)
+                pool.apply_async(
+                    run_case,
+                    (specs[i],),
+                    {"reduced": reduced, "loops": loops, "seed": seed},
+                    callback=ok,
+                    error_callback=bad,
+                )
+            pool.close()
             failed: BaseException | None = None
-            for f in as_completed(futures):
+            for _ in todo:
+                i, case, exc = ended.get()
                 # one failed case must not lose the others still running: they are saved as they end
-                exc = f.exception()
-                if exc is not None:
+                if exc is not None or case is None:
                     failed = failed or exc
                     continue
-                done(futures[f], f.result())
+                done(i, case)
                 step("case")
-            if failed is not None:
-                raise failed
+            pool.join()
+        finally:
+            pool.terminate()
+        if failed is not None:
+            raise failed
     else:
         for i in todo:
             done(i, run_case(specs[i], reduced=reduced, loops=loops, seed=seed, on_step=on_step))

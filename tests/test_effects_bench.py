@@ -258,3 +258,38 @@ def test_saved_cases_are_taken_again_and_a_stopped_run_loses_only_what_was_runni
     (tmp_path / "drift.json").write_text("{\n  nope\n", encoding="utf-8")
     with pytest.raises(ConfigError, match=r"drift\.json:2: not a saved effects case"):
         run_effects_bench(["drift"], cases_dir=tmp_path)
+
+
+def test_a_stopped_parallel_run_ends_its_running_cases_at_once(tmp_path: Path) -> None:
+    """``--jobs 2`` stopped (SIGTERM, as Ctrl-C) while its cases run: the command ends within
+    seconds and so do its worker processes. (The executor it used waited for the running cases,
+    half an hour each on the full frame, before it exited.)"""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from orphans import children, ended_within
+
+    cmd = [sys.executable, "-m", "piezod", "bench", "effects", "--jobs", "2", "--effects", "drift", "thermal"]
+    cmd += ["--cases-dir", str(tmp_path / "cases")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        workers: list[int] = []
+        deadline = time.monotonic() + 60.0
+        while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.5)
+            workers = children(proc.pid)
+        assert len(workers) >= 2, "the workers did not start"
+        time.sleep(3.0)  # the cases are running (each takes minutes)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143, err
+    assert "terminated (SIGTERM)" in err
+    assert ended_within(workers, 10.0), "a worker outlived the stopped run"
+    # the cases still running are lost, none half saved (the floor, the quickest, may have ended)
+    assert {p.name for p in (tmp_path / "cases").iterdir()} <= {"floor.json"}

@@ -86,7 +86,7 @@ def register(sub: Any) -> None:
         type=positive_int,
         default=1,
         metavar="N",
-        help="run the cases in N worker processes (effects; each full-frame case takes 1-2 GB)",
+        help="run the cases in N worker processes (effects; a full-frame case took up to 7 GB in session 22)",
     )
     eff.add_argument(
         "--cases-dir",
