@@ -594,6 +594,8 @@ def verify(
             )
         else:
             row.update(nonlinearity_pct=nl, length_error_pct=le)
+        # the sensitivity the daemon's tracker had learnt by the end of the point, relative to the model
+        row["tracked_scale"] = engine.tracked_scale("x")
         rows.append(row)
     return rows
 
@@ -1124,15 +1126,17 @@ class AnalysisWorker:
 
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
-    """A table like thesis tables 4.3 / 4.4."""
+    """A table like thesis tables 4.3 / 4.4; ``tracked %``: the sensitivity the daemon's tracker
+    had learnt by the end of the point, relative to the model (the stage's drift since the frame)."""
     head = (
         f"{'model':<8} {'range um':>9} {'f Hz':>7} {'offset um':>9} {'frame':>7} "
-        f"{'nonlin %':>9} {'length %':>9}  what"
+        f"{'nonlin %':>9} {'length %':>9} {'tracked %':>9}  what"
     )
     lines = [head, "-" * len(head)]
     for r in rows:
         nl = "-" if r.get("nonlinearity_pct") is None else f"{r['nonlinearity_pct']:.3f}"
         le = "-" if r.get("length_error_pct") is None else f"{r['length_error_pct']:+.3f}"
+        tr = "-" if r.get("tracked_scale") is None else f"{100.0 * (r['tracked_scale'] - 1.0):+.3f}"
         inside = "inside" if r["inside_frame"] else "outside"
         what = r["what"] + (f" (skipped: {r['skipped']})" if r.get("skipped") else "")
         if r.get("retried_after"):
@@ -1143,7 +1147,7 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
             what += f" ({r['placement']})"
         lines.append(
             f"{r['model']:<8} {r['range_um']:9.3g} {r['frequency_hz']:7.3g} {r['offset_um']:9.3g} "
-            f"{inside:>7} {nl:>9} {le:>9}  {what}"
+            f"{inside:>7} {nl:>9} {le:>9} {tr:>9}  {what}"
         )
     return "\n".join(lines)
 

@@ -62,6 +62,8 @@ def test_reduced_frame_calibrates_and_verifies_inside_the_frame(tmp_path: Path) 
             row
         )
         assert row["inside_frame"] is True
+        # the scale the tracker learnt meanwhile: the built-in stage does not drift
+        assert abs(row["tracked_scale"] - 1.0) < 0.002
         # One pixel (0.2 %) is the thesis's goal; the calibrated thesis model does far better here.
         assert row["nonlinearity_pct"] < 0.2
         assert abs(row["length_error_pct"]) < 0.5
