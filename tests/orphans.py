@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -64,3 +65,24 @@ def ended_within(pids: list[int], timeout_s: float) -> bool:
         with contextlib.suppress(ProcessLookupError):
             os.kill(p, signal.SIGKILL)
     return not alive
+
+
+@contextlib.contextmanager
+def piezod_process(args: list[str]) -> Iterator[subprocess.Popen[str]]:
+    """``python -m piezod ARGS`` with its output piped; SIGKILLed on leaving if still running."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "piezod", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def sigterm(proc: subprocess.Popen[str], timeout_s: float) -> str:
+    """Send SIGTERM to ``proc``, wait up to ``timeout_s`` for it to end; its standard error."""
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=timeout_s)
+    return err

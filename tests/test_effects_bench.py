@@ -264,17 +264,13 @@ def test_a_stopped_parallel_run_ends_its_running_cases_at_once(tmp_path: Path) -
     """``--jobs 2`` stopped (SIGTERM, as Ctrl-C) while its cases run: the command ends within
     seconds and so do its worker processes. (The executor it used waited for the running cases,
     half an hour each on the full frame, before it exited.)"""
-    import signal
-    import subprocess
-    import sys
     import time
 
-    from orphans import children, ended_within
+    from orphans import children, ended_within, piezod_process, sigterm
 
-    cmd = [sys.executable, "-m", "piezod", "bench", "effects", "--jobs", "2", "--effects", "drift", "thermal"]
-    cmd += ["--cases-dir", str(tmp_path / "cases")]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
+    args = ["bench", "effects", "--jobs", "2", "--effects", "drift", "thermal"]
+    args += ["--cases-dir", str(tmp_path / "cases")]
+    with piezod_process(args) as proc:
         workers: list[int] = []
         deadline = time.monotonic() + 60.0
         while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
@@ -282,12 +278,7 @@ def test_a_stopped_parallel_run_ends_its_running_cases_at_once(tmp_path: Path) -
             workers = children(proc.pid)
         assert len(workers) >= 2, "the workers did not start"
         time.sleep(3.0)  # the cases are running (each takes minutes)
-        proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=30.0)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        err = sigterm(proc, 30.0)
     assert proc.returncode == 143, err
     assert "terminated (SIGTERM)" in err
     assert ended_within(workers, 10.0), "a worker outlived the stopped run"

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from orphans import children, ended_within
+from orphans import children, ended_within, piezod_process, sigterm
 
 from piezod.recording import read_recording
 
@@ -100,15 +100,11 @@ def test_sigterm_ends_a_command_as_ctrl_c_does(tmp_path: Path) -> None:
     143, no traceback; the recording so far is complete to its last row; the simulator it started is
     gone."""
     # before, SIGTERM ended the process on the spot and left the simulator running
-    import signal
     import time
 
     out = tmp_path / "long.csv"
     args = ["scan", "--sim", "--range-um", "5", "--line-rate-hz", "1", "--lines", "200", "--out", str(out)]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "piezod", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
-    try:
+    with piezod_process(args) as proc:
         deadline = time.monotonic() + 120.0
         while time.monotonic() < deadline and proc.poll() is None:
             if out.exists() and out.stat().st_size > 50_000:
@@ -117,12 +113,7 @@ def test_sigterm_ends_a_command_as_ctrl_c_does(tmp_path: Path) -> None:
         assert proc.poll() is None, proc.communicate()
         sims = children(proc.pid)
         assert sims, "no simulator process under piezod scan --sim"
-        proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=120.0)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        err = sigterm(proc, 120.0)
     assert proc.returncode == 143, err
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1] == "piezod scan: terminated (SIGTERM)"
