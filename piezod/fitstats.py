@@ -31,6 +31,9 @@ F64 = NDArray[np.float64]
 
 #: Singular values below this fraction of the largest count as zero (infinite variance).
 _SV_FLOOR = 1e-13
+#: A parameter whose unit vector has a component larger than this outside the directions the data
+#: determine is itself undetermined (infinite variance).
+_UNDETERMINED_COMPONENT = 1e-6
 #: A condition number above this is reported as ill-conditioned.
 ILL_CONDITIONED = 1e8
 
@@ -66,10 +69,18 @@ def jacobian_covariance(jac: ArrayLike, sum_sq: float, dof: int) -> Covariance:
     norms = np.linalg.norm(Jc, axis=0)
     norms[norms == 0] = 1.0
     _, sv, vt = np.linalg.svd(Jc / norms, full_matrices=False)
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
-    inv_sv2 = np.where(sv > sv[0] * _SV_FLOOR, 1.0 / np.maximum(sv, 1e-300) ** 2, np.inf)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 and sv.size == Jc.shape[1] else math.inf
+    determined = sv > sv[0] * _SV_FLOOR
     s2 = sum_sq / max(dof, 1)
-    cov = (vt.T * inv_sv2) @ vt / np.outer(norms, norms) * s2
+    cov = (vt[determined].T / sv[determined] ** 2) @ vt[determined]
+    # a parameter with a component along a direction the data do not determine has an infinite
+    # variance and no defined covariance; the others keep theirs (a product inf * 0 gave nan)
+    outside = 1.0 - np.sum(vt[determined] ** 2, axis=0)  # of each unit parameter vector, squared
+    touched = outside > _UNDETERMINED_COMPONENT**2
+    cov[touched, :] = np.nan
+    cov[:, touched] = np.nan
+    cov[touched, touched] = np.inf
+    cov = cov / np.outer(norms, norms) * s2
     sd = np.sqrt(np.abs(np.diag(cov)))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(sd, sd)

@@ -130,3 +130,22 @@ def test_family_fit_returns_the_shared_result() -> None:
     # theta (V, hysteresis unit), a weight per relaxation time, kappa, the lag; an offset per experiment
     assert res.dof == res.n - (2 + default_taus(data).size + 2) - int(train.sum())
     assert np.isnan(fit_family(data, "coleman-hodgdon", alpha_per_v=3e-3).heldout_rms_um)
+
+
+@pytest.mark.filterwarnings("error")
+def test_an_undetermined_parameter_leaves_the_others_their_variance() -> None:
+    """A column the data do not determine (here all zero) has an infinite variance; the others
+    keep theirs, and no invalid-value warning reaches the user (its inf * 0 used to make every
+    variance nan, with a RuntimeWarning printed in the middle of a calibration)."""
+    from piezod.fitstats import jacobian_covariance
+
+    rng = np.random.default_rng(1)
+    good = rng.normal(size=(40, 2))
+    jac = np.column_stack([good, np.zeros(40)])
+    cov = jacobian_covariance(jac, 1.0, 38)
+    expected = np.sqrt(np.diag(np.linalg.inv(good.T @ good)) / 38)
+    assert cov.sd[:2] == pytest.approx(expected)
+    assert cov.sd[2] == np.inf and cov.condition_number == np.inf
+    # two columns the data cannot tell apart: both undetermined
+    twin = jacobian_covariance(np.column_stack([good[:, 0], good[:, 0], good[:, 1]]), 1.0, 37)
+    assert np.isinf(twin.sd[:2]).all() and np.isfinite(twin.sd[2])
