@@ -435,6 +435,9 @@ def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fa
         def wait_recorded(self) -> None:
             pass
 
+        def tracked_scale(self, axis: str) -> float:
+            return 1.0
+
     worker = SimpleNamespace(linearity=lambda path, axis, sensor: (0.01, -0.02))
     engine = Held()
     pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside"), VerifyPoint(5.0, 2.0, 0.0, True, "inside")]
