@@ -95,7 +95,14 @@ class SensitivityTracker:
         """
         sd = self.limit if age_s is None else min(self.limit, self.drift_per_s * max(0.0, age_s))
         return SensitivityTracker(
-            self.gain, self.max_step, self.limit, self.outlier, self.drift_per_s, self.scatter, sd * sd, t_s
+            gain=self.gain,
+            max_step=self.max_step,
+            limit=self.limit,
+            outlier=self.outlier,
+            drift_per_s=self.drift_per_s,
+            scatter=self.scatter,
+            variance=sd * sd,
+            t_s=t_s,
         )
 
     def sd_at(self, t_s: float | None) -> float:
