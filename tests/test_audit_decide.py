@@ -73,6 +73,32 @@ def test_two_hidden_effects_are_both_found_with_their_magnitudes() -> None:
     assert got["drift"]["rate_nm_per_s"] == pytest.approx(1.5, rel=0.2)
 
 
+def test_a_creep_factor_fitted_to_zero_leaves_the_baseline_determined() -> None:
+    # A stage whose loops grow with the line rate (less motion the slower it scans: not the
+    # creep factor (3.5)'s direction) puts A1 at 0, where tau has no effect. That is (3.8)
+    # without its creep term, a determined model: the polarity is named and sized. Before, the
+    # zero column of tau read as a collapsed baseline and the audit named nothing
+    # (the fifteenth held-out stage, docs/model-family.md 6.2n).
+    rng = np.random.default_rng(41)
+    params = dataclasses.replace(random_params(rng), a1=0.0)
+    plan = frame_plan(
+        rng, ranges_v=(120.0, 260.0, 400.0), n_frequencies=3, frequency_hz=(0.05, 5.0), n_references=3
+    )
+    hidden = {
+        "polarity": {"negative_sensitivity_pct": 4.0},
+        "creep": {"pct_per_decade": -1.0, "law": "motion"},
+    }
+    session = hidden_session(params, plan, hidden, samples_per_loop=512, seed=rng)
+    result = run_audit(split_experiments(session.recording))
+    assert result.degeneracy is not None and not result.degeneracy.degenerate
+    assert result.degeneracy.absent == ("tau_s", "a1")
+    assert any("tau_s, a1 left out" in n for n in result.notes)
+    assert result.cause == "polarity"
+    found = {f.effect: f.params for f in result.findings}
+    assert found["polarity"]["negative_sensitivity_pct"] == pytest.approx(4.0, rel=0.1)
+    assert "creep" in found
+
+
 def test_structure_that_no_candidate_explains_is_unexplained() -> None:
     # A sensor nonlinearity none of the candidates has: a ripple with the position (4 um period).
     exps = small_session({}, 6)

@@ -159,6 +159,17 @@ class ThesisBase:
         """Internal bounds."""
         return _T_LOWER.copy(), _T_UPPER.copy()
 
+    def absent(self, z: F64) -> tuple[int, ...]:
+        """Internal parameters of a term the fit at ``z`` left out: ``(tau, A1)`` when ``A1`` sits
+        at 0, where the frequency factor (3.5) is 1 and ``tau`` has no effect.
+
+        The model at ``z`` is then (3.8) without its creep factor, a determined model of its own;
+        the degeneracy check (:mod:`piezod.audit.degenerate`) analyses the rest.
+        """
+        if float(z[4]) <= _T_LOWER[4] + 1e-9:
+            return (3, 4)
+        return ()
+
     def to_internal(self, p: ThesisParams) -> F64:
         """Internal vector of ``p``."""
         delta = (p.b_um_per_v - p.u_um_per_v) / p.alpha_per_v
@@ -308,6 +319,10 @@ class OdeBase:
     def free(self) -> NDArray[np.bool_]:
         """All three are fitted."""
         return np.ones(3, dtype=bool)
+
+    def absent(self, z: F64) -> tuple[int, ...]:
+        """None: ``alpha`` without a loop opening (``b = u``) is a collapse, not a term left out."""
+        return ()
 
     def bounds(self) -> tuple[F64, F64]:
         """Internal bounds of ``(ln alpha, u, kappa)``."""

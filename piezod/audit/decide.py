@@ -450,6 +450,11 @@ def run_audit(
     base_ho = heldout(base_fit)
     step("baseline held-out")
     degeneracy = check_degeneracy(base_fit, geo, rows)
+    if degeneracy.absent:
+        notes.append(
+            f"baseline: {', '.join(degeneracy.absent)} left out (a term the fit put at 0): the "
+            "baseline's determination is judged without them"
+        )
     current, current_ho = base_fit, base_ho
     rounds: list[tuple[CandidateResult, ...]] = []
     findings: list[CandidateResult] = []

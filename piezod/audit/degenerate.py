@@ -64,6 +64,9 @@ class Degeneracy:
         Largest |correlation| of a candidate parameter with a baseline parameter (0 without
         candidates): above :data:`MAX_EXTENSION_CORRELATION` the extension is entangled with
         what the data do not determine.
+    absent
+        Baseline parameters of a term the fit left out (the creep factor's ``a1`` at 0 and its
+        ``tau_s``): the model without that term is analysed, these are not.
     """
 
     undetermined: tuple[str, ...]
@@ -73,6 +76,7 @@ class Degeneracy:
     text: str
     collapsed: bool = False
     extension_correlation: float = 0.0
+    absent: tuple[str, ...] = ()
 
     @property
     def blocks_a_cause(self) -> bool:
@@ -92,9 +96,15 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
     names = (
         ("alpha_per_v", "u_um_per_v", "b_um_per_v") if isinstance(model.base, OdeBase) else model.base.names
     )
-    free = model.free()
-    lo, hi = model.bounds()
     p = fit.p
+    # A term whose amplitude the fit put at 0 leaves its other parameters without effect: the
+    # model is the one without the term, determined or not by the rest (a zero column is not a
+    # direction the data fail to see, it is no direction at all).
+    free = model.free().copy()
+    gone = [k for k in model.base.absent(p[: model.n_base]) if free[k]]
+    free[gone] = False
+    absent = tuple(names[k] for k in gone)
+    lo, hi = model.bounds()
     on: list[str] = []
     for k in np.flatnonzero(free[: model.n_base]).tolist():
         for b in (lo[k], hi[k]):
@@ -125,7 +135,7 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
     ext = float(corr[:nb, nb:].max()) if corr.shape[0] > nb and nb > 0 else 0.0
     collapsed = bool(on) or cov.condition_number > COLLAPSED_CONDITION
     if not bad:
-        return Degeneracy((), cov.condition_number, max_corr, tuple(on), "", collapsed, ext)
+        return Degeneracy((), cov.condition_number, max_corr, tuple(on), "", collapsed, ext, absent)
     public = model.base.public(p[: model.n_base])
     vals = ", ".join(f"{k} = {public[k]:.4g}" for k in bad if k in public)
     need = list(dict.fromkeys(_MEASUREMENT.get(k, "more varied scans") for k in bad))
@@ -135,4 +145,4 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
         + f"; condition number {cov.condition_number:.3g}, largest correlation {max_corr:.6f}. "
         f"What would determine it: {'; '.join(need)}. No cause is named on an undetermined baseline."
     )
-    return Degeneracy(tuple(bad), cov.condition_number, max_corr, tuple(on), text, collapsed, ext)
+    return Degeneracy(tuple(bad), cov.condition_number, max_corr, tuple(on), text, collapsed, ext, absent)
