@@ -160,15 +160,20 @@ class ThesisBase:
         return _T_LOWER.copy(), _T_UPPER.copy()
 
     def absent(self, z: F64) -> tuple[int, ...]:
-        """Internal parameters of a term the fit at ``z`` left out: ``(tau, A1)`` when ``A1`` sits
-        at 0, where the frequency factor (3.5) is 1 and ``tau`` has no effect.
+        """Internal parameters of a term the fit at ``z`` left out: ``(tau, A1)`` when the
+        frequency factor (3.5) ``1 - A1 exp(-1/(f tau))`` is constant over the line rates: ``A1``
+        at 0 (``tau`` has no effect), or ``tau`` on a bound (at 1 ms the exponential is 0 below
+        100 Hz; at 1e5 s it is 1 above 1e-3 Hz, and ``1 - A1`` trades with the loop's scale).
 
-        The model at ``z`` is then (3.8) without its creep factor, a determined model of its own;
-        the degeneracy check (:mod:`piezod.audit.degenerate`) analyses the rest.
+        The model at ``z`` is then (3.8) without its creep factor, a model of its own whose
+        determination the degeneracy check (:mod:`piezod.audit.degenerate`) judges on the rest.
         """
-        if float(z[4]) <= _T_LOWER[4] + 1e-9:
-            return (3, 4)
-        return ()
+        on_bound = (
+            float(z[4]) <= _T_LOWER[4] + 1e-9
+            or float(z[3]) <= _T_LOWER[3] + 1e-9
+            or float(z[3]) >= _T_UPPER[3] - 1e-9
+        )
+        return (3, 4) if on_bound else ()
 
     def to_internal(self, p: ThesisParams) -> F64:
         """Internal vector of ``p``."""

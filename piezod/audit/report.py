@@ -141,6 +141,7 @@ def result_json(
             "degenerate": result.degeneracy.degenerate,
             "undetermined": list(result.degeneracy.undetermined),
             "on_bounds": list(result.degeneracy.on_bounds),
+            "absent": list(result.degeneracy.absent),
             "condition_number": _num(result.degeneracy.condition_number),
             "max_correlation": _num(result.degeneracy.max_correlation),
             "text": result.degeneracy.text,
