@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from test_audit_sessions import EFFECT_IDS, sim_session, thesis_session
 
-from piezod.audit import run_audit
+from piezod.audit import result_json, run_audit
 from piezod.audit.standins import preset_session
 from piezod.audit.synthetic import frame_plan, hidden_session
 from piezod.extensions import adoption_audit_options
@@ -93,6 +93,7 @@ def test_a_creep_factor_fitted_to_zero_leaves_the_baseline_determined() -> None:
     assert result.degeneracy is not None and not result.degeneracy.degenerate
     assert result.degeneracy.absent == ("tau_s", "a1")
     assert any("tau_s, a1 left out" in n for n in result.notes)
+    assert result_json(result)["degeneracy"]["absent"] == ["tau_s", "a1"]
     assert result.cause == "polarity"
     found = {f.effect: f.params for f in result.findings}
     assert found["polarity"]["negative_sensitivity_pct"] == pytest.approx(4.0, rel=0.1)
