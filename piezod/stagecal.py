@@ -742,7 +742,8 @@ def audit_and_extend(
 ) -> ThesisFit:
     """Audit the frame, adopt the material findings that have a runtime part if they predict better.
 
-    The audit (:func:`piezod.audit.run_audit`) names the effects; those with a runtime part
+    The audit (:func:`piezod.audit.run_audit`) names the effects (and, on a baseline it finds
+    undetermined, withholds them: they are tried all the same); those with a runtime part
     (:func:`piezod.extensions.adopt_findings`) are profiled on the chosen member, those its held-out
     RMS does not need are left out (:func:`refine_adoption`), and the model choice is redone on the
     frame seen through their exact inverse (:func:`choose_for_experiments`). The extended model is
@@ -771,7 +772,7 @@ def audit_and_extend(
     -------
     ThesisFit
         The config to write (``chosen.config`` or the extended one), ``report`` with ``findings``,
-        ``adopted``, ``skipped``, ``heldout_rms_um`` (chosen / extended) and ``text``.
+        ``withheld``, ``adopted``, ``skipped``, ``heldout_rms_um`` (chosen / extended) and ``text``.
     """
     from piezod.audit import result_json as audit_json
     from piezod.audit import run_audit
@@ -786,11 +787,16 @@ def audit_and_extend(
     from piezod.model.sensor import SENSOR_EFFECTS
 
     doc = audit_json(run_audit(experiments, [], options=adoption_audit_options(folds)))
+    # Findings withheld on an undetermined audit baseline are tried all the same: each part is
+    # profiled on the chosen member and kept only if that member's held-out RMS needs it.
     adoption = adopt_findings(
-        doc["findings"], horizon_s=trend_horizon_s(experiments), since_unix_s=since_unix_s
+        [*doc["findings"], *doc["withheld"]],
+        horizon_s=trend_horizon_s(experiments),
+        since_unix_s=since_unix_s,
     )
     report: dict[str, Any] = {
         "findings": [f["effect"] for f in doc["findings"]],
+        "withheld": [f["effect"] for f in doc["withheld"]],
         "cause": doc["cause"],
         "adopted": [],
         "skipped": list(adoption.skipped),

@@ -100,6 +100,27 @@ def test_a_creep_factor_fitted_to_zero_leaves_the_baseline_determined() -> None:
     assert "creep" in found
 
 
+def test_findings_on_an_undetermined_baseline_are_withheld_for_the_adoption_to_try() -> None:
+    # No loop opening (alpha and b on bounds: undetermined), a sensor ripple, and a ceramic 5 %
+    # more sensitive below 0 V. The polarity is eligible on held-out data but not named on the
+    # undetermined model; it is kept as withheld, in a form the adoption takes.
+    from piezod.extensions import adopt_findings
+
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 20.0, 0.005)
+    v = 60.0 * np.sin(2 * np.pi * 0.5 * t) * (0.5 + 0.5 * t / 20.0)
+    seen = np.where(v < 0, 1.05 * v, v)
+    x = 0.1 * seen + 0.05 * np.sin(2 * np.pi * 0.1 * seen) + rng.normal(0.0, 0.002, t.size)
+    result = run_audit([Experiment("no loop", None, t, v, x)])
+    assert result.cause == "undetermined" and result.findings == ()
+    assert [f.effect for f in result.withheld] == ["polarity"]
+    assert "not named on the undetermined model: polarity" in result.notes
+    doc = result_json(result)
+    assert doc["findings"] == [] and [f["effect"] for f in doc["withheld"]] == ["polarity"]
+    adoption = adopt_findings(doc["withheld"])
+    assert adoption.effects["polarity"]["negative_sensitivity_pct"] == pytest.approx(5.0, rel=0.05)
+
+
 def test_structure_that_no_candidate_explains_is_unexplained() -> None:
     # A sensor nonlinearity none of the candidates has: a ripple with the position (4 um period).
     exps = small_session({}, 6)

@@ -384,7 +384,9 @@ def test_a_sensor_lag_the_held_out_data_cannot_place_is_put_at_the_sensor(
 
     base = load_config(default_sim_config_path())
     monkeypatch.setattr(piezod.audit, "run_audit", lambda *a, **k: None)
-    monkeypatch.setattr(piezod.audit, "result_json", lambda *a, **k: {"findings": [], "cause": None})
+    monkeypatch.setattr(
+        piezod.audit, "result_json", lambda *a, **k: {"findings": [], "withheld": [], "cause": None}
+    )
     monkeypatch.setattr(piezod.extensions, "adopt_findings", lambda findings, **_: Adoption(effects))
     monkeypatch.setattr(piezod.extensions, "experiments_through", lambda exps, eff: exps)
     monkeypatch.setattr(sc, "refine_adoption", lambda exps, adoption, *a: (adoption, []))

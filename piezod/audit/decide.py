@@ -222,6 +222,11 @@ class AuditResult:
         The model-free checks (switching, drift in voltage holds, lost sensitivity).
     degeneracy
         What the data cannot determine about the baseline.
+    withheld
+        Findings of the forward selection not named because the baseline is undetermined
+        (eligible on held-out data, but on a model that cannot carry a cause). ``piezod
+        calibrate``'s adoption still tries them on its own model, which judges them on held-out
+        data (:func:`piezod.stagecal.audit_and_extend`).
     """
 
     cause: str
@@ -245,6 +250,7 @@ class AuditResult:
     seconds: float = 0.0
     outside: Outside = field(default_factory=Outside)
     degeneracy: Degeneracy | None = None
+    withheld: tuple[CandidateResult, ...] = ()
 
     @property
     def baseline_name(self) -> str:
@@ -598,6 +604,7 @@ def run_audit(
                 )
             )
     final_struct = before
+    withheld: tuple[CandidateResult, ...] = ()
     if not stop and degeneracy.degenerate and (findings or ratio > opts.structure_max):
         # The baseline alone is undetermined; a model with findings may be determined (an
         # effect the baseline tried to absorb). No cause is named on an undetermined model.
@@ -607,7 +614,8 @@ def run_audit(
             # Model-free findings (round 0: drift in the voltage holds, a sensitivity loss)
             # are measured without the actuator model and stand on an undetermined one.
             free = [f for f in findings if f.round == 0]
-            dropped = [f.effect for f in findings if f.round != 0]
+            withheld = tuple(f for f in findings if f.round != 0)
+            dropped = [f.effect for f in withheld]
             if free:
                 notes.append(
                     final_deg.text.split(". No cause")[0]
@@ -666,6 +674,7 @@ def run_audit(
         seconds=time.perf_counter() - t_start,
         outside=outside,
         degeneracy=degeneracy,
+        withheld=withheld,
     )
 
 

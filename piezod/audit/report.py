@@ -65,6 +65,21 @@ def _structure_json(s: Structure) -> dict[str, Any]:
     }
 
 
+def _finding_json(f: CandidateResult) -> dict[str, Any]:
+    return {
+        "effect": f.effect,
+        "evidence": f.evidence,
+        "gain": _num(f.gain),
+        "gain_se": _num(f.gain_se),
+        "heldout_rms_before_um": _num(f.heldout_rms_before_um),
+        "heldout_rms_after_um": _num(f.heldout_rms_after_um),
+        "params": {k: _num(v) for k, v in f.params.items()},
+        "bic_delta": _num(f.bic_delta),
+        "rms_um": _num(f.rms_um),
+        "round": f.round,
+    }
+
+
 def result_json(
     result: AuditResult, *, inputs: Sequence[str] = (), validate: Sequence[str] = ()
 ) -> dict[str, Any]:
@@ -79,21 +94,8 @@ def result_json(
     return {
         "cause": result.cause,
         "cause_meaning": _MEANING.get(result.cause, ""),
-        "findings": [
-            {
-                "effect": f.effect,
-                "evidence": f.evidence,
-                "gain": _num(f.gain),
-                "gain_se": _num(f.gain_se),
-                "heldout_rms_before_um": _num(f.heldout_rms_before_um),
-                "heldout_rms_after_um": _num(f.heldout_rms_after_um),
-                "params": {k: _num(v) for k, v in f.params.items()},
-                "bic_delta": _num(f.bic_delta),
-                "rms_um": _num(f.rms_um),
-                "round": f.round,
-            }
-            for f in result.findings
-        ],
+        "findings": [_finding_json(f) for f in result.findings],
+        "withheld": [_finding_json(f) for f in result.withheld],
         "baseline": {
             "model": result.baseline_name,
             "params": base_params,

@@ -130,6 +130,11 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     rest_voltage_v=rest_v,
                 )
                 found = ", ".join(audited.report["findings"]) or "none"
+                if audited.report.get("withheld"):
+                    found += (
+                        f"; withheld on its undetermined baseline, tried on the chosen model: "
+                        f"{', '.join(audited.report['withheld'])}"
+                    )
                 print(
                     f"audit of the frame: findings {found} ({took('audit')})\n{audited.report['text']}",
                     file=say,
