@@ -458,8 +458,8 @@ def run_audit(
     degeneracy = check_degeneracy(base_fit, geo, rows)
     if degeneracy.absent:
         notes.append(
-            f"baseline: {', '.join(degeneracy.absent)} left out (a term the fit put at 0): the "
-            "baseline's determination is judged without them"
+            f"baseline: {', '.join(degeneracy.absent)} left out (the fit made their term constant "
+            "over the data): the baseline's determination is judged without them"
         )
     current, current_ho = base_fit, base_ho
     rounds: list[tuple[CandidateResult, ...]] = []

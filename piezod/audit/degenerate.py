@@ -65,8 +65,9 @@ class Degeneracy:
         candidates): above :data:`MAX_EXTENSION_CORRELATION` the extension is entangled with
         what the data do not determine.
     absent
-        Baseline parameters of a term the fit left out (the creep factor's ``a1`` at 0 and its
-        ``tau_s``): the model without that term is analysed, these are not.
+        Baseline parameters of a term the fit left out (the creep factor's ``tau_s`` and ``a1``,
+        with ``a1`` at 0 or ``tau_s`` on a bound): the model without that term is analysed, these
+        are not.
     """
 
     undetermined: tuple[str, ...]
@@ -97,9 +98,10 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
         ("alpha_per_v", "u_um_per_v", "b_um_per_v") if isinstance(model.base, OdeBase) else model.base.names
     )
     p = fit.p
-    # A term whose amplitude the fit put at 0 leaves its other parameters without effect: the
-    # model is the one without the term, determined or not by the rest (a zero column is not a
-    # direction the data fail to see, it is no direction at all).
+    # A term the fit made constant over the data (its amplitude at 0, its time constant on a
+    # bound) leaves its parameters without effect or trading with the rest: the model is the one
+    # without the term, determined or not by the rest (a zero column is not a direction the data
+    # fail to see, it is no direction at all).
     free = model.free().copy()
     gone = [k for k in model.base.absent(p[: model.n_base]) if free[k]]
     free[gone] = False
