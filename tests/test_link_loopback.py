@@ -11,6 +11,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -149,13 +150,19 @@ def test_corrupted_link_soak_60s(config: ScannerConfig) -> None:
     _check_every_loss_reported(r, events)
 
 
-def test_unplug_link_closed_then_reconnect(config: ScannerConfig, spawn_board: Callable[..., Any]) -> None:
+def test_unplug_link_closed_then_reconnect(
+    config: ScannerConfig, spawn_board: Callable[..., Any], tmp_path: Path
+) -> None:
+    # The board comes back under a stable link, as a udev rule names a real one: a bare pty path
+    # freed by the unplug can go to another test's board in the meantime, and this host then
+    # reconnected to that board (seen under xdist: no watchdog, and the other test's host found
+    # its port held).
     rate = 20_000
     cfg = bench_config(config, 3, rate)
     events, collect = _events()
     settings = LinkSettings(heartbeat_timeout_ms=150, reconnect_initial_s=0.05, reconnect_max_s=0.2)
     with (
-        spawn_board(seed=0, extra_args=("--unplug-s", "0.6")) as sim,
+        spawn_board(seed=0, extra_args=("--unplug-s", "0.6"), link=tmp_path / "board") as sim,
         BoardSession.open(
             sim.path, config=cfg, settings=settings, sample_rate_hz=rate, on_event=collect
         ) as s,
