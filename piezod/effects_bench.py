@@ -192,6 +192,10 @@ class _Refits:
         return cfg.model_copy(update={"axes": axes})
 
 
+#: Samples per block when a model replays the stage's history (:func:`_verify`).
+HISTORY_BLOCK = 1 << 16
+
+
 def _verify(
     bench: StageBench, config: ScannerConfig, axis: AxisName, points: Sequence[VerifyPoint], loops: int
 ) -> list[dict[str, Any]]:
@@ -200,8 +204,13 @@ def _verify(
     rate = 1.0 / bench.dt
     lo_v, hi_v = ax.voltage_min_v, ax.voltage_max_v
     # the model has seen every voltage the stage has (as the daemon's driver carries its state
-    # through frames, moves and holds): its creep memory is the stage's, its clock the stage's
-    _, state = model.forward(np.concatenate(bench.history), bench.dt, model.rest(0.0))
+    # through frames, moves and holds): its creep memory is the stage's, its clock the stage's.
+    # Block by block, as the driver does: the whole history at once (a full frame and the
+    # verifications before, tens of millions of samples) took several GB of per-sample state.
+    state = model.rest(0.0)
+    for played in bench.history:
+        for i in range(0, played.size, HISTORY_BLOCK):
+            _, state = model.forward(played[i : i + HISTORY_BLOCK], bench.dt, state)
     rows = []
     for k, pt in enumerate([points[0], *points]):
         lo = pt.offset_um - 0.5 * pt.range_um

@@ -284,3 +284,41 @@ def test_a_stopped_parallel_run_ends_its_running_cases_at_once(tmp_path: Path) -
     assert ended_within(workers, 10.0), "a worker outlived the stopped run"
     # the cases still running are lost, none half saved (the floor, the quickest, may have ended)
     assert {p.name for p in (tmp_path / "cases").iterdir()} <= {"floor.json"}
+
+
+def test_the_verification_replays_the_stage_history_block_by_block(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The model replayed the whole history in one call: a full frame and the verifications
+    # before it (tens of millions of samples) took several GB of per-sample state (session 22:
+    # 7 GB per full-frame case). Block by block it carries the same state, as the driver does.
+    import numpy as np
+
+    import piezod.effects_bench as eb
+    from piezod.config import default_sim_config_path, load_config
+    from piezod.stagecal import VerifyPoint
+
+    path = default_sim_config_path()
+    config = load_config(path)
+    bench = eb.StageBench(eb._stage(path, [], "x", 1), config.sample_rate_hz)
+    n = eb.HISTORY_BLOCK + 1000
+    bench.play(40.0 * np.sin(np.linspace(0.0, 6 * np.pi, n)))
+    bench.play(np.zeros(500))
+    calls: list[int] = []
+    real = eb.axis_model
+
+    class Spy:
+        def __init__(self, model: Any) -> None:
+            self.model = model
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(self.model, name)
+
+        def forward(self, v: Any, dt: float, state: Any) -> Any:
+            calls.append(int(np.size(v)))
+            return self.model.forward(v, dt, state)
+
+    monkeypatch.setattr(eb, "axis_model", lambda ax: Spy(real(ax)))
+    point = VerifyPoint(2.0, 5.0, 0.0, True, "small")
+    rows = eb._verify(bench, config, "x", [point], 1)
+    assert len(rows) == 1 and math.isfinite(rows[0]["nonlinearity_pct"])
+    assert calls and max(calls) <= eb.HISTORY_BLOCK
+    assert sum(calls) == n + 500
