@@ -90,6 +90,11 @@ def realistic_specs(effect: str) -> list[str]:
     return out
 
 
+#: Samples per block when the bench steps the stage and when a model replays the stage's history
+#: (:func:`_verify`): whole recordings at once take per-sample state for all of them.
+HISTORY_BLOCK = 1 << 16
+
+
 class StageBench:
     """A hil_sim stage and its clock, stepped in process: voltages in, sensed positions out.
 
@@ -120,10 +125,10 @@ class StageBench:
         self.history: list[F64] = []
 
     def play(self, volts: F64) -> tuple[F64, F64]:
-        chunks = range(0, volts.size, 1 << 16)
-        xs = [self.stage.sense(self.stage.step(volts[i : i + (1 << 16)], self.dt)) for i in chunks]
+        chunks = range(0, volts.size, HISTORY_BLOCK)
+        xs = [self.stage.sense(self.stage.step(volts[i : i + HISTORY_BLOCK], self.dt)) for i in chunks]
         if self.truth is not None:
-            true = [self.truth.sense(self.truth.step(volts[i : i + (1 << 16)], self.dt)) for i in chunks]
+            true = [self.truth.sense(self.truth.step(volts[i : i + HISTORY_BLOCK], self.dt)) for i in chunks]
             self.last_truth = np.concatenate(true).astype(np.float64)
         t: F64 = self.t + self.dt * np.arange(1, volts.size + 1, dtype=np.float64)
         self.t = float(t[-1])
@@ -190,10 +195,6 @@ class _Refits:
         axes = dict(cfg.axes)
         axes[self.axis] = axes[self.axis].model_copy(update={"model": "dynamic"})
         return cfg.model_copy(update={"axes": axes})
-
-
-#: Samples per block when a model replays the stage's history (:func:`_verify`).
-HISTORY_BLOCK = 1 << 16
 
 
 def _verify(

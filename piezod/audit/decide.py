@@ -615,7 +615,6 @@ def run_audit(
             # are measured without the actuator model and stand on an undetermined one.
             free = [f for f in findings if f.round == 0]
             withheld = tuple(f for f in findings if f.round != 0)
-            dropped = [f.effect for f in withheld]
             if free:
                 notes.append(
                     final_deg.text.split(". No cause")[0]
@@ -626,8 +625,8 @@ def run_audit(
             else:
                 stop = "undetermined"
                 notes.append(final_deg.text)
-            if dropped:
-                notes.append("not named on the undetermined model: " + ", ".join(dropped))
+            if withheld:
+                notes.append("not named on the undetermined model: " + ", ".join(f.effect for f in withheld))
             findings = free
         else:
             told = (final_deg if final_deg.degenerate else degeneracy).text.split(". No cause")[0]

@@ -102,7 +102,7 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
     # bound) leaves its parameters without effect or trading with the rest: the model is the one
     # without the term, determined or not by the rest (a zero column is not a direction the data
     # fail to see, it is no direction at all).
-    free = model.free().copy()
+    free = model.free()
     gone = [k for k in model.base.absent(p[: model.n_base]) if free[k]]
     free[gone] = False
     absent = tuple(names[k] for k in gone)
