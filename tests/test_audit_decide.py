@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import time
 from collections import Counter
@@ -98,6 +99,22 @@ def test_a_creep_factor_fitted_to_zero_leaves_the_baseline_determined() -> None:
     found = {f.effect: f.params for f in result.findings}
     assert found["polarity"]["negative_sensitivity_pct"] == pytest.approx(4.0, rel=0.1)
     assert "creep" in found
+
+
+def test_a_term_left_out_and_a_parameter_on_a_bound_read_the_bound_alike() -> None:
+    # One tolerance for both: an A1 the degeneracy check would call "on its bound" (a residue of
+    # the bounded solver, 1e-7) is a creep term left out, not a bound that undetermines the model.
+    from piezod.audit.baseline import ThesisBase, at_bound
+
+    base = ThesisBase(a2_scale=1.0)
+    z = base.to_internal(dataclasses.replace(random_params(np.random.default_rng(3)), a1=0.2, tau_s=0.5))
+    assert base.absent(z) == ()
+    for k, value in ((4, 1e-7), (3, math.log(1e-3) + 1e-7), (3, math.log(1e5) - 1e-6)):
+        near = z.copy()
+        near[k] = value
+        assert base.absent(near) == (3, 4)
+    assert at_bound(1e-7, 0.0) and not at_bound(1e-5, 0.0)
+    assert at_bound(math.log(1e5) - 1e-5, math.log(1e5)) and not at_bound(math.log(1e5) - 1e-4, math.log(1e5))
 
 
 def test_findings_on_an_undetermined_baseline_are_withheld_for_the_adoption_to_try() -> None:

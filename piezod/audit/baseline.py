@@ -46,6 +46,15 @@ _T_LOWER = np.array([math.log(1e-6), 1e-9, 1e-12, math.log(1e-3), 0.0, -np.inf, 
 _T_UPPER = np.array([math.log(0.999), 99.0, np.inf, math.log(1e5), 0.999, np.inf, np.inf])
 
 
+def at_bound(value: float, bound: float) -> bool:
+    """Whether an internal parameter ``value`` sits on ``bound`` (a relative tolerance of 1e-6).
+
+    One tolerance for every reading of "on a bound" in the audit: a term left out
+    (:meth:`ThesisBase.absent`) and a parameter the degeneracy check reports on a bound.
+    """
+    return math.isfinite(bound) and abs(value - bound) <= 1e-6 * max(1.0, abs(bound))
+
+
 @dataclass(frozen=True, eq=False)
 class Geometry:
     """Per-sample and per-experiment arrays of one :class:`AuditData` that the models reuse.
@@ -169,9 +178,9 @@ class ThesisBase:
         determination the degeneracy check (:mod:`piezod.audit.degenerate`) judges on the rest.
         """
         on_bound = (
-            float(z[4]) <= _T_LOWER[4] + 1e-9
-            or float(z[3]) <= _T_LOWER[3] + 1e-9
-            or float(z[3]) >= _T_UPPER[3] - 1e-9
+            at_bound(float(z[4]), float(_T_LOWER[4]))
+            or at_bound(float(z[3]), float(_T_LOWER[3]))
+            or at_bound(float(z[3]), float(_T_UPPER[3]))
         )
         return (3, 4) if on_bound else ()
 

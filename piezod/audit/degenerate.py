@@ -8,13 +8,12 @@ what the data cannot determine and which measurement would determine it, and nam
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from piezod.audit.baseline import Geometry, OdeBase
+from piezod.audit.baseline import Geometry, OdeBase, at_bound
 from piezod.audit.fitting import Fit, Problem, jacobian
 from piezod.fitstats import jacobian_covariance
 
@@ -110,7 +109,7 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
     on: list[str] = []
     for k in np.flatnonzero(free[: model.n_base]).tolist():
         for b in (lo[k], hi[k]):
-            if math.isfinite(b) and abs(p[k] - b) <= 1e-6 * max(1.0, abs(b)):
+            if at_bound(float(p[k]), float(b)):
                 on.append(names[k])
     if isinstance(model.base, OdeBase) and (p[2] <= 1e-12 or "b_um_per_v" in on):
         # b = u (the loop opening alpha (b - u) at 0, to the bounds' tolerance): alpha has no effect
