@@ -222,6 +222,14 @@ class AxisConfig(StrictModel):
         "sensor path (the readback's delay and lag, piezod.model.sensor): the analysis aligns the "
         "readback with it, the drive is unchanged",
     )
+    sensor_full_scale_um: float | None = Field(
+        default=None,
+        gt=0,
+        le=1e5,
+        description="the position sensor's range on the board's ADC: code +-32768 reads +-this many um "
+        "(none: the link's default, 100 um). A stage that moves beyond it reads the full scale: piezod "
+        "calibrate leaves such scans out of its fits and says so",
+    )
     tracking_min_line_s: float | None = Field(
         default=None,
         gt=0,

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from piezod import calibrate_any
 from piezod.calibrate import calibrate, calibrated_config, result_json
@@ -197,6 +198,85 @@ def run_frame(
         faults = "; ".join(f"{f.code}: {f.message}" for f in engine.status().faults[-3:])
         raise CalibrationError(f"the calibration frame ended in state {state}: {faults}")
     return path
+
+
+#: A readback within this share of the sensor's full scale sits at the ADC's end code (a 12-bit
+#: converter's last step is 1/2048 of the range): the stage is beyond what the sensor reads.
+FULL_SCALE_MARGIN = 1.0 / 2048.0
+
+
+def readback_clipped(experiments: Sequence[Experiment], full_scale_um: float) -> dict[str, int]:
+    """Samples per experiment whose readback sits at the sensor's full scale (``+-full_scale_um``).
+
+    Such a sample is the ADC's end code, not a position: the stage moved beyond the sensor's range
+    and its true position is unknown. Experiments without one are left out of the result.
+    """
+    edge = full_scale_um * (1.0 - FULL_SCALE_MARGIN)
+    out: dict[str, int] = {}
+    for e in experiments:
+        n = int(np.count_nonzero(np.abs(e.position_um) >= edge))
+        if n:
+            out[e.label] = out.get(e.label, 0) + n
+    return out
+
+
+def frame_in_sensor_range(
+    frame_path: Path, frame: Frame, full_scale_um: float, out_path: Path
+) -> tuple[Path, Frame, dict[str, int]]:
+    """The recorded frame without the scans whose readback reached the sensor's full scale.
+
+    Returns the recording the fits use (``frame_path`` itself when nothing clipped, else
+    ``out_path``: the same file without those scans' rows; the recording as made is kept), the
+    frame of the scans kept (the verification is placed within it) and the clipped sample count
+    per scan left out.
+
+    Raises
+    ------
+    CalibrationError
+        Fewer than two ranges of the frame read within the sensor's range.
+    """
+    clipped = readback_clipped(read_experiments([frame_path]), full_scale_um)
+    if not clipped:
+        return frame_path, frame, {}
+    kept = tuple(s for s in frame.scans if s.label not in clipped)
+    fix = (
+        f"set axes.{frame.axis}.sensor_full_scale_um to the sensor's range, or lower "
+        f"axes.{frame.axis}.voltage_max_v / raise voltage_min_v"
+    )
+    if len({s.range_v for s in kept}) < 2:
+        raise CalibrationError(
+            f"{frame_path}: the readback reached the sensor's full scale (+-{full_scale_um:g} um) in "
+            f"{len(clipped)} of {len(frame.scans)} scans of the frame: too few left to fit; {fix}"
+        )
+    rec = read_recording(frame_path)
+    if rec.experiment is None:
+        raise CalibrationError(f"{frame_path}: the frame recording has no experiment column")
+    rows = ~np.isin(rec.experiment, list(clipped))
+
+    def cut(col: NDArray[Any] | None) -> NDArray[Any] | None:
+        return None if col is None else col[rows]
+
+    from piezod.recording_writer import write_recording
+
+    note = f"{frame_path.name} without {len(clipped)} scans whose readback reached the sensor's full scale"
+    write_recording(
+        out_path,
+        Recording(
+            t_s=rec.t_s[rows],
+            voltage_v=rec.voltage_v[rows],
+            position_um=rec.position_um[rows],
+            target_um=cut(rec.target_um),
+            axis=cut(rec.axis),
+            experiment=rec.experiment[rows],
+            metadata=rec.metadata,
+            z_voltage_v=cut(rec.z_voltage_v),
+        ),
+        metadata={
+            "content": f"calibration frame within the sensor's range ({note})",
+            "experiments": len(kept),
+        },
+    )
+    return out_path, Frame(frame.axis, kept), clipped
 
 
 @dataclass(frozen=True, slots=True)

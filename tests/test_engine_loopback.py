@@ -174,3 +174,35 @@ def test_a_restart_whose_start_fails_is_tried_again(engine: Engine, monkeypatch:
     engine.stop()
     engine.start_scan(ScanRequest(range_um=5.0, line_rate_hz=4.0, lines=1, name="after-restart"))
     assert engine.wait_idle(20.0) == "idle", engine.status().faults[-3:]
+
+
+def test_the_sensor_range_of_an_axis_reaches_the_board_and_its_end_reads_as_clipped(
+    sim_config: ScannerConfig, tmp_path: Path, spawn_board: Callable[..., Any]
+) -> None:
+    """``axes.x.sensor_full_scale_um`` sets the ADC's scale on the board; a stage driven beyond it
+    reads the end code, which :func:`piezod.stagecal.readback_clipped` finds."""
+    from piezod.recording import split_experiments
+    from piezod.stagecal import readback_clipped
+
+    axes = dict(sim_config.axes)
+    axes["x"] = axes["x"].model_copy(update={"sensor_full_scale_um": 0.5})
+    cfg = sim_config.model_copy(update={"axes": axes})
+    with spawn_board(default_sim_config_path()) as sim:
+        eng = Engine(cfg, sim.path, recording_dir=tmp_path)
+        eng.open()
+        try:
+            assert eng.settings.full_scale_um("x") == 0.5 and eng.settings.full_scale_um("y") == 100.0
+            t = np.arange(4000) / RATE_HZ
+            volts = 20.0 * np.abs(((4.0 * t) % 2.0) - 1.0) - 10.0
+            path = tmp_path / "p.csv"
+            eng.start_program("x", [Segment(volts, "wide")], path, {"content": "test"})
+            assert eng.wait_idle(20.0) == "idle"
+            eng.wait_recorded()
+        finally:
+            eng.close()
+    (exp,) = split_experiments(read_recording(path))
+    assert exp.position_um.max() == pytest.approx(0.5 * 32767 / 32768, abs=1e-9)
+    assert exp.position_um.min() == pytest.approx(-0.5, abs=1e-9)
+    clipped = readback_clipped([exp], 0.5)
+    assert 0 < clipped["wide"] < len(exp)
+    assert readback_clipped([exp], 100.0) == {}

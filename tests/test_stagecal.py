@@ -507,3 +507,40 @@ def test_a_fault_while_fitting_starts_the_verification_from_the_sensor(tmp_path:
     assert "from the sensor's reading now" in doc["verification_start"], doc["verification_start"]
     rows = [r for r in doc["verification"] if r["model"] == doc["verification"][0]["model"]]
     assert rows and all(r.get("nonlinearity_pct") is not None for r in rows)
+
+
+def test_scans_whose_readback_reached_the_sensors_full_scale_are_left_out_of_the_fits(tmp_path: Path) -> None:
+    """The frame's largest range drove the stage beyond the sensor (the seventeenth held-out stage:
+    ~104 um of travel read through the default 100 um range, docs/model-family.md 6.2q): its scans are
+    left out of the recording the fits read and of the frame the verification is placed in; the
+    recording as made is kept; with fewer than two ranges left the calibration stops and says why."""
+    from piezod.recording import Recording, read_experiments
+    from piezod.recording_writer import write_recording
+    from piezod.stagecal import Frame, FrameScan, frame_in_sensor_range
+
+    fs = 100.0
+    scans = tuple(FrameScan(r, f) for r in (60.0, 120.0, 140.0) for f in (1.0, 2.0))
+    parts = []
+    for k, s in enumerate(scans):
+        t = 10.0 * k + np.arange(400) / 200.0
+        v = 0.5 * s.range_v * np.sin(2 * np.pi * s.frequency_hz * t)
+        x = np.clip(1.6 * v, -fs, fs * 32767 / 32768)
+        parts.append(Experiment(s.label, "x", t, v, x))
+    path = tmp_path / "frame.csv"
+    write_recording(path, Recording.of_experiments(parts), metadata={"content": "calibration frame"})
+    before = path.read_bytes()
+    fitted, kept, clipped = frame_in_sensor_range(path, Frame("x", scans), fs, tmp_path / "in-range.csv")
+    assert set(clipped) == {s.label for s in scans if s.range_v == 140.0}
+    assert fitted == tmp_path / "in-range.csv" and path.read_bytes() == before
+    assert kept == Frame("x", scans[:4])
+    assert [e.label for e in read_experiments([fitted])] == [s.label for s in scans[:4]]
+    # nothing clipped: the recording itself, the frame unchanged
+    assert frame_in_sensor_range(path, Frame("x", scans), 200.0, tmp_path / "no.csv") == (
+        path,
+        Frame("x", scans),
+        {},
+    )
+    assert not (tmp_path / "no.csv").exists()
+    few = r"full scale \(\+-60 um\) in 4 of 6 scans.*sensor_full_scale_um"
+    with pytest.raises(CalibrationError, match=few):
+        frame_in_sensor_range(path, Frame("x", scans), 60.0, tmp_path / "few.csv")

@@ -17,6 +17,7 @@ from piezod.stagecal import (
     AnalysisWorker,
     default_frame,
     format_table,
+    frame_in_sensor_range,
     frame_summary,
     plot_verification,
     run_frame,
@@ -85,6 +86,21 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 frame_path = run_frame(engine, frame, recdir / "frame.csv", progress=tick)
                 frame_mid_unix_s = 0.5 * (frame_t0 + time.time())
             took("frame")
+            # a scan that drove the stage beyond the sensor's range has no positions there: the fits
+            # and the verification's placement use the scans within it (the recording is kept whole)
+            full_scale = engine.settings.full_scale_um(axis)
+            recorded_path = frame_path
+            frame_path, frame, clipped = frame_in_sensor_range(
+                recorded_path, frame, full_scale, recdir / "frame-in-sensor-range.csv"
+            )
+            if clipped:
+                print(
+                    f"WARNING: the readback reached the sensor's full scale (+-{full_scale:g} um) in "
+                    f"{len(clipped)} scans ({', '.join(clipped)}): left out of the fits and the "
+                    f"verification's placement; if the sensor reads further, set "
+                    f"axes.{axis}.sensor_full_scale_um to its range",
+                    file=say,
+                )
             rest_v = base.axes[axis].safe_voltage_v
             fitted = worker.fit_thesis(frame_path, base, axis)
             print(
@@ -160,7 +176,13 @@ def run_on_stage(args: argparse.Namespace) -> int:
             report["model_choice"] = choice.report
             if audit_report is not None:
                 report["audit"] = audit_report
-            report["frame"] = {"summary": frame_summary(frame), "recording": str(frame_path)}
+            report["frame"] = {"summary": frame_summary(frame), "recording": str(recorded_path)}
+            if clipped:
+                report["frame"]["clipped"] = {
+                    "sensor_full_scale_um": full_scale,
+                    "samples_by_scan": clipped,
+                    "fitted_recording": str(frame_path),
+                }
             rows: list[dict[str, Any]] = []
             if engine.status().state in ("fault", "disconnected"):
                 # the frame is recorded; a fault while the stage only held during the fits (an
@@ -172,7 +194,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
             if not args.no_verify:
                 # the run starts where the frame left the stage, in the sensor's coordinates (if the
                 # stage still holds the frame's last voltage: a position read at another is not the state)
-                v_end, x_end = worker.frame_end(frame_path, axis)
+                v_end, x_end = worker.frame_end(recorded_path, axis)
                 held = engine.status().voltage_v.get(axis)
                 span_v = base.axes[axis].voltage_max_v - base.axes[axis].voltage_min_v
 

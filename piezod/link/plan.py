@@ -95,6 +95,10 @@ class LinkSettings:
     frame_samples: int | None = None
     budget: LinkBudget | None = None
 
+    def full_scale_um(self, axis: str) -> float:
+        """The sensor range of ``axis`` (um): ADC code +-32768 reads +-this."""
+        return float(self.sensor_full_scale_um_by_axis.get(axis, self.sensor_full_scale_um))
+
     @classmethod
     def from_config(cls, config: ScannerConfig, **overrides: Any) -> LinkSettings:
         """Settings taken from the scanner config's ``service`` section, then ``overrides``."""
@@ -112,9 +116,14 @@ class LinkSettings:
             base.update(
                 status_period_ms=budget.status_period_ms, frame_samples=budget.frame_samples, budget=budget
             )
+        ranges = {name: ax.sensor_full_scale_um for name, ax in config.axes.items()}
+        by_axis = {str(name): float(fs) for name, fs in ranges.items() if fs is not None}
+        if by_axis:
+            base["sensor_full_scale_um_by_axis"] = by_axis
         if config.microscope is not None and "z" in config.axes:
             # the z channel's ADC reads the z-piezo voltage monitor (the height signal), not a sensor
-            base["sensor_full_scale_um_by_axis"] = {"z": float(config.microscope.z_monitor_full_scale)}
+            monitor = float(config.microscope.z_monitor_full_scale)
+            base["sensor_full_scale_um_by_axis"] = {**by_axis, "z": monitor}
         base.update(overrides)
         return cls(**base)
 
@@ -314,7 +323,7 @@ def _plan_channels(
                 f"axes.{ch_axis}: voltage limits [{ax.voltage_min_v}, {ax.voltage_max_v}] V leave the "
                 f"amplifier range [{amp_lo}, {amp_hi}] V of board channel {i}"
             )
-        fs = float(settings.sensor_full_scale_um_by_axis.get(ch_axis, settings.sensor_full_scale_um))
+        fs = settings.full_scale_um(ch_axis)
         channels.append(
             ChannelConfig.from_volts(
                 v_min=max(ax.voltage_min_v, code_lo_v),
