@@ -211,13 +211,17 @@ def readback_clipped(experiments: Sequence[Experiment], full_scale_um: float) ->
     Such a sample is the ADC's end code, not a position: the stage moved beyond the sensor's range
     and its true position is unknown. Experiments without one are left out of the result.
     """
-    edge = full_scale_um * (1.0 - FULL_SCALE_MARGIN)
     out: dict[str, int] = {}
     for e in experiments:
-        n = int(np.count_nonzero(np.abs(e.position_um) >= edge))
+        n = at_full_scale(e.position_um, full_scale_um)
         if n:
             out[e.label] = out.get(e.label, 0) + n
     return out
+
+
+def at_full_scale(position_um: NDArray[np.float64], full_scale_um: float) -> int:
+    """How many readings of ``position_um`` sit at the sensor's full scale (``+-full_scale_um``)."""
+    return int(np.count_nonzero(np.abs(position_um) >= full_scale_um * (1.0 - FULL_SCALE_MARGIN)))
 
 
 def frame_in_sensor_range(
@@ -664,7 +668,20 @@ def verify(
             continue
         nl, le = worker.linearity(path, "x", sensor)
         limited = [f for f in engine.faults.recent(200) if f.time_s >= mark and f.code == "LIMIT"]
-        if limited:
+        rec = read_recording(path)
+        full_scale = engine.settings.full_scale_um("x")
+        clipped = at_full_scale(
+            rec.position_um if rec.axis is None else rec.position_um[rec.axis == "x"], full_scale
+        )
+        if clipped:
+            # the stage went beyond what the sensor reads: the figures would score the end code
+            row.update(
+                nonlinearity_pct=None,
+                length_error_pct=None,
+                skipped=f"readback at the sensor's full scale (+-{full_scale:g} um) in {clipped} samples",
+                clipped_figures={"nonlinearity_pct": nl, "length_error_pct": le},
+            )
+        elif limited:
             # a clamped scan measures the amplifier's limit, not the model: never its figures
             row.update(
                 nonlinearity_pct=None,

@@ -6,6 +6,7 @@ import functools
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -408,46 +409,79 @@ def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fa
     tested against the real daemon in tests/test_fault_*.py)."""
     from types import SimpleNamespace
 
-    from piezod.errors import EngineStateError
     from piezod.stagecal import VerifyPoint, verify
 
-    class Held:
-        def __init__(self) -> None:
-            self.state, self.uptime_s, self.scans = "fault", 100.0, 0
-            self.faults = SimpleNamespace(recent=lambda n: [])
-
-        def status(self) -> SimpleNamespace:
-            return SimpleNamespace(state=self.state)
-
-        def acknowledge_fault(self, *a: object, **k: object) -> list[SimpleNamespace]:
-            self.state = "idle"
-            return [SimpleNamespace(source="board", code="UNDERRUN", message="run ended by underrun")]
-
-        def check_scan(self, req: object) -> None:
-            pass
-
-        def start_scan(self, req: object, path: Path | None = None) -> None:
-            if self.state != "idle":
-                raise EngineStateError(f"cannot start a scan while {self.state}")
-            self.scans += 1
-
-        def wait_idle(self, timeout_s: float) -> str:
-            return "idle"
-
-        def wait_recorded(self) -> None:
-            pass
-
-        def tracked_scale(self, axis: str) -> float:
-            return 1.0
-
     worker = SimpleNamespace(linearity=lambda path, axis, sensor: (0.01, -0.02))
-    engine = Held()
+    engine = _HeldEngine("fault")
     pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside"), VerifyPoint(5.0, 2.0, 0.0, True, "inside")]
     rows = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
     assert engine.scans == 3  # the warm-up and both points
     assert rows[0]["faults_before"] == ["board/UNDERRUN: run ended by underrun"]
     assert "faults_before" not in rows[1]
     assert [r["length_error_pct"] for r in rows] == [-0.02, -0.02]
+
+
+def test_a_verification_scan_read_at_the_sensors_full_scale_reports_no_figures(tmp_path: Path) -> None:
+    """A point whose readback reached the sensor's full scale scores the ADC's end code, not the
+    stage: its figures are withheld (kept aside, as for a clamped scan) and the reason is given."""
+    from types import SimpleNamespace
+
+    from piezod.stagecal import VerifyPoint, verify
+
+    worker = SimpleNamespace(linearity=lambda path, axis, sensor: (0.01, -0.02))
+    engine = _HeldEngine("idle", reading_um=(40.0, 99.99))
+    pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside")]
+    (row,) = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
+    assert row["length_error_pct"] is None and row["nonlinearity_pct"] is None
+    assert row["skipped"] == "readback at the sensor's full scale (+-100 um) in 1 samples"
+    assert row["clipped_figures"] == {"nonlinearity_pct": 0.01, "length_error_pct": -0.02}
+
+
+class _HeldEngine:
+    """A stand-in for the engine's scan and fault interface: a scan records ``reading_um`` on x."""
+
+    def __init__(self, state: str, reading_um: tuple[float, ...] = (1.0, 2.0)) -> None:
+        from types import SimpleNamespace
+
+        self.state, self.uptime_s, self.scans = state, 100.0, 0
+        self.faults = SimpleNamespace(recent=lambda n: [])
+        self.settings = SimpleNamespace(full_scale_um=lambda axis: 100.0)
+        self.reading_um = reading_um
+
+    def status(self) -> Any:
+        from types import SimpleNamespace
+
+        return SimpleNamespace(state=self.state)
+
+    def acknowledge_fault(self, *a: object, **k: object) -> list[Any]:
+        from types import SimpleNamespace
+
+        self.state = "idle"
+        return [SimpleNamespace(source="board", code="UNDERRUN", message="run ended by underrun")]
+
+    def check_scan(self, req: object) -> None:
+        pass
+
+    def start_scan(self, req: object, path: Path | None = None) -> None:
+        from piezod.errors import EngineStateError
+        from piezod.recording import Recording
+        from piezod.recording_writer import write_recording
+
+        if self.state != "idle":
+            raise EngineStateError(f"cannot start a scan while {self.state}")
+        self.scans += 1
+        if path is not None:
+            n = len(self.reading_um)
+            write_recording(path, Recording(np.arange(n) * 1e-3, np.zeros(n), np.array(self.reading_um)))
+
+    def wait_idle(self, timeout_s: float) -> str:
+        return "idle"
+
+    def wait_recorded(self) -> None:
+        pass
+
+    def tracked_scale(self, axis: str) -> float:
+        return 1.0
 
 
 def test_the_analysis_worker_yields_the_cpu_to_streaming() -> None:
