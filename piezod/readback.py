@@ -11,10 +11,12 @@ calibration (no dependency on either).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from piezod.errors import ModelError, RecordingError
 from piezod.model.sensor import SensorPath
@@ -83,4 +85,76 @@ def align_known_delay(experiments: Sequence[Experiment]) -> tuple[list[Experimen
     return out, f"readback aligned by the recordings' documented sensor delay ({SENSOR_DELAY_KEY}: {where})"
 
 
-__all__ = ["SENSOR_DELAY_KEY", "align_known_delay", "experiments_through_sensor"]
+#: Metadata key of a recording's sensor range (um; ``.<axis>`` appended in multi-axis recordings).
+SENSOR_RANGE_KEY = "sensor_full_scale_um"
+
+#: A readback within this share of the sensor's full scale sits at the ADC's end code (a 12-bit
+#: converter's last step is 1/2048 of the range): the stage is beyond what the sensor reads.
+FULL_SCALE_MARGIN = 1.0 / 2048.0
+
+
+def at_full_scale(position_um: NDArray[np.float64], full_scale_um: float) -> int:
+    """How many readings of ``position_um`` sit at the sensor's full scale (``+-full_scale_um``)."""
+    return int(np.count_nonzero(np.abs(position_um) >= full_scale_um * (1.0 - FULL_SCALE_MARGIN)))
+
+
+def within_sensor_range(experiments: Sequence[Experiment]) -> tuple[list[Experiment], str | None]:
+    """The experiments without those whose readback reached the sensor range their recording
+    documents (``sensor_full_scale_um`` or ``sensor_full_scale_um.<axis>``, written by the daemon).
+
+    Such a reading is the ADC's end code, not a position (the stage moved beyond what the sensor
+    reads): an experiment with one is left out of the analysis. Experiments whose recording does not
+    document its range are kept as they are.
+
+    Returns
+    -------
+    experiments, note
+        The experiments kept and one line naming those left out (None when none was).
+
+    Raises
+    ------
+    RecordingError
+        The value is not a positive number (names the file), or no experiment is left.
+    """
+    out: list[Experiment] = []
+    dropped: list[str] = []
+    for e in experiments:
+        key = (
+            f"{SENSOR_RANGE_KEY}.{e.axis}"
+            if f"{SENSOR_RANGE_KEY}.{e.axis}" in e.metadata
+            else SENSOR_RANGE_KEY
+        )
+        raw = e.metadata.get(key)
+        if raw is None:
+            out.append(e)
+            continue
+        try:
+            full_scale = float(raw)
+        except ValueError:
+            full_scale = math.nan
+        if not full_scale > 0 or not math.isfinite(full_scale):
+            raise RecordingError(f"metadata {key}: {raw!r} is not a positive sensor range in um", e.path)
+        n = at_full_scale(e.position_um, full_scale)
+        if n:
+            dropped.append(f"{e.label} ({n} samples at +-{full_scale:g} um)")
+        else:
+            out.append(e)
+    if not dropped:
+        return out, None
+    if not out:
+        raise RecordingError(
+            f"every experiment's readback reached the sensor's full scale: {', '.join(dropped)}",
+            experiments[0].path,
+        )
+    return out, f"left out, the readback at the sensor's full scale: {', '.join(dropped)}"
+
+
+__all__ = [
+    "FULL_SCALE_MARGIN",
+    "SENSOR_DELAY_KEY",
+    "SENSOR_RANGE_KEY",
+    "align_known_delay",
+    "at_full_scale",
+    "experiments_through_sensor",
+    "within_sensor_range",
+]

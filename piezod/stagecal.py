@@ -32,6 +32,7 @@ from piezod.errors import CalibrationError, ModelError, PiezodError
 from piezod.linearity import linearity
 from piezod.model.sensor import SensorPath
 from piezod.model.thesis import scan_range_um
+from piezod.readback import at_full_scale
 from piezod.recording import Experiment, Recording, read_experiments, read_recording
 from piezod.service.engine import Engine, Segment
 from piezod.service.schemas import ScanRequest
@@ -200,11 +201,6 @@ def run_frame(
     return path
 
 
-#: A readback within this share of the sensor's full scale sits at the ADC's end code (a 12-bit
-#: converter's last step is 1/2048 of the range): the stage is beyond what the sensor reads.
-FULL_SCALE_MARGIN = 1.0 / 2048.0
-
-
 def readback_clipped(experiments: Sequence[Experiment], full_scale_um: float) -> dict[str, int]:
     """Samples per experiment whose readback sits at the sensor's full scale (``+-full_scale_um``).
 
@@ -217,11 +213,6 @@ def readback_clipped(experiments: Sequence[Experiment], full_scale_um: float) ->
         if n:
             out[e.label] = out.get(e.label, 0) + n
     return out
-
-
-def at_full_scale(position_um: NDArray[np.float64], full_scale_um: float) -> int:
-    """How many readings of ``position_um`` sit at the sensor's full scale (``+-full_scale_um``)."""
-    return int(np.count_nonzero(np.abs(position_um) >= full_scale_um * (1.0 - FULL_SCALE_MARGIN)))
 
 
 def frame_in_sensor_range(

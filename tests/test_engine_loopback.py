@@ -50,6 +50,7 @@ def test_scan_is_streamed_recorded_and_measured(engine: Engine, tmp_path: Path) 
     assert "warning: uncalibrated model on axes x, y, z" in status_text(st)
     rec = read_recording(tmp_path / "s1.csv")
     assert rec.metadata["range_um"] == "15.0"
+    assert rec.metadata["sensor_full_scale_um.x"] == rec.metadata["sensor_full_scale_um.y"] == "100.0"
     x = rec.axis == "x"
     # 4 recorded lines of 5000 samples on x (settling lines are not recorded)
     assert int(np.count_nonzero(x)) == 4 * 5000
@@ -181,6 +182,8 @@ def test_the_sensor_range_of_an_axis_reaches_the_board_and_its_end_reads_as_clip
 ) -> None:
     """``axes.x.sensor_full_scale_um`` sets the ADC's scale on the board; a stage driven beyond it
     reads the end code, which :func:`piezod.stagecal.readback_clipped` finds."""
+    from piezod.errors import RecordingError
+    from piezod.readback import within_sensor_range
     from piezod.recording import split_experiments
     from piezod.stagecal import readback_clipped
 
@@ -200,7 +203,12 @@ def test_the_sensor_range_of_an_axis_reaches_the_board_and_its_end_reads_as_clip
             eng.wait_recorded()
         finally:
             eng.close()
-    (exp,) = split_experiments(read_recording(path))
+    rec = read_recording(path)
+    # the header says what the sensor read: offline analyses leave out what it could not
+    assert rec.metadata["sensor_full_scale_um"] == "0.5"
+    (exp,) = split_experiments(rec)
+    with pytest.raises(RecordingError, match="every experiment's readback reached the sensor's full scale"):
+        within_sensor_range([exp])
     assert exp.position_um.max() == pytest.approx(0.5 * 32767 / 32768, abs=1e-9)
     assert exp.position_um.min() == pytest.approx(-0.5, abs=1e-9)
     clipped = readback_clipped([exp], 0.5)

@@ -71,7 +71,7 @@ from piezod.audit.outside import Outside
 from piezod.audit.outside import check as check_outside
 from piezod.audit.residuals import noise_floor_data
 from piezod.errors import CalibrationError, PiezodError
-from piezod.readback import align_known_delay
+from piezod.readback import align_known_delay, within_sensor_range
 from piezod.recording import Experiment
 from piezod.scan_inference import ScanInfo
 
@@ -354,9 +354,11 @@ def run_audit(
         raise PiezodError(f"unknown effect(s) {', '.join(unknown)}; choose from {', '.join(EFFECTS)}")
     step = on_step or (lambda _s: None)
     notes: list[str] = []
+    experiments, clipped = within_sensor_range(experiments)
+    validate, clipped_val = within_sensor_range(validate) if validate else ([], None)
     experiments, aligned = align_known_delay(experiments)
     validate, aligned_val = align_known_delay(validate)
-    notes.extend(n for n in (aligned, aligned_val) if n)
+    notes.extend(n for n in (clipped, clipped_val, aligned, aligned_val) if n)
     outside = check_outside(experiments)
     for e in experiments:
         gap = e.metadata.get("gap_before_s")

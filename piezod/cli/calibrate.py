@@ -46,7 +46,7 @@ from piezod.family_heldout import (
 from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.progress import progress_bar
-from piezod.readback import align_known_delay
+from piezod.readback import align_known_delay, within_sensor_range
 from piezod.recording import AXES, Experiment, read_experiments
 
 
@@ -189,6 +189,7 @@ def run(args: argparse.Namespace) -> int:
     if args.axis is None and len(axes) > 1:
         raise CalibrationError(f"the recordings contain axes {', '.join(axes)}: choose one with --axis")
     axis = args.axis or (axes[0] if axes else "x")
+    exps, clipped = within_sensor_range(exps)
     exps, aligned = align_known_delay(exps)
     start = base.axes[axis].thesis.params() if base is not None and axis in base.axes else None
     if args.validate and args.model in ("thesis", "dynamic"):
@@ -223,6 +224,8 @@ def run(args: argparse.Namespace) -> int:
                 allow_truncated_tail=args.allow_truncated_tail,
                 encoding=args.encoding,
             )
+            val, clipped_val = within_sensor_range(val)
+            clipped = "; ".join(n for n in (clipped, clipped_val) if n) or None
         incumbent_name = "dynamic" if dyn is not None else "thesis (3.8)"
         if args.model in ("family", "auto"):
             # The dynamic model is a candidate too (fitted on all the data, so it wins ties); the
@@ -262,6 +265,8 @@ def run(args: argparse.Namespace) -> int:
                     fitted_on={**family.fitted_on, incumbent_name: "all" if val else "the training part"},
                 )
     out = human_stream(args)
+    if clipped:
+        print(f"WARNING: {clipped}", file=out)
     if aligned:
         print(f"note: {aligned}", file=out)
     chosen = None if family is None else _chosen_member(family)

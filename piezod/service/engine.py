@@ -58,6 +58,7 @@ from piezod.link.session import (
     LinkSettings,
 )
 from piezod.link.streamer import MatchedBlock
+from piezod.readback import SENSOR_RANGE_KEY
 from piezod.service.axes import AxisDriver, PeriodicPlan, plan_axes
 from piezod.service.faults import FaultLog, FaultSource, link_event_fault
 from piezod.service.jobs import (
@@ -602,6 +603,7 @@ class Engine:
                 "scanner": self.config.name,
                 "sample_rate_hz": self.rate_hz,
                 "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                **({SENSOR_RANGE_KEY: self.settings.full_scale_um(axis)} if self.position_sensor else {}),
                 **metadata,
             }
             if record_every > 1:
@@ -745,6 +747,9 @@ class Engine:
         axes = tuple(a for a in axes if mic is None or a != "z")
         correction = self.correction_label(axes) if request.correction else "none"
         meta = scan_metadata(self.config, request, self.rate_hz, self.position_sensor, axes, correction)
+        if self.position_sensor:
+            # offline analyses leave out what the sensor could not read (piezod.readback)
+            meta.update({f"{SENSOR_RANGE_KEY}.{a}": self.settings.full_scale_um(a) for a in axes})
         if path is not None or request.name:
             if path is None:
                 name = request.name or ""
