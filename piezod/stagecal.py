@@ -664,24 +664,21 @@ def verify(
         clipped = at_full_scale(
             rec.position_um if rec.axis is None else rec.position_um[rec.axis == "x"], full_scale
         )
+        # figures that are not the model's are never reported, only kept aside with the reason: a
+        # readback at the sensor's full scale scores the ADC's end code, a clamped scan the amplifier
+        aside: tuple[str, str] | None = None
         if clipped:
-            # the stage went beyond what the sensor reads: the figures would score the end code
-            row.update(
-                nonlinearity_pct=None,
-                length_error_pct=None,
-                skipped=f"readback at the sensor's full scale (+-{full_scale:g} um) in {clipped} samples",
-                clipped_figures={"nonlinearity_pct": nl, "length_error_pct": le},
+            aside = (
+                "clipped_figures",
+                f"readback at the sensor's full scale (+-{full_scale:g} um) in {clipped} samples",
             )
         elif limited:
-            # a clamped scan measures the amplifier's limit, not the model: never its figures
-            row.update(
-                nonlinearity_pct=None,
-                length_error_pct=None,
-                skipped=f"clamped ({limited[-1].message})",
-                clamped_figures={"nonlinearity_pct": nl, "length_error_pct": le},
-            )
-        else:
+            aside = "clamped_figures", f"clamped ({limited[-1].message})"
+        if aside is None:
             row.update(nonlinearity_pct=nl, length_error_pct=le)
+        else:
+            row.update(nonlinearity_pct=None, length_error_pct=None, skipped=aside[1])
+            row[aside[0]] = {"nonlinearity_pct": nl, "length_error_pct": le}
         # the sensitivity the daemon's tracker had learnt by the end of the point, relative to the model
         row["tracked_scale"] = engine.tracked_scale("x")
         rows.append(row)
