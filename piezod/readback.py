@@ -119,11 +119,8 @@ def within_sensor_range(experiments: Sequence[Experiment]) -> tuple[list[Experim
     out: list[Experiment] = []
     dropped: list[str] = []
     for e in experiments:
-        key = (
-            f"{SENSOR_RANGE_KEY}.{e.axis}"
-            if f"{SENSOR_RANGE_KEY}.{e.axis}" in e.metadata
-            else SENSOR_RANGE_KEY
-        )
+        per_axis = f"{SENSOR_RANGE_KEY}.{e.axis}"
+        key = per_axis if per_axis in e.metadata else SENSOR_RANGE_KEY
         raw = e.metadata.get(key)
         if raw is None:
             out.append(e)

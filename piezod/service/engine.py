@@ -194,6 +194,10 @@ class Engine:
 
     # -- lifecycle ------------------------------------------------------------------------------
 
+    def _reads_position(self, axis: str) -> bool:
+        """Whether the ADC channel of ``axis`` reads a position (a microscope's z reads the monitor)."""
+        return self.position_sensor and not (self.config.microscope is not None and axis == "z")
+
     @property
     def position_sensor(self) -> bool:
         """Whether positions are measured: the scanner config's ``microscope.position_sensor``
@@ -603,7 +607,11 @@ class Engine:
                 "scanner": self.config.name,
                 "sample_rate_hz": self.rate_hz,
                 "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                **({SENSOR_RANGE_KEY: self.settings.full_scale_um(axis)} if self.position_sensor else {}),
+                **(
+                    {SENSOR_RANGE_KEY: self.settings.full_scale_um(axis)}
+                    if self._reads_position(axis)
+                    else {}
+                ),
                 **metadata,
             }
             if record_every > 1:
