@@ -20,6 +20,10 @@ this process instead of behind the pty, so a loaded machine cannot spoil the run
    (one unrecorded warm-up loop, then 4 recorded loops; the stage keeps its whole history),
    scored by :func:`piezod.linearity.experiment_linearity`.
 
+The board's ADC is not modelled: the readback here is not clipped at the sensor's range, as the
+simulated board behind the pty clips it at ``axes.<axis>.sensor_full_scale_um`` (default 100 um; a
+stage that travels further reads differently over the pty, docs/model-family.md 6.2q).
+
 ``--offline`` replaces step 2 by what a lab with recordings does: the frame written to one CSV and
 ``piezod calibrate FRAME.csv --config STAGE`` (its held-out choice among (3.8) and the family,
 docs/model-family.md 3.1) writes the config that is verified.
