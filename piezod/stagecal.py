@@ -33,7 +33,7 @@ from piezod.linearity import linearity
 from piezod.model.sensor import SensorPath
 from piezod.model.thesis import scan_range_um
 from piezod.readback import at_full_scale
-from piezod.recording import Experiment, Recording, read_experiments, read_recording
+from piezod.recording import Experiment, Recording, read_experiments, read_recording, split_experiments
 from piezod.service.engine import Engine, Segment
 from piezod.service.schemas import ScanRequest
 
@@ -230,7 +230,8 @@ def frame_in_sensor_range(
     CalibrationError
         Fewer than two ranges of the frame read within the sensor's range.
     """
-    clipped = readback_clipped(read_experiments([frame_path]), full_scale_um)
+    rec = read_recording(frame_path)
+    clipped = readback_clipped(split_experiments(rec), full_scale_um)
     if not clipped:
         return frame_path, frame, {}
     kept = tuple(s for s in frame.scans if s.label not in clipped)
@@ -243,7 +244,6 @@ def frame_in_sensor_range(
             f"{frame_path}: the readback reached the sensor's full scale (+-{full_scale_um:g} um) in "
             f"{len(clipped)} of {len(frame.scans)} scans of the frame: too few left to fit; {fix}"
         )
-    rec = read_recording(frame_path)
     if rec.experiment is None:
         raise CalibrationError(f"{frame_path}: the frame recording has no experiment column")
     rows = ~np.isin(rec.experiment, list(clipped))

@@ -116,8 +116,11 @@ class LinkSettings:
             base.update(
                 status_period_ms=budget.status_period_ms, frame_samples=budget.frame_samples, budget=budget
             )
-        ranges = {name: ax.sensor_full_scale_um for name, ax in config.axes.items()}
-        by_axis = {str(name): float(fs) for name, fs in ranges.items() if fs is not None}
+        by_axis = {
+            str(name): float(ax.sensor_full_scale_um)
+            for name, ax in config.axes.items()
+            if ax.sensor_full_scale_um is not None
+        }
         if by_axis:
             base["sensor_full_scale_um_by_axis"] = by_axis
         if config.microscope is not None and "z" in config.axes:

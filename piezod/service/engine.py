@@ -755,9 +755,14 @@ class Engine:
         axes = tuple(a for a in axes if mic is None or a != "z")
         correction = self.correction_label(axes) if request.correction else "none"
         meta = scan_metadata(self.config, request, self.rate_hz, self.position_sensor, axes, correction)
-        if self.position_sensor:
-            # offline analyses leave out what the sensor could not read (piezod.readback)
-            meta.update({f"{SENSOR_RANGE_KEY}.{a}": self.settings.full_scale_um(a) for a in axes})
+        # offline analyses leave out what the sensor could not read (piezod.readback)
+        meta.update(
+            {
+                f"{SENSOR_RANGE_KEY}.{a}": self.settings.full_scale_um(a)
+                for a in axes
+                if self._reads_position(a)
+            }
+        )
         if path is not None or request.name:
             if path is None:
                 name = request.name or ""
