@@ -829,8 +829,9 @@ def audit_and_extend(
 
     The audit (:func:`piezod.audit.run_audit`) names the effects (and, on a baseline it finds
     undetermined, withholds them: they are tried all the same); those with a runtime part
-    (:func:`piezod.extensions.adopt_findings`) are profiled on the chosen member, those its held-out
-    RMS does not need are left out (:func:`refine_adoption`), and the model choice is redone on the
+    (:func:`piezod.extensions.adopt_findings`) are profiled on the chosen member, the static parts
+    it did not name are probed there, those the member's held-out RMS does not need are left out
+    (:func:`refine_adoption`), and the model choice is redone on the
     frame seen through their exact inverse (:func:`choose_for_experiments`). The extended model is
     adopted when its held-out RMS is below the chosen model's, else the findings are reported
     as not adopted.
@@ -887,9 +888,6 @@ def audit_and_extend(
         "skipped": list(adoption.skipped),
         "heldout_rms_um": {"chosen": chosen.fit_error_pct},
     }
-    if not adoption.effects:
-        report["text"] = adoption.summary()
-        return ThesisFit(report, chosen.config, chosen.fit_error_pct)
     adoption, refined = refine_adoption(
         experiments, adoption, str(chosen.report.get("chosen", "")), ramp_v_per_s, rest_voltage_v
     )
@@ -972,12 +970,14 @@ def refine_adoption(
     """Profile the adopted runtime parts and the sensor path on the chosen member's fit, and keep
     the parts that predict held-out data better.
 
-    The audit estimates them against its own baseline model, which absorbs part of an effect.
-    The sensor path's lag (:func:`piezod.extensions.refine_sensor_lag`), then each runtime part's
-    primary parameter (:func:`piezod.extensions.refine_parts`) are searched for the smallest
-    *training* RMS of the chosen family member refitted on the frame seen through them; the
-    held-out experiments stay out of it. For the sensor path the member is fitted without a
-    drive lag of its own, which would otherwise take any part of the lag the sensor path leaves.
+    The audit estimates them against its own baseline model, which absorbs part of an effect, or
+    all of it. The sensor path's lag (:func:`piezod.extensions.refine_sensor_lag`), then each
+    runtime part's primary parameter (:func:`piezod.extensions.refine_parts`) are searched for the
+    smallest *training* RMS of the chosen family member refitted on the frame seen through them;
+    the held-out experiments stay out of it. The static parts the audit did not name are probed
+    the same way (:func:`piezod.extensions.probe_parts`) and those added are refined. For the
+    sensor path the member is fitted without a drive lag of its own, which would otherwise take
+    any part of the lag the sensor path leaves.
     Then a runtime part the member's held-out RMS does not need is left out
     (:func:`piezod.extensions.prune_parts`; it goes to the adoption's ``skipped``).
     A member refined to a finer play grid is profiled at the default grid
@@ -987,14 +987,14 @@ def refine_adoption(
     Returns
     -------
     adoption, notes
-        The adoption with the refined values and without the parts left out, and one line per
-        refined part.
+        The adoption with the refined values, the probed parts and without the parts left out,
+        and one line per refined or probed part.
     """
     import dataclasses
     import json
 
     from piezod import calibrate_family as cf
-    from piezod.extensions import experiments_through, prune_parts, refine_findings
+    from piezod.extensions import experiments_through, probe_parts, prune_parts, refine_findings, refine_parts
 
     member = cf.parse_member(chosen)
     if member is None:
@@ -1025,6 +1025,11 @@ def refine_adoption(
         model=fitted,
         sensor_model=f"{fitted} without a drive lag of its own",
     )
+    probed, probe_notes = probe_parts(effects, lambda trial: fit(trial)[0], experiments, model=fitted)
+    if probe_notes:
+        added = [e for e in probed if e not in effects]
+        effects, refined_notes = refine_parts(probed, lambda trial: fit(trial)[0], fitted, only=added)
+        notes += probe_notes + refined_notes
     kept, left_out = prune_parts(effects, lambda trial: fit(trial)[1], model=fitted)
     if not notes and not left_out:
         return adoption, []

@@ -7,6 +7,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from piezod.effects_bench import (
@@ -20,6 +21,7 @@ from piezod.effects_bench import (
 from piezod.model.parts import PART_EFFECTS
 from piezod.model.registry import REGISTRY
 from piezod.model.sensor import SENSOR_EFFECTS
+from piezod.recording import Experiment
 
 
 def test_realistic_specs_sit_inside_the_registry_ranges() -> None:
@@ -149,6 +151,72 @@ def test_the_sensor_path_is_profiled_before_the_parts() -> None:
     assert math.isclose(out["delay"]["lag_time_constant_s"], 0.63e-3, rel_tol=0.02)
     assert math.isclose(out["stiffness"]["sensitivity_pct_per_um"], 0.1, rel_tol=0.03)
     assert [n.split(" ")[0] for n in notes] == ["sensor", "stiffness:"]
+
+
+def test_a_profile_whose_optimum_lies_beyond_its_window_searches_on() -> None:
+    """The profile's window is half to one and a half times the start; an optimum on its edge is
+    searched on beyond it (a -4 % depoling started at -1 % used to stop at -1.5 %), and not past
+    the registry's physical bound."""
+    from piezod.extensions import refine_parts
+
+    def rms(fx: dict[str, dict[str, float]]) -> float:
+        return 1e-3 + 1e-4 * (fx["polarity"]["negative_sensitivity_pct"] + 4.0) ** 2
+
+    out, notes = refine_parts({"polarity": {"negative_sensitivity_pct": -1.0}}, rms, model="M")
+    assert math.isclose(out["polarity"]["negative_sensitivity_pct"], -4.0, abs_tol=0.05), notes
+    assert notes[0].startswith("polarity: negative_sensitivity_pct -1 -> -4")
+
+    def beyond(fx: dict[str, dict[str, float]]) -> float:
+        return 1e-3 + 1e-4 * (fx["polarity"]["negative_sensitivity_pct"] + 80.0) ** 2
+
+    far, _ = refine_parts({"polarity": {"negative_sensitivity_pct": -30.0}}, beyond)
+    assert -50.0 <= far["polarity"]["negative_sensitivity_pct"] < -49.0
+
+
+def _frame(v_lo: float, v_hi: float, x_max: float) -> list[Experiment]:
+    t = np.linspace(0.0, 2.0, 401)
+    tri = np.abs(((t * 1.0) % 1.0) - 0.5) * 2.0
+    return [Experiment("s0", "x", t, v_lo + (v_hi - v_lo) * tri, x_max * tri)]
+
+
+def test_static_parts_the_audit_did_not_name_are_probed() -> None:
+    """A polarity or saturation the audit missed is found on the refitted model's training RMS: two
+    probes, the parabola's vertex; added when it lowers the RMS by PROBE_GAIN, the next probe made
+    with it; a polarity is not probed on a frame that stays above 0 V; parts present are not probed."""
+    from piezod.extensions import PROBE_EFFECTS, probe_parts
+
+    assert set(PROBE_EFFECTS) <= set(PART_EFFECTS)
+    calls: list[dict[str, dict[str, float]]] = []
+
+    def rms(fx: dict[str, dict[str, float]]) -> float:
+        calls.append(fx)
+        p = fx.get("polarity", {}).get("negative_sensitivity_pct", 0.0)
+        x_sat = fx.get("saturation", {}).get("x_sat_um", math.inf)
+        return math.sqrt(1e-6 + 1e-5 * (p + 4.0) ** 2 + 1e-2 * (100.0 / x_sat - 100.0 / 400.0) ** 2)
+
+    lag = {"delay": {"delay_s": 0.0, "lag_time_constant_s": 1e-3}}
+    out, notes = probe_parts(lag, rms, _frame(-20.0, 130.0, 100.0), model="M")
+    assert out["delay"] == lag["delay"]
+    assert math.isclose(out["polarity"]["negative_sensitivity_pct"], -4.0, abs_tol=0.01), notes
+    assert math.isclose(out["saturation"]["x_sat_um"], 400.0, rel_tol=0.05), notes
+    assert [n.split(":")[0] for n in notes] == ["polarity", "saturation"]
+    assert notes[0].startswith("polarity: probed, negative_sensitivity_pct = -4 (training RMS of M")
+    assert all(
+        c.get("polarity", {}).get("negative_sensitivity_pct") == out["polarity"]["negative_sensitivity_pct"]
+        for c in calls
+        if "saturation" in c
+    )
+    assert len(calls) <= 7  # the part left off once, two probes and the vertex per part
+
+    above, notes_above = probe_parts({}, rms, _frame(0.0, 130.0, 100.0))
+    assert "polarity" not in above and list(above) == ["saturation"], notes_above
+    present = {"polarity": {"negative_sensitivity_pct": -2.0}, "saturation": {"x_sat_um": 300.0}}
+    assert probe_parts(present, rms, _frame(-20.0, 130.0, 100.0)) == (present, [])
+
+    def flat(fx: dict[str, dict[str, float]]) -> float:
+        return 1e-3 * (1.0 - 0.01 * ("polarity" in fx))
+
+    assert probe_parts({}, flat, _frame(-20.0, 130.0, 100.0)) == ({}, [])
 
 
 def test_parts_the_held_out_rms_does_not_need_are_left_out() -> None:

@@ -304,6 +304,20 @@ def test_an_adopted_part_is_refined_on_the_chosen_members_fit() -> None:
     assert refine_adoption(exps, found, "dynamic", 2000.0, 0.0) == (found, [])
 
 
+def test_a_depoling_the_audit_did_not_name_is_probed_on_the_chosen_member() -> None:
+    """The audit's baseline can miss a part the chosen member needs (on a held-out Bouc-Wen stage it
+    fitted +0.76 % to a -4 % depoling, with no held-out gain): with no finding at all, the
+    member's probe finds the depoling and the profile refines it; the held-out RMS keeps it."""
+    from piezod.extensions import Adoption
+    from piezod.stagecal import refine_adoption
+
+    exps = _depoled_pi_session()
+    refined, notes = refine_adoption(exps, Adoption(), "family/prandtl-ishlinskii/voltage-creep", 2000.0, 0.0)
+    assert list(refined.effects) == ["polarity"], (refined, notes)
+    assert abs(refined.effects["polarity"]["negative_sensitivity_pct"] + 5.0) < 0.3, notes
+    assert notes[0].startswith("polarity: probed, negative_sensitivity_pct = ")
+
+
 def test_a_part_the_chosen_member_does_not_need_is_left_out() -> None:
     """A part must lower the chosen member's held-out RMS to be adopted: a stiffness named beside a
     real depoling is left out (the member fits its own static map; on a held-out stage a stiffness
