@@ -93,9 +93,29 @@ SENSOR_RANGE_KEY = "sensor_full_scale_um"
 FULL_SCALE_MARGIN = 1.0 / 2048.0
 
 
+def full_scale_mask(
+    position_um: NDArray[np.float64], full_scale_um: float | NDArray[np.float64]
+) -> NDArray[np.bool_]:
+    """Which readings of ``position_um`` sit at the sensor's full scale (``+-full_scale_um``).
+
+    Parameters
+    ----------
+    position_um
+        Sensor readings (um); NaN reads as not at the full scale.
+    full_scale_um
+        The sensor's range (um), or one per row of a 2-D ``position_um`` (shape ``(rows, 1)``).
+
+    Returns
+    -------
+    NDArray[np.bool_]
+        True where the reading is the ADC's end code (within :data:`FULL_SCALE_MARGIN`).
+    """
+    return np.abs(position_um) >= np.multiply(full_scale_um, 1.0 - FULL_SCALE_MARGIN)
+
+
 def at_full_scale(position_um: NDArray[np.float64], full_scale_um: float) -> int:
     """How many readings of ``position_um`` sit at the sensor's full scale (``+-full_scale_um``)."""
-    return int(np.count_nonzero(np.abs(position_um) >= full_scale_um * (1.0 - FULL_SCALE_MARGIN)))
+    return int(np.count_nonzero(full_scale_mask(position_um, full_scale_um)))
 
 
 def within_sensor_range(experiments: Sequence[Experiment]) -> tuple[list[Experiment], str | None]:
@@ -153,5 +173,6 @@ __all__ = [
     "align_known_delay",
     "at_full_scale",
     "experiments_through_sensor",
+    "full_scale_mask",
     "within_sensor_range",
 ]
