@@ -60,6 +60,7 @@ from piezod.link.session import (
 from piezod.link.streamer import MatchedBlock
 from piezod.readback import SENSOR_RANGE_KEY
 from piezod.service.axes import AxisDriver, PeriodicPlan, plan_axes
+from piezod.service.clipping import SensorClips
 from piezod.service.faults import FaultLog, FaultSource, link_event_fault
 from piezod.service.jobs import (
     MAX_MOVE_S,
@@ -163,6 +164,9 @@ class Engine:
         self._last_line: LineLinearity | None = None
         self._board: Board = open_board(url, config, self._on_link_event, self.settings)
         self._clamped = 0
+        #: Readback at the position sensor's full scale, per client job and in total.
+        self.sensor_clips = SensorClips()
+        self._next_job = 0
         self._closing = threading.Event()
         self._supervisor: threading.Thread | None = None
         self._idle_cb: list[Callable[[], None]] = []
@@ -219,6 +223,9 @@ class Engine:
         if order != list(self.drivers):
             self.drivers = {name: self.drivers[name] for name in order}
             self._ring = TargetRing(len(self.drivers), self._ring.capacity)
+        self.sensor_clips.set_full_scale(
+            {a: self.settings.full_scale_um(a) for a in self.drivers if self._reads_position(a)}
+        )
         self._start_stream()
         self._supervisor = threading.Thread(target=self._supervise, name="piezod-supervisor", daemon=True)
         self._supervisor.start()
@@ -332,7 +339,7 @@ class Engine:
                 m = chunk.volts.shape[1]
                 if m:
                     out[:, filled : filled + m] = chunk.volts
-                    self._ring.put(self._index + filled, chunk, self._recording_id)
+                    self._ring.put(self._index + filled, chunk, self._recording_id, job.ident)
                     filled += m
                 if job.done:
                     self._job_finished(job, self._index + filled)
@@ -366,6 +373,12 @@ class Engine:
                 cb()
             self._idle_cb.clear()
         self._state = self._job.state
+
+    def _name_job(self, job: Job, name: str) -> None:
+        """Give a client's job its id (its readback is counted as its own: ``sensor_clips``)."""
+        self._next_job += 1
+        job.ident = self._next_job
+        self.sensor_clips.register(job.ident, name, self._recording_id)
 
     def chunk(self, volts: FloatArray, targets: FloatArray | None) -> Chunk:
         """A chunk without scan lines (hold, move, ramp)."""
@@ -417,6 +430,7 @@ class Engine:
             snap.crc_errors,
             snap.frames_dropped,
         )
+        clips = self.sensor_clips.snapshot()
         return Status(
             state=state,
             scanner=self.config.name,
@@ -438,6 +452,9 @@ class Engine:
             sensitivity_scale={a: t.scale for a, t in self._trackers.items()},
             calibrated=not self._uncalibrated,
             uncalibrated_axes=self._uncalibrated,
+            sensor_clipped=clips.job_counts,
+            sensor_clipped_job=clips.job,
+            sensor_clipped_total=clips.total,
         )
 
     def trajectory_for(self, request: ScanRequest) -> Trajectory:
@@ -471,6 +488,7 @@ class Engine:
             except BaseException:
                 self._discard_recording()
                 raise
+            self._name_job(job, f"scan {self._recording_name or '(not recorded)'}")
             self._job = job
             self._state = "scanning"
         return self.status()
@@ -535,7 +553,9 @@ class Engine:
         with self._lock:
             if self._state not in ("idle", "moving"):
                 raise EngineStateError(f"cannot move while {self._state}")
-            self._job = MoveJob(self, goal, request.speed_um_per_s)
+            job = MoveJob(self, goal, request.speed_um_per_s)
+            self._name_job(job, "move to " + " ".join(f"{a}={v:g} um" for a, v in goal.items()))
+            self._job = job
             self._state = "moving"
         return self.status()
 
@@ -619,6 +639,7 @@ class Engine:
             self._recorder.open(ident, path, meta, (axis,), targets=False, every=record_every)  # exclusive
             self._recording_id = ident
             self._recording_name = path.name
+            self._name_job(job, f"program {path.name}")
             self._job = job
             self._state = "scanning"
         return self.status()

@@ -93,6 +93,9 @@ class Job(ABC):
 
     state: EngineState = "idle"
     done = False
+    #: The engine's id of a client's job (scan, program, move; its readback is counted per job,
+    #: :mod:`piezod.service.clipping`); -1 for the engine's own (hold, ramp).
+    ident = -1
 
     @abstractmethod
     def render(self, engine: Engine, n: int) -> Chunk:

@@ -110,10 +110,11 @@ class TargetRing:
         self.label = np.full(capacity, -1, dtype=np.int64)
         self.corrected = np.zeros(capacity, dtype=bool)
         self.scale = np.ones(capacity)
+        self.job = np.full(capacity, -1, dtype=np.int64)
         self.hi = 0
         self.lock = threading.Lock()
 
-    def put(self, first: int, chunk: Chunk, recording_id: int) -> None:
+    def put(self, first: int, chunk: Chunk, recording_id: int, job_id: int = -1) -> None:
         n = chunk.volts.shape[1]
         slots = np.arange(first, first + n) % self.capacity
         with self.lock:
@@ -125,11 +126,12 @@ class TargetRing:
             self.label[slots] = chunk.label
             self.corrected[slots] = chunk.corrected
             self.scale[slots] = chunk.scale
+            self.job[slots] = job_id
             self.hi = max(self.hi, first + n)
 
     def get(self, idx: NDArray[np.int64]) -> tuple[Any, ...]:
         """(targets, line, direction, record, recording id, label id, corrected, the fast axis's
-        tracked scale rendered) at the sample indices."""
+        tracked scale rendered, job id) at the sample indices."""
         slots = idx % self.capacity
         with self.lock:
             known = (idx < self.hi) & (idx >= self.hi - self.capacity)
@@ -142,6 +144,7 @@ class TargetRing:
                 self.label[slots].copy(),
                 self.corrected[slots].copy(),
                 self.scale[slots].copy(),
+                np.where(known, self.job[slots], -1),
             )
 
 
@@ -248,6 +251,7 @@ class Recorder(threading.Thread):
                 if block is None:
                     self._pending_close[int(meta[1])] = int(meta[2])
                 else:
+                    self.engine.sensor_clips.add(block.axes, block.position_um, meta[8])
                     self._write(block, meta)
                     last = int(block.indices[-1]) if block.indices.size else -1
                     for ident, end in list(self._pending_close.items()):
@@ -263,6 +267,7 @@ class Recorder(threading.Thread):
                     self._fail(ident, exc)
             finally:
                 self.queue.task_done()
+        self.engine.sensor_clips.finish()
         with self.lock:
             for rec in self.recordings.values():
                 rec.writer.close()
@@ -293,14 +298,28 @@ class Recorder(threading.Thread):
         with self.lock:
             rec = self.recordings.pop(ident, None)
         if rec is not None:
-            rec.writer.close()
+            try:
+                self._write_trailer(rec)
+            finally:
+                rec.writer.close()
             log.info("recording %s closed (%d rows)", rec.path, rec.rows)
             self._finish_line()  # the last retrace ends with the recording
             self._acc.line = -1
             self.engine.scan_events.closed(ident)
 
+    def _write_trailer(self, rec: _OpenRecording) -> None:
+        """The last line of a recording whose job's readback reached the sensor's full scale:
+        ``# sensor_clipped: x=<samples> y=<samples>`` (docs/formats.md)."""
+        counts = self.engine.sensor_clips.for_recording(rec.ident)
+        if not counts or not any(counts.values()):
+            return
+        try:
+            rec.writer.comment("sensor_clipped: " + " ".join(f"{a}={n}" for a, n in counts.items()))
+        except OSError as exc:  # the rows are all written: the file lacks only its trailer
+            log.error("recording %s: cannot write its sensor_clipped trailer: %s", rec.path, exc)
+
     def _write(self, block: MatchedBlock, meta: tuple[Any, ...]) -> None:
-        targets, line, direction, record, rec_id, label, corrected, scale = meta
+        targets, line, direction, record, rec_id, label, corrected, scale, _ = meta
         rate = self.engine.rate_hz
         t = block.indices / rate
         self._line_stats(block, targets, line, direction, corrected, np.where(record, rec_id, -1), scale)

@@ -114,6 +114,16 @@ class Status(_Body):
     recording: str | None = None
     calibrated: bool = True
     uncalibrated_axes: list[str] = Field(default_factory=list)
+    sensor_clipped: dict[str, int] = Field(
+        default_factory=dict,
+        description="readback samples at the position sensor's full scale per axis, of sensor_clipped_job",
+    )
+    sensor_clipped_job: str | None = Field(
+        default=None, description="the scan, program or move whose readback came last (current or ended)"
+    )
+    sensor_clipped_total: dict[str, int] = Field(
+        default_factory=dict, description="readback samples at the sensor's full scale since the start"
+    )
 
 
 class ScanEvent(_Body):

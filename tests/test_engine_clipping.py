@@ -1,0 +1,147 @@
+"""Readback at the sensor's full scale, counted by the engine as it arrives (the real board over a pty).
+
+Not a fault: the job runs to its end; the status counts the samples per axis, the end of the job
+logs one WARNING naming the setting, and the recording ends with a ``# sensor_clipped:`` line.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from piezod.client import PiezodClient
+from piezod.config import ScannerConfig, default_sim_config_path, load_config
+from piezod.readback import at_full_scale
+from piezod.recording import read_recording
+from piezod.service.api import create_app
+from piezod.service.engine import Engine
+from piezod.service.jobs import Segment
+from piezod.service.server import ApiServer
+
+RATE_HZ = 10_000.0
+
+#: Warnings about the sensor's full scale (the engine's logger).
+CLIP_WARNING = "reached the position sensor's full scale"
+
+
+@pytest.fixture(scope="module")
+def sim_config() -> ScannerConfig:
+    return load_config(default_sim_config_path()).model_copy(update={"sample_rate_hz": RATE_HZ})
+
+
+def _narrow_x(config: ScannerConfig, full_scale_um: float) -> ScannerConfig:
+    axes = dict(config.axes)
+    axes["x"] = axes["x"].model_copy(update={"sensor_full_scale_um": full_scale_um})
+    return config.model_copy(update={"axes": axes})
+
+
+def _triangle(n: int, amplitude_v: float) -> Any:
+    t = np.arange(n) / RATE_HZ
+    return 2.0 * amplitude_v * np.abs(((4.0 * t) % 2.0) - 1.0) - amplitude_v
+
+
+@pytest.fixture
+def open_engine(
+    tmp_path: Path, spawn_board: Callable[..., Any]
+) -> Iterator[Callable[[ScannerConfig], Engine]]:
+    with spawn_board(default_sim_config_path()) as sim:
+        opened: list[Engine] = []
+
+        def start(config: ScannerConfig) -> Engine:
+            eng = Engine(config, sim.path, recording_dir=tmp_path)
+            eng.open()
+            opened.append(eng)
+            return eng
+
+        try:
+            yield start
+        finally:
+            for eng in opened:
+                eng.close()
+
+
+def _clip_warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [
+        r.getMessage()
+        for r in caplog.records
+        if r.levelno == logging.WARNING and CLIP_WARNING in r.getMessage()
+    ]
+
+
+def test_a_program_beyond_the_sensors_range_is_counted_reported_and_not_stopped(
+    sim_config: ScannerConfig,
+    tmp_path: Path,
+    open_engine: Callable[[ScannerConfig], Engine],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.INFO, logger="piezod")
+    eng = open_engine(_narrow_x(sim_config, 0.5))
+    path = tmp_path / "wide.csv"
+    volts = _triangle(4000, 10.0)  # about +-1 um on x: twice the sensor's range
+    eng.start_program("x", [Segment(volts, "wide")], path, {"content": "test"})
+    assert eng.wait_idle(20.0) == "idle"  # ran to its end: no fault, no ramp
+    eng.wait_recorded()
+    st = eng.status()
+    assert not [f for f in st.faults if f.source != "link"], st.faults
+    assert st.sensor_clipped_job == "program wide.csv"
+    assert set(st.sensor_clipped) == {"x", "y", "z"}
+    assert st.sensor_clipped["y"] == st.sensor_clipped["z"] == 0
+    rec = read_recording(path)
+    offline = at_full_scale(rec.position_um, 0.5)
+    # the job's count holds every sample of its readback: the recorded ones and the ramp to the start
+    assert 0 < offline <= st.sensor_clipped["x"] < len(volts) + RATE_HZ
+    assert st.sensor_clipped_total["x"] >= st.sensor_clipped["x"]
+    (warning,) = _clip_warnings(caplog)
+    assert warning.startswith("program wide.csv: ")
+    assert f"x ({st.sensor_clipped['x']} samples at +-0.5 um)" in warning
+    assert "axes.x.sensor_full_scale_um" in warning and "axes.y." not in warning
+    # the recording's trailer says it too (a comment: the columns and the header are unchanged)
+    last = path.read_text().rstrip("\n").rsplit("\n", 1)[-1]
+    assert last == f"# sensor_clipped: x={st.sensor_clipped['x']} y=0 z=0"
+    assert rec.metadata["sensor_full_scale_um"] == "0.5"
+
+
+def test_a_program_inside_the_sensors_range_counts_nothing(
+    sim_config: ScannerConfig,
+    tmp_path: Path,
+    open_engine: Callable[[ScannerConfig], Engine],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.INFO, logger="piezod")
+    eng = open_engine(sim_config)
+    path = tmp_path / "narrow.csv"
+    eng.start_program("x", [Segment(_triangle(2000, 10.0), "narrow")], path, {"content": "test"})
+    assert eng.wait_idle(20.0) == "idle"
+    eng.wait_recorded()
+    st = eng.status()
+    assert st.sensor_clipped_job == "program narrow.csv"
+    assert st.sensor_clipped == {"x": 0, "y": 0, "z": 0}
+    assert st.sensor_clipped_total == {"x": 0, "y": 0, "z": 0}
+    assert not _clip_warnings(caplog)
+    assert "sensor_clipped" not in path.read_text()
+
+
+def test_the_served_status_counts_a_scan_beyond_the_sensors_range(
+    sim_config: ScannerConfig, tmp_path: Path, open_engine: Callable[[ScannerConfig], Engine]
+) -> None:
+    eng = open_engine(_narrow_x(sim_config, 0.5))
+    server = ApiServer(create_app(eng), f"unix:{tmp_path / 'api.sock'}")
+    server.start()
+    try:
+        with PiezodClient(server.address, timeout=10.0) as client:
+            before = client.status()
+            assert before.sensor_clipped_job is None and before.sensor_clipped == {}
+            client.scan(range_um=15.0, line_rate_hz=4.0, lines=2, name="api")
+            assert eng.wait_idle(20.0) == "idle"
+            eng.wait_recorded()
+            st = client.status()
+    finally:
+        server.stop()
+    assert st.sensor_clipped_job == "scan api.csv"
+    assert st.sensor_clipped["x"] > 0 and st.sensor_clipped["y"] == 0
+    assert st.sensor_clipped_total["x"] >= st.sensor_clipped["x"]
