@@ -23,7 +23,9 @@ outputs to the safe values (the board also ramps by itself when the host's heart
 The jobs live in :mod:`piezod.service.jobs`, the recorder and the recording header in
 :mod:`piezod.service.recorder`, the scan's line / frame events and per-frame images in
 :mod:`piezod.service.scan_events`, the fault log in :mod:`piezod.service.faults`, the check of a
-scan's start on copies of the axis drivers in :mod:`piezod.service.shadow`.
+scan's start on copies of the axis drivers in :mod:`piezod.service.shadow`, the count of the
+readback at the position sensor's full scale (per job; not a fault) in
+:mod:`piezod.service.clipping`.
 """
 
 from __future__ import annotations
