@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from piezod.cli.ctl import status_text
 from piezod.client import PiezodClient
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
 from piezod.readback import at_full_scale
@@ -96,6 +97,10 @@ def test_a_program_beyond_the_sensors_range_is_counted_reported_and_not_stopped(
     # the job's count holds every sample of its readback: the recorded ones and the ramp to the start
     assert 0 < offline <= st.sensor_clipped["x"] < len(volts) + RATE_HZ
     assert st.sensor_clipped_total["x"] >= st.sensor_clipped["x"]
+    assert (
+        f"warning: program wide.csv: readback at the sensor's full scale on x ({st.sensor_clipped['x']} "
+        "samples)" in status_text(st)
+    )
     (warning,) = _clip_warnings(caplog)
     assert warning.startswith("program wide.csv: ")
     assert f"x ({st.sensor_clipped['x']} samples at +-0.5 um)" in warning
@@ -123,7 +128,7 @@ def test_a_program_inside_the_sensors_range_counts_nothing(
     assert st.sensor_clipped == {"x": 0, "y": 0, "z": 0}
     assert st.sensor_clipped_total == {"x": 0, "y": 0, "z": 0}
     assert not _clip_warnings(caplog)
-    assert "sensor_clipped" not in path.read_text()
+    assert "sensor_clipped" not in path.read_text() and "full scale" not in status_text(st)
 
 
 def test_the_served_status_counts_a_scan_beyond_the_sensors_range(

@@ -174,6 +174,13 @@ def status_text(status: Status) -> str:
             f"warning: uncalibrated model on axes {', '.join(status.uncalibrated_axes)} (a first guess): "
             "corrected scans will not be linear; run piezod calibrate"
         )
+    clipped = {a: n for a, n in status.sensor_clipped.items() if n}
+    if clipped:
+        lines.append(
+            f"warning: {status.sensor_clipped_job}: readback at the sensor's full scale on "
+            + ", ".join(f"{a} ({n} samples)" for a, n in clipped.items())
+            + "; positions there are not measured (axes.<axis>.sensor_full_scale_um)"
+        )
     lines.append(
         f"fifo: {status.fifo_level_ms:.1f} ms (target {status.lead_target_ms:.0f} ms); "
         f"underruns {status.underruns}, crc errors {status.crc_errors}, "
