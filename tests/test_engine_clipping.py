@@ -150,3 +150,35 @@ def test_the_served_status_counts_a_scan_beyond_the_sensors_range(
     assert st.sensor_clipped_job == "scan api.csv"
     assert st.sensor_clipped["x"] > 0 and st.sensor_clipped["y"] == 0
     assert st.sensor_clipped_total["x"] >= st.sensor_clipped["x"]
+
+
+def test_the_count_follows_the_jobs_tagged_samples_across_blocks(caplog: pytest.LogCaptureFixture) -> None:
+    """Blocks that hold the end of one job and the start of the next; a job's count is final (and
+    reported once) when a later sample's readback arrives; a stale tag starts no job."""
+    from piezod.service.clipping import SensorClips
+
+    clips = SensorClips()
+    clips.set_full_scale({"x": 1.0, "y": 10.0})
+    clips.register(1, "scan a.csv", recording=7)
+    clips.register(2, "move to x=0 um")
+    axes = ("x", "y", "z")  # z reads no position here: not counted
+    pos = np.zeros((3, 8))
+    pos[0, [0, 1, 5]] = [1.0, -0.9999, 1.0]  # the second is within 1/2048 of -1 um
+    pos[1, 2] = np.nan
+    pos[2, :] = 99.0
+    with caplog.at_level(logging.WARNING, logger="piezod"):
+        clips.add(axes, pos, np.array([-1, 1, 1, 1, 1, 1, 2, 2]))
+        assert clips.snapshot().job == "move to x=0 um"
+        assert clips.for_recording(7) == {"x": 2, "y": 0}
+        clips.add(axes, pos, np.array([2, 2, -1, -1, 1, 1, -1, -1]))
+        snap = clips.snapshot()
+    assert snap.job == "move to x=0 um" and snap.job_counts == {"x": 2, "y": 0}
+    assert snap.total == {"x": 6, "y": 0}
+    assert _clip_warnings(caplog) == [
+        "scan a.csv: the readback reached the position sensor's full scale on x (2 samples at +-1 um): "
+        "positions there are not measured (the stage travelled beyond the sensor's range; if the sensor "
+        "reads farther, set axes.x.sensor_full_scale_um)",
+        "move to x=0 um: the readback reached the position sensor's full scale on x (2 samples at +-1 um): "
+        "positions there are not measured (the stage travelled beyond the sensor's range; if the sensor "
+        "reads farther, set axes.x.sensor_full_scale_um)",
+    ]
