@@ -189,10 +189,7 @@ def status_text(status: Status) -> str:
     lines.append(f"position: {_fmt(status.position_um, ' um')}; voltage: {_fmt(status.voltage_v, ' V')}")
     if status.last_line is not None:
         ll = status.last_line
-        lines.append(
-            f"last line {ll.line} ({ll.direction}): nonlinearity {ll.nonlinearity_pct:.3f} %, "
-            f"length error {ll.length_error_pct:+.3f} %"
-        )
+        lines.append(f"last line {ll.line} ({ll.direction}): {ll.figures()}")
     if status.sensitivity_scale:
         lines.append(f"sensitivity scale: {_fmt(status.sensitivity_scale, '')}")
     if status.faults:
@@ -218,8 +215,11 @@ def watch_line(event: Status | FaultInfo | ScanEvent) -> str:
     text += f" fifo {s.fifo_level_ms:6.1f} ms underruns {s.underruns}"
     if s.position_um:
         text += f" {_fmt(s.position_um, 'um')}"
-    if s.last_line is not None:
-        text += f" nl {s.last_line.nonlinearity_pct:.3f}% le {s.last_line.length_error_pct:+.3f}%"
+    ll = s.last_line
+    if ll is not None and ll.nonlinearity_pct is not None and ll.length_error_pct is not None:
+        text += f" nl {ll.nonlinearity_pct:.3f}% le {ll.length_error_pct:+.3f}%"
+    elif ll is not None:
+        text += " line not scored"
     return text
 
 

@@ -129,9 +129,5 @@ def run(args: argparse.Namespace) -> int:
     sensorless = config.microscope is not None and not config.microscope.position_sensor
     if status.last_line is not None and not sensorless:
         ll = status.last_line
-        print(
-            f"last line ({ll.direction}): nonlinearity {ll.nonlinearity_pct:.3f} %, "
-            f"length error {ll.length_error_pct:+.3f} %",
-            file=say,
-        )
+        print(f"last line ({ll.direction}): {ll.figures()}", file=say)
     return 0

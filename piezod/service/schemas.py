@@ -81,13 +81,25 @@ class FaultInfo(_Body):
 
 
 class LineLinearity(_Body):
-    """Linearity of the last complete line from the sensor readback (4.14)-(4.16)."""
+    """Linearity of the last complete line from the sensor readback (4.14)-(4.16).
+
+    A line that cannot be scored from its readback has ``nonlinearity_pct`` and
+    ``length_error_pct`` None and says why in ``skipped`` (readback at the sensor's full scale:
+    those readings are the ADC's end code, not positions).
+    """
 
     line: int
     direction: Literal["trace", "retrace"]
-    nonlinearity_pct: float
-    length_error_pct: float
+    nonlinearity_pct: float | None
+    length_error_pct: float | None
     duration_s: float | None = None
+    skipped: str | None = None
+
+    def figures(self) -> str:
+        """The line's figures for people: ``nonlinearity N %, length error E %``, or why it has none."""
+        if self.nonlinearity_pct is None or self.length_error_pct is None:
+            return f"not scored ({self.skipped or 'no figures'})"
+        return f"nonlinearity {self.nonlinearity_pct:.3f} %, length error {self.length_error_pct:+.3f} %"
 
 
 class Status(_Body):
