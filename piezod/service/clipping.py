@@ -80,6 +80,11 @@ class SensorClips:
             self._full_scale = dict(full_scale_um)
             self._total = {a: self._total.get(a, 0) for a in self._full_scale}
 
+    def full_scale_um(self, axis: str) -> float | None:
+        """The sensor's range of ``axis`` (um; None: the axis reads no position)."""
+        with self._lock:
+            return self._full_scale.get(axis)
+
     def register(self, ident: int, name: str, recording: int = -1) -> None:
         """Name job ``ident`` (> 0; its samples are tagged with it) and its recording's id (-1: none)."""
         with self._lock:

@@ -905,12 +905,13 @@ class Engine:
 
     def set_line_linearity(self, value: LineLinearity, corrected: bool, rendered_scale: float = 1.0) -> None:
         """Called by the recorder when a line of the fast axis completes (feeds the tracker);
-        ``rendered_scale`` is the tracked scale the line was scanned with."""
+        ``rendered_scale`` is the tracked scale the line was scanned with. A line without figures
+        (``value.skipped``: its readback reached the sensor's full scale) leaves the tracker as it is."""
         if not self.position_sensor:
             return
         self._last_line = value
         tracker = self._trackers.get("x")
-        if corrected and tracker is not None:
+        if corrected and tracker is not None and value.length_error_pct is not None:
             tracker.update(
                 1.0 + value.length_error_pct / 100.0,
                 math.inf if value.duration_s is None else value.duration_s,

@@ -25,6 +25,7 @@ from piezod.errors import (
     RecordingError,
 )
 from piezod.link.streamer import MatchedBlock
+from piezod.readback import full_scale_mask
 from piezod.recording import RecordingWriter
 from piezod.service.jobs import Chunk
 from piezod.service.schemas import (
@@ -172,6 +173,8 @@ class _LineAccumulator:
     target: list[FloatArray] = field(default_factory=list)
     position: list[FloatArray] = field(default_factory=list)
     scale: list[FloatArray] = field(default_factory=list)
+    clipped: int = 0
+    full_scale_um: float = math.nan
 
 
 class Recorder(threading.Thread):
@@ -393,6 +396,8 @@ class Recorder(threading.Thread):
             return
         ix = block.axes.index("x")
         acc = self._acc
+        full_scale = self.engine.sensor_clips.full_scale_um("x")
+        at_end = None if full_scale is None else full_scale_mask(block.position_um[ix], full_scale)
         # Split at changes of (line, direction); finish a trace/retrace when it ends.
         key = line * 4 + (direction + 1)
         cuts = np.flatnonzero(np.diff(key)) + 1
@@ -404,12 +409,16 @@ class Recorder(threading.Thread):
                 self._finish_line()
                 acc.line, acc.direction = ln, dr
                 acc.target, acc.position, acc.scale = [], [], []
+                acc.clipped = 0
                 acc.corrected = bool(corrected[seg[0]])
                 acc.recording = int(recording[seg[0]])
             if ln >= 0:
                 acc.target.append(targets[ix, seg])
                 acc.position.append(block.position_um[ix, seg])
                 acc.scale.append(scale[seg])
+                if at_end is not None and full_scale is not None:
+                    acc.clipped += int(np.count_nonzero(at_end[seg]))
+                    acc.full_scale_um = full_scale
 
     def _finish_line(self) -> None:
         acc = self._acc
@@ -421,6 +430,22 @@ class Recorder(threading.Thread):
         pos = np.concatenate(acc.position)
         rendered = float(np.mean(np.concatenate(acc.scale)))
         duration_s = tgt.size / self.engine.rate_hz
+        if acc.clipped:
+            # the ADC's end code is not a position: a figure from it would teach the tracker a length
+            self.engine.set_line_linearity(
+                LineLinearity(
+                    line=acc.line,
+                    direction="trace" if acc.direction > 0 else "retrace",
+                    nonlinearity_pct=None,
+                    length_error_pct=None,
+                    duration_s=duration_s,
+                    skipped=f"readback at the sensor's full scale (+-{acc.full_scale_um:g} um) in "
+                    f"{acc.clipped} samples",
+                ),
+                acc.corrected,
+                rendered,
+            )
+            return
         ok = np.isfinite(tgt) & np.isfinite(pos)
         if ok.sum() < 8:
             return
