@@ -22,6 +22,7 @@ from piezod.recording import read_recording
 from piezod.service.api import create_app
 from piezod.service.engine import Engine
 from piezod.service.jobs import Segment
+from piezod.service.schemas import ScanRequest
 from piezod.service.server import ApiServer
 
 RATE_HZ = 10_000.0
@@ -182,3 +183,147 @@ def test_the_count_follows_the_jobs_tagged_samples_across_blocks(caplog: pytest.
         "positions there are not measured (the stage travelled beyond the sensor's range; if the sensor "
         "reads farther, set axes.x.sensor_full_scale_um)",
     ]
+
+
+# --- lines whose readback reached the full scale: not scored, not learnt by the tracker ---
+
+CALIBRATED = Path(__file__).resolve().parent.parent / "configs" / "sim-stage-calibrated.yaml"
+
+
+class _LineEngine:
+    """What the recorder's line statistics need of the engine; keeps the lines it is given."""
+
+    rate_hz = RATE_HZ
+
+    def __init__(self, full_scale_um: dict[str, float]) -> None:
+        from piezod.service.clipping import SensorClips
+
+        self.sensor_clips = SensorClips()
+        self.sensor_clips.set_full_scale(full_scale_um)
+        self.scan_events = self
+        self.lines: list[Any] = []
+
+    def line_done(self, ident: int, line: int, direction: int) -> None:
+        pass
+
+    def set_line_linearity(self, value: Any, corrected: bool, rendered_scale: float = 1.0) -> None:
+        self.lines.append(value)
+
+
+def _feed_lines(engine: _LineEngine, position_x: Any, line: Any, direction: Any, block: int) -> list[Any]:
+    """Feed the x readback ``position_x`` (target: a 10 um ramp per line) in blocks of ``block``."""
+    from piezod.link.streamer import MatchedBlock
+    from piezod.service.recorder import Recorder
+
+    rec = Recorder(engine)  # type: ignore[arg-type]
+    n = position_x.size
+    target = np.tile(np.linspace(-5.0, 5.0, 50), n // 50)
+    for s in range(0, n, block):
+        sl = slice(s, min(n, s + block))
+        m = sl.stop - sl.start
+        pos = np.vstack([position_x[sl], np.zeros(m)])
+        matched = MatchedBlock(np.arange(sl.start, sl.stop), np.zeros((2, m)), pos, ("x", "y"))
+        rec._line_stats(
+            matched,
+            np.vstack([target[sl], np.zeros(m)]),
+            line[sl],
+            direction[sl],
+            np.ones(m, dtype=bool),
+            np.full(m, -1, dtype=np.int64),
+            np.ones(m),
+        )
+    rec._finish_line()
+    return engine.lines
+
+
+def test_a_line_with_one_sample_at_the_full_scale_is_not_scored_whatever_the_blocks() -> None:
+    """Four lines of 50 samples, fed in blocks that split them anywhere: the second has one
+    reading at the full scale (within 1/2048 of it), the third a NaN (not clipped), the fourth a
+    clipped reading before it starts (a settling sample, line -1, counts for no line)."""
+    pos = np.tile(np.linspace(-5.0, 5.0, 50) * 1.01, 4)
+    line = np.repeat(np.arange(4, dtype=np.int64), 50)
+    direction = np.tile(np.int8(1), 200)
+    pos[50 + 17] = -7.9999
+    pos[100 + 3] = np.nan
+    line[150:152] = -1
+    pos[150] = 8.0
+    for block in (7, 50, 64, 200):
+        lines = _feed_lines(_LineEngine({"x": 8.0, "y": 100.0}), pos, line, direction, block)
+        assert [ll.line for ll in lines] == [0, 1, 2, 3], block
+        clipped = lines[1]
+        assert clipped.nonlinearity_pct is None and clipped.length_error_pct is None
+        assert clipped.skipped == "readback at the sensor's full scale (+-8 um) in 1 samples"
+        assert clipped.duration_s == pytest.approx(50 / RATE_HZ)
+        for ll in (lines[0], lines[2], lines[3]):
+            assert ll.skipped is None and ll.length_error_pct is not None, (block, ll)
+        assert lines[0].length_error_pct == pytest.approx(1.0)
+        assert clipped.figures().startswith("not scored (readback at the sensor's full scale")
+
+
+def test_without_a_position_sensor_range_no_line_is_marked() -> None:
+    """An axis that reads no position (no range known) has nothing to test: the lines are scored."""
+    pos = np.tile(np.linspace(-5.0, 5.0, 50), 2)
+    lines = _feed_lines(
+        _LineEngine({"y": 1.0}),
+        pos,
+        np.repeat(np.arange(2, dtype=np.int64), 50),
+        np.tile(np.int8(-1), 100),
+        32,
+    )
+    assert [ll.skipped for ll in lines] == [None, None]
+    assert lines[0].length_error_pct == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("full_scale_um", [4.0, 100.0], ids=["beyond", "inside"])
+def test_a_scan_beyond_the_sensors_range_leaves_the_tracker_as_it_was(
+    full_scale_um: float,
+    tmp_path: Path,
+    spawn_board: Callable[..., Any],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A corrected 12 um scan, the calibrated stage over the pty: with the x sensor reading +-4 um
+    every line reaches the full scale, is reported without figures and the tracker keeps its
+    state; inside the sensor's range (+-100 um) the lines are scored and the tracker learns."""
+    import copy
+
+    base = load_config(CALIBRATED).model_copy(update={"sample_rate_hz": RATE_HZ})
+    config = _narrow_x(base, full_scale_um)
+    with spawn_board(CALIBRATED) as sim:
+        eng = Engine(config, sim.path, recording_dir=tmp_path)
+        eng.open()
+        try:
+            seen: list[Any] = []
+            original = eng.set_line_linearity
+
+            def keep(value: Any, corrected: bool, rendered_scale: float = 1.0) -> None:
+                seen.append(value)
+                original(value, corrected, rendered_scale)
+
+            monkeypatch.setattr(eng, "set_line_linearity", keep)
+            before = copy.deepcopy(eng._trackers["x"])
+            eng.start_scan(ScanRequest(range_um=12.0, line_rate_hz=5.0, lines=3, name="t"))
+            assert eng.wait_idle(20.0) == "idle"
+            eng.wait_recorded()
+            after = copy.deepcopy(eng._trackers["x"])
+            st = eng.status()
+        finally:
+            eng.close()
+    assert [(ll.line, ll.direction) for ll in seen] == [
+        (k, d) for k in range(3) for d in ("trace", "retrace")
+    ]
+    assert st.last_line == seen[-1]
+    if full_scale_um < 6.0:
+        assert st.sensor_clipped["x"] > 0
+        for ll in seen:
+            assert ll.nonlinearity_pct is None and ll.length_error_pct is None, ll
+            assert ll.skipped is not None and ll.skipped.startswith(
+                "readback at the sensor's full scale (+-4 um)"
+            )
+        assert after == before and after.lines_used == after.lines_ignored == 0
+        assert st.sensitivity_scale == {"x": 1.0}
+        assert "last line 2 (retrace): not scored (readback at the sensor's full scale" in status_text(st)
+    else:
+        assert st.sensor_clipped["x"] == 0
+        assert all(ll.skipped is None and ll.length_error_pct is not None for ll in seen), seen
+        assert after.lines_used > 0 and after.scale != before.scale
+        assert st.sensitivity_scale == {"x": after.scale}
