@@ -30,7 +30,9 @@ by at most ``max(max_step, 3 sqrt(P))``. So within a scan, where the uncertainty
 bounded slow update stays as it was; after an hour's pause the first line counts almost fully, the next ones
 average with it. The scale a line was scanned with is the one rendered for it (the host computes
 ahead, so the line just measured may not have had the present estimate yet): its measurement is
-taken relative to that scale, never counted twice.
+taken relative to that scale, never counted twice. A line whose readback reached the position
+sensor's full scale is never given to the tracker (the recorder does not score it: the ADC's end
+code is not a position, and its length error would be the sensor's range, not the stage's).
 """
 
 from __future__ import annotations
