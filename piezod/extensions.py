@@ -362,8 +362,11 @@ def _probe_axis(effect: str, experiments: Sequence[Experiment]) -> _ProbeAxis | 
         step = PROBE_POLARITY_STEP_PCT
         return _ProbeAxis(float, (-step, step), (max(lo, -3.0 * step), min(hi, 3.0 * step)))
     if effect == "saturation":
-        x_max = max(float(np.max(np.abs(np.asarray(e.position_um, dtype=np.float64)))) for e in experiments)
-        if not (math.isfinite(x_max) and x_max > 0.0):
+        finite = [
+            p[np.isfinite(p)] for p in (np.asarray(e.position_um, dtype=np.float64) for e in experiments)
+        ]
+        x_max = max((float(np.max(np.abs(p))) for p in finite if p.size), default=0.0)
+        if not x_max > 0.0:
             return None
         step = PROBE_SATURATION_STEP
         # the inverse (atanh) needs every position well inside x_sat: x_sat >= 1.4 x_max
