@@ -198,7 +198,7 @@ def adopt_findings(
             if effect in TIME_PARTS and math.isfinite(since_unix_s):
                 values["since_unix_s"] = float(since_unix_s)
             try:
-                Parts.from_effects({**effects, effect: values})
+                Parts.from_effects({k: v for k, v in effects.items() if k in PART_EFFECTS} | {effect: values})
             except ModelError as exc:
                 skipped.append(f"{effect}: {exc}")
                 continue

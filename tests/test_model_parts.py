@@ -265,3 +265,20 @@ def test_adoption_gives_the_time_parts_a_horizon_of_three_sessions() -> None:
         "stiffness": {"sensitivity_pct_per_um": 0.05},
     }
     assert "horizon_s" not in adopt_findings(findings).effects["drift"]
+
+
+def test_a_part_found_after_the_sensor_path_is_adopted() -> None:
+    """The sensor path is not a runtime part: a finding after it was checked together with it and
+    skipped as "effect 'delay' has no runtime part" (a held-out stage's -4 % polarity, found by the
+    audit after the readback delay, was not adopted)."""
+    from piezod.extensions import adopt_findings
+
+    findings = [
+        {"effect": "stiffness", "params": {"sensitivity_pct_per_um": 0.05}},
+        {"effect": "delay", "params": {"delay_s": 5e-4, "lag_time_constant_s": 1e-5}},
+        {"effect": "polarity", "params": {"negative_sensitivity_pct": -4.0}},
+    ]
+    adoption = adopt_findings(findings)
+    assert list(adoption.effects) == ["stiffness", "delay", "polarity"], adoption.skipped
+    assert adoption.skipped == ()
+    assert adoption.effects["polarity"] == {"negative_sensitivity_pct": -4.0}
