@@ -1018,17 +1018,20 @@ def refine_adoption(
                 fits[key] = (math.inf, math.inf)
         return fits[key]
 
+    def train_rms(trial: dict[str, dict[str, float]]) -> float:
+        return fit(trial)[0]
+
     effects, notes = refine_findings(
         adoption.effects,
-        lambda trial: fit(trial)[0],
+        train_rms,
         lambda trial: fit(trial, fit_lag=False)[0],
         model=fitted,
         sensor_model=f"{fitted} without a drive lag of its own",
     )
-    probed, probe_notes = probe_parts(effects, lambda trial: fit(trial)[0], experiments, model=fitted)
+    probed, probe_notes = probe_parts(effects, train_rms, experiments, model=fitted)
     if probe_notes:
         added = [e for e in probed if e not in effects]
-        effects, refined_notes = refine_parts(probed, lambda trial: fit(trial)[0], fitted, only=added)
+        effects, refined_notes = refine_parts(probed, train_rms, fitted, only=added)
         notes += probe_notes + refined_notes
     kept, left_out = prune_parts(effects, lambda trial: fit(trial)[1], model=fitted)
     if not notes and not left_out:

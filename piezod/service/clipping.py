@@ -90,14 +90,17 @@ class SensorClips:
         with self._lock:
             self._named[ident] = (name, recording)
 
-    def add(self, axes: tuple[str, ...], position_um: NDArray[np.float64], job: NDArray[np.int64]) -> None:
+    def add(
+        self, axes: tuple[str, ...], position_um: NDArray[np.float64], job: NDArray[np.int64]
+    ) -> dict[str, NDArray[np.bool_]]:
         """Count a readback block: ``position_um`` ``(axes, n)``, the job id of every sample (-1: the
-        engine's own hold or ramp, counted in the total only)."""
+        engine's own hold or ramp, counted in the total only). Returns which samples of each
+        counted axis sit at the full scale (for the recorder's line figures)."""
         with self._lock:
             full_scale = self._full_scale
         rows = [i for i, a in enumerate(axes) if a in full_scale]
         if not rows or job.size == 0:
-            return
+            return {}
         names = [axes[i] for i in rows]
         limits = np.array([full_scale[a] for a in names])[:, None]
         mask = full_scale_mask(position_um[rows], limits)
@@ -115,6 +118,7 @@ class SensorClips:
                         self._current.counts[a] = self._current.counts.get(a, 0) + n
         for done in ended:
             self._report(done)
+        return dict(zip(names, mask, strict=True))
 
     def _switch(self, ident: int) -> list[_Job]:
         ended = []

@@ -254,8 +254,8 @@ class Recorder(threading.Thread):
                 if block is None:
                     self._pending_close[int(meta[1])] = int(meta[2])
                 else:
-                    self.engine.sensor_clips.add(block.axes, block.position_um, meta[8])
-                    self._write(block, meta)
+                    at_end = self.engine.sensor_clips.add(block.axes, block.position_um, meta[8])
+                    self._write(block, meta, at_end.get("x"))
                     last = int(block.indices[-1]) if block.indices.size else -1
                     for ident, end in list(self._pending_close.items()):
                         if last >= end - 1:
@@ -321,11 +321,15 @@ class Recorder(threading.Thread):
         except OSError as exc:  # the rows are all written: the file lacks only its trailer
             log.error("recording %s: cannot write its sensor_clipped trailer: %s", rec.path, exc)
 
-    def _write(self, block: MatchedBlock, meta: tuple[Any, ...]) -> None:
+    def _write(
+        self, block: MatchedBlock, meta: tuple[Any, ...], x_at_end: NDArray[np.bool_] | None = None
+    ) -> None:
         targets, line, direction, record, rec_id, label, corrected, scale, _ = meta
         rate = self.engine.rate_hz
         t = block.indices / rate
-        self._line_stats(block, targets, line, direction, corrected, np.where(record, rec_id, -1), scale)
+        self._line_stats(
+            block, targets, line, direction, corrected, np.where(record, rec_id, -1), scale, x_at_end
+        )
         if not record.any():
             return
         for ident in np.unique(rec_id[record]):
@@ -391,13 +395,17 @@ class Recorder(threading.Thread):
         corrected: NDArray[np.bool_],
         recording: NDArray[np.int64],
         scale: FloatArray,
+        at_end: NDArray[np.bool_] | None = None,
     ) -> None:
+        """Accumulate the fast axis's lines; ``at_end``: which x samples sit at the sensor's full
+        scale (from :meth:`SensorClips.add`, which has tested the block; tested here if not given)."""
         if "x" not in block.axes:
             return
         ix = block.axes.index("x")
         acc = self._acc
         full_scale = self.engine.sensor_clips.full_scale_um("x")
-        at_end = None if full_scale is None else full_scale_mask(block.position_um[ix], full_scale)
+        if at_end is None and full_scale is not None:
+            at_end = full_scale_mask(block.position_um[ix], full_scale)
         # Split at changes of (line, direction); finish a trace/retrace when it ends.
         key = line * 4 + (direction + 1)
         cuts = np.flatnonzero(np.diff(key)) + 1
