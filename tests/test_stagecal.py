@@ -601,3 +601,18 @@ def test_scans_whose_readback_reached_the_sensors_full_scale_are_left_out_of_the
     few = r"full scale \(\+-60 um\) in 4 of 6 scans.*sensor_full_scale_um"
     with pytest.raises(CalibrationError, match=few):
         frame_in_sensor_range(path, Frame("x", scans), 60.0, tmp_path / "few.csv")
+
+
+def test_the_verification_says_how_much_gain_the_tracker_took() -> None:
+    """The online figures include the sensitivity tracker's correction: past 0.1 % the run says how
+    much it took (the chosen model's rows only), signed, and that it may be the stage's drift."""
+    from piezod.stagecal import tracker_note
+
+    def row(model: str, scale: float | None) -> dict[str, object]:
+        return {"model": model, "tracked_scale": scale}
+
+    rows = [row("family", 1.0004), row("family", 0.9970), row("family", None), row("dynamic", 0.98)]
+    note = tracker_note(rows, "family")
+    assert note is not None and "by up to -0.300 %" in note and "drifted since the frame" in note
+    assert tracker_note(rows[:1] + rows[3:], "family") is None
+    assert tracker_note([row("family", None)], "family") is None

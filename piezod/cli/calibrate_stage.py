@@ -22,6 +22,7 @@ from piezod.stagecal import (
     plot_verification,
     run_frame,
     summary,
+    tracker_note,
     verification_points,
     verify,
     with_tracking_bound,
@@ -237,6 +238,9 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     sensor = calibrated.axes[axis].sensor_path()
                     rows += verify(engine, points, recdir, model, worker, sensor=sensor)
                 print(f"verification ({took('verification')}):\n{format_table(rows)}", file=say)
+                if (note := tracker_note(rows, models[0])) is not None:
+                    print(f"note: {note}", file=say)
+                    report["tracker_note"] = note
                 report["verification"] = rows
                 report["verification_summary"] = summary(rows)
                 if args.plot:
