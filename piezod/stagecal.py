@@ -981,7 +981,8 @@ def refine_adoption(
     the parts that predict held-out data better.
 
     The audit estimates them against its own baseline model, which absorbs part of an effect, or
-    all of it. The sensor path's lag (:func:`piezod.extensions.refine_sensor_lag`), then each
+    all of it. A part the member fits itself (:data:`MEMBER_OWN_PARTS`) is left out first. The
+    sensor path's lag (:func:`piezod.extensions.refine_sensor_lag`), then each
     runtime part's primary parameter (:func:`piezod.extensions.refine_parts`) are searched for the
     smallest *training* RMS of the chosen family member refitted on the frame seen through them;
     the held-out experiments stay out of it. The static parts the audit did not name are probed
@@ -990,7 +991,6 @@ def refine_adoption(
     any part of the lag the sensor path leaves.
     Then a runtime part the member's held-out RMS does not need is left out
     (:func:`piezod.extensions.prune_parts`; it goes to the adoption's ``skipped``).
-    A part the member fits itself (:data:`MEMBER_OWN_PARTS`) is left out first.
     A member refined to a finer play grid is profiled at the default grid
     (:data:`piezod.calibrate_family.DEFAULT_PLAYS`). A chosen model that is not a family member
     leaves the findings as the audit found them.
