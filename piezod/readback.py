@@ -118,13 +118,56 @@ def at_full_scale(position_um: NDArray[np.float64], full_scale_um: float) -> int
     return int(np.count_nonzero(full_scale_mask(position_um, full_scale_um)))
 
 
+#: A readback held at one value, the experiment's largest or smallest, for at least this many
+#: consecutive samples ...
+PLATEAU_MIN_SAMPLES = 8
+#: ... while the drive moved by at least this share of the experiment's voltage span reads as a
+#: sensor at its end code (:func:`plateau_mask`). At a scan's turning point the drive barely moves
+#: while a quantised reading repeats; behind a clipped sensor it sweeps the part of the loop the
+#: sensor cannot read.
+PLATEAU_MIN_SPAN_SHARE = 0.02
+
+
+def plateau_mask(position_um: NDArray[np.float64], voltage_v: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Readings stuck at the experiment's extreme value while the drive moves: a clipped sensor.
+
+    For recordings that do not document their sensor's range: a run of at least
+    :data:`PLATEAU_MIN_SAMPLES` identical readings at the experiment's largest (or smallest) value,
+    over which the voltage moves by at least :data:`PLATEAU_MIN_SPAN_SHARE` of its span. A moving
+    stage read by a live sensor never repeats its extreme reading that long while the drive sweeps
+    (noise and quantisation steps make it change); an ADC at its end code does.
+
+    Returns
+    -------
+    NDArray[np.bool_]
+        True on the stuck readings.
+    """
+    x = np.asarray(position_um, dtype=np.float64)
+    v = np.asarray(voltage_v, dtype=np.float64)
+    mask = np.zeros(x.size, dtype=bool)
+    finite = np.isfinite(x)
+    if x.size < PLATEAU_MIN_SAMPLES or not finite.any():
+        return mask
+    span = float(np.nanmax(v) - np.nanmin(v))
+    if not span > 0:
+        return mask
+    for extreme in (float(np.max(x[finite])), float(np.min(x[finite]))):
+        at = np.r_[False, x == extreme, False]
+        edges = np.flatnonzero(np.diff(at.astype(np.int8)))
+        for a, b in zip(edges[::2], edges[1::2], strict=True):
+            if b - a >= PLATEAU_MIN_SAMPLES and np.ptp(v[a:b]) >= PLATEAU_MIN_SPAN_SHARE * span:
+                mask[a:b] = True
+    return mask
+
+
 def within_sensor_range(experiments: Sequence[Experiment]) -> tuple[list[Experiment], str | None]:
     """The experiments without those whose readback reached the sensor range their recording
     documents (``sensor_full_scale_um`` or ``sensor_full_scale_um.<axis>``, written by the daemon).
 
     Such a reading is the ADC's end code, not a position (the stage moved beyond what the sensor
-    reads): an experiment with one is left out of the analysis. Experiments whose recording does not
-    document its range are kept as they are.
+    reads): an experiment with one is left out of the analysis. Of a recording that does not
+    document its range, an experiment whose readback sticks at its extreme value while the drive
+    sweeps (:func:`plateau_mask`) is left out the same way.
 
     Returns
     -------
@@ -143,7 +186,15 @@ def within_sensor_range(experiments: Sequence[Experiment]) -> tuple[list[Experim
         key = per_axis if per_axis in e.metadata else SENSOR_RANGE_KEY
         raw = e.metadata.get(key)
         if raw is None:
-            out.append(e)
+            stuck = plateau_mask(e.position_um, e.voltage_v)
+            if stuck.any():
+                value = float(e.position_um[np.flatnonzero(stuck)[0]])
+                dropped.append(
+                    f"{e.label} ({int(np.count_nonzero(stuck))} samples stuck at {value:+g} um while the "
+                    "drive moved: a sensor at its end code)"
+                )
+            else:
+                out.append(e)
             continue
         try:
             full_scale = float(raw)
@@ -168,11 +219,14 @@ def within_sensor_range(experiments: Sequence[Experiment]) -> tuple[list[Experim
 
 __all__ = [
     "FULL_SCALE_MARGIN",
+    "PLATEAU_MIN_SAMPLES",
+    "PLATEAU_MIN_SPAN_SHARE",
     "SENSOR_DELAY_KEY",
     "SENSOR_RANGE_KEY",
     "align_known_delay",
     "at_full_scale",
     "experiments_through_sensor",
     "full_scale_mask",
+    "plateau_mask",
     "within_sensor_range",
 ]

@@ -86,3 +86,72 @@ def test_the_audit_leaves_the_clipped_experiments_out_and_notes_it(
     (note,) = [n for n in result.notes if n.startswith("left out, the readback at the sensor's full scale")]
     assert note.count(f"at +-{full_scale:g} um") == n_clipped
     assert result.data.n_experiments == 6 - n_clipped
+
+
+def _triangles(peak_um: float, clip_um: float | None, step_um: float = 0.0, seed: int = 0) -> Experiment:
+    """Three 1 Hz triangles at 2 kS/s, read with 3 nm noise, quantised to ``step_um``, clipped."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(6000) / 2000.0
+    phase = t % 1.0
+    v = 100.0 * np.where(phase < 0.5, 2 * phase, 2 - 2 * phase)
+    x = peak_um * v / 100.0 + 0.003 * rng.standard_normal(t.size)
+    if step_um:
+        x = np.round(x / step_um) * step_um
+    if clip_um is not None:
+        x = np.minimum(x, clip_um)
+    return Experiment("tri", "x", t, v, x)
+
+
+def test_a_readback_stuck_at_its_extreme_while_the_drive_sweeps_reads_as_a_clipped_sensor() -> None:
+    """A recording that does not document its sensor's range: an ADC at its end code holds one value
+    while the drive sweeps the part of the loop beyond it; a live sensor, even quantised to 1.5 nm
+    steps, changes at the turning points, and a hold at the top (the drive still) is not a sweep."""
+    from piezod.readback import PLATEAU_MIN_SAMPLES, plateau_mask
+
+    clipped = _triangles(60.0, 50.0)
+    stuck = plateau_mask(clipped.position_um, clipped.voltage_v)
+    # the top sixth of every 2000-sample triangle, three times
+    assert 3 * 300 < np.count_nonzero(stuck) < 3 * 360
+    assert np.all(clipped.position_um[stuck] == 50.0)
+    for step in (0.0, 0.0015, 0.005):
+        live = _triangles(60.0, None, step_um=step, seed=1)
+        assert not plateau_mask(live.position_um, live.voltage_v).any(), step
+    # a hold at the top: the reading repeats, the drive does not move
+    held = np.r_[np.linspace(0.0, 100.0, 500), np.full(400, 100.0)]
+    assert not plateau_mask(0.5 * held, held).any()
+    short = np.arange(PLATEAU_MIN_SAMPLES - 1.0)
+    assert not plateau_mask(np.full(short.size, 50.0), short).any()
+
+    kept, note = within_sensor_range([clipped, _triangles(40.0, None, seed=2)])
+    assert len(kept) == 1 and kept[0].position_um.max() < 45.0
+    assert note is not None and "samples stuck at +50 um while the drive moved" in note
+
+
+def test_offline_calibrate_leaves_a_clipped_experiment_out_of_a_recording_that_documents_no_range(
+    clipped_file: tuple[Path, int, float], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path, n_clipped, _ = clipped_file
+    rec = read_experiments([path])
+    bare = tmp_path / "bare.csv"
+    lines = [ln for ln in path.read_text().splitlines(keepends=True) if SENSOR_RANGE_KEY not in ln]
+    bare.write_text("".join(lines))
+    assert len(rec) == 6
+    js = tmp_path / "cal.json"
+    assert (
+        main(
+            [
+                "calibrate",
+                str(bare),
+                "--model",
+                "thesis",
+                "--out",
+                str(tmp_path / "c.yaml"),
+                "--json",
+                str(js),
+            ]
+        )
+        == 0
+    )
+    said = capsys.readouterr()
+    assert "while the drive moved: a sensor at its end code" in said.out + said.err
+    assert len(json.loads(js.read_text())["experiments"]) == 6 - n_clipped
