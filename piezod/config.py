@@ -31,7 +31,7 @@ from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.model.gplay import GeneralisedPlayParams
 from piezod.model.params import HysteresisParams, ThesisParams
-from piezod.model.parts import PART_EFFECTS, Parts
+from piezod.model.parts import Parts, part_effects
 from piezod.model.play import PlayParams
 from piezod.model.sensor import SensorPath
 
@@ -241,7 +241,7 @@ class AxisConfig(StrictModel):
 
     def parts(self) -> Parts:
         """The runtime parts of :attr:`extensions` (the drive side)."""
-        return Parts.from_effects({k: v for k, v in (self.extensions or {}).items() if k in PART_EFFECTS})
+        return Parts.from_effects(part_effects(self.extensions or {}))
 
     def sensor_path(self) -> SensorPath:
         """The sensor path of :attr:`extensions` (identity when none)."""

@@ -22,7 +22,7 @@ import numpy as np
 
 from piezod.config import ScannerConfig, dump_config, load_config
 from piezod.errors import ConfigError, ModelError, RecordingError
-from piezod.model.parts import PART_EFFECTS, TIME_PARTS, Parts
+from piezod.model.parts import PART_EFFECTS, TIME_PARTS, Parts, part_effects
 from piezod.model.sensor import SENSOR_EFFECTS, SensorPath
 from piezod.readback import SENSOR_DELAY_KEY, align_known_delay, experiments_through_sensor
 from piezod.recording import Experiment
@@ -198,7 +198,7 @@ def adopt_findings(
             if effect in TIME_PARTS and math.isfinite(since_unix_s):
                 values["since_unix_s"] = float(since_unix_s)
             try:
-                Parts.from_effects({k: v for k, v in effects.items() if k in PART_EFFECTS} | {effect: values})
+                Parts.from_effects(part_effects(effects) | {effect: values})
             except ModelError as exc:
                 skipped.append(f"{effect}: {exc}")
                 continue
@@ -241,9 +241,7 @@ def experiments_through(
     """The experiments as the model inside the adopted ``effects`` sees them: the readback aligned
     through the sensor path (the last link of the chain), then through the parts' exact inverse."""
     aligned = experiments_through_sensor(experiments, SensorPath.from_effects(effects))
-    return experiments_through_parts(
-        aligned, Parts.from_effects({k: v for k, v in effects.items() if k in PART_EFFECTS})
-    )
+    return experiments_through_parts(aligned, Parts.from_effects(part_effects(effects)))
 
 
 #: Evaluations of the profile search per adopted part (:func:`refine_parts`).

@@ -61,6 +61,14 @@ PART_EFFECTS: dict[str, tuple[str, ...]] = {
 }
 #: Parts that are functions of time: they take an optional ``horizon_s`` besides their parameters.
 TIME_PARTS: tuple[str, ...] = ("thermal", "drift")
+
+
+def part_effects(effects: Mapping[Any, Mapping[str, float]]) -> dict[Any, Mapping[str, float]]:
+    """The effects of ``effects`` that are runtime parts (an axis's extensions also hold its sensor
+    path, :mod:`piezod.model.sensor`), for :meth:`Parts.from_effects`."""
+    return {k: v for k, v in effects.items() if k in PART_EFFECTS}
+
+
 #: A saturated target is clipped to this fraction of ``x_sat``.
 _SATURATION_REACH = 1.0 - 1e-9
 
@@ -332,4 +340,12 @@ def _times(state: PartsState, n: int, dt_s: float) -> F64:
     return out
 
 
-__all__ = ["PART_EFFECTS", "TIME_PARTS", "Parts", "PartsAxisModel", "PartsState", "with_parts"]
+__all__ = [
+    "PART_EFFECTS",
+    "TIME_PARTS",
+    "Parts",
+    "PartsAxisModel",
+    "PartsState",
+    "part_effects",
+    "with_parts",
+]
