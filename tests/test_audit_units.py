@@ -237,3 +237,14 @@ def test_ode_baseline_start_and_fit_on_sines() -> None:
     got = base.public(fit.p)
     assert got["alpha_per_v"] == pytest.approx(0.004, rel=0.05)
     assert got["b_um_per_v"] == pytest.approx(0.11, rel=0.05)
+
+
+def test_the_rayleigh_note_speaks_only_when_the_branches_never_bend_over() -> None:
+    from piezod.audit.degenerate import rayleigh_note
+
+    bent = {"alpha_per_v": 0.01, "b_um_per_v": 0.2, "u_um_per_v": 0.1}
+    assert rayleigh_note(bent, 300.0) is None
+    parabolic = {"alpha_per_v": 1e-5, "b_um_per_v": 27.7, "u_um_per_v": 0.129}
+    note = rayleigh_note(parabolic, 300.0)
+    assert note is not None and "u = 0.129 um/V" in note and "alpha (b - u) = 0.000276 um/V^2" in note
+    assert rayleigh_note(parabolic, 0.0) is None

@@ -54,7 +54,7 @@ from piezod.audit.candidates import (
     make_candidate,
     spectral_peak,
 )
-from piezod.audit.degenerate import Degeneracy
+from piezod.audit.degenerate import Degeneracy, rayleigh_note
 from piezod.audit.degenerate import check as check_degeneracy
 from piezod.audit.evidence import Structure, evidence, structure
 from piezod.audit.fitting import (
@@ -458,6 +458,13 @@ def run_audit(
     base_ho = heldout(base_fit)
     step("baseline held-out")
     degeneracy = check_degeneracy(base_fit, geo, rows)
+    if isinstance(base_fit.model.base, OdeBase):
+        rayleigh = rayleigh_note(
+            base_fit.model.base.public(base_fit.p[: base_fit.model.n_base]),
+            float(np.max(geo.v_max) - np.min(geo.v_min)),
+        )
+        if rayleigh:
+            notes.append(rayleigh)
     if degeneracy.absent:
         notes.append(
             f"baseline: {', '.join(degeneracy.absent)} left out (the fit made their term constant "

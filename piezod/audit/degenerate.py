@@ -28,6 +28,11 @@ COLLAPSED_CONDITION = 1e10
 #: Largest |correlation| of a candidate's parameter with a baseline parameter on an undetermined baseline.
 MAX_EXTENSION_CORRELATION = 0.99
 
+#: ``alpha`` times the voltage span below which the ODE's branches are parabolic over the whole
+#: record (:func:`rayleigh_note`): ``exp(-0.1)`` is 0.90, the branch has gone a tenth of its way
+#: towards the anhysteretic line.
+RAYLEIGH_LIMIT = 0.1
+
 #: Which measurement determines each (public) baseline parameter.
 _MEASUREMENT = {
     "alpha_per_v": "loops of several amplitudes (nested minor loops, or a larger voltage span)",
@@ -147,3 +152,33 @@ def check(fit: Fit, geo: Geometry, rows: NDArray[np.bool_]) -> Degeneracy:
         f"What would determine it: {'; '.join(need)}. No cause is named on an undetermined baseline."
     )
     return Degeneracy(tuple(bad), cov.condition_number, max_corr, tuple(on), text, collapsed, ext, absent)
+
+
+def rayleigh_note(public: dict[str, float], span_v: float) -> str | None:
+    """What the ODE baseline's parameters mean when its loop is in the Rayleigh limit, else None.
+
+    With ``alpha`` times the voltage span far below 1 the exponential approach (2.22) never gets
+    far: every branch is the parabola ``u dV + s alpha (b - u) dV^2 / 2`` (``dV`` from the
+    reversal), the Rayleigh law of weak-field piezo and ferro hysteresis. The fit then sets
+    ``alpha`` and ``b`` by the branches' small cubic term only, and ``b`` is the slope of an
+    anhysteretic line the data never approach -- on real stacks many times the stage's own
+    sensitivity. The sizes the data show are ``u`` and the product ``alpha (b - u)``.
+
+    Parameters
+    ----------
+    public
+        The baseline's ``alpha_per_v``, ``b_um_per_v``, ``u_um_per_v``.
+    span_v
+        The voltage span of the data.
+    """
+    alpha, b, u = public["alpha_per_v"], public["b_um_per_v"], public["u_um_per_v"]
+    reach = alpha * span_v
+    if not (span_v > 0 and reach < RAYLEIGH_LIMIT):
+        return None
+    return (
+        f"baseline: alpha x the voltage span = {reach:.2g} (far below 1): the ODE's branches are "
+        f"parabolic over the whole record (its Rayleigh limit), so alpha = {alpha:.3g} 1/V and "
+        f"b = {b:.4g} um/V are not sizes of the stage (b is the slope of an anhysteretic line the "
+        f"branches never approach); the data determine the slope after a reversal, u = {u:.4g} um/V, "
+        f"and the branches' curvature, alpha (b - u) = {alpha * (b - u):.3g} um/V^2"
+    )
