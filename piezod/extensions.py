@@ -440,6 +440,149 @@ def probe_parts(
     return out, notes
 
 
+#: Quadratic steps of the joint profile of the runtime parts (:func:`refine_jointly`).
+JOINT_ITERATIONS = 3
+#: The joint profile's design step, as a fraction of each coordinate (at least its floor below).
+JOINT_STEP_FRACTION = 0.25
+#: Floor of the design step per part, in the probe's coordinate (polarity %, saturation's
+#: ``(x_max / x_sat)^2``; the others in their primary parameter's unit, as a fraction of the
+#: physical bound's magnitude).
+JOINT_STEP_FLOOR = {"polarity": 0.5, "saturation": 0.005}
+JOINT_STEP_FLOOR_OF_BOUND = 0.01
+#: The joint profile stops after a step that lowers the training RMS by less than this fraction.
+JOINT_MIN_GAIN = 0.01
+#: The quadratic's vertex is taken at most this many design steps from the centre.
+JOINT_TRUST_STEPS = 4.0
+
+
+def refine_jointly(
+    effects: Mapping[str, Mapping[str, float]],
+    train_rms: Callable[[dict[str, dict[str, float]]], float],
+    experiments: Sequence[Experiment],
+    model: str = "the refitted model",
+) -> tuple[dict[str, dict[str, float]], list[str]]:
+    """Profile the runtime parts' primary parameters together on a refitted model's training RMS.
+
+    :func:`refine_parts` searches one part at a time, each with the others held, and a part the
+    probe adds later (:func:`probe_parts`) is searched with the earlier ones fixed where they
+    ended without it. Parts that act alike over the frame trade: on a held-out flexure stage
+    (-3 % depoling below 0 V, ``x_sat`` 500 um) the saturation profiled alone went to 346 um, the
+    polarity probed beside it to -1.5 %, and the member refitted there left 22.8 nm in training
+    where the stage's own values leave 13.0 nm; the scans corrected with it were 0.13 % short on
+    small ranges and 0.12 % long on large ones (docs/model-family.md 6.2v). So with two parts or
+    more the mean square training RMS is modelled as a full quadratic in the parts' coordinates
+    (saturation in ``(x_max / x_sat)^2``, the probe's axis; the others in their primary
+    parameter) from the fewest points that determine it (the centre, a step either way along
+    each coordinate, a step along both of every pair) and the fit at its vertex, kept within
+    :data:`JOINT_TRUST_STEPS` steps and the registry's physical bounds, is taken when it is the
+    best point so far; :data:`JOINT_ITERATIONS` such steps at most, each from the best point, until
+    one lowers the training RMS by less than :data:`JOINT_MIN_GAIN`.
+
+    Returns
+    -------
+    effects, notes
+        The effects with the jointly profiled values, and one line per changed part.
+    """
+    from piezod.model.registry import spec
+
+    out = {k: dict(v) for k, v in effects.items()}
+    parts = [e for e in out if e in PART_EFFECTS and float(out[e][PART_EFFECTS[e][0]]) not in (0.0, math.inf)]
+    if len(parts) < 2:
+        return out, []
+    x_max = 0.0
+    if "saturation" in parts:
+        finite = [
+            p[np.isfinite(p)] for p in (np.asarray(e.position_um, dtype=np.float64) for e in experiments)
+        ]
+        x_max = max((float(np.max(np.abs(p))) for p in finite if p.size), default=0.0)
+        if not x_max > 0.0:
+            parts.remove("saturation")
+            if len(parts) < 2:
+                return out, []
+    names = [PART_EFFECTS[e][0] for e in parts]
+
+    def coord(effect: str, value: float) -> float:
+        return (x_max / value) ** 2 if effect == "saturation" else value
+
+    def value_of(effect: str, q: float) -> float:
+        return x_max / math.sqrt(q) if effect == "saturation" else q
+
+    bounds = []
+    floors = []
+    for effect, name in zip(parts, names, strict=True):
+        lo, hi = spec(effect).param(name).physical
+        if effect == "saturation":
+            bounds.append(((x_max / hi) ** 2, min(0.5, (x_max / lo) ** 2)))
+        else:
+            bounds.append((lo, hi))
+        floors.append(JOINT_STEP_FLOOR.get(effect, JOINT_STEP_FLOOR_OF_BOUND * max(abs(lo), abs(hi))))
+    lo_b = np.array([b[0] for b in bounds])
+    hi_b = np.array([b[1] for b in bounds])
+
+    def ms(q: np.ndarray) -> float:
+        trial = {k: dict(v) for k, v in out.items()}
+        for effect, name, qi in zip(parts, names, q, strict=True):
+            trial[effect][name] = float(value_of(effect, float(qi)))
+        r = train_rms(trial)
+        return r * r if math.isfinite(r) else math.inf
+
+    start = np.array([coord(e, float(out[e][n])) for e, n in zip(parts, names, strict=True)])
+    best_q, best = start, ms(start)
+    first = best
+    n = len(parts)
+    for _ in range(JOINT_ITERATIONS):
+        h = np.maximum(JOINT_STEP_FRACTION * np.abs(best_q), floors)
+        pts = [best_q]
+        for i in range(n):
+            for sgn in (1.0, -1.0):
+                pts.append(best_q + sgn * h[i] * np.eye(n)[i])
+        for i in range(n):
+            for j in range(i + 1, n):
+                pts.append(best_q + h[i] * np.eye(n)[i] + h[j] * np.eye(n)[j])
+        pts = [np.clip(p, lo_b, hi_b) for p in pts]
+        vals = [best if np.array_equal(p, best_q) else ms(p) for p in pts]
+        ok = [k for k, v in enumerate(vals) if math.isfinite(v)]
+        d = np.array([(pts[k] - best_q) / h for k in ok])
+        iu = np.triu_indices(n)
+        design = np.column_stack(
+            [np.ones(len(ok)), d, *(d[:, a] * d[:, b] for a, b in zip(*iu, strict=True))]
+        )
+        k_best = min(ok, key=lambda k: vals[k])
+        step_best, val_best = pts[k_best], vals[k_best]
+        if len(ok) >= design.shape[1]:
+            coef = np.linalg.lstsq(design, np.array([vals[k] for k in ok]), rcond=None)[0]
+            g = coef[1 : 1 + n]
+            hess = np.zeros((n, n))
+            for c, a, b in zip(coef[1 + n :], *iu, strict=True):
+                hess[a, b] += c if a != b else 2.0 * c
+                if a != b:
+                    hess[b, a] += c
+            if np.all(np.linalg.eigvalsh(hess) > 0.0):
+                z = np.clip(-np.linalg.solve(hess, g), -JOINT_TRUST_STEPS, JOINT_TRUST_STEPS)
+                vertex = np.clip(best_q + z * h, lo_b, hi_b)
+                v = ms(vertex)
+                if v < val_best:
+                    step_best, val_best = vertex, v
+        if not val_best < best:
+            break
+        gained = val_best < best * (1.0 - JOINT_MIN_GAIN) ** 2
+        best_q, best = step_best, val_best
+        if not gained:
+            break
+    if not best < first:
+        return out, []
+    notes = []
+    for effect, name, qi in zip(parts, names, best_q, strict=True):
+        old = float(out[effect][name])
+        out[effect][name] = float(value_of(effect, float(qi)))
+        notes.append(
+            f"{effect}: {name} {old:.6g} -> {out[effect][name]:.6g} (profiled jointly with "
+            f"{', '.join(e for e in parts if e != effect)}; training RMS of {model} "
+            f"{math.sqrt(first) * 1e3:.2f} -> {math.sqrt(best) * 1e3:.2f} nm)"
+        )
+    return out, notes
+
+
 #: Bounds of the sensor-path lag profile, as factors on the audit's values (:func:`refine_sensor_lag`).
 SENSOR_LAG_FACTORS = (0.2, 1.6)
 #: Evaluations of the sensor-path lag profile.

@@ -986,7 +986,9 @@ def refine_adoption(
     runtime part's primary parameter (:func:`piezod.extensions.refine_parts`) are searched for the
     smallest *training* RMS of the chosen family member refitted on the frame seen through them;
     the held-out experiments stay out of it. The static parts the audit did not name are probed
-    the same way (:func:`piezod.extensions.probe_parts`) and those added are refined. For the
+    the same way (:func:`piezod.extensions.probe_parts`) and those added are refined; then the
+    parts are profiled together (:func:`piezod.extensions.refine_jointly`: parts that act alike
+    trade, and one searched at a time with the others held stops short). For the
     sensor path the member is fitted without a drive lag of its own, which would otherwise take
     any part of the lag the sensor path leaves.
     Then a runtime part the member's held-out RMS does not need is left out
@@ -1005,7 +1007,14 @@ def refine_adoption(
     import json
 
     from piezod import calibrate_family as cf
-    from piezod.extensions import experiments_through, probe_parts, prune_parts, refine_findings, refine_parts
+    from piezod.extensions import (
+        experiments_through,
+        probe_parts,
+        prune_parts,
+        refine_findings,
+        refine_jointly,
+        refine_parts,
+    )
 
     member = cf.parse_member(chosen)
     if member is None:
@@ -1051,6 +1060,8 @@ def refine_adoption(
         added = [e for e in probed if e not in effects]
         effects, refined_notes = refine_parts(probed, train_rms, fitted, only=added)
         notes += probe_notes + refined_notes
+    effects, joint_notes = refine_jointly(effects, train_rms, experiments, model=fitted)
+    notes += joint_notes
     kept, left_out = prune_parts(effects, lambda trial: fit(trial)[1], model=fitted)
     if not notes and not left_out:
         return adoption, []
