@@ -219,6 +219,36 @@ def test_static_parts_the_audit_did_not_name_are_probed() -> None:
     assert probe_parts({}, flat, _frame(-20.0, 130.0, 100.0)) == ({}, [])
 
 
+def test_parts_that_trade_are_profiled_together() -> None:
+    """Polarity and saturation in a valley (each one's optimum moves with the other): one at a time
+    from (-1.5 %, 346 um) stops short; the joint quadratic step reaches (-3 %, 500 um), keeps the
+    parts outside its coordinates and the sensor path as they are, and leaves one part alone."""
+    from piezod.extensions import refine_jointly, refine_parts
+
+    calls: list[dict[str, dict[str, float]]] = []
+
+    def rms(fx: dict[str, dict[str, float]]) -> float:
+        calls.append(fx)
+        p = fx["polarity"]["negative_sensitivity_pct"]
+        q = (100.0 / fx["saturation"]["x_sat_um"]) ** 2
+        a, b = p + 3.0, 100.0 * (q - 0.04)
+        return math.sqrt(1e-6 + 1e-6 * ((a - b) ** 2 + 0.02 * (a + b) ** 2))
+
+    lag = {"delay": {"delay_s": 1e-4, "lag_time_constant_s": 1e-4}}
+    start = {**lag, "polarity": {"negative_sensitivity_pct": -1.5}, "saturation": {"x_sat_um": 346.0}}
+    alone, _ = refine_parts(start, rms)
+    assert abs(alone["polarity"]["negative_sensitivity_pct"] + 3.0) > 0.3
+    out, notes = refine_jointly(start, rms, _frame(-20.0, 130.0, 100.0), model="M")
+    assert math.isclose(out["polarity"]["negative_sensitivity_pct"], -3.0, abs_tol=0.05), notes
+    assert math.isclose(out["saturation"]["x_sat_um"], 500.0, rel_tol=0.01), notes
+    assert out["delay"] == lag["delay"]
+    assert [n.split(":")[0] for n in notes] == ["polarity", "saturation"]
+    assert "profiled jointly with saturation; training RMS of M" in notes[0]
+    assert len(calls) < 60
+    one = {"polarity": {"negative_sensitivity_pct": -1.5}}
+    assert refine_jointly(one, rms, _frame(-20.0, 130.0, 100.0)) == (one, [])
+
+
 def test_parts_the_held_out_rms_does_not_need_are_left_out() -> None:
     """Backward elimination on the held-out RMS: a part that lowers it by less than the tie
     fraction goes, one that lowers it more stays; the sensor path is not judged here."""
