@@ -360,20 +360,31 @@ def _probe_axis(effect: str, experiments: Sequence[Experiment]) -> _ProbeAxis | 
         step = PROBE_POLARITY_STEP_PCT
         return _ProbeAxis(float, (-step, step), (max(lo, -3.0 * step), min(hi, 3.0 * step)))
     if effect == "saturation":
-        finite = [
-            p[np.isfinite(p)] for p in (np.asarray(e.position_um, dtype=np.float64) for e in experiments)
-        ]
-        x_max = max((float(np.max(np.abs(p))) for p in finite if p.size), default=0.0)
+        x_max = _largest_position(experiments)
         if not x_max > 0.0:
             return None
         step = PROBE_SATURATION_STEP
-        # the inverse (atanh) needs every position well inside x_sat: x_sat >= 1.4 x_max
-        q_hi = min(0.5, (x_max / lo) ** 2)
-        q_lo = (x_max / hi) ** 2
+        q_lo, q_hi = _saturation_domain(x_max)
         if q_hi <= q_lo:
             return None
         return _ProbeAxis(lambda q: x_max / math.sqrt(q), (step, 2.0 * step), (q_lo, q_hi))
     return None
+
+
+def _largest_position(experiments: Sequence[Experiment]) -> float:
+    """The frame's largest |position| (um; 0 without finite readings): the scale of a saturation's
+    coordinate ``(x_max / x_sat)^2``."""
+    finite = [p[np.isfinite(p)] for p in (np.asarray(e.position_um, dtype=np.float64) for e in experiments)]
+    return max((float(np.max(np.abs(p))) for p in finite if p.size), default=0.0)
+
+
+def _saturation_domain(x_max: float) -> tuple[float, float]:
+    """The range of ``(x_max / x_sat)^2`` inside the registry's physical bounds, where the inverse
+    (``atanh``) keeps every position well inside ``x_sat`` (``x_sat >= 1.4 x_max``)."""
+    from piezod.model.registry import spec
+
+    lo, hi = spec("saturation").primary.physical
+    return (x_max / hi) ** 2, min(0.5, (x_max / lo) ** 2)
 
 
 def probe_parts(
@@ -489,16 +500,11 @@ def refine_jointly(
     parts = [e for e in out if e in PART_EFFECTS and float(out[e][PART_EFFECTS[e][0]]) not in (0.0, math.inf)]
     if len(parts) < 2:
         return out, []
-    x_max = 0.0
-    if "saturation" in parts:
-        finite = [
-            p[np.isfinite(p)] for p in (np.asarray(e.position_um, dtype=np.float64) for e in experiments)
-        ]
-        x_max = max((float(np.max(np.abs(p))) for p in finite if p.size), default=0.0)
-        if not x_max > 0.0:
-            parts.remove("saturation")
-            if len(parts) < 2:
-                return out, []
+    x_max = _largest_position(experiments) if "saturation" in parts else 0.0
+    if "saturation" in parts and not x_max > 0.0:
+        parts.remove("saturation")
+        if len(parts) < 2:
+            return out, []
     names = [PART_EFFECTS[e][0] for e in parts]
 
     def coord(effect: str, value: float) -> float:
@@ -511,10 +517,7 @@ def refine_jointly(
     floors = []
     for effect, name in zip(parts, names, strict=True):
         lo, hi = spec(effect).param(name).physical
-        if effect == "saturation":
-            bounds.append(((x_max / hi) ** 2, min(0.5, (x_max / lo) ** 2)))
-        else:
-            bounds.append((lo, hi))
+        bounds.append(_saturation_domain(x_max) if effect == "saturation" else (lo, hi))
         floors.append(JOINT_STEP_FLOOR.get(effect, JOINT_STEP_FLOOR_OF_BOUND * max(abs(lo), abs(hi))))
     lo_b = np.array([b[0] for b in bounds])
     hi_b = np.array([b[1] for b in bounds])
