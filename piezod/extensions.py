@@ -533,39 +533,23 @@ def refine_jointly(
     best_q, best = start, ms(start)
     first = best
     n = len(parts)
+    eye = np.eye(n)
+    # the centre, a step either way along each coordinate, a step along both of every pair
+    offsets = [np.zeros(n), *(sgn * eye[i] for i in range(n) for sgn in (1.0, -1.0))]
+    offsets += [eye[i] + eye[j] for i in range(n) for j in range(i + 1, n)]
     for _ in range(JOINT_ITERATIONS):
         h = np.maximum(JOINT_STEP_FRACTION * np.abs(best_q), floors)
-        pts = [best_q]
-        for i in range(n):
-            for sgn in (1.0, -1.0):
-                pts.append(best_q + sgn * h[i] * np.eye(n)[i])
-        for i in range(n):
-            for j in range(i + 1, n):
-                pts.append(best_q + h[i] * np.eye(n)[i] + h[j] * np.eye(n)[j])
-        pts = [np.clip(p, lo_b, hi_b) for p in pts]
+        pts = [np.clip(best_q + o * h, lo_b, hi_b) for o in offsets]
         vals = [best if np.array_equal(p, best_q) else ms(p) for p in pts]
         ok = [k for k, v in enumerate(vals) if math.isfinite(v)]
-        d = np.array([(pts[k] - best_q) / h for k in ok])
-        iu = np.triu_indices(n)
-        design = np.column_stack(
-            [np.ones(len(ok)), d, *(d[:, a] * d[:, b] for a, b in zip(*iu, strict=True))]
-        )
         k_best = min(ok, key=lambda k: vals[k])
         step_best, val_best = pts[k_best], vals[k_best]
-        if len(ok) >= design.shape[1]:
-            coef = np.linalg.lstsq(design, np.array([vals[k] for k in ok]), rcond=None)[0]
-            g = coef[1 : 1 + n]
-            hess = np.zeros((n, n))
-            for c, a, b in zip(coef[1 + n :], *iu, strict=True):
-                hess[a, b] += c if a != b else 2.0 * c
-                if a != b:
-                    hess[b, a] += c
-            if np.all(np.linalg.eigvalsh(hess) > 0.0):
-                z = np.clip(-np.linalg.solve(hess, g), -JOINT_TRUST_STEPS, JOINT_TRUST_STEPS)
-                vertex = np.clip(best_q + z * h, lo_b, hi_b)
-                v = ms(vertex)
-                if v < val_best:
-                    step_best, val_best = vertex, v
+        z = _quadratic_vertex(np.array([(pts[k] - best_q) / h for k in ok]), np.array([vals[k] for k in ok]))
+        if z is not None:
+            vertex = np.clip(best_q + np.clip(z, -JOINT_TRUST_STEPS, JOINT_TRUST_STEPS) * h, lo_b, hi_b)
+            v = ms(vertex)
+            if v < val_best:
+                step_best, val_best = vertex, v
         if not val_best < best:
             break
         gained = val_best < best * (1.0 - JOINT_MIN_GAIN) ** 2
@@ -584,6 +568,24 @@ def refine_jointly(
             f"{math.sqrt(first) * 1e3:.2f} -> {math.sqrt(best) * 1e3:.2f} nm)"
         )
     return out, notes
+
+
+def _quadratic_vertex(d: np.ndarray, values: np.ndarray) -> np.ndarray | None:
+    """The vertex of the full quadratic through ``values`` at the points ``d`` (rows), or None when
+    the points do not determine it or it has no minimum."""
+    n = d.shape[1]
+    iu = np.triu_indices(n)
+    design = np.column_stack([np.ones(len(d)), d, *(d[:, a] * d[:, b] for a, b in zip(*iu, strict=True))])
+    if len(d) < design.shape[1]:
+        return None
+    coef = np.linalg.lstsq(design, values, rcond=None)[0]
+    upper = np.zeros((n, n))
+    upper[iu] = coef[1 + n :]
+    hess = upper + upper.T  # 2 c_aa on the diagonal, c_ab off it
+    if not np.all(np.linalg.eigvalsh(hess) > 0.0):
+        return None
+    vertex: np.ndarray = -np.linalg.solve(hess, coef[1 : 1 + n])
+    return vertex
 
 
 #: Bounds of the sensor-path lag profile, as factors on the audit's values (:func:`refine_sensor_lag`).

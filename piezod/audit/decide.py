@@ -460,8 +460,7 @@ def run_audit(
     degeneracy = check_degeneracy(base_fit, geo, rows)
     if isinstance(base_fit.model.base, OdeBase):
         rayleigh = rayleigh_note(
-            base_fit.model.base.public(base_fit.p[: base_fit.model.n_base]),
-            float(np.max(geo.v_max) - np.min(geo.v_min)),
+            base_fit.model.public(base_fit.p)[0], float(np.max(geo.v_max) - np.min(geo.v_min))
         )
         if rayleigh:
             notes.append(rayleigh)
