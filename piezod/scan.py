@@ -391,28 +391,70 @@ def move_profile(
 
 
 def slew_limit(
-    values: NDArray[np.float64], previous: float, max_step: float
+    values: NDArray[np.float64], previous: float, max_step: float, *, centred: bool = False
 ) -> tuple[NDArray[np.float64], int]:
     """Limit sample-to-sample steps to ``max_step`` (a last line of defence, not a trajectory).
 
-    Returns the limited samples and how many samples were changed. Sequential by
-    nature, so it walks the samples only when some step violates the limit
-    (a fault path; trajectories are slew-limited by construction).
+    Parameters
+    ----------
+    values
+        The samples of one block.
+    previous
+        The last sample sent before the block.
+    max_step
+        Largest step between two samples.
+    centred
+        Spread a step the limit cuts over the samples on both sides of it, not only after it:
+        the mean of the block limited forwards (the ramp starts at the step) and backwards (the
+        ramp ends there), limited forwards once more from ``previous``. The mean of two
+        sequences within the limit is within it; for an isolated step the ramp is centred on the
+        step. Only inside the block: a step at its first sample is limited forwards.
+
+    Returns
+    -------
+    samples, changed
+        The limited samples (each between the block's values and ``previous``) and how many of
+        them differ from ``values``.
+
+    Notes
+    -----
+    Sequential by nature, so it walks the samples only when some step violates the limit
+    (trajectories are slew-limited by construction; a model's inverse may ask for more at a
+    scan's turning points, docs/model-family.md 6.2w).
     """
     v = np.asarray(values, dtype=np.float64)
     d = np.diff(v, prepend=previous)
     if not np.any(np.abs(d) > max_step * (1 + 1e-9)):
         return v, 0
-    out = v.copy()
-    prev = previous
-    changed = 0
-    for i in range(out.size):
-        step = out[i] - prev
-        if step > max_step:
-            out[i] = prev + max_step
-            changed += 1
-        elif step < -max_step:
-            out[i] = prev - max_step
-            changed += 1
-        prev = out[i]
-    return out, changed
+    if centred:
+        both = 0.5 * (_limited_forwards(v, previous, max_step) + _limited_backwards(v, max_step))
+        out = _limited_forwards(both, previous, max_step)
+    else:
+        out = _limited_forwards(v, previous, max_step)
+    return out, int(np.count_nonzero(out != v))
+
+
+def _limited_forwards(v: NDArray[np.float64], previous: float, max_step: float) -> NDArray[np.float64]:
+    """``v`` limited sample by sample from ``previous``, walking only from each step the limit
+    cuts until the samples are their own again (the steps in between are within the limit)."""
+    src = v.tolist()
+    out = list(src)
+    bad = np.flatnonzero(np.abs(np.diff(v, prepend=previous)) > max_step)
+    n = len(src)
+    k = 0
+    while k < bad.size:
+        i = int(bad[k])
+        prev = previous if i == 0 else out[i - 1]
+        while i < n:
+            prev = min(max(src[i], prev - max_step), prev + max_step)
+            out[i] = prev
+            i += 1
+            if prev == src[i - 1] and i > bad[k]:
+                break
+        k = int(np.searchsorted(bad, i))
+    return np.asarray(out, dtype=np.float64)
+
+
+def _limited_backwards(v: NDArray[np.float64], max_step: float) -> NDArray[np.float64]:
+    """``v`` limited from its last sample backwards (each ramp ends where the step was)."""
+    return _limited_forwards(v[::-1], float(v[-1]), max_step)[::-1]

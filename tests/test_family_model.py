@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -22,7 +24,7 @@ from piezod.model.family import (
 )
 from piezod.model.params import HysteresisParams
 from piezod.model.play import PlayParams, play_forward, play_inverse, play_rest_state
-from piezod.service.axes import AxisDriver
+from piezod.service.axes import AxisDriver, AxisOutput
 
 W = np.exp(-np.arange(16) / 6.0)
 PI = PlayParams.uniform(0.11, 0.45, 320.0, 16, 0.55 * W / W.sum())
@@ -231,3 +233,51 @@ def test_the_planner_places_a_scan_by_the_model_in_use() -> None:
     assert float(volts.max()) == pytest.approx(plan.v_max, abs=0.5)
     with pytest.raises(RangeUnreachableError, match="largest reachable"):
         d.plan(16.0, 1.0, centre_um)
+
+
+class _CausalSlew(AxisDriver):
+    """The driver as it was: a step the slew limit cuts is ramped after the step only."""
+
+    def corrected(self, targets_um: np.ndarray) -> AxisOutput:
+        volts, state = self.model.inverse(targets_um, self._dt_s, self._state)
+        return self._finish(volts, state)
+
+
+def test_a_step_the_slew_limit_cuts_is_spread_around_the_turning_point() -> None:
+    """The inverse of a drive lag steps the voltage at every turning point of a fast scan; under
+    the slew limit the ramp is centred on the turning point, and the stage (the model itself
+    here) follows the scan closer there than with the ramp started at the turning point."""
+    section = _pi_section(lag_time_constant_s=5e-4)
+    rate, n = 20_000.0, 500  # a 40 Hz scan
+    phase = (np.arange(4 * n) % n) / n
+    targets = 6.0 * np.where(phase < 0.5, 2 * phase, 2 - 2 * phase) - 3.0
+    blocks = np.array_split(targets, 4)
+
+    def drive(cls: type[AxisDriver], slew: float) -> tuple[np.ndarray, Any]:
+        cfg = AxisConfig(
+            voltage_min_v=-230,
+            voltage_max_v=230,
+            slew_rate_v_per_s=slew,
+            thesis=THESIS,
+            model="family",
+            family=section,
+        )
+        d = cls("x", cfg, rate)
+        start = d.state
+        return np.concatenate([d.corrected(b).voltage_v for b in blocks]), start
+
+    turn = int(1.5 * n)  # a turning point inside a block (the top of the second loop)
+    free = np.abs(np.diff(drive(AxisDriver, 1e9)[0]))[n:]
+    ramp, step = float(np.median(free)), float(free[turn - n - 2 : turn - n + 2].max())
+    assert step > 4 * ramp  # the lag's step at the turning points
+    slew = 2 * ramp * rate
+    (centred, s0), (causal, _) = drive(AxisDriver, slew), drive(_CausalSlew, slew)
+    for v in (centred, causal):
+        assert np.abs(np.diff(v)).max() <= slew / rate * (1 + 1e-9)
+    assert centred[turn - 3] < causal[turn - 3] - 0.1 * step  # moving towards the step before it
+    p = section.params()
+    errs = []
+    for v in (centred, causal):
+        x, _ = family_forward(p, v, 1 / rate, s0)
+        errs.append(float(np.abs(x - targets)[turn - 20 : turn + 40].max()))
+    assert errs[0] < 0.7 * errs[1]

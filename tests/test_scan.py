@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from piezod.errors import SafetyError
@@ -106,6 +106,35 @@ def test_slew_limit_clamps_only_when_needed() -> None:
     assert changed == 0 and np.array_equal(out, v)
     out, changed = slew_limit(np.array([0.0, 3.0, 3.0]), 0.0, 1.0)
     assert changed == 2 and np.array_equal(out, [0.0, 1.0, 2.0])
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.floats(-50, 50), min_size=1, max_size=60),
+    st.floats(-50, 50),
+    st.floats(0.05, 5.0),
+    st.booleans(),
+)
+def test_slew_limited_samples_keep_the_limit_and_stay_between_the_values(
+    values: list[float], previous: float, step: float, centred: bool
+) -> None:
+    v = np.asarray(values)
+    out, changed = slew_limit(v, previous, step, centred=centred)
+    assert np.all(np.abs(np.diff(out, prepend=previous)) <= step * (1 + 1e-9))
+    lo, hi = min(v.min(), previous), max(v.max(), previous)
+    assert np.all((out >= lo - 1e-12) & (out <= hi + 1e-12))
+    assert changed == np.count_nonzero(out != v)
+    if not np.any(np.abs(np.diff(v, prepend=previous)) > step * (1 + 1e-9)):
+        assert changed == 0
+
+
+def test_a_centred_slew_limit_ramps_around_the_step() -> None:
+    v = np.r_[np.zeros(10), np.full(10, 5.0)]
+    out, _ = slew_limit(v, 0.0, 1.0, centred=True)
+    moving = np.flatnonzero((out > 0) & (out < 5))
+    # as many samples of the ramp before the step (index 10) as after it
+    assert moving.min() < 10 and 10 - moving.min() == moving.max() - 9
+    assert np.sum(out - v) == pytest.approx(0.0)
 
 
 def test_non_integer_samples_per_line_terminate() -> None:

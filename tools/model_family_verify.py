@@ -17,7 +17,8 @@ this process instead of behind the pty, so a loaded machine cannot spoil the run
 3. the verification points of :func:`piezod.stagecal.verification_points` (inside the frame;
    10x slower, 10x faster, offsets beyond it), each driven through
    :class:`piezod.service.axes.AxisDriver` with the chosen model and with the dynamic model
-   (one unrecorded warm-up loop, then 4 recorded loops; the stage keeps its whole history),
+   in the daemon's blocks and under the axis's slew limit (one unrecorded warm-up loop, then 4
+   recorded loops; the stage keeps its whole history),
    scored by :func:`piezod.linearity.experiment_linearity`.
 
 The board's ADC is not modelled: the readback here is not clipped at the sensor's range, as the
@@ -258,9 +259,13 @@ def main() -> int:
     for pt in points:
         if pt.note:
             print(f"verification point '{pt.why}': {pt.note}")
+    # the daemon's block (engine.py): the slew limit spreads a step only inside one block
+    block = max(1, round(rate * calibrated.service.block_ms / 1000.0))
     kinds = [chosen_kind] + (["dynamic"] if chosen_kind != "dynamic" and not args.skip_dynamic else [])
     for kind in kinds:
-        cfg = calibrated.axes[axis].model_copy(update={"model": kind, "slew_rate_v_per_s": 1e6})
+        # the amplifier's slew limit as the daemon applies it: a fast point's turning points may
+        # ask for more (docs/model-family.md 6.2w)
+        cfg = calibrated.axes[axis].model_copy(update={"model": kind})
         driver = AxisDriver(axis, cfg, rate)
         # scored where the stage is, as piezod calibrate scores it: a readback lag the model puts
         # in the sensor path is not a position error
@@ -288,10 +293,11 @@ def main() -> int:
             scan = lo + pt.range_um * np.where(phase < 0.5, 2 * phase, 2 - 2 * phase)
             target = np.concatenate([move, scan])
             volts = []
-            faults = 0
-            for i in range(0, target.size, 4096):
-                out = driver.corrected(target[i : i + 4096])
+            faults = slewed = 0
+            for i in range(0, target.size, block):
+                out = driver.corrected(target[i : i + block])
                 faults += out.clamped
+                slewed += out.slew_limited
                 volts.append(out.voltage_v)
             v = np.concatenate(volts)
             t, x = bench.play(v)
@@ -313,6 +319,7 @@ def main() -> int:
                     "nonlinearity_pct": float(lin.nonlinearity_pct),
                     "length_error_pct": float(lin.length_error_pct),
                     "clamped": faults,
+                    "slew_limited": slewed,
                     "placement": pt.note,
                 }
             )
@@ -320,7 +327,9 @@ def main() -> int:
             print(
                 f"{kind:<8} {pt.why:<34} {pt.range_um:6.1f} um {pt.frequency_hz:7.3f} Hz "
                 f"offset {pt.offset_um:+6.2f} um: nonlinearity {r['nonlinearity_pct']:.3f} %, "
-                f"length error {r['length_error_pct']:+.3f} %" + (f" ({faults} clamped)" if faults else "")
+                f"length error {r['length_error_pct']:+.3f} %"
+                + (f" ({faults} clamped)" if faults else "")
+                + (f" ({slewed} samples slew-limited)" if slewed else "")
             )
     summary: dict[str, dict[str, float]] = {}
     for kind in kinds:

@@ -267,7 +267,9 @@ class AxisDriver:
     def corrected(self, targets_um: NDArray[np.float64]) -> AxisOutput:
         """Voltages that bring the modelled stage to ``targets_um`` (um), sample by sample."""
         volts, state = self.model.inverse(targets_um, self._dt_s, self._state)
-        return self._finish(volts, state)
+        # the inverse of a drive lag asks for a step at every turning point; cut to the slew
+        # limit after the step alone, the ramp rounds each turning point late and the scan reads long
+        return self._finish(volts, state, centred=True)
 
     def linear(self, targets_um: NDArray[np.float64], plan: PeriodicPlan) -> AxisOutput:
         """The uncorrected drive: voltage linear in the target over the plan's voltage range."""
@@ -299,14 +301,16 @@ class AxisDriver:
         volts = start + (voltage_v - start) * np.arange(1, n + 1) / n
         return self._finish(volts).voltage_v
 
-    def _finish(self, volts: NDArray[np.float64], state_after: Any = None) -> AxisOutput:
+    def _finish(
+        self, volts: NDArray[np.float64], state_after: Any = None, *, centred: bool = False
+    ) -> AxisOutput:
         lo, hi = self.limits
         last = self.voltage_v
         bad = (volts < lo) | (volts > hi) | ~np.isfinite(volts)
         clamped = int(np.count_nonzero(bad))
         if clamped:
             volts = np.clip(np.nan_to_num(volts, nan=last), lo, hi)
-        volts, slewed = slew_limit(volts, last, self.max_step_v)
+        volts, slewed = slew_limit(volts, last, self.max_step_v, centred=centred)
         if state_after is None or clamped or slewed:
             _, state_after = self.model.forward(volts, self._dt_s, self._state)
         self._state = state_after
