@@ -844,7 +844,7 @@ def _bw_unpack(z: F64) -> tuple[tuple[float, float, float, float], float]:
 
 
 def _fit_bouc_wen(
-    s: _Session, lam: float, voltage: bool
+    s: _Session, lam: float, voltage: bool, start: BoucWenParams | None = None
 ) -> tuple[F64, F64, float, float, int, BoucWenParams, int]:
     """The Bouc-Wen (Duhem) law by variable projection.
 
@@ -862,6 +862,9 @@ def _fit_bouc_wen(
     on the residual vector; then the full alternation and joint refinement at the best rates.
     ``c`` is then limited so the slope after a reversal stays >=
     :data:`~piezod.model.boucwen.MIN_SLOPE_FRACTION` of ``b``.
+
+    With ``start`` (a law fitted on nearly the same data) the profile is skipped: the polish
+    starts from its rates at its exponent (unless the start is rejected here).
 
     The rates are searched in :func:`_bw_rate_bounds` (scaled up on a session spanning less than
     :data:`BW_SPAN_REF_V`). A candidate whose linear fit is not finite or is one that limit would
@@ -916,9 +919,27 @@ def _fit_bouc_wen(
         return float(np.sqrt(np.mean(r * r)))
 
     lo, hi = (math.log(b) for b in _bw_rate_bounds(data))
+    amp_lo, amp_hi = (math.log(b) for b in BW_AMP_BOUNDS)
+    lower = np.array([lo, lo, BW_RATIO_BOUNDS[0], BW_RATIO_BOUNDS[0], amp_lo])
+    upper = np.array([hi, hi, BW_RATIO_BOUNDS[1], BW_RATIO_BOUNDS[1], amp_hi])
     best_z, best, best_n = np.zeros(5), math.inf, 1.0
     last = math.inf
-    for exponent in BW_EXPONENTS:
+    if start is not None:
+        exponent = best_n = start.exponent
+        best_z = np.array(
+            [
+                math.log(start.k_up_same),
+                math.log(start.k_down_same),
+                start.k_up_back / start.k_up_same,
+                start.k_down_back / start.k_down_same,
+                math.log(start.amp_down),
+            ]
+        ).clip(lower, upper)
+        best = cost(best_z)
+    warm = best < float(reject[0])  # else the start is not admissible here: searched as without
+    if not warm:
+        best, best_n = math.inf, 1.0
+    for exponent in () if warm else BW_EXPONENTS:
         here = math.inf
         for rho in BW_PROFILE_RATIOS:
             prof = minimize_scalar(
@@ -940,9 +961,6 @@ def _fit_bouc_wen(
             "fit diverged or needs a slope after a reversal below the limit)"
         )
     exponent = best_n
-    amp_lo, amp_hi = (math.log(b) for b in BW_AMP_BOUNDS)
-    lower = np.array([lo, lo, BW_RATIO_BOUNDS[0], BW_RATIO_BOUNDS[0], amp_lo])
-    upper = np.array([hi, hi, BW_RATIO_BOUNDS[1], BW_RATIO_BOUNDS[1], amp_hi])
     res = least_squares(
         residuals,
         np.clip(best_z, lower, upper),
@@ -979,6 +997,7 @@ def fit_family(
     fit_lag: bool = True,
     fit_stiffness: bool = True,
     fit_creep: bool = True,
+    start: BoucWenParams | None = None,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -1020,6 +1039,12 @@ def fit_family(
         it: :func:`piezod.family_heldout.part_gains`).
     fit_creep
         Fit the creep spectrum; False holds its weights at 0.
+    start
+        Bouc-Wen: a law fitted on nearly the same session (the profiles of the runtime parts
+        refit one member many times through slightly different parts). Its rates start the
+        polish and its exponent is kept; the profile over exponents and ratios is skipped
+        (the same fit to 0.001 nm at a seventh to a fourteenth of the time on fern21's frame,
+        docs/model-family.md 6.2w).
 
     Raises
     ------
@@ -1052,7 +1077,7 @@ def fit_family(
     searched = 0
     try:
         if law == "bouc-wen":
-            theta, w, kappa, tau, it, hyst, searched = _fit_bouc_wen(s, regularisation, voltage)
+            theta, w, kappa, tau, it, hyst, searched = _fit_bouc_wen(s, regularisation, voltage, start)
         elif law == "generalised-play":
             r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
             c = default_nodes(data) if nodes is None else np.asarray(nodes, np.float64)

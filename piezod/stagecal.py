@@ -30,6 +30,7 @@ from piezod.calibrate import calibrate, calibrated_config, result_json
 from piezod.config import AxisName, ScannerConfig
 from piezod.errors import CalibrationError, ModelError, PiezodError
 from piezod.linearity import linearity
+from piezod.model.boucwen import BoucWenParams
 from piezod.model.sensor import SensorPath
 from piezod.model.thesis import scan_range_um
 from piezod.readback import at_full_scale
@@ -1032,6 +1033,9 @@ def refine_adoption(
     plays = min(plays or cf.DEFAULT_PLAYS, cf.DEFAULT_PLAYS)
     fitted = cf.member_name(law, driver, None if plays == cf.DEFAULT_PLAYS else plays)
     fits: dict[str, tuple[float, float]] = {}
+    # the profiles refit the member through slightly different parts: a Bouc-Wen law starts from
+    # the first fit's rates instead of searching them again (the costliest part of its fit)
+    start: list[BoucWenParams] = []
 
     def fit(trial: dict[str, dict[str, float]], fit_lag: bool = True) -> tuple[float, float]:
         key = json.dumps([trial, fit_lag], sort_keys=True)
@@ -1039,8 +1043,18 @@ def refine_adoption(
             data = _frame_session(experiments_through(experiments, trial), ramp_v_per_s, rest_voltage_v)
             train = cf.holdout_mask(data.n_experiments)
             try:
-                f = cf.fit_family(data, law, train=train, plays=plays, creep_driver=driver, fit_lag=fit_lag)
+                f = cf.fit_family(
+                    data,
+                    law,
+                    train=train,
+                    plays=plays,
+                    creep_driver=driver,
+                    fit_lag=fit_lag,
+                    start=start[0] if start else None,
+                )
                 fits[key] = (f.rms_um, f.heldout_rms_um)
+                if not start and isinstance(f.params.hysteresis, BoucWenParams):
+                    start.append(f.params.hysteresis)
             except (CalibrationError, ModelError):
                 fits[key] = (math.inf, math.inf)
         return fits[key]

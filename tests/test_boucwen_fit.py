@@ -69,3 +69,17 @@ def test_choose_model_skips_a_failed_law_and_reports_it() -> None:
     assert len(row) == 1 and "failed" in row[0]
     with pytest.raises(CalibrationError, match="no model to choose"):
         choose_model(data, laws=("bouc-wen",), creep_drivers=("position",))
+
+
+def test_a_fit_started_from_a_law_fitted_on_nearly_the_same_data_finds_it_cheaper() -> None:
+    """The runtime parts' profiles refit one member many times: started from the first fit's law,
+    the Bouc-Wen fit skips its search and lands where the search does."""
+    data = _p885_slice()
+    cold = fit_family(data, "bouc-wen", skip_s=1.0)
+    start = cold.params.hysteresis
+    assert isinstance(start, BoucWenParams)
+    near = _p885_slice(11.0)  # nearly the same data: a second less
+    searched = fit_family(near, "bouc-wen", skip_s=1.0)
+    warm = fit_family(near, "bouc-wen", skip_s=1.0, start=start)
+    assert warm.rms_um <= searched.rms_um * 1.01
+    assert warm.nfev < 0.5 * searched.nfev
