@@ -1035,9 +1035,10 @@ def refine_adoption(
     fits: dict[str, tuple[float, float]] = {}
     # the profiles refit the member through slightly different parts: a Bouc-Wen law starts from
     # the first fit's rates instead of searching them again (the costliest part of its fit)
-    start: list[BoucWenParams] = []
+    first_law: BoucWenParams | None = None
 
     def fit(trial: dict[str, dict[str, float]], fit_lag: bool = True) -> tuple[float, float]:
+        nonlocal first_law
         key = json.dumps([trial, fit_lag], sort_keys=True)
         if key not in fits:
             data = _frame_session(experiments_through(experiments, trial), ramp_v_per_s, rest_voltage_v)
@@ -1050,11 +1051,11 @@ def refine_adoption(
                     plays=plays,
                     creep_driver=driver,
                     fit_lag=fit_lag,
-                    start=start[0] if start else None,
+                    start=first_law,
                 )
                 fits[key] = (f.rms_um, f.heldout_rms_um)
-                if not start and isinstance(f.params.hysteresis, BoucWenParams):
-                    start.append(f.params.hysteresis)
+                if first_law is None and isinstance(f.params.hysteresis, BoucWenParams):
+                    first_law = f.params.hysteresis
             except (CalibrationError, ModelError):
                 fits[key] = (math.inf, math.inf)
         return fits[key]
