@@ -843,6 +843,19 @@ def _bw_unpack(z: F64) -> tuple[tuple[float, float, float, float], float]:
     return (k_up, float(z[2]) * k_up, k_down, float(z[3]) * k_down), math.exp(float(z[4]))
 
 
+def _bw_pack(law: BoucWenParams) -> F64:
+    """The search vector of a law's rates (the inverse of :func:`_bw_unpack`)."""
+    return np.array(
+        [
+            math.log(law.k_up_same),
+            math.log(law.k_down_same),
+            law.k_up_back / law.k_up_same,
+            law.k_down_back / law.k_down_same,
+            math.log(law.amp_down),
+        ]
+    )
+
+
 def _fit_bouc_wen(
     s: _Session, lam: float, voltage: bool, start: BoucWenParams | None = None
 ) -> tuple[F64, F64, float, float, int, BoucWenParams, int]:
@@ -926,15 +939,7 @@ def _fit_bouc_wen(
     last = math.inf
     if start is not None:
         exponent = best_n = start.exponent
-        best_z = np.array(
-            [
-                math.log(start.k_up_same),
-                math.log(start.k_down_same),
-                start.k_up_back / start.k_up_same,
-                start.k_down_back / start.k_down_same,
-                math.log(start.amp_down),
-            ]
-        ).clip(lower, upper)
+        best_z = _bw_pack(start).clip(lower, upper)
         best = cost(best_z)
     warm = best < float(reject[0])  # else the start is not admissible here: searched as without
     if not warm:

@@ -343,6 +343,10 @@ class ServiceConfig(StrictModel):
         description="line-to-line scatter of a corrected line's measured length error (%: noise, model)",
     )
 
+    def block_samples(self, rate_hz: float) -> int:
+        """Samples the engine computes per block at a ``rate_hz`` sample clock (at least 1)."""
+        return max(1, round(rate_hz * self.block_ms / 1000.0))
+
 
 class MicroscopeSection(StrictModel):
     """The microscope around the scanner: where the height signal comes from (``piezod image``)."""

@@ -259,8 +259,8 @@ def main() -> int:
     for pt in points:
         if pt.note:
             print(f"verification point '{pt.why}': {pt.note}")
-    # the daemon's block (engine.py): the slew limit spreads a step only inside one block
-    block = max(1, round(rate * calibrated.service.block_ms / 1000.0))
+    # the daemon's block: the slew limit spreads a step only inside one block
+    block = calibrated.service.block_samples(rate)
     kinds = [chosen_kind] + (["dynamic"] if chosen_kind != "dynamic" and not args.skip_dynamic else [])
     for kind in kinds:
         # the amplifier's slew limit as the daemon applies it: a fast point's turning points may

@@ -238,7 +238,7 @@ class Engine:
         if capped < lead:
             log.info("lead %.0f ms capped at %.0f ms by the board FIFO", 1e3 * lead, 1e3 * capped)
         lead = capped
-        block = max(1, round(self.rate_hz * self.config.service.block_ms / 1000.0))
+        block = self.config.service.block_samples(self.rate_hz)
         with self._lock:
             self._job = HoldJob("idle")
             self._queue.clear()

@@ -95,7 +95,7 @@ def check_scan_start(
     job = ScanJob(cast("Engine", shadow), request, trajectory.restarted(), plans)
     lines_s = (SETTLE_LINES + 2 + 1) / max(request.line_rate_hz, 1e-9)
     budget = min(int(engine.rate_hz * lines_s) + 1, MAX_CHECK_SAMPLES)
-    block = max(1, round(engine.rate_hz * engine.config.service.block_ms / 1000.0))
+    block = engine.config.service.block_samples(engine.rate_hz)
     total = rendered = 0
     while not job.done and (job._move is not None or rendered < budget) and total < MAX_CHECK_SAMPLES:
         in_move = job._move is not None
