@@ -33,6 +33,7 @@ from piezod.model.gplay import GeneralisedPlayParams
 from piezod.model.params import HysteresisParams, ThesisParams
 from piezod.model.parts import Parts, part_effects
 from piezod.model.play import PlayParams
+from piezod.model.resonance import ResonancePart
 from piezod.model.sensor import SensorPath
 
 AxisName = Literal["x", "y", "z"]
@@ -195,7 +196,7 @@ class FamilyModelConfig(StrictModel):
         )
 
 
-PartEffect = Literal["polarity", "thermal", "stiffness", "saturation", "drift", "delay"]
+PartEffect = Literal["polarity", "thermal", "stiffness", "saturation", "drift", "delay", "resonance"]
 
 
 class AxisConfig(StrictModel):
@@ -220,7 +221,8 @@ class AxisConfig(StrictModel):
         description="runtime parts around the model (the audit's findings, piezod.model.parts): "
         "{effect id: {parameter: value}} with the names of piezod.model.registry; delay is the "
         "sensor path (the readback's delay and lag, piezod.model.sensor): the analysis aligns the "
-        "readback with it, the drive is unchanged",
+        "readback with it, the drive is unchanged; resonance shapes the targets ahead so the mode does not "
+        "ring (piezod.model.resonance)",
     )
     sensor_full_scale_um: float | None = Field(
         default=None,
@@ -247,11 +249,16 @@ class AxisConfig(StrictModel):
         """The sensor path of :attr:`extensions` (identity when none)."""
         return SensorPath.from_effects({str(k): v for k, v in (self.extensions or {}).items()})
 
+    def resonance(self) -> ResonancePart:
+        """The resonance part of :attr:`extensions` (off when none)."""
+        return ResonancePart.from_effects({str(k): v for k, v in (self.extensions or {}).items()})
+
     @model_validator(mode="after")
     def _check_limits(self) -> AxisConfig:
         try:
             self.parts()
             self.sensor_path()
+            self.resonance()
         except ModelError as exc:
             raise ValueError(f"extensions: {exc}") from exc
         if not self.voltage_min_v < self.voltage_max_v:

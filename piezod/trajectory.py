@@ -14,6 +14,7 @@ for it (a request field), see ``docs/architecture.md``.
 
 from __future__ import annotations
 
+import copy
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, replace
@@ -50,6 +51,14 @@ class Trajectory(ABC):
     @abstractmethod
     def next_block(self, n: int) -> ScanBlock:
         """The next (at most) ``n`` samples; fewer when the trajectory ends inside the block."""
+
+    def peek(self, n: int) -> ScanBlock:
+        """The next (at most) ``n`` samples without taking them (a pending change included).
+
+        The runtime resonance part shapes each block with the targets after it (the host
+        computes ahead of the board). A trajectory is a small state machine, so a copy runs ahead.
+        """
+        return copy.deepcopy(self).next_block(n)
 
     @property
     @abstractmethod

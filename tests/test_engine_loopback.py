@@ -214,3 +214,45 @@ def test_the_sensor_range_of_an_axis_reaches_the_board_and_its_end_reads_as_clip
     clipped = readback_clipped([exp], 0.5)
     assert 0 < clipped["wide"] < len(exp)
     assert readback_clipped([exp], 100.0) == {}
+
+
+def _ringing_after_turns(rec: Any, f0_hz: float) -> float:
+    """RMS of x's readback minus its moving average over one period of the mode, in the first
+    ten periods after each turning point (the mode rings there; the rest of the line is smooth)."""
+    x = rec.axis == "x"
+    pos, tgt = rec.position_um[x], rec.target_um[x]
+    per = round(RATE_HZ / f0_hz)
+    smooth = np.convolve(pos, np.ones(per) / per, mode="same")
+    turns = np.flatnonzero(np.diff(np.sign(np.diff(tgt))) != 0) + 1
+    rows = np.zeros(pos.size, dtype=bool)
+    for k in turns:
+        rows[k + per : k + 10 * per] = True
+    rows[:per] = rows[-per:] = False
+    return float(np.sqrt(np.mean((pos - smooth)[rows] ** 2)))
+
+
+def test_a_resonance_extension_shapes_the_scan_so_the_stage_does_not_ring(
+    sim_config: ScannerConfig, tmp_path: Path, spawn_board: Callable[..., Any]
+) -> None:
+    """The stage rings at 300 Hz (Q 20) after every turning point; the axis's ``resonance``
+    extension (handed the targets ahead by the scan job, across blocks) takes most of it away."""
+    effects = ["resonance=300", "resonance.q=20"]
+    ax = sim_config.axes["x"]
+    shaped = ax.model_validate({**ax.model_dump(), "extensions": {"resonance": {"f0_hz": 300.0, "q": 20.0}}})
+    ringing = {}
+    with_shaping = sim_config.model_copy(update={"axes": {**sim_config.axes, "x": shaped}})
+    for name, cfg in (("plain", sim_config), ("shaped", with_shaping)):
+        with spawn_board(default_sim_config_path(), effects=effects) as sim:
+            eng = Engine(cfg, sim.path, recording_dir=tmp_path)
+            eng.open()
+            try:
+                eng.start_scan(ScanRequest(range_um=15.0, line_rate_hz=4.0, lines=3, name=name))
+                assert eng.wait_idle(30.0) == "idle"
+                eng.wait_recorded()
+                st = eng.status()
+                assert st.underruns == 0 and not [f for f in st.faults if f.source != "link"]
+            finally:
+                eng.close()
+        ringing[name] = _ringing_after_turns(read_recording(tmp_path / f"{name}.csv"), 300.0)
+    assert ringing["plain"] > 0.02  # ~60 nm at 120 um/s
+    assert ringing["shaped"] < 0.3 * ringing["plain"]

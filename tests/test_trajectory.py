@@ -90,3 +90,17 @@ def test_a_new_trajectory_needs_only_the_abstract_methods() -> None:
     assert t.next_block(3).x_um.size == 3 and t.next_block(3).x_um.size == 2 and t.done
     with pytest.raises(EngineStateError, match="cannot be changed"):
         t.change(range_um=1.0)
+
+
+def test_peek_shows_the_next_samples_with_a_pending_change_and_takes_none() -> None:
+    t = RasterTrajectory.from_request(ScanRequest(range_um=6.0, line_rate_hz=5.0, lines=4), FS)
+    t.next_block(1950)
+    unchanged = t.peek(100)
+    t.change(range_um=3.0)  # from the next line, sample 2000
+    ahead = t.peek(100)
+    assert t.next_index == 1950 and t.pending_index == 2000
+    taken = t.next_block(50)
+    taken2 = t.next_block(50)
+    np.testing.assert_array_equal(ahead.x_um, np.concatenate([taken.x_um, taken2.x_um]))
+    np.testing.assert_array_equal(ahead.x_um[:50], unchanged.x_um[:50])
+    assert not np.allclose(ahead.x_um[50:], unchanged.x_um[50:])  # the new range from sample 2000

@@ -295,7 +295,8 @@ def main() -> int:
             volts = []
             faults = slewed = 0
             for i in range(0, target.size, block):
-                out = driver.corrected(target[i : i + block])
+                ahead = target[i + block : i + block + driver.lookahead]
+                out = driver.corrected(target[i : i + block], ahead)
                 faults += out.clamped
                 slewed += out.slew_limited
                 volts.append(out.voltage_v)

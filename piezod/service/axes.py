@@ -167,7 +167,12 @@ class AxisDriver:
         self.max_step_v = config.slew_rate_v_per_s / sample_rate_hz
         self._dt_s = 1.0 / sample_rate_hz
         self.model: AxisModel = axis_model(config) if model is None else model
+        #: The resonance part (the audit's ``resonance``): shapes the targets ahead of the model.
+        self.resonance = config.resonance()
         self._state: Any = self.model.rest(config.safe_voltage_v)
+        # the last targets corrected, for the resonance part's window (None: the drive was not
+        # corrected since: the next block starts as if its first target had held)
+        self._before: NDArray[np.float64] | None = None
         self._prime()
 
     def _prime(self) -> None:
@@ -206,10 +211,16 @@ class AxisDriver:
         """The model's position after the last sample."""
         return self.model.position(self._state)
 
+    @property
+    def lookahead(self) -> int:
+        """Targets :meth:`corrected` wants ahead of each block (the resonance part's; 0: none)."""
+        return self.resonance.lookahead(self._dt_s)
+
     def reset(self, voltage_v: float | None = None) -> None:
         """Forget the history: the stage rests at ``voltage_v`` (default: the safe value)."""
         v = self.config.safe_voltage_v if voltage_v is None else voltage_v
         self._state = self.model.rest(v)
+        self._before = None
 
     def plan(self, range_um: float, frequency_hz: float, center_um: float) -> PeriodicPlan:
         """The steady loop of a periodic scan (cached).
@@ -264,12 +275,34 @@ class AxisDriver:
         if plan is not None:
             self.model = self.model.with_plan(plan.kappa_um_per_v, plan.v_center)
 
-    def corrected(self, targets_um: NDArray[np.float64]) -> AxisOutput:
-        """Voltages that bring the modelled stage to ``targets_um`` (um), sample by sample."""
-        volts, state = self.model.inverse(targets_um, self._dt_s, self._state)
+    def corrected(
+        self, targets_um: NDArray[np.float64], ahead_um: NDArray[np.float64] | None = None
+    ) -> AxisOutput:
+        """Voltages that bring the modelled stage to ``targets_um`` (um), sample by sample.
+
+        Parameters
+        ----------
+        targets_um
+            The block's targets.
+        ahead_um
+            The targets after the block, as far as known (:attr:`lookahead` of them are used;
+            fewer or None: the last target is taken to hold). Only the resonance part needs them.
+        """
+        targets = np.asarray(targets_um, dtype=np.float64)
+        prior = self._before
+        shaped = targets
+        if not self.resonance.off and targets.size:
+            before = np.empty(0) if prior is None else prior
+            ahead = np.empty(0) if ahead_um is None else np.asarray(ahead_um, dtype=np.float64)
+            shaped = self.resonance.shape(targets, before, ahead, self._dt_s)
+        volts, state = self.model.inverse(shaped, self._dt_s, self._state)
         # the inverse of a drive lag asks for a step at every turning point; cut to the slew
         # limit after the step alone, the ramp rounds each turning point late and the scan reads long
-        return self._finish(volts, state, centred=True)
+        out = self._finish(volts, state, centred=True)
+        if not self.resonance.off and targets.size:
+            kept = targets if prior is None else np.concatenate([prior, targets])
+            self._before = kept[-self.lookahead :].copy()
+        return out
 
     def linear(self, targets_um: NDArray[np.float64], plan: PeriodicPlan) -> AxisOutput:
         """The uncorrected drive: voltage linear in the target over the plan's voltage range."""
@@ -288,10 +321,12 @@ class AxisDriver:
     def adopt(self, voltage_v: float, position_um: float) -> None:
         """Continue from a stage at ``voltage_v`` and ``position_um`` (e.g. as its sensor reads it)."""
         self._state = self.model.adopt(float(voltage_v), float(position_um))
+        self._before = None
 
     def hold(self, n: int) -> AxisOutput:
         """Keep the last voltage for ``n`` samples (the model's creep runs on)."""
         self._state = self.model.hold(n, self._dt_s, self._state)
+        self._before = None
         return AxisOutput(np.full(n, self.voltage_v), 0, 0)
 
     def ramp_to(self, voltage_v: float, rate_v_per_s: float, sample_rate_hz: float) -> NDArray[np.float64]:
@@ -304,6 +339,7 @@ class AxisDriver:
     def _finish(
         self, volts: NDArray[np.float64], state_after: Any = None, *, centred: bool = False
     ) -> AxisOutput:
+        self._before = None
         lo, hi = self.limits
         last = self.voltage_v
         bad = (volts < lo) | (volts > hi) | ~np.isfinite(volts)

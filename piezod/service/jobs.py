@@ -169,12 +169,16 @@ class MoveJob(Job):
         u = np.arange(self._pos + 1, self._pos + take + 1) / self._n
         w = 0.5 - 0.5 * np.cos(np.pi * u)
         targets = self._a[:, None] + (self._b - self._a)[:, None] * w[None, :]
+        need = max(d.lookahead for d in engine.drivers.values())
+        u_ahead = np.minimum(np.arange(self._pos + take + 1, self._pos + take + need + 1) / self._n, 1.0)
+        w_ahead = 0.5 - 0.5 * np.cos(np.pi * u_ahead)
+        ahead = self._a[:, None] + (self._b - self._a)[:, None] * w_ahead[None, :]
         self._pos += take
         self.done = self._pos >= self._n
         volts = np.empty_like(targets)
         for i, d in enumerate(engine.drivers.values()):
             if self._moving[i]:
-                volts[i] = engine.drive(d, d.corrected(targets[i]))
+                volts[i] = engine.drive(d, d.corrected(targets[i], ahead[i]))
             else:
                 volts[i] = d.hold(take).voltage_v
         return engine.chunk(volts, targets)
@@ -237,6 +241,23 @@ class ScanJob(Job):
         )
         self._change_text = []
 
+    def _ahead(self, n: int) -> tuple[FloatArray, FloatArray]:
+        """The ``n`` targets (x, y) after the block just taken, as far as the trajectory knows them
+        (a settling lead-in is followed by the scan)."""
+        if n <= 0:
+            return np.empty(0), np.empty(0)
+        x: list[FloatArray] = []
+        y: list[FloatArray] = []
+        for traj in (self._settle, self._traj):
+            if traj is None or traj.done or sum(a.size for a in x) >= n:
+                continue
+            block = traj.peek(n - sum(a.size for a in x))
+            x.append(block.x_um)
+            y.append(block.y_um)
+        if not x:
+            return np.empty(0), np.empty(0)
+        return np.concatenate(x), np.concatenate(y)
+
     def render(self, engine: Engine, n: int) -> Chunk:
         if self._move is not None:
             chunk = self._move.render(engine, n)
@@ -251,6 +272,7 @@ class ScanJob(Job):
         block = traj.next_block(n)
         if self._settle is not None and self._settle.done:
             self._settle = None
+        ahead = self._ahead(max(d.lookahead for d in engine.drivers.values()))
         m = block.x_um.size
         if m == 0:
             self.done = self._settle is None and self._traj.done
@@ -273,11 +295,13 @@ class ScanJob(Job):
                 scale = engine.tracked_scale(name) if self.request.correction else 1.0
                 if name == "x":
                     x_scale = scale
+                nxt = ahead[0] if name == "x" else ahead[1]
                 if scale != 1.0 and plan is not None:
                     # the stage is `scale` times as sensitive as the model: shorten the travel
                     tgt = plan.center_um + (tgt - plan.center_um) / scale
+                    nxt = plan.center_um + (nxt - plan.center_um) / scale
                 if self.request.correction or plan is None:
-                    volts[i] = engine.drive(d, d.corrected(tgt))
+                    volts[i] = engine.drive(d, d.corrected(tgt, nxt))
                 else:
                     volts[i] = engine.drive(d, d.linear(tgt, plan))
             else:
