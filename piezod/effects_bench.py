@@ -68,8 +68,10 @@ from piezod.extensions import (
 from piezod.linearity import experiment_linearity
 from piezod.model.parts import PART_EFFECTS
 from piezod.model.registry import REGISTRY
+from piezod.model.resonance import RESONANCE_PARAMS
 from piezod.model.sensor import SENSOR_EFFECTS
 from piezod.recording import Experiment
+from piezod.resonance_id import adopt_resonance
 from piezod.service.axes import axis_model
 from piezod.stagecal import Frame, VerifyPoint, default_frame, verification_points
 
@@ -256,7 +258,7 @@ def _injected_parts(specs: Sequence[str]) -> dict[str, dict[str, float]]:
     """``{effect: {parameter: value}}`` of the injected specs that have a runtime part or are the
     sensor path."""
     out: dict[str, dict[str, float]] = {}
-    known = {**PART_EFFECTS, **SENSOR_EFFECTS}
+    known = {**PART_EFFECTS, **SENSOR_EFFECTS, "resonance": RESONANCE_PARAMS}
     for text in specs:
         head, value = text.split("=", 1)
         effect, _, name = head.partition(".")
@@ -336,9 +338,14 @@ def run_case(
                 out["refined"] = notes
                 out["adoption"]["adopted"] = list(adoption.adopted)
             extended = extended_config(refits.config(adoption.effects), axis, adoption)
-            out["extended"] = {"rows": _verify(bench, extended, axis, points, loops)}
         else:
-            out["extended"] = {"rows": _verify(bench, baseline, axis, points, loops)}
+            extended = baseline
+        # as piezod calibrate: the resonance fitted on what the extended model leaves
+        extended, found = adopt_resonance(exps, axis, extended)
+        if found is not None:
+            key = "adopted" if found.adopted else "skipped"
+            out["adoption"][key] = [*out["adoption"][key], found.note]
+        out["extended"] = {"rows": _verify(bench, extended, axis, points, loops)}
         step("extended verified")
         injected = _injected_parts(specs)
         if injected:

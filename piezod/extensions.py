@@ -2,10 +2,10 @@
 
 The audit (:mod:`piezod.audit`) names effects with their parameters in the names of the effect
 registry (:mod:`piezod.model.registry`). Those with a runtime part (:mod:`piezod.model.parts`:
-polarity, thermal, stiffness, saturation, drift) go into the axis's ``extensions:`` section, which
-the daemon's inverse applies; a ``delay`` goes there as the axis's sensor path
-(:mod:`piezod.model.sensor`: the readback's delay and lag, which the analysis undoes, the drive
-unchanged); the others are reported as not (yet) correctable at run time, with
+polarity, thermal, stiffness, saturation, drift; :mod:`piezod.model.resonance`: the resonance) go
+into the axis's ``extensions:`` section, which the daemon's inverse applies; a ``delay`` goes there
+as the axis's sensor path (:mod:`piezod.model.sensor`: the readback's delay and lag, which the
+analysis undoes, the drive unchanged); the others are reported as not (yet) correctable at run time, with
 the reason. The written YAML says in a comment which finding became which parameter.
 """
 
@@ -23,6 +23,7 @@ import numpy as np
 from piezod.config import ScannerConfig, dump_config, load_config
 from piezod.errors import ConfigError, ModelError, RecordingError
 from piezod.model.parts import PART_EFFECTS, TIME_PARTS, Parts, part_effects
+from piezod.model.resonance import RESONANCE_PARAMS, ResonancePart
 from piezod.model.sensor import SENSOR_EFFECTS, SensorPath
 from piezod.readback import SENSOR_DELAY_KEY, align_known_delay, experiments_through_sensor
 from piezod.recording import Experiment
@@ -32,7 +33,6 @@ if TYPE_CHECKING:
 
 #: Why a registry effect has no runtime part.
 NO_PART_REASON: dict[str, str] = {
-    "resonance": "no runtime part (the scan's turning points ring; lower the line rate)",
     "creep": "the creep spectrum is the calibration's (piezod calibrate fits it)",
     "asymmetry": "no runtime part yet",
 }
@@ -178,6 +178,15 @@ def adopt_findings(
             vals = {n: float(params.get(n) or 0.0) for n in names}
             try:
                 SensorPath.from_effects({effect: vals})
+            except ModelError as exc:
+                skipped.append(f"{effect}: {exc}")
+                continue
+            effects[effect] = vals
+            continue
+        if effect == "resonance":
+            vals = {n: float(params.get(n) or math.nan) for n in RESONANCE_PARAMS}
+            try:
+                ResonancePart.from_effects({effect: vals})
             except ModelError as exc:
                 skipped.append(f"{effect}: {exc}")
                 continue

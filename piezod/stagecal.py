@@ -896,7 +896,7 @@ def audit_and_extend(
     report["skipped"] = list(adoption.skipped)
     if not adoption.effects:
         report["text"] = adoption.summary()
-        return ThesisFit(report, chosen.config, chosen.fit_error_pct)
+        return _with_resonance(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
     redone = choose_for_experiments(
         experiments_through(experiments, adoption.effects),
         axis,
@@ -920,11 +920,38 @@ def audit_and_extend(
             f"the findings as runtime parts\n{adoption.summary()}"
             + "".join(f"\nrefined {r}" for r in refined)
         )
-        return ThesisFit(report, extended_config(redone.config, axis, adoption), redone.fit_error_pct)
+        extended = ThesisFit(report, extended_config(redone.config, axis, adoption), redone.fit_error_pct)
+        return _with_resonance(experiments, axis, extended)
     worse = f"held-out RMS {redone.fit_error_pct * 1e3:.2f} nm, not below {chosen.fit_error_pct * 1e3:.2f} nm"
     report["skipped"] = [f"{a} ({worse})" for a in adoption.adopted] + report["skipped"]
     report["text"] = "\n".join(f"not adopted {s}" for s in report["skipped"])
-    return ThesisFit(report, chosen.config, chosen.fit_error_pct)
+    return _with_resonance(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
+
+
+def _with_resonance(experiments: Sequence[Experiment], axis: AxisName, fit: ThesisFit) -> ThesisFit:
+    """``fit`` with the stage's resonance when its model's residual shows one that rings and
+    predicts the held-out experiments better (:func:`piezod.resonance_id.adopt_resonance`).
+
+    The audit's own resonance candidate is fitted against the audit's baseline, whose misfit
+    hides the ringing; the model chosen and extended leaves little else at the mode's frequency.
+    """
+    from piezod.resonance_id import adopt_resonance
+
+    config, found = adopt_resonance(experiments, axis, fit.config)
+    if found is None:
+        return fit
+    report = dict(fit.report)
+    report["resonance"] = {
+        "f0_hz": found.f0_hz,
+        "q": found.q,
+        "train_rms_um": list(found.train_rms_um),
+        "heldout_rms_um": list(found.heldout_rms_um),
+        "adopted": found.adopted,
+    }
+    report["text"] = "\n".join(t for t in (str(report.get("text") or ""), found.note) if t)
+    key = "adopted" if found.adopted else "skipped"
+    report[key] = [*report.get(key, []), found.note]
+    return ThesisFit(report, config, fit.fit_error_pct)
 
 
 #: The choice redone through adopted parts refits the family members whose held-out RMS was

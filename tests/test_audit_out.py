@@ -31,11 +31,16 @@ def test_findings_map_to_parts_and_the_rest_is_named() -> None:
     assert adoption.effects == {
         "stiffness": {"sensitivity_pct_per_um": -0.16},
         "delay": {"delay_s": 0.0158, "lag_time_constant_s": 0.0},
+        "resonance": {"f0_hz": 665.0, "q": 10.0},
     }
     text = adoption.summary()
     assert "adopted stiffness: sensitivity_pct_per_um = -0.16" in text
     assert "adopted delay: delay_s = 0.0158, lag_time_constant_s = 0 (sensor path" in text
-    assert "not adopted resonance: no runtime part" in text
+    assert "adopted resonance: f0_hz = 665, q = 10" in text
+    assert (
+        "resonance.q = 500.0 outside"
+        in adopt_findings([{"effect": "resonance", "params": {"f0_hz": 665.0, "q": 500.0}}]).summary()
+    )
     assert "not adopted saturation" in text and "not adopted drift: no finite value" in text
     assert adopt_findings([]).summary().startswith("no material finding")
 

@@ -1,0 +1,53 @@
+"""The resonance identified on a calibrated model's residual (piezod.resonance_id) and adopted."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from piezod.audit.dynamics import resonance
+from piezod.config import AxisConfig, ThesisModelConfig
+from piezod.recording import Experiment
+from piezod.resonance_id import MIN_GAIN, identify_resonance
+from piezod.service.axes import axis_model
+
+RATE = 10_000.0
+THESIS = ThesisModelConfig(
+    alpha_per_v=3e-3, b_um_per_v=0.09, u_um_per_v=0.05, tau_s=2.666, a1=0.081, a2_per_v=0.0, a3=0.6
+)
+CONFIG = AxisConfig(voltage_min_v=-30.0, voltage_max_v=150.0, thesis=THESIS)
+
+
+def _frame(f0: float | None, q: float, noise_um: float = 0.002) -> list[Experiment]:
+    """Triangles over 3 ranges x 3 rates (3 loops each) through the axis's own model, then through a
+    resonance (exact, from rest) when ``f0`` is given, plus sensor noise."""
+    rng = np.random.default_rng(3)
+    model = axis_model(CONFIG)
+    out = []
+    for range_v in (40.0, 80.0, 120.0):
+        for f in (0.5, 1.0, 2.0):
+            per = round(RATE / f)
+            phase = (np.arange(3 * per + 1) % per) / per
+            v = range_v * np.where(phase < 0.5, 2.0 * phase, 2.0 - 2.0 * phase)
+            x, _ = model.forward(v, 1.0 / RATE, model.rest(0.0))
+            y = x if f0 is None else resonance(x, 1.0 / RATE, f0, q, 0)
+            y = y + rng.normal(0.0, noise_um, y.size)
+            out.append(Experiment(f"R{range_v:g}_f{f:g}", "x", np.arange(v.size) / RATE, v, y))
+    return out
+
+
+def test_a_ringing_stage_is_found_and_adopted() -> None:
+    found = identify_resonance(_frame(350.0, 15.0), CONFIG)
+    assert found is not None and found.adopted, found
+    assert found.f0_hz == pytest.approx(350.0, rel=0.02)
+    assert found.q == pytest.approx(15.0, rel=0.1)
+    assert found.heldout_rms_um[1] <= (1.0 - MIN_GAIN) * found.heldout_rms_um[0]
+    assert "adopted" in found.note and found.effect == {"f0_hz": found.f0_hz, "q": found.q}
+
+
+def test_a_stage_without_a_mode_gets_none() -> None:
+    found = identify_resonance(_frame(None, 1.0), CONFIG)
+    assert found is None or not found.adopted
+    if found is not None:
+        assert "not adopted" in found.note
+        assert found.heldout_rms_um[1] > (1.0 - MIN_GAIN) * found.heldout_rms_um[0] or found.q < 1.0
