@@ -52,6 +52,7 @@ from piezod.errors import RangeUnreachableError, SafetyError
 from piezod.extensions import experiments_through_sensor
 from piezod.linearity import experiment_linearity
 from piezod.recording import Experiment, Recording, write_recording
+from piezod.resonance_id import adopt_resonance
 from piezod.service.axes import AxisDriver
 from piezod.stagecal import (
     FRAME_END_SAMPLES,
@@ -204,6 +205,12 @@ def main() -> int:
         help="skip the calibration: verify this scanner config (e.g. an edited --config-out) after the frame",
     )
     ap.add_argument(
+        "--resonance",
+        action="store_true",
+        help="with --verify: fit the stage's resonance on the frame's residual of that config, as piezod "
+        "calibrate does, and verify the config with it when adopted",
+    )
+    ap.add_argument(
         "--markdown", default=None, metavar="F.json", help="print the tables of a saved --json run"
     )
     ap.add_argument(
@@ -247,6 +254,9 @@ def main() -> int:
             Path(args.json).write_text(json.dumps({"stage": str(path), "choice": choice.report}, indent=2))
         return 0
     calibrated = choice.config
+    if args.resonance:
+        calibrated, found = adopt_resonance(exps, axis, calibrated)
+        print(found.note if found is not None else "resonance: the frame cannot resolve one")
     if args.config_out:
         dump_config(calibrated, args.config_out, header=f"calibrated in process on {path}")
     chosen_kind = calibrated.axes[axis].model

@@ -30,8 +30,9 @@ clipped just inside it; the axis's voltage limits then clamp as for any unreacha
 Not a part: the audit's ``delay``, which the readback shows alike wherever it sits, is the axis's
 *sensor path* (:mod:`piezod.model.sensor`: undone in the analysis, the drive unchanged); a pure
 delay at the drive would need targets ahead of the sample being computed (the drive *lag* is a
-part of the family model). Not yet: ``resonance``; ``creep`` is the calibration's (the family's
-spectrum).
+part of the family model). Not a part either: ``resonance``, which needs the targets ahead of
+the one it shapes (:mod:`piezod.model.resonance`, applied by the axis driver before the model's
+inverse); ``creep`` is the calibration's (the family's spectrum).
 """
 
 from __future__ import annotations
