@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from piezod.audit.dynamics import resonance
-from piezod.config import AxisConfig, ThesisModelConfig
+from piezod.config import AxisConfig, ThesisModelConfig, default_sim_config_path, dump_config, load_config
+from piezod.errors import ConfigError
+from piezod.model.resonance import ResonancePart
 from piezod.recording import Experiment
-from piezod.resonance_id import MIN_GAIN, identify_resonance
+from piezod.resonance_id import MIN_GAIN, adopt_resonance, identify_resonance
 from piezod.service.axes import axis_model
 
 RATE = 10_000.0
@@ -51,3 +55,19 @@ def test_a_stage_without_a_mode_gets_none() -> None:
     if found is not None:
         assert "not adopted" in found.note
         assert found.heldout_rms_um[1] > (1.0 - MIN_GAIN) * found.heldout_rms_um[0] or found.q < 1.0
+
+
+def test_the_adopted_resonance_is_written_into_the_scanner_yaml(tmp_path: Path) -> None:
+    config = load_config(default_sim_config_path())
+    config = config.model_copy(update={"axes": {**config.axes, "x": CONFIG}})
+    extended, found = adopt_resonance(_frame(350.0, 15.0), "x", config)
+    assert found is not None and found.adopted
+    path = tmp_path / "s.yaml"
+    dump_config(extended, path)
+    back = load_config(path).axes["x"]
+    assert back.resonance() == ResonancePart(found.f0_hz, found.q)
+    assert back.thesis == CONFIG.thesis
+    same, none = adopt_resonance(_frame(None, 1.0), "x", config)
+    assert same is config and (none is None or not none.adopted)
+    with pytest.raises(ConfigError, match="no axis 'q'"):
+        adopt_resonance(_frame(None, 1.0), "q", config)
