@@ -30,6 +30,9 @@ def test_bench_reports_keys_and_accuracy() -> None:
     assert r["ode_max_roundtrip_error_rel"] <= 1e-9
     # the richest runtime model (voltage creep + every part) is timed and exact; its ns are the bench's
     assert r["richest_model"] in r["models"] and r["richest_ns_per_sample"] > 0
+    assert r["richest_ns_per_sample"] == pytest.approx(
+        r["models"][r["richest_model"]]["ns_per_sample"] + r["resonance_ns_per_sample"]
+    )
     assert r["richest_ratio"] == pytest.approx(r["richest_ns_per_sample"] / r["scipy_ns_per_sample"])
     assert all(m["max_roundtrip_error_rel"] <= 1e-9 for m in r["models"].values())
 

@@ -23,8 +23,8 @@ without them the last target is taken to hold.
 
 The shaping is linear, so where it sits in the inverse chain does not matter up to the drift,
 which moves by nm per second: the driver shapes the targets, then the model's own inverse
-(with its parts) turns the shaped targets into voltages. Cost: ``O(K)`` per sample, vectorised,
-``K <= MAX_HALF_WIDTH``.
+(with its parts) turns the shaped targets into voltages. Cost: ``O(1)`` per sample (the kernel
+is a box applied twice), vectorised; ``K <= MAX_HALF_WIDTH``.
 """
 
 from __future__ import annotations
@@ -134,14 +134,26 @@ class ResonancePart:
         first = before[0] if before.size else x[0]
         last = ahead[-1] if ahead.size else x[-1]
         e = np.concatenate([np.full(m - before.size, first), before, x, ahead, np.full(m - ahead.size, last)])
-        k = self.half_width(dt_s)
-        w = (k + 1.0 - np.abs(np.arange(-k, k + 1, dtype=np.float64))) / (k + 1.0) ** 2
-        # e[j] for the block's sample n sits at j = n + m; s covers n - 1 ... n + size
-        s = np.convolve(e, w, mode="valid")
+        # the triangular kernel of half-width K is a box of K + 1 samples applied twice (O(1) per
+        # sample; the boxes' 1 / (K + 1) are in the weights); e[j] for the block's sample n sits at
+        # j = n + m, so s covers n - 1 ... n + size
+        s = _box_sum(_box_sum(e, m), m)
         w0 = 2.0 * math.pi * self.f0_hz
-        ds = (s[2:] - s[:-2]) / (2.0 * dt_s)
-        d2s = (s[2:] - 2.0 * s[1:-1] + s[:-2]) / (dt_s * dt_s)
-        return s[1:-1] + ds / (self.q * w0) + d2s / (w0 * w0)
+        lead = 1.0 / (2.0 * dt_s * self.q * w0)
+        accel = 1.0 / (dt_s * dt_s * w0 * w0)
+        scale = 1.0 / (m * m)
+        out: F64 = (scale * (1.0 - 2.0 * accel)) * s[1:-1]
+        out += (scale * (accel + lead)) * s[2:]
+        out += (scale * (accel - lead)) * s[:-2]
+        return out
+
+
+def _box_sum(x: F64, width: int) -> F64:
+    """Moving sum over ``width`` samples, only where the window is inside ``x``."""
+    c = np.cumsum(x)
+    out: F64 = c[width - 1 :].copy()
+    out[1:] -= c[:-width]
+    return out
 
 
 __all__ = ["MAX_HALF_WIDTH", "RESONANCE_PARAMS", "SMOOTHING_PERIOD_FRACTION", "ResonancePart"]
