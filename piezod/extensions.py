@@ -152,6 +152,15 @@ def session_origin_unix_s(path: str | Path) -> float:
     return wall - t0 if math.isfinite(t0) else math.nan
 
 
+#: Findings adopted with all their parameters (the value a missing one takes) and the check they
+#: must pass: the sensor path (a missing delay or lag is none) and the resonance part.
+_EffectCheck = Callable[[Mapping[str, Mapping[str, float]]], object]
+_WHOLE_EFFECTS: dict[str, tuple[tuple[str, ...], float, _EffectCheck]] = {
+    **{effect: (names, 0.0, SensorPath.from_effects) for effect, names in SENSOR_EFFECTS.items()},
+    "resonance": (RESONANCE_PARAMS, math.nan, ResonancePart.from_effects),
+}
+
+
 def adopt_findings(
     findings: Sequence[Mapping[str, Any]], *, horizon_s: float = math.inf, since_unix_s: float = math.nan
 ) -> Adoption:
@@ -173,20 +182,11 @@ def adopt_findings(
     for f in findings:
         effect = str(f["effect"])
         params = {str(k): v for k, v in dict(f.get("params") or {}).items()}
-        if effect in SENSOR_EFFECTS:
-            names = SENSOR_EFFECTS[effect]
-            vals = {n: float(params.get(n) or 0.0) for n in names}
+        if effect in _WHOLE_EFFECTS:
+            names, missing, check = _WHOLE_EFFECTS[effect]
+            vals = {n: float(params.get(n) or missing) for n in names}
             try:
-                SensorPath.from_effects({effect: vals})
-            except ModelError as exc:
-                skipped.append(f"{effect}: {exc}")
-                continue
-            effects[effect] = vals
-            continue
-        if effect == "resonance":
-            vals = {n: float(params.get(n) or math.nan) for n in RESONANCE_PARAMS}
-            try:
-                ResonancePart.from_effects({effect: vals})
+                check({effect: vals})
             except ModelError as exc:
                 skipped.append(f"{effect}: {exc}")
                 continue

@@ -80,11 +80,11 @@ def test_a_delay_finding_is_adopted_as_the_sensor_path() -> None:
     adoption = adopt_findings(
         [
             {"effect": "delay", "params": {"delay_s": D, "lag_time_constant_s": TAU}},
-            {"effect": "resonance", "params": {"f0_hz": 800.0, "q": 10.0}},
+            {"effect": "asymmetry", "params": {"asymmetry_pct": 0.5}},
         ]
     )
     assert adoption.effects == {"delay": {"delay_s": D, "lag_time_constant_s": TAU}}
-    assert "sensor path" in adoption.adopted[0] and adoption.skipped[0].startswith("resonance")
+    assert "sensor path" in adoption.adopted[0] and adoption.skipped[0].startswith("asymmetry")
     far = adopt_findings([{"effect": "delay", "params": {"delay_s": 0.2, "lag_time_constant_s": 0.0}}])
     assert not far.effects and "physical range" in far.skipped[0]
 
