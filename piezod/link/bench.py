@@ -54,12 +54,15 @@ class ModelSource:
     """Triangle *targets* per axis through each axis's model inverse: the model runs in the streaming path.
 
     The targets span ``fraction`` of what the model's static sensitivity gives for each axis's
-    triangle; the voltages are clipped to the axis limits (counted by the streamer as host
-    clamping). ``ns_per_sample`` is the inverse's cost per sample and axis while streaming.
+    triangle and are shaped by the resonance part first (:data:`piezod.bench.BENCH_RESONANCE`, as
+    the axis driver shapes them for a stage with a mode); the voltages are clipped to the axis
+    limits (counted by the streamer as host clamping). ``ns_per_sample`` is the shaping's and the
+    inverse's cost per sample and axis while streaming.
     """
 
     def __init__(self, config: ScannerConfig, rate_hz: float, model_name: str, fraction: float = 0.8) -> None:
-        from piezod.bench import bench_models
+        from piezod.bench import BENCH_RESONANCE, bench_models
+        from piezod.model.resonance import ResonancePart
 
         models = bench_models()
         if model_name not in models:
@@ -74,6 +77,8 @@ class ModelSource:
         start = self.triangle.next_block(1)[:, 0]
         self.triangle.position = 0
         self.states = [self.model.rest(float(v)) for v in start]
+        self.shaper = ResonancePart(*BENCH_RESONANCE)
+        self.before: list[npt.NDArray[np.float64]] = [np.empty(0) for _ in start]
         rest = np.array([self.model.position(self.model.rest(float(v))) for v in (0.0, 1.0)])
         self.um_per_v = float(rest[1] - rest[0])
         self.inverse_s = 0.0
@@ -84,8 +89,11 @@ class ModelSource:
         targets = self.um_per_v * self.triangle.next_block(n)
         out = np.empty_like(targets)
         t0 = time.perf_counter()
+        m = self.shaper.lookahead(self.dt_s)
         for i, st in enumerate(self.states):
-            out[i], self.states[i] = self.model.inverse(targets[i], self.dt_s, st)
+            shaped = self.shaper.shape(targets[i], self.before[i], np.empty(0), self.dt_s)
+            self.before[i] = np.concatenate([self.before[i], targets[i]])[-m:]
+            out[i], self.states[i] = self.model.inverse(shaped, self.dt_s, st)
         self.inverse_s += time.perf_counter() - t0
         self.samples += targets.size
         clipped: npt.NDArray[np.float64] = np.clip(out, self.lo, self.hi)
