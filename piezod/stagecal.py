@@ -109,6 +109,22 @@ class Frame:
         return min(o), max(o)
 
 
+def without_extensions(config: ScannerConfig, axis: AxisName) -> tuple[ScannerConfig, list[str]]:
+    """``config`` without ``axis``'s extensions, and their names: a calibration measures them again.
+
+    They were measured with another model, on another day. The frame is uncorrected, so it does not
+    need them, and its audit finds them again. A part kept from before would sit beside a model
+    fitted without it.
+    """
+    ax = config.axes[axis]
+    names = [str(k) for k in (ax.extensions or {})]
+    if not names:
+        return config, []
+    axes = dict(config.axes)
+    axes[axis] = ax.model_copy(update={"extensions": None})
+    return config.model_copy(update={"axes": axes}), names
+
+
 def with_tracking_bound(config: ScannerConfig, frame: Frame) -> ScannerConfig:
     """``config`` with the frame axis's ``tracking_min_line_s`` set to the frame's shortest line.
 

@@ -616,3 +616,19 @@ def test_the_verification_says_how_much_gain_the_tracker_took() -> None:
     assert note is not None and "by up to -0.300 %" in note and "drifted since the frame" in note
     assert tracker_note(rows[:1] + rows[3:], "family") is None
     assert tracker_note([row("family", None)], "family") is None
+
+
+def test_a_recalibration_measures_the_axis_extensions_again() -> None:
+    from piezod.stagecal import without_extensions
+
+    config = load_config(default_sim_config_path())
+    ax = config.axes["x"]
+    parts = {"polarity": {"negative_sensitivity_pct": -3.0}, "resonance": {"f0_hz": 300.0, "q": 20.0}}
+    extended = config.model_copy(
+        update={"axes": {**config.axes, "x": ax.model_validate({**ax.model_dump(), "extensions": parts})}}
+    )
+    fresh, names = without_extensions(extended, "x")
+    assert names == ["polarity", "resonance"]
+    assert fresh.axes["x"].extensions is None and fresh.axes["x"].resonance().off
+    assert fresh.axes["y"] == extended.axes["y"]
+    assert without_extensions(config, "x") == (config, [])

@@ -26,6 +26,7 @@ from piezod.stagecal import (
     verification_points,
     verify,
     with_tracking_bound,
+    without_extensions,
 )
 
 
@@ -48,6 +49,12 @@ def run_on_stage(args: argparse.Namespace) -> int:
     else:
         recdir = fresh_dir(out.parent / f"{out.stem}-recordings")
     say = human_stream(args)
+    base, old_parts = without_extensions(base, axis)
+    if old_parts:
+        print(
+            f"the config's extensions on {axis} ({', '.join(old_parts)}) are measured again, not kept",
+            file=say,
+        )
     print(f"calibration frame: {frame_summary(frame)}", file=say)
     t_start = time.monotonic()
     report: dict[str, Any] = {}
