@@ -953,10 +953,17 @@ def _with_resonance(experiments: Sequence[Experiment], axis: AxisName, fit: Thes
     """
     from piezod.resonance_id import adopt_resonance
 
-    config, found = adopt_resonance(experiments, axis, fit.config)
+    report = dict(fit.report)
+    try:
+        config, found = adopt_resonance(experiments, axis, fit.config)
+    except (ModelError, CalibrationError) as exc:
+        # the model is written without the mode; the run says why rather than losing the frame's fit
+        note = f"resonance: not fitted ({exc})"
+        report["text"] = "\n".join(t for t in (str(report.get("text") or ""), note) if t)
+        report["skipped"] = [*report.get("skipped", []), note]
+        return ThesisFit(report, fit.config, fit.fit_error_pct)
     if found is None:
         return fit
-    report = dict(fit.report)
     report["resonance"] = {
         "f0_hz": found.f0_hz,
         "q": found.q,

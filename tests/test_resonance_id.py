@@ -71,3 +71,22 @@ def test_the_adopted_resonance_is_written_into_the_scanner_yaml(tmp_path: Path) 
     assert same is config and (none is None or not none.adopted)
     with pytest.raises(ConfigError, match="no axis 'q'"):
         adopt_resonance(_frame(None, 1.0), "q", config)
+
+
+def test_a_fit_that_fails_leaves_the_model_without_the_mode_and_says_why(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import piezod.resonance_id as rid
+    from piezod.errors import ModelError
+    from piezod.stagecal import ThesisFit, _with_resonance
+
+    def broken(*_: object) -> None:
+        raise ModelError("voltage_v contains non-finite samples")
+
+    monkeypatch.setattr(rid, "adopt_resonance", broken)
+    config = load_config(default_sim_config_path())
+    fit = ThesisFit({"text": "held-out RMS 5 nm", "skipped": []}, config, 0.005)
+    out = _with_resonance(_frame(None, 1.0), "x", fit)
+    assert out.config is config and out.fit_error_pct == 0.005
+    assert out.report["skipped"] == ["resonance: not fitted (voltage_v contains non-finite samples)"]
+    assert out.report["text"].endswith("resonance: not fitted (voltage_v contains non-finite samples)")
