@@ -15,8 +15,8 @@ where ``s`` is the target. At a turning point ``s''`` is an impulse of area ``2 
 slew limit would cut; so the target is first smoothed by a symmetric triangular kernel spanning
 a quarter of the resonance period each side (:data:`SMOOTHING_PERIOD_FRACTION`), which
 leaves every straight stretch of the scan exactly as it was (a symmetric kernel maps a line onto
-itself) and rounds each turning point over ``+-K`` samples, by ``v dt K (K + 2) / (3 (K + 1))`` at the apex.
-The derivatives are centred differences of the smoothed target, so the part needs the targets
+itself) and rounds each turning point over ``+-K`` samples, by ``v dt K (K + 2) / (3 (K + 1))``
+at the apex. The derivatives are centred differences of the smoothed target, so the part needs the targets
 ``K + 1`` samples ahead of the one it shapes (:meth:`ResonancePart.lookahead`): the driver is
 handed them by the job, which knows its trajectory ahead (:meth:`piezod.trajectory.Trajectory.peek`);
 without them the last target is taken to hold.
@@ -48,7 +48,7 @@ RESONANCE_PARAMS: tuple[str, ...] = ("f0_hz", "q")
 #: regression. Measured on a 290 Hz, Q 28 stage slew-limited at 12 kV/s (lark22), 31 um at 20 Hz:
 #: |length error| 1.1 % at 1/8, 0.19 % at 1/4, 0.51 % at 1/2 (docs/model-family.md 6.2y).
 SMOOTHING_PERIOD_FRACTION = 0.25
-#: Largest half-width of the smoothing kernel (samples): bounds the per-sample cost.
+#: Largest half-width of the smoothing kernel (samples): bounds the targets needed ahead of a block.
 MAX_HALF_WIDTH = 64
 
 
