@@ -92,6 +92,7 @@ class ResonanceFinding:
 @dataclass(frozen=True)
 class _Piece:
     dt_s: float
+    width: int
     model_um: F64
     residual_um: F64
     rate_um_per_s: F64
@@ -134,41 +135,43 @@ def _pieces(experiments: Sequence[Experiment], config: AxisConfig, every: int) -
         keep = np.zeros(t.size, dtype=bool)
         keep[t.size // 3 : t.size - width // 2] = True
         rate = _high_pass(np.gradient(m, dt), width)
-        out.append(_Piece(dt, m, _high_pass(y - m, width), rate, keep, (i % every) != every - 1))
+        out.append(_Piece(dt, width, m, _high_pass(y - m, width), rate, keep, (i % every) != every - 1))
     return out
 
 
-def _difference(p: _Piece, f0: float, q: float) -> F64:
-    d = resonance(p.model_um, p.dt_s, f0, q, 0) - p.model_um
-    return _high_pass(d, max(3, round(HIGH_PASS_S / p.dt_s)))
+def _lefts(pieces: Sequence[_Piece], f0: float | None, q: float) -> list[F64]:
+    """What a resonance ``(f0, Q)`` (None: none) leaves of each piece's residual, on its kept rows."""
+    out = []
+    for p in pieces:
+        r = p.residual_um
+        if f0 is not None:
+            r = r - _high_pass(resonance(p.model_um, p.dt_s, f0, q, 0) - p.model_um, p.width)
+        out.append(r[p.keep])
+    return out
 
 
-def _left(p: _Piece, f0: float | None, q: float) -> F64:
-    r = p.residual_um if f0 is None else p.residual_um - _difference(p, f0, q)
-    return r[p.keep]
-
-
-def _lag(pieces: Sequence[_Piece], f0: float | None, q: float) -> float:
+def _lag(pieces: Sequence[_Piece], lefts: Sequence[F64]) -> float:
     """The lag (s) that best explains what the resonance leaves of the residual, ``r ~ -lag x'``."""
     num = den = 0.0
-    for p in pieces:
+    for p, r in zip(pieces, lefts, strict=True):
         g = p.rate_um_per_s[p.keep]
-        num += float(_left(p, f0, q) @ g)
+        num += float(r @ g)
         den += float(g @ g)
     return -num / den if den > 0.0 else 0.0
 
 
-def _rms(pieces: Sequence[_Piece], f0: float | None, q: float, lag_s: float) -> float:
-    ss, n = 0.0, 0
-    for p in pieces:
-        r = _left(p, f0, q) + lag_s * p.rate_um_per_s[p.keep]
-        ss += float(r @ r)
-        n += r.size
-    return math.sqrt(ss / n) if n else math.nan
+def _misfits(pieces: Sequence[_Piece], lefts: Sequence[F64], lag_s: float) -> F64:
+    return np.concatenate([r + lag_s * p.rate_um_per_s[p.keep] for p, r in zip(pieces, lefts, strict=True)])
+
+
+def _rms(pieces: Sequence[_Piece], lefts: Sequence[F64], lag_s: float) -> float:
+    r = _misfits(pieces, lefts, lag_s)
+    return math.sqrt(float(r @ r) / r.size) if r.size else math.nan
 
 
 def _train_rms(pieces: Sequence[_Piece], f0: float | None, q: float) -> float:
-    return _rms(pieces, f0, q, _lag(pieces, f0, q))
+    lefts = _lefts(pieces, f0, q)
+    return _rms(pieces, lefts, _lag(pieces, lefts))
 
 
 def identify_resonance(
@@ -207,9 +210,8 @@ def identify_resonance(
     scores = sorted((_train_rms(train, float(f), q), float(f), q) for f in grid for q in GRID_Q)
 
     def residuals(z: F64) -> F64:
-        f0, q = math.exp(float(z[0])), math.exp(float(z[1]))
-        lag = _lag(train, f0, q)
-        return np.concatenate([_left(p, f0, q) + lag * p.rate_um_per_s[p.keep] for p in train])
+        lefts = _lefts(train, math.exp(float(z[0])), math.exp(float(z[1])))
+        return _misfits(train, lefts, _lag(train, lefts))
 
     best: tuple[float, float, float] | None = None
     lo = np.array([math.log(f_lo), math.log(q_lo)])
@@ -225,9 +227,10 @@ def identify_resonance(
     if best is None:
         return None
     _, f0, q = best
-    lag0, lag1 = _lag(train, None, q), _lag(train, f0, q)
-    tr = (_rms(train, None, q, lag0), _rms(train, f0, q, lag1))
-    ho = (_rms(held, None, q, lag0), _rms(held, f0, q, lag1))
+    without, with_mode = _lefts(train, None, q), _lefts(train, f0, q)
+    lag0, lag1 = _lag(train, without), _lag(train, with_mode)
+    tr = (_rms(train, without, lag0), _rms(train, with_mode, lag1))
+    ho = (_rms(held, _lefts(held, None, q), lag0), _rms(held, _lefts(held, f0, q), lag1))
     why = []
     if q < MIN_Q:
         why.append(f"Q {q:.3g} < {MIN_Q:g}: it acts as a lag, it does not ring")

@@ -954,14 +954,17 @@ def _with_resonance(experiments: Sequence[Experiment], axis: AxisName, fit: Thes
     from piezod.resonance_id import adopt_resonance
 
     report = dict(fit.report)
+
+    def noted(note: str, key: str, config: ScannerConfig) -> ThesisFit:
+        report["text"] = "\n".join(t for t in (str(report.get("text") or ""), note) if t)
+        report[key] = [*report.get(key, []), note]
+        return ThesisFit(report, config, fit.fit_error_pct)
+
     try:
         config, found = adopt_resonance(experiments, axis, fit.config)
     except (ModelError, CalibrationError) as exc:
         # the model is written without the mode; the run says why rather than losing the frame's fit
-        note = f"resonance: not fitted ({exc})"
-        report["text"] = "\n".join(t for t in (str(report.get("text") or ""), note) if t)
-        report["skipped"] = [*report.get("skipped", []), note]
-        return ThesisFit(report, fit.config, fit.fit_error_pct)
+        return noted(f"resonance: not fitted ({exc})", "skipped", fit.config)
     if found is None:
         return fit
     report["resonance"] = {
@@ -971,10 +974,7 @@ def _with_resonance(experiments: Sequence[Experiment], axis: AxisName, fit: Thes
         "heldout_rms_um": list(found.heldout_rms_um),
         "adopted": found.adopted,
     }
-    report["text"] = "\n".join(t for t in (str(report.get("text") or ""), found.note) if t)
-    key = "adopted" if found.adopted else "skipped"
-    report[key] = [*report.get(key, []), found.note]
-    return ThesisFit(report, config, fit.fit_error_pct)
+    return noted(found.note, "adopted" if found.adopted else "skipped", config)
 
 
 #: The choice redone through adopted parts refits the family members whose held-out RMS was

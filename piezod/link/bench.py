@@ -89,10 +89,9 @@ class ModelSource:
         targets = self.um_per_v * self.triangle.next_block(n)
         out = np.empty_like(targets)
         t0 = time.perf_counter()
-        m = self.shaper.lookahead(self.dt_s)
         for i, st in enumerate(self.states):
             shaped = self.shaper.shape(targets[i], self.before[i], np.empty(0), self.dt_s)
-            self.before[i] = np.concatenate([self.before[i], targets[i]])[-m:]
+            self.before[i] = self.shaper.window(self.before[i], targets[i], self.dt_s)
             out[i], self.states[i] = self.model.inverse(shaped, self.dt_s, st)
         self.inverse_s += time.perf_counter() - t0
         self.samples += targets.size

@@ -106,6 +106,12 @@ class ResonancePart:
         """Targets needed after (and before) the one shaped: ``K + 1`` (0 when off)."""
         return 0 if self.off else self.half_width(dt_s) + 1
 
+    def window(self, before_um: ArrayLike, targets_um: ArrayLike, dt_s: float) -> F64:
+        """The targets the next block's :meth:`shape` takes as ``before_um``: the last
+        :meth:`lookahead` of ``before_um`` followed by ``targets_um``."""
+        kept = np.concatenate([np.asarray(before_um, np.float64), np.asarray(targets_um, np.float64)])
+        return kept[max(0, kept.size - self.lookahead(dt_s)) :].copy()
+
     def shape(self, targets_um: ArrayLike, before_um: ArrayLike, ahead_um: ArrayLike, dt_s: float) -> F64:
         """The quasi-static positions that bring the resonant stage to the (smoothed) targets.
 

@@ -300,8 +300,7 @@ class AxisDriver:
         # limit after the step alone, the ramp rounds each turning point late and the scan reads long
         out = self._finish(volts, state, centred=True)
         if not self.resonance.off and targets.size:
-            kept = targets if prior is None else np.concatenate([prior, targets])
-            self._before = kept[-self.lookahead :].copy()
+            self._before = self.resonance.window(np.empty(0) if prior is None else prior, targets, self._dt_s)
         return out
 
     def linear(self, targets_um: NDArray[np.float64], plan: PeriodicPlan) -> AxisOutput:

@@ -246,16 +246,15 @@ class ScanJob(Job):
         (a settling lead-in is followed by the scan)."""
         if n <= 0:
             return np.empty(0), np.empty(0)
-        x: list[FloatArray] = []
-        y: list[FloatArray] = []
+        x: list[FloatArray] = [np.empty(0)]
+        y: list[FloatArray] = [np.empty(0)]
+        left = n
         for traj in (self._settle, self._traj):
-            if traj is None or traj.done or sum(a.size for a in x) >= n:
-                continue
-            block = traj.peek(n - sum(a.size for a in x))
-            x.append(block.x_um)
-            y.append(block.y_um)
-        if not x:
-            return np.empty(0), np.empty(0)
+            if traj is not None and not traj.done and left > 0:
+                block = traj.peek(left)
+                x.append(block.x_um)
+                y.append(block.y_um)
+                left -= block.x_um.size
         return np.concatenate(x), np.concatenate(y)
 
     def render(self, engine: Engine, n: int) -> Chunk:
