@@ -12,19 +12,27 @@ inverse asks for the quasi-static position
     x_q = s + s' / (Q w0) + s'' / w0^2
 
 where ``s`` is the target. At a turning point ``s''`` is an impulse of area ``2 v``, which the
-slew limit would cut; so the target is first smoothed by a symmetric triangular kernel spanning
-a quarter of the resonance period each side (:data:`SMOOTHING_PERIOD_FRACTION`), which
-leaves every straight stretch of the scan exactly as it was (a symmetric kernel maps a line onto
-itself) and rounds each turning point over ``+-K`` samples, by ``v dt K (K + 2) / (3 (K + 1))``
-at the apex. The derivatives are centred differences of the smoothed target, so the part needs the targets
-``K + 1`` samples ahead of the one it shapes (:meth:`ResonancePart.lookahead`): the driver is
-handed them by the job, which knows its trajectory ahead (:meth:`piezod.trajectory.Trajectory.peek`);
-without them the last target is taken to hold.
+slew limit would cut; so the target is first smoothed, over a quarter of the resonance period
+each side (:data:`SMOOTHING_PERIOD_FRACTION`: ``K`` samples), by the symmetric kernel
+
+    k = a T_K + b T_2K,    a = 4 (K + 1) / (3 K + 2),    b = -(K + 2) / (3 K + 2)
+
+with ``T_K`` the triangular kernel of half-width ``K`` (a box of ``K + 1`` samples applied twice).
+Its weights sum to 1 and its second moment is 0, so it keeps every polynomial up to the third
+degree: a straight stretch of the scan stays exactly as it was, and at a turning point the smoothed
+target leaves the apex (by about ``2 v dt K / 9``, a third less than ``T_K`` alone) with a
+deviation of zero area, so a line's regression slope -- its length -- is kept to first order. The
+triangular kernel alone rounds the apex by ``v dt K (K + 2) / (3 (K + 1))`` to one side only: on
+moss23's 135 Hz mode a 20 Hz line read 0.55 % short from the rounding alone (docs/model-family.md
+6.2aa). The derivatives are centred differences of the smoothed target, so the part needs the
+targets ``2 K + 1`` samples ahead of the one it shapes (:meth:`ResonancePart.lookahead`): the
+driver is handed them by the job, which knows its trajectory ahead
+(:meth:`piezod.trajectory.Trajectory.peek`); without them the last target is taken to hold.
 
 The shaping is linear, so where it sits in the inverse chain does not matter up to the drift,
 which moves by nm per second: the driver shapes the targets, then the model's own inverse
-(with its parts) turns the shaped targets into voltages. Cost: ``O(1)`` per sample (the kernel
-is a box applied twice), vectorised; ``K <= MAX_HALF_WIDTH``.
+(with its parts) turns the shaped targets into voltages. Cost: ``O(1)`` per sample (four moving
+sums), vectorised; ``K <= MAX_HALF_WIDTH``.
 """
 
 from __future__ import annotations
@@ -48,7 +56,7 @@ RESONANCE_PARAMS: tuple[str, ...] = ("f0_hz", "q")
 #: regression. Measured on a 290 Hz, Q 28 stage slew-limited at 12 kV/s (lark22), 31 um at 20 Hz:
 #: |length error| 1.1 % at 1/8, 0.19 % at 1/4, 0.51 % at 1/2 (docs/model-family.md 6.2y).
 SMOOTHING_PERIOD_FRACTION = 0.25
-#: Largest half-width of the smoothing kernel (samples): bounds the targets needed ahead of a block.
+#: Largest ``K`` (samples): bounds the targets needed ahead of a block (``2 K + 1``).
 MAX_HALF_WIDTH = 64
 
 
@@ -96,15 +104,16 @@ class ResonancePart:
         return math.isinf(self.f0_hz)
 
     def half_width(self, dt_s: float) -> int:
-        """Half-width ``K`` of the smoothing kernel (samples) at the sample interval ``dt_s``."""
+        """``K`` at the sample interval ``dt_s``: the inner triangle's half-width (samples; the
+        kernel spans ``+-2 K``)."""
         if self.off:
             return 0
         k = round(SMOOTHING_PERIOD_FRACTION / (self.f0_hz * dt_s))
         return int(min(max(k, 1), MAX_HALF_WIDTH))
 
     def lookahead(self, dt_s: float) -> int:
-        """Targets needed after (and before) the one shaped: ``K + 1`` (0 when off)."""
-        return 0 if self.off else self.half_width(dt_s) + 1
+        """Targets needed after (and before) the one shaped: ``2 K + 1`` (0 when off)."""
+        return 0 if self.off else 2 * self.half_width(dt_s) + 1
 
     def window(self, before_um: ArrayLike, targets_um: ArrayLike, dt_s: float) -> F64:
         """The targets the next block's :meth:`shape` takes as ``before_um``: the last
@@ -140,17 +149,20 @@ class ResonancePart:
         first = before[0] if before.size else x[0]
         last = ahead[-1] if ahead.size else x[-1]
         e = np.concatenate([np.full(m - before.size, first), before, x, ahead, np.full(m - ahead.size, last)])
-        # the triangular kernel of half-width K is a box of K + 1 samples applied twice (O(1) per
-        # sample; the boxes' 1 / (K + 1) are in the weights); e[j] for the block's sample n sits at
-        # j = n + m, so s covers n - 1 ... n + size
-        s = _box_sum(_box_sum(e, m), m)
+        # a triangle of half-width w - 1 is a box of w samples applied twice (O(1) per sample);
+        # e[j] for the block's sample n sits at j = n + m, and s covers n - 1 ... n + size
+        k = m // 2
+        w1, w2 = k + 1, m
+        inner = _box_sum(_box_sum(e, w1), w1)[m - w1 : m - w1 + x.size + 2]
+        outer = _box_sum(_box_sum(e, w2), w2)
+        a = 4.0 * (k + 1) / (3.0 * k + 2.0)
+        s = (a / (w1 * w1)) * inner + ((1.0 - a) / (w2 * w2)) * outer
         w0 = 2.0 * math.pi * self.f0_hz
         lead = 1.0 / (2.0 * dt_s * self.q * w0)
         accel = 1.0 / (dt_s * dt_s * w0 * w0)
-        scale = 1.0 / (m * m)
-        out: F64 = (scale * (1.0 - 2.0 * accel)) * s[1:-1]
-        out += (scale * (accel + lead)) * s[2:]
-        out += (scale * (accel - lead)) * s[:-2]
+        out: F64 = (1.0 - 2.0 * accel) * s[1:-1]
+        out += (accel + lead) * s[2:]
+        out += (accel - lead) * s[:-2]
         return out
 
 
