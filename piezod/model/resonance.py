@@ -54,7 +54,9 @@ RESONANCE_PARAMS: tuple[str, ...] = ("f0_hz", "q")
 #: Half-width of the smoothing kernel, as a fraction of the resonance period: a trade between the
 #: slew limit, which cuts a narrow pulse, and the rounding of the apex, which shortens a fast line's
 #: regression. Measured on a 290 Hz, Q 28 stage slew-limited at 12 kV/s (lark22), 31 um at 20 Hz:
-#: |length error| 1.1 % at 1/8, 0.19 % at 1/4, 0.51 % at 1/2 (docs/model-family.md 6.2y).
+#: |length error| 1.1 % at 1/8, 0.19 % at 1/4, 0.51 % at 1/2 with the triangle alone (6.2y); with
+#: the kernel of zero second moment, on lark22 / moss23 / fern21's 20 Hz lines, 1.63 / 2.31 / 0.70 %
+#: at 1/8, 0.08 / 1.36 / 0.38 % at 1/4, 0.03 / 1.39 / 0.28 % at 3/8 (docs/model-family.md 6.2aa).
 SMOOTHING_PERIOD_FRACTION = 0.25
 #: Largest ``K`` (samples): bounds the targets needed ahead of a block (``2 K + 1``).
 MAX_HALF_WIDTH = 64
