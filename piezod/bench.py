@@ -219,7 +219,7 @@ def axis_model_costs(
 
 
 #: The resonance part timed by :func:`resonance_cost`: the nPoint AFM stage's mode (issue #9) at
-#: 100 kS/s, a smoothing window of 38 samples each side.
+#: 100 kS/s, ``K`` = 38 samples (the smoothing kernel spans 76 each side).
 BENCH_RESONANCE = (665.0, 8.0)
 
 

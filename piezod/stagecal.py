@@ -120,9 +120,8 @@ def without_extensions(config: ScannerConfig, axis: AxisName) -> tuple[ScannerCo
     names = [str(k) for k in (ax.extensions or {})]
     if not names:
         return config, []
-    axes = dict(config.axes)
-    axes[axis] = ax.model_copy(update={"extensions": None})
-    return config.model_copy(update={"axes": axes}), names
+    bare = ax.model_copy(update={"extensions": None})
+    return config.model_copy(update={"axes": {**config.axes, axis: bare}}), names
 
 
 def with_tracking_bound(config: ScannerConfig, frame: Frame) -> ScannerConfig:

@@ -152,10 +152,11 @@ class ResonancePart:
         last = ahead[-1] if ahead.size else x[-1]
         e = np.concatenate([np.full(m - before.size, first), before, x, ahead, np.full(m - ahead.size, last)])
         # a triangle of half-width w - 1 is a box of w samples applied twice (O(1) per sample);
-        # e[j] for the block's sample n sits at j = n + m, and s covers n - 1 ... n + size
+        # e[j] for the block's sample n sits at j = n + m, and s covers n - 1 ... n + size (the
+        # inner triangle, K samples narrower each side, needs e without its K outermost samples)
         k = m // 2
         w1, w2 = k + 1, m
-        inner = _box_sum(_box_sum(e, w1), w1)[m - w1 : m - w1 + x.size + 2]
+        inner = _box_sum(_box_sum(e[k : e.size - k], w1), w1)
         outer = _box_sum(_box_sum(e, w2), w2)
         a = 4.0 * (k + 1) / (3.0 * k + 2.0)
         s = (a / (w1 * w1)) * inner + ((1.0 - a) / (w2 * w2)) * outer

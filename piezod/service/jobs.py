@@ -166,13 +166,12 @@ class MoveJob(Job):
             self._begin(engine)
         assert self._a is not None
         take = min(n, self._n - self._pos)
-        u = np.arange(self._pos + 1, self._pos + take + 1) / self._n
-        w = 0.5 - 0.5 * np.cos(np.pi * u)
-        targets = self._a[:, None] + (self._b - self._a)[:, None] * w[None, :]
         need = max(d.lookahead for d in engine.drivers.values())
-        u_ahead = np.minimum(np.arange(self._pos + take + 1, self._pos + take + need + 1) / self._n, 1.0)
-        w_ahead = 0.5 - 0.5 * np.cos(np.pi * u_ahead)
-        ahead = self._a[:, None] + (self._b - self._a)[:, None] * w_ahead[None, :]
+        # the block and the targets after it, which hold at the end of the move
+        u = np.minimum(np.arange(self._pos + 1, self._pos + take + need + 1) / self._n, 1.0)
+        w = 0.5 - 0.5 * np.cos(np.pi * u)
+        path = self._a[:, None] + (self._b - self._a)[:, None] * w[None, :]
+        targets, ahead = path[:, :take], path[:, take:]
         self._pos += take
         self.done = self._pos >= self._n
         volts = np.empty_like(targets)
@@ -271,11 +270,11 @@ class ScanJob(Job):
         block = traj.next_block(n)
         if self._settle is not None and self._settle.done:
             self._settle = None
-        ahead = self._ahead(max(d.lookahead for d in engine.drivers.values()))
         m = block.x_um.size
         if m == 0:
             self.done = self._settle is None and self._traj.done
             return engine.chunk(np.empty((len(engine.drivers), 0)), None)
+        ahead = self._ahead(max(d.lookahead for d in engine.drivers.values()))
         if self._plan_key is not self._traj.key:
             self._plan_key = self._traj.key
             self._plans = engine.plans_for(self._traj)
