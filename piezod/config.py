@@ -29,6 +29,7 @@ from piezod.errors import ConfigError, ModelError
 from piezod.model.boucwen import BoucWenParams
 from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
+from piezod.model.fast_creep import FastCreep
 from piezod.model.gplay import GeneralisedPlayParams
 from piezod.model.params import HysteresisParams, ThesisParams
 from piezod.model.parts import Parts, part_effects
@@ -196,6 +197,26 @@ class FamilyModelConfig(StrictModel):
         )
 
 
+class FastCreepConfig(StrictModel):
+    """Fast creep around the axis model (:mod:`piezod.model.fast_creep`): ``weights[j]`` of the motion
+    arrive with the relaxation time ``taus_s[j]``; the static gain is unchanged."""
+
+    taus_s: list[float] = Field(description="relaxation times (s), ascending, > 0")
+    weights: list[float] = Field(description="fractions of the motion, >= 0, one per relaxation time")
+
+    def part(self) -> FastCreep:
+        """The frozen part."""
+        return FastCreep(tuple(self.taus_s), tuple(self.weights))
+
+    @model_validator(mode="after")
+    def _check(self) -> FastCreepConfig:
+        try:
+            self.part()
+        except ModelError as exc:
+            raise ValueError(str(exc)) from exc
+        return self
+
+
 PartEffect = Literal["polarity", "thermal", "stiffness", "saturation", "drift", "delay", "resonance"]
 
 
@@ -223,6 +244,12 @@ class AxisConfig(StrictModel):
         "sensor path (the readback's delay and lag, piezod.model.sensor): the analysis aligns the "
         "readback with it, the drive is unchanged; resonance shapes the targets ahead so the mode does not "
         "ring (piezod.model.resonance)",
+    )
+    fast_creep: FastCreepConfig | None = Field(
+        default=None,
+        description="creep faster than the calibration frame's lines, which the frame shows only as "
+        "sensitivity (piezod.model.fast_creep): piezod calibrate identifies it from the frame's "
+        "harmonics at its several rates (piezod.rate_id); none: off",
     )
     sensor_full_scale_um: float | None = Field(
         default=None,
@@ -252,6 +279,10 @@ class AxisConfig(StrictModel):
     def resonance(self) -> ResonancePart:
         """The resonance part of :attr:`extensions` (off when none)."""
         return ResonancePart.from_effects({str(k): v for k, v in (self.extensions or {}).items()})
+
+    def fast_creep_part(self) -> FastCreep:
+        """The fast creep around the model (the identity when none)."""
+        return FastCreep() if self.fast_creep is None else self.fast_creep.part()
 
     @model_validator(mode="after")
     def _check_limits(self) -> AxisConfig:

@@ -706,6 +706,20 @@ def _bwn_loop(
     return u_prev, h
 
 
+def _fast_creep_loop(y: F64, a: F64, w: F64, scale: float, g: float, c: F64, out: F64) -> None:
+    """The fast-creep part's inverse (:mod:`piezod.model.fast_creep`), ``c`` updated in place:
+    per sample ``x = (scale y - sum_j w_j a_j c_j) / g``, then ``c_j = a_j c_j + (1 - a_j) x``."""
+    m = a.size
+    for n in range(y.size):
+        acc = scale * y[n]
+        for j in range(m):
+            acc -= w[j] * a[j] * c[j]
+        x = acc / g
+        for j in range(m):
+            c[j] = a[j] * c[j] + (1.0 - a[j]) * x
+        out[n] = x
+
+
 Loop = Callable[..., tuple[float, float]]
 
 
@@ -745,6 +759,7 @@ _bwn_rate = _jit(_bwn_rate)
 _bwn_u = _jit(_bwn_u)
 bwn_forward = cast(Callable[..., float], _jit(_bwn_forward))
 bwn_loop = cast(Loop, _jit(_bwn_loop))
+fast_creep_loop = cast(Callable[..., None], _jit(_fast_creep_loop))
 
 _warm = False
 
@@ -785,6 +800,7 @@ def _compile_all(frozen: bool) -> None:
     bw_loop(one, *bw, *creep, *start)
     bwn_forward(one, *bw, 2.0, *start)
     bwn_loop(one, *bw, 2.0, 0.5, *creep, *start)
+    fast_creep_loop(one, param(one), param(one), 1.0, 1.0, np.zeros(1), np.empty(1))
 
 
 __all__ = [
@@ -794,6 +810,7 @@ __all__ = [
     "bwn_loop",
     "ch_loop",
     "ch_solve",
+    "fast_creep_loop",
     "gpi_loop",
     "pi_loop",
     "warm_up",

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from piezod.config import AxisConfig
 from piezod.errors import ModelError, RangeUnreachableError, SafetyError
 from piezod.model.axis_model import AxisModel, DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
+from piezod.model.fast_creep import with_fast_creep
 from piezod.model.inverse import ThesisInverse
 from piezod.model.params import ThesisParams
 from piezod.model.parts import with_parts
@@ -104,7 +105,8 @@ def axis_model(config: AxisConfig) -> AxisModel:
     session goes on from where its trend is now (:meth:`~piezod.model.parts.Parts.anchored` at
     the wall clock).
     """
-    return with_parts(_bare_model(config), config.parts().anchored(time.time()))
+    inner = with_fast_creep(_bare_model(config), config.fast_creep_part())
+    return with_parts(inner, config.parts().anchored(time.time()))
 
 
 def _bare_model(config: AxisConfig) -> AxisModel:

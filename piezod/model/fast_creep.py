@@ -1,0 +1,222 @@
+"""Fast creep: the rate dependence above the calibration frame's rates, around any axis model.
+
+A calibration frame scans at 0.2-2 Hz. Creep whose relaxation times are much shorter than its
+lines (milliseconds) has settled within every line there: the frame shows it as sensitivity,
+the fitted model carries it in its gain, and a line ten times faster than the frame then comes
+out short, because that creep has no time to follow (docs/model-family.md 6.2ae). This part puts
+it back as a linear filter on the wrapped model's position ``x_m`` with unit static gain::
+
+    y[n] = (x_m[n] + sum_j w_j c_j[n]) / (1 + W),   W = sum_j w_j
+    c_j[n] = a_j c_j[n-1] + (1 - a_j) x_m[n],       a_j = exp(-dt / tau_j)
+
+``w_j`` of the motion arrive with the relaxation time ``tau_j``; at rest every ``c_j = x_m``
+and ``y = x_m``, so the wrapped model's calibration (its slow response) is unchanged. In the
+frequency domain ``F(f) = (1 + sum_j w_j / (1 + 2 pi i f tau_j)) / (1 + W)`` (:meth:`FastCreep.response`).
+
+The inverse is exact per sample: ``x_m[n] = ((1 + W) y[n] - sum_j w_j a_j c_j[n-1]) / G`` with
+``G = 1 + sum_j w_j (1 - a_j) >= 1``, then the element updates. Each sample's ``x_m`` moves the
+next sample's elements, so it is a sequential loop, ``O(J)`` per sample for ``J`` elements,
+compiled (:func:`piezod.model.kernels.fast_creep_loop`; a few ns per sample). The forward runs
+one first-order filter per element (``scipy.signal.lfilter``), vectorised over a block.
+:mod:`piezod.rate_id` identifies the weights.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.signal import lfilter
+
+from piezod.errors import ModelError
+from piezod.model import kernels
+from piezod.model.axis_model import AxisModel
+
+F64 = NDArray[np.float64]
+#: Largest total fast-creep weight accepted: ``W`` of the motion arriving late; a real stage's
+#: creep below a second is a few percent, so half the motion is far beyond any stage.
+MAX_FAST_CREEP = 0.5
+
+
+@dataclass(frozen=True)
+class FastCreep:
+    """Frozen weights ``w_j >= 0`` (fractions of the motion) on relaxation times ``tau_j`` (s).
+
+    Attributes
+    ----------
+    taus_s
+        Relaxation times (s), strictly ascending, finite, > 0.
+    weights
+        Weights, finite, >= 0, summing below :data:`MAX_FAST_CREEP`. Empty: the part is off.
+    """
+
+    taus_s: tuple[float, ...] = ()
+    weights: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        if len(self.taus_s) != len(self.weights):
+            raise ModelError("fast creep needs one weight per relaxation time")
+        finite = all(math.isfinite(t) and t > 0.0 for t in self.taus_s)
+        if not finite or any(b <= a for a, b in zip(self.taus_s, self.taus_s[1:], strict=False)):
+            raise ModelError("fast creep relaxation times must be finite, > 0 and ascending")
+        if not all(math.isfinite(w) and w >= 0.0 for w in self.weights):
+            raise ModelError("fast creep weights must be finite and >= 0")
+        if self.total >= MAX_FAST_CREEP:
+            raise ModelError(f"total fast creep {self.total:.4g} must stay below {MAX_FAST_CREEP}")
+
+    @property
+    def total(self) -> float:
+        """``W``, the fraction of the motion that arrives late."""
+        return float(sum(self.weights))
+
+    @property
+    def identity(self) -> bool:
+        """No weight: the part is off."""
+        return self.total == 0.0
+
+    def response(self, frequency_hz: ArrayLike) -> NDArray[np.complex128]:
+        """``F(f)``: the part's complex gain at ``frequency_hz`` (1 at 0 Hz)."""
+        f = np.asarray(frequency_hz, dtype=np.float64)
+        out = np.ones(f.shape, dtype=np.complex128)
+        for tau, w in zip(self.taus_s, self.weights, strict=True):
+            out += w / (1.0 + 2j * math.pi * f * tau)
+        result: NDArray[np.complex128] = out / (1.0 + self.total)
+        return result
+
+    def forward(self, xm: F64, dt_s: float, c: F64) -> tuple[F64, F64]:
+        """``y`` for the wrapped model's positions ``xm`` from element states ``c``; the states after."""
+        a, w = self._a(dt_s), np.asarray(self.weights)
+        y = xm.copy()
+        c_out = np.empty_like(c)
+        for j in range(a.size):
+            cj, _ = lfilter([1.0 - a[j]], [1.0, -a[j]], xm, zi=[a[j] * c[j]])
+            y += w[j] * cj
+            c_out[j] = cj[-1]
+        out: F64 = y / (1.0 + self.total)
+        return out, c_out
+
+    def inverse(self, y: F64, dt_s: float, c: F64) -> tuple[F64, F64]:
+        """The wrapped model's positions ``xm`` whose :meth:`forward` is ``y``; the states after."""
+        a, w = self._a(dt_s), np.asarray(self.weights, dtype=np.float64)
+        g = 1.0 + float(np.sum(w * (1.0 - a)))
+        state = np.array(c, dtype=np.float64)
+        xm = np.empty(y.size)
+        y = np.ascontiguousarray(y, dtype=np.float64)
+        kernels.fast_creep_loop(y, a, w, 1.0 + self.total, g, state, xm)
+        return xm, state
+
+    def _a(self, dt_s: float) -> F64:
+        if not (math.isfinite(dt_s) and dt_s > 0.0):
+            raise ModelError(f"dt_s must be finite and > 0, got {dt_s!r}")
+        return np.exp(-float(dt_s) / np.asarray(self.taus_s, dtype=np.float64))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FastCreepState:
+    """State of a model with fast creep.
+
+    Attributes
+    ----------
+    inner
+        The wrapped model's state.
+    c
+        The elements' states (um), read-only.
+    position_um
+        Position of the last sample (um).
+    """
+
+    inner: Any
+    c: F64
+    position_um: float
+
+
+@dataclass(frozen=True)
+class FastCreepAxisModel(AxisModel):
+    """An axis model whose position arrives partly late (:class:`FastCreep`; see the module docstring).
+
+    Attributes
+    ----------
+    inner
+        The wrapped model.
+    fast
+        The fast creep (not the identity).
+    """
+
+    inner: AxisModel
+    fast: FastCreep
+
+    def __post_init__(self) -> None:
+        kernels.warm_up()
+
+    @property
+    def kind(self) -> str:  # type: ignore[override]
+        """The wrapped model's ``model:`` name."""
+        return self.inner.kind
+
+    @property
+    def plans_by_thesis(self) -> bool:  # type: ignore[override]
+        """The wrapped model's planner."""
+        return self.inner.plans_by_thesis
+
+    def _settled(self, inner: Any) -> FastCreepState:
+        xm = float(self.inner.position(inner))
+        return FastCreepState(inner, _frozen(np.full(len(self.fast.taus_s), xm)), xm)
+
+    def rest(self, voltage_v: float = 0.0) -> FastCreepState:
+        return self._settled(self.inner.rest(voltage_v))
+
+    def adopt(self, voltage_v: float, position_um: float) -> FastCreepState:
+        return self._settled(self.inner.adopt(voltage_v, position_um))
+
+    def forward(self, voltage_v: ArrayLike, dt_s: float, state: Any) -> tuple[F64, FastCreepState]:
+        v = np.asarray(voltage_v, dtype=np.float64)
+        if v.size == 0:
+            return np.empty(0), state
+        xm, inner = self.inner.forward(v, dt_s, state.inner)
+        y, c = self.fast.forward(np.asarray(xm, dtype=np.float64), dt_s, state.c)
+        return y, FastCreepState(inner, _frozen(c), float(y[-1]))
+
+    def inverse(self, target_um: ArrayLike, dt_s: float, state: Any) -> tuple[F64, FastCreepState]:
+        y = np.asarray(target_um, dtype=np.float64)
+        if y.size == 0:
+            return np.empty(0), state
+        xm, c = self.fast.inverse(y, dt_s, state.c)
+        v, inner = self.inner.inverse(xm, dt_s, state.inner)
+        return v, FastCreepState(inner, _frozen(c), float(y[-1]))
+
+    def hold(self, samples: int, dt_s: float, state: Any) -> FastCreepState:
+        inner = self.inner.hold(samples, dt_s, state.inner)
+        if samples <= 0:
+            return FastCreepState(inner, state.c, state.position_um)
+        xm = float(self.inner.position(inner))
+        # the wrapped position moves slowly during a hold; the elements relax towards where it ends
+        decay = np.exp(-samples * float(dt_s) / np.asarray(self.fast.taus_s))
+        c = xm + (state.c - xm) * decay
+        y = (xm + float(np.dot(self.fast.weights, c))) / (1.0 + self.fast.total)
+        return FastCreepState(inner, _frozen(c), y)
+
+    def position(self, state: Any) -> float:
+        return float(state.position_um)
+
+    def voltage(self, state: Any) -> float:
+        return float(self.inner.voltage(state.inner))
+
+    def with_plan(self, kappa_um_per_v: float, center_v: float) -> AxisModel:
+        return FastCreepAxisModel(self.inner.with_plan(kappa_um_per_v, center_v), self.fast)
+
+
+def with_fast_creep(model: AxisModel, fast: FastCreep) -> AxisModel:
+    """``model`` with ``fast`` after it (``model`` itself when the part is off)."""
+    return model if fast.identity else FastCreepAxisModel(model, fast)
+
+
+def _frozen(c: F64) -> F64:
+    out = np.array(c, dtype=np.float64)
+    out.flags.writeable = False
+    return out
+
+
+__all__ = ["MAX_FAST_CREEP", "FastCreep", "FastCreepAxisModel", "FastCreepState", "with_fast_creep"]
