@@ -911,7 +911,7 @@ def audit_and_extend(
     report["skipped"] = list(adoption.skipped)
     if not adoption.effects:
         report["text"] = adoption.summary()
-        return _with_resonance(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
+        return _with_dynamics(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
     redone = choose_for_experiments(
         experiments_through(experiments, adoption.effects),
         axis,
@@ -936,11 +936,51 @@ def audit_and_extend(
             + "".join(f"\nrefined {r}" for r in refined)
         )
         extended = ThesisFit(report, extended_config(redone.config, axis, adoption), redone.fit_error_pct)
-        return _with_resonance(experiments, axis, extended)
+        return _with_dynamics(experiments, axis, extended)
     worse = f"held-out RMS {redone.fit_error_pct * 1e3:.2f} nm, not below {chosen.fit_error_pct * 1e3:.2f} nm"
     report["skipped"] = [f"{a} ({worse})" for a in adoption.adopted] + report["skipped"]
     report["text"] = "\n".join(f"not adopted {s}" for s in report["skipped"])
-    return _with_resonance(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
+    return _with_dynamics(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
+
+
+def _with_dynamics(experiments: Sequence[Experiment], axis: AxisName, fit: ThesisFit) -> ThesisFit:
+    """``fit`` with the stage's mode (:func:`_with_resonance`), then with the fast creep its model
+    misses (:func:`_with_fast_creep`, measured through the mode)."""
+    return _with_fast_creep(experiments, axis, _with_resonance(experiments, axis, fit))
+
+
+def _noted(fit: ThesisFit, report: dict[str, Any], note: str, key: str, config: ScannerConfig) -> ThesisFit:
+    report["text"] = "\n".join(t for t in (str(report.get("text") or ""), note) if t)
+    report[key] = [*report.get(key, []), note]
+    return ThesisFit(report, config, fit.fit_error_pct)
+
+
+def _with_fast_creep(experiments: Sequence[Experiment], axis: AxisName, fit: ThesisFit) -> ThesisFit:
+    """``fit`` with the fast creep its model misses when the frame's harmonics at its several rates
+    show it and predict the held-out harmonics better (:func:`piezod.rate_id.adopt_fast_creep`)."""
+    from piezod.rate_id import adopt_fast_creep
+
+    report = dict(fit.report)
+    try:
+        config, found = adopt_fast_creep(experiments, axis, fit.config)
+    except (ModelError, CalibrationError) as exc:
+        # the model is written without it; the run says why rather than losing the frame's fit
+        return _noted(fit, report, f"fast creep: not fitted ({exc})", "skipped", fit.config)
+    if found is None:
+        return fit
+    report["fast_creep"] = {
+        "taus_s": list(found.fast.taus_s),
+        "weights": list(found.fast.weights),
+        "total": found.fast.total,
+        "delay_correction_s": found.delay_correction_s,
+        "pole_s": found.pole_s,
+        "points": found.points,
+        "max_frequency_hz": found.max_frequency_hz,
+        "train_rms": list(found.train_rms),
+        "heldout_rms": list(found.heldout_rms),
+        "adopted": found.adopted,
+    }
+    return _noted(fit, report, found.note, "adopted" if found.adopted else "skipped", config)
 
 
 def _with_resonance(experiments: Sequence[Experiment], axis: AxisName, fit: ThesisFit) -> ThesisFit:
@@ -953,17 +993,11 @@ def _with_resonance(experiments: Sequence[Experiment], axis: AxisName, fit: Thes
     from piezod.resonance_id import adopt_resonance
 
     report = dict(fit.report)
-
-    def noted(note: str, key: str, config: ScannerConfig) -> ThesisFit:
-        report["text"] = "\n".join(t for t in (str(report.get("text") or ""), note) if t)
-        report[key] = [*report.get(key, []), note]
-        return ThesisFit(report, config, fit.fit_error_pct)
-
     try:
         config, found = adopt_resonance(experiments, axis, fit.config)
     except (ModelError, CalibrationError) as exc:
         # the model is written without the mode; the run says why rather than losing the frame's fit
-        return noted(f"resonance: not fitted ({exc})", "skipped", fit.config)
+        return _noted(fit, report, f"resonance: not fitted ({exc})", "skipped", fit.config)
     if found is None:
         return fit
     report["resonance"] = {
@@ -973,7 +1007,7 @@ def _with_resonance(experiments: Sequence[Experiment], axis: AxisName, fit: Thes
         "heldout_rms_um": list(found.heldout_rms_um),
         "adopted": found.adopted,
     }
-    return noted(found.note, "adopted" if found.adopted else "skipped", config)
+    return _noted(fit, report, found.note, "adopted" if found.adopted else "skipped", config)
 
 
 #: The choice redone through adopted parts refits the family members whose held-out RMS was

@@ -51,6 +51,7 @@ from piezod.effects_bench import StageBench
 from piezod.errors import RangeUnreachableError, SafetyError
 from piezod.extensions import experiments_through_sensor
 from piezod.linearity import experiment_linearity
+from piezod.rate_id import adopt_fast_creep
 from piezod.recording import Experiment, Recording, write_recording
 from piezod.resonance_id import adopt_resonance
 from piezod.service.axes import AxisDriver
@@ -211,6 +212,12 @@ def main() -> int:
         "calibrate does, and verify the config with it when adopted",
     )
     ap.add_argument(
+        "--fast-creep",
+        action="store_true",
+        help="with --verify: fit the fast creep that config misses on the frame's harmonics (after "
+        "--resonance), as piezod calibrate does, and verify the config with it when adopted",
+    )
+    ap.add_argument(
         "--markdown", default=None, metavar="F.json", help="print the tables of a saved --json run"
     )
     ap.add_argument(
@@ -257,6 +264,9 @@ def main() -> int:
     if args.resonance:
         calibrated, found = adopt_resonance(exps, axis, calibrated)
         print(found.note if found is not None else "resonance: the frame cannot resolve one")
+    if args.fast_creep:
+        calibrated, fast = adopt_fast_creep(exps, axis, calibrated)
+        print(fast.note if fast is not None else "fast creep: the frame cannot measure it")
     if args.config_out:
         dump_config(calibrated, args.config_out, header=f"calibrated in process on {path}")
     chosen_kind = calibrated.axes[axis].model

@@ -1,0 +1,103 @@
+"""Fast creep identified from the frame's harmonics at its several rates (piezod.rate_id) and adopted.
+
+The frames here are synthetic: triangles through a thesis-model axis and a known fast creep
+(:mod:`piezod.model.fast_creep`), so the tests check that the identification recovers what was put
+in, also when the calibrated model's hysteresis is not the data's.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from piezod.config import AxisConfig, ThesisModelConfig, default_sim_config_path, dump_config, load_config
+from piezod.errors import ConfigError
+from piezod.model.fast_creep import FastCreep
+from piezod.rate_id import MIN_GAIN, adopt_fast_creep, identify_fast_creep
+from piezod.recording import Experiment
+from piezod.service.axes import axis_model
+
+RATE = 5_000.0
+THESIS = ThesisModelConfig(
+    alpha_per_v=3e-3, b_um_per_v=0.09, u_um_per_v=0.05, tau_s=2.666, a1=0.081, a2_per_v=0.0, a3=0.6
+)
+CONFIG = AxisConfig(voltage_min_v=-30.0, voltage_max_v=150.0, thesis=THESIS)
+TRUTH = FastCreep((0.003, 0.01), (0.015, 0.015))
+
+
+def _frame(fast: FastCreep, thesis: ThesisModelConfig = THESIS, noise_um: float = 0.002) -> list[Experiment]:
+    """Triangles over 2 ranges x 4 rates (one unrecorded loop, then 3 recorded) through a thesis-model
+    axis and then ``fast``, plus sensor noise."""
+    rng = np.random.default_rng(5)
+    model = axis_model(CONFIG.model_copy(update={"thesis": thesis}))
+    dt = 1.0 / RATE
+    out = []
+    for range_v in (60.0, 120.0):
+        for f in (0.25, 0.5, 1.0, 2.0):
+            per = round(RATE / f)
+            phase = (np.arange(4 * per + 1) % per) / per
+            v = range_v * np.where(phase < 0.5, 2.0 * phase, 2.0 - 2.0 * phase)
+            x, _ = model.forward(v, dt, model.rest(0.0))
+            if not fast.identity:
+                x, _ = fast.forward(x, dt, np.full(len(fast.taus_s), x[0]))
+            y = x[per:] + rng.normal(0.0, noise_um, x.size - per)
+            t = np.arange(y.size, dtype=np.float64) * dt
+            out.append(Experiment(f"R{range_v:g}_f{f:g}", "x", t, v[per:], y))
+    return out
+
+
+def _late_at(fast: FastCreep, f_hz: float) -> float:
+    """How much less of the motion a sine at ``f_hz`` reaches than a slow one (fraction)."""
+    return float(1.0 - abs(fast.response(np.array([f_hz]))[0]))
+
+
+def test_fast_creep_is_found_and_adopted() -> None:
+    found = identify_fast_creep(_frame(TRUTH), CONFIG)
+    assert found is not None and found.adopted, found
+    assert found.heldout_rms[1] <= (1.0 - MIN_GAIN) * found.heldout_rms[0]
+    # what a fast line feels: the gain lost at 20 and 60 Hz, within a fifth of the truth
+    for f in (20.0, 60.0):
+        assert _late_at(found.fast, f) == pytest.approx(_late_at(TRUTH, f), rel=0.2)
+    assert "adopted" in found.note
+
+
+def test_it_is_found_through_a_hysteresis_the_model_does_not_fit() -> None:
+    """The harmonic ratios cancel the hysteresis: a 30 % wider loop than the model's changes nothing."""
+    other = THESIS.model_copy(update={"u_um_per_v": 0.065, "alpha_per_v": 2.2e-3})
+    found = identify_fast_creep(_frame(TRUTH, other), CONFIG)
+    assert found is not None and found.adopted, found
+    for f in (20.0, 60.0):
+        assert _late_at(found.fast, f) == pytest.approx(_late_at(TRUTH, f), rel=0.25)
+
+
+def test_a_stage_without_fast_creep_gets_none_adopted() -> None:
+    found = identify_fast_creep(_frame(FastCreep()), CONFIG)
+    assert found is None or not found.adopted, found
+    if found is not None:
+        assert "not adopted" in found.note
+        assert _late_at(found.fast, 20.0) < 0.25 * _late_at(TRUTH, 20.0)
+
+
+def test_scans_that_are_not_periodic_give_no_finding() -> None:
+    rng = np.random.default_rng(1)
+    t = np.arange(20000) / RATE
+    v = 60.0 + np.cumsum(rng.normal(0.0, 0.2, t.size))
+    assert identify_fast_creep([Experiment("walk", "x", t, v, 0.09 * v)], CONFIG) is None
+
+
+def test_the_adopted_fast_creep_is_written_into_the_scanner_yaml(tmp_path: Path) -> None:
+    base = load_config(default_sim_config_path())
+    config = base.model_copy(update={"axes": {**base.axes, "x": CONFIG}})
+    new, found = adopt_fast_creep(_frame(TRUTH), "x", config)
+    assert found is not None and found.adopted
+    path = tmp_path / "cal.yaml"
+    dump_config(new, path)
+    back = load_config(path).axes["x"]
+    assert back.fast_creep is not None
+    assert back.fast_creep_part().total == pytest.approx(found.fast.total, rel=1e-6)
+    kept = tuple(t for t, w in zip(found.fast.taus_s, found.fast.weights, strict=True) if w)
+    assert back.fast_creep_part().taus_s == kept
+    with pytest.raises(ConfigError, match="no axis"):
+        adopt_fast_creep(_frame(TRUTH), "q", config)
