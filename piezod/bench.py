@@ -102,7 +102,8 @@ def bench_models() -> dict[str, Any]:
     play law with 32 plays over 3 relay-centre nodes, or the Bouc-Wen/Duhem law of exponent 1 or 2),
     a creep spectrum
     of 19 relaxation times from 0.1 ms to 1e5 s and the stiffness map; :data:`RICHEST_MODEL` (the
-    generalised play law) adds voltage-driven creep and every runtime part
+    generalised play law) adds voltage-driven creep, the fast creep of a 2 Hz frame
+    (:mod:`piezod.model.fast_creep`, 10 relaxation times) and every other runtime part
     (:mod:`piezod.model.parts`: polarity, thermal,
     stiffness, saturation, drift) at the finest play grid the calibration's choice writes (64 plays;
     the Prandtl-Ishlinskii law with voltage creep and every part at 64 plays beside it).
@@ -111,10 +112,12 @@ def bench_models() -> dict[str, Any]:
     from piezod.model.boucwen import BoucWenParams
     from piezod.model.dynamic import DynamicParams
     from piezod.model.family import CreepSpectrum, FamilyParams
+    from piezod.model.fast_creep import FastCreep, FastCreepAxisModel
     from piezod.model.gplay import GeneralisedPlayParams
     from piezod.model.params import HysteresisParams
     from piezod.model.parts import Parts, PartsAxisModel
     from piezod.model.play import PlayParams
+    from piezod.rate_id import PER_DECADE, TAU_MIN_S
 
     creep = CreepSpectrum.log_spaced(1e-4, 1e5, 2, 0.015 / 2)
     shape = np.exp(-np.arange(16) / 6.0)
@@ -142,6 +145,13 @@ def bench_models() -> dict[str, Any]:
     bw = BoucWenParams(0.098, -0.037, 0.0159, 0.0097, 0.0155, 0.0081, 1.2)
     # exponent 2 (a sharp knee): the law is its per-sample Runge-Kutta step, inverted by Newton
     bw2 = BoucWenParams(0.2, -0.07, 0.0234, 0.015, 0.0234, 0.015, 1.0, 2.0)
+    # the fast creep's largest spectrum (piezod.rate_id): its times up to a fourteenth of a 2 Hz line
+    taus = np.logspace(
+        math.log10(TAU_MIN_S),
+        math.log10(1.0 / 56.0),
+        1 + round(PER_DECADE * math.log10(1.0 / 56.0 / TAU_MIN_S)),
+    )
+    fast = FastCreep(tuple(map(float, taus)), tuple(0.003 for _ in taus))
     return {
         "thesis": ThesisAxisModel(MEDIUM_TUBE_TABLE_3_3, 0.01, 0.0),
         "dynamic": DynamicAxisModel(DynamicParams(3e-3, 0.115, 0.072, 1.5)),
@@ -178,7 +188,7 @@ def bench_models() -> dict[str, Any]:
             Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
         ),
         RICHEST_MODEL: PartsAxisModel(
-            FamilyAxisModel(FamilyParams(gp_fine, creep, 2e-4, 0.05, "voltage")),
+            FastCreepAxisModel(FamilyAxisModel(FamilyParams(gp_fine, creep, 2e-4, 0.05, "voltage")), fast),
             Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
         ),
     }
