@@ -48,6 +48,7 @@ from scipy.optimize import lsq_linear
 
 from piezod.config import AxisConfig, FastCreepConfig, ScannerConfig
 from piezod.errors import ConfigError
+from piezod.model.axis_model import AxisModel
 from piezod.model.fast_creep import FastCreep
 from piezod.recording import Experiment
 
@@ -116,6 +117,7 @@ class RateFinding:
 @dataclass(frozen=True)
 class _Harmonics:
     key: tuple[float, float]
+    dt_s: float
     rate_hz: float
     k: NDArray[np.int64]
     stage: C128
@@ -147,10 +149,7 @@ def _detrended(y: F64, loops: int, per: int) -> F64:
     return out
 
 
-def _harmonics(e: Experiment, config: AxisConfig, model: object) -> _Harmonics | None:
-    from piezod.model.axis_model import AxisModel
-
-    assert isinstance(model, AxisModel)
+def _harmonics(e: Experiment, model: AxisModel) -> _Harmonics | None:
     t = np.asarray(e.t_s, dtype=np.float64)
     v = np.asarray(e.voltage_v, dtype=np.float64)
     x = np.asarray(e.position_um, dtype=np.float64)
@@ -186,7 +185,7 @@ def _harmonics(e: Experiment, config: AxisConfig, model: object) -> _Harmonics |
     centre = 0.5 * (float(v.max()) + float(v.min()))
     key = (round(span, 1), round(centre, 1))
     sigma = noise / np.abs(xs[bins])
-    return _Harmonics(key, f, ks, xs[bins] / vs[bins], ms[bins] / vs[bins], sigma)
+    return _Harmonics(key, dt, f, ks, xs[bins] / vs[bins], ms[bins] / vs[bins], sigma)
 
 
 def _known(config: AxisConfig, f: F64) -> C128:
@@ -271,11 +270,11 @@ def identify_fast_creep(experiments: Sequence[Experiment], config: AxisConfig) -
 
     bare = config.model_copy(update={"fast_creep": None})
     model = axis_model(bare)
-    found = [h for h in (_harmonics(e, bare, model) for e in experiments) if h is not None]
+    found = [h for h in (_harmonics(e, model) for e in experiments) if h is not None]
     if not found:
         return None
     rates = [h.rate_hz for h in found]
-    dt = min(float(np.median(np.diff(np.asarray(e.t_s, dtype=np.float64)))) for e in experiments)
+    dt = min(h.dt_s for h in found)
     cap = 0.1 / dt
     mode = bare.resonance()
     if not mode.off:

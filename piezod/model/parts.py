@@ -32,7 +32,9 @@ Not a part: the audit's ``delay``, which the readback shows alike wherever it si
 delay at the drive would need targets ahead of the sample being computed (the drive *lag* is a
 part of the family model). Not a part either: ``resonance``, which needs the targets ahead of
 the one it shapes (:mod:`piezod.model.resonance`, applied by the axis driver before the model's
-inverse); ``creep`` is the calibration's (the family's spectrum).
+inverse); ``creep`` is the calibration's (the family's spectrum). The fast creep
+(:mod:`piezod.model.fast_creep`, the axis's ``fast_creep:``, not an audit effect) has state of its
+own and wraps the model inside these parts: ``x_m`` above is its output.
 """
 
 from __future__ import annotations
