@@ -955,32 +955,49 @@ def _noted(fit: ThesisFit, report: dict[str, Any], note: str, key: str, config: 
     return ThesisFit(report, config, fit.fit_error_pct)
 
 
+def _with_step(
+    experiments: Sequence[Experiment],
+    axis: AxisName,
+    fit: ThesisFit,
+    what: str,
+    adopt: Callable[[Sequence[Experiment], str, ScannerConfig], tuple[ScannerConfig, Any]],
+    summary: Callable[[Any], dict[str, Any]],
+) -> ThesisFit:
+    """``fit`` through one identification step on the frame (``adopt`` returns the config and a
+    finding with ``note`` and ``adopted``, or None when the frame cannot show it); the report gets
+    the finding's ``summary`` under ``what`` and its note under ``adopted`` or ``skipped``."""
+    report = dict(fit.report)
+    try:
+        config, found = adopt(experiments, axis, fit.config)
+    except (ModelError, CalibrationError) as exc:
+        # the model is written without it; the run says why rather than losing the frame's fit
+        return _noted(fit, report, f"{what.replace('_', ' ')}: not fitted ({exc})", "skipped", fit.config)
+    if found is None:
+        return fit
+    report[what] = summary(found)
+    return _noted(fit, report, found.note, "adopted" if found.adopted else "skipped", config)
+
+
 def _with_fast_creep(experiments: Sequence[Experiment], axis: AxisName, fit: ThesisFit) -> ThesisFit:
     """``fit`` with the fast creep its model misses when the frame's harmonics at its several rates
     show it and predict the held-out harmonics better (:func:`piezod.rate_id.adopt_fast_creep`)."""
-    from piezod.rate_id import adopt_fast_creep
+    from piezod.rate_id import RateFinding, adopt_fast_creep
 
-    report = dict(fit.report)
-    try:
-        config, found = adopt_fast_creep(experiments, axis, fit.config)
-    except (ModelError, CalibrationError) as exc:
-        # the model is written without it; the run says why rather than losing the frame's fit
-        return _noted(fit, report, f"fast creep: not fitted ({exc})", "skipped", fit.config)
-    if found is None:
-        return fit
-    report["fast_creep"] = {
-        "taus_s": list(found.fast.taus_s),
-        "weights": list(found.fast.weights),
-        "total": found.fast.total,
-        "delay_correction_s": found.delay_correction_s,
-        "pole_s": found.pole_s,
-        "points": found.points,
-        "max_frequency_hz": found.max_frequency_hz,
-        "train_rms": list(found.train_rms),
-        "heldout_rms": list(found.heldout_rms),
-        "adopted": found.adopted,
-    }
-    return _noted(fit, report, found.note, "adopted" if found.adopted else "skipped", config)
+    def summary(found: RateFinding) -> dict[str, Any]:
+        return {
+            "taus_s": list(found.fast.taus_s),
+            "weights": list(found.fast.weights),
+            "total": found.fast.total,
+            "delay_correction_s": found.delay_correction_s,
+            "pole_s": found.pole_s,
+            "points": found.points,
+            "max_frequency_hz": found.max_frequency_hz,
+            "train_rms": list(found.train_rms),
+            "heldout_rms": list(found.heldout_rms),
+            "adopted": found.adopted,
+        }
+
+    return _with_step(experiments, axis, fit, "fast_creep", adopt_fast_creep, summary)
 
 
 def _with_resonance(experiments: Sequence[Experiment], axis: AxisName, fit: ThesisFit) -> ThesisFit:
@@ -990,24 +1007,18 @@ def _with_resonance(experiments: Sequence[Experiment], axis: AxisName, fit: Thes
     The audit's own resonance candidate is fitted against the audit's baseline, whose misfit
     hides the ringing; the model chosen and extended leaves little else at the mode's frequency.
     """
-    from piezod.resonance_id import adopt_resonance
+    from piezod.resonance_id import ResonanceFinding, adopt_resonance
 
-    report = dict(fit.report)
-    try:
-        config, found = adopt_resonance(experiments, axis, fit.config)
-    except (ModelError, CalibrationError) as exc:
-        # the model is written without the mode; the run says why rather than losing the frame's fit
-        return _noted(fit, report, f"resonance: not fitted ({exc})", "skipped", fit.config)
-    if found is None:
-        return fit
-    report["resonance"] = {
-        "f0_hz": found.f0_hz,
-        "q": found.q,
-        "train_rms_um": list(found.train_rms_um),
-        "heldout_rms_um": list(found.heldout_rms_um),
-        "adopted": found.adopted,
-    }
-    return _noted(fit, report, found.note, "adopted" if found.adopted else "skipped", config)
+    def summary(found: ResonanceFinding) -> dict[str, Any]:
+        return {
+            "f0_hz": found.f0_hz,
+            "q": found.q,
+            "train_rms_um": list(found.train_rms_um),
+            "heldout_rms_um": list(found.heldout_rms_um),
+            "adopted": found.adopted,
+        }
+
+    return _with_step(experiments, axis, fit, "resonance", adopt_resonance, summary)
 
 
 #: The choice redone through adopted parts refits the family members whose held-out RMS was

@@ -101,3 +101,21 @@ def test_the_adopted_fast_creep_is_written_into_the_scanner_yaml(tmp_path: Path)
     assert back.fast_creep_part().taus_s == kept
     with pytest.raises(ConfigError, match="no axis"):
         adopt_fast_creep(_frame(TRUTH), "q", config)
+
+
+def test_piezod_calibrate_reports_the_step_and_writes_the_part() -> None:
+    """The calibration's step (piezod.stagecal) puts the finding into the report and the config."""
+    from piezod.stagecal import ThesisFit, _with_fast_creep
+
+    base = load_config(default_sim_config_path())
+    config = base.model_copy(update={"axes": {**base.axes, "x": CONFIG}})
+    fit = ThesisFit({"text": "held-out RMS 5 nm", "adopted": []}, config, 0.005)
+    out = _with_fast_creep(_frame(TRUTH), "x", fit)
+    assert out.fit_error_pct == 0.005
+    assert out.config.axes["x"].fast_creep is not None
+    doc = out.report["fast_creep"]
+    assert doc["adopted"] and doc["total"] == pytest.approx(out.config.axes["x"].fast_creep_part().total)
+    assert out.report["adopted"][-1].startswith("fast creep") and out.report["text"].endswith("adopted")
+    none = _with_fast_creep(_frame(FastCreep()), "x", fit)
+    assert none.config.axes["x"].fast_creep is None
+    assert none.report["skipped"][-1].startswith("fast creep") and not none.report["fast_creep"]["adopted"]
