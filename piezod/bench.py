@@ -117,7 +117,7 @@ def bench_models() -> dict[str, Any]:
     from piezod.model.params import HysteresisParams
     from piezod.model.parts import Parts, PartsAxisModel
     from piezod.model.play import PlayParams
-    from piezod.rate_id import PER_DECADE, TAU_MIN_S
+    from piezod.rate_id import fast_taus
 
     creep = CreepSpectrum.log_spaced(1e-4, 1e5, 2, 0.015 / 2)
     shape = np.exp(-np.arange(16) / 6.0)
@@ -146,12 +146,8 @@ def bench_models() -> dict[str, Any]:
     # exponent 2 (a sharp knee): the law is its per-sample Runge-Kutta step, inverted by Newton
     bw2 = BoucWenParams(0.2, -0.07, 0.0234, 0.015, 0.0234, 0.015, 1.0, 2.0)
     # the fast creep's largest spectrum (piezod.rate_id): its times up to a fourteenth of a 2 Hz line
-    taus = np.logspace(
-        math.log10(TAU_MIN_S),
-        math.log10(1.0 / 56.0),
-        1 + round(PER_DECADE * math.log10(1.0 / 56.0 / TAU_MIN_S)),
-    )
-    fast = FastCreep(tuple(map(float, taus)), tuple(0.003 for _ in taus))
+    taus = fast_taus(1e-5, 2.0)
+    fast = FastCreep(taus, tuple(0.003 for _ in taus))
     return {
         "thesis": ThesisAxisModel(MEDIUM_TUBE_TABLE_3_3, 0.01, 0.0),
         "dynamic": DynamicAxisModel(DynamicParams(3e-3, 0.115, 0.072, 1.5)),

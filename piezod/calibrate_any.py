@@ -240,9 +240,7 @@ def calibrated_config(
 def with_tracking_bound(config: ScannerConfig, axis: str, min_line_s: float) -> ScannerConfig:
     """``config`` with ``axis``'s ``tracking_min_line_s`` set: the sensitivity tracker
     (:mod:`piezod.service.tracking`) learns only from lines about that long or longer."""
-    name = cast(AxisName, axis)
-    bounded = config.axes[name].model_copy(update={"tracking_min_line_s": min_line_s})
-    return config.model_copy(update={"axes": {**config.axes, name: bounded}})
+    return config.with_axis(cast(AxisName, axis), tracking_min_line_s=min_line_s)
 
 
 def shortest_line_s(experiments: Sequence[Experiment]) -> float | None:

@@ -419,6 +419,12 @@ class ScannerConfig(StrictModel):
         default=None, description="a microscope records height on the z channel (z-piezo voltage monitor)"
     )
 
+    def with_axis(self, axis: AxisName, **update: Any) -> ScannerConfig:
+        """A copy with ``axis``'s fields replaced by ``update`` (the others shared, not revalidated,
+        as :meth:`pydantic.BaseModel.model_copy`)."""
+        changed = self.axes[axis].model_copy(update=update)
+        return self.model_copy(update={"axes": {**self.axes, axis: changed}})
+
     @model_validator(mode="after")
     def _check_axes(self) -> ScannerConfig:
         if "x" not in self.axes:

@@ -194,9 +194,7 @@ class _Refits:
     def config(self, effects: Mapping[str, Mapping[str, float]]) -> ScannerConfig:
         """The base config with the fitted dynamic model in force on the axis."""
         cfg = cd.calibrated_config(self.fit(effects), axis=self.axis, base=self.base)
-        axes = dict(cfg.axes)
-        axes[self.axis] = axes[self.axis].model_copy(update={"model": "dynamic"})
-        return cfg.model_copy(update={"axes": axes})
+        return cfg.with_axis(self.axis, model="dynamic")
 
 
 def _verify(

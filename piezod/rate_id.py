@@ -49,6 +49,7 @@ from scipy.optimize import lsq_linear
 from piezod.config import AxisConfig, FastCreepConfig, ScannerConfig
 from piezod.errors import ConfigError
 from piezod.model.axis_model import AxisModel
+from piezod.model.family import CreepSpectrum
 from piezod.model.fast_creep import FastCreep
 from piezod.recording import Experiment
 
@@ -134,10 +135,19 @@ class _Rows:
     k: NDArray[np.int64]
 
 
+def fast_taus(dt_s: float, fastest_line_rate_hz: float) -> tuple[float, ...]:
+    """The fast spectrum's relaxation times for a frame sampled every ``dt_s`` whose fastest triangle
+    runs at ``fastest_line_rate_hz``: :data:`PER_DECADE` per decade from :data:`TAU_MIN_S` (or two
+    sample intervals) to :data:`TAU_MAX_LINES` of its line; empty when that span is empty."""
+    tau_min = max(TAU_MIN_S, 2.0 * dt_s)
+    tau_max = TAU_MAX_LINES / (2.0 * fastest_line_rate_hz)
+    if tau_max <= tau_min:
+        return ()
+    return CreepSpectrum.log_spaced(tau_min, tau_max, PER_DECADE, 0.0).taus
+
+
 def _period(v: F64) -> tuple[int, int]:
     """Samples per period and whole periods of a periodic drive (the strongest line of its spectrum)."""
-    if v.size < 64:
-        return 0, 0
     spectrum = np.abs(np.fft.rfft(v - v.mean()))
     loops = int(np.argmax(spectrum[1:])) + 1
     return round(v.size / loops), loops
@@ -174,7 +184,7 @@ def _harmonics(e: Experiment, model: AxisModel) -> _Harmonics | None:
     xs = np.fft.rfft(_detrended(x[:n], loops, per))
     ms = np.fft.rfft(_detrended(np.asarray(m, dtype=np.float64), loops, per))
     vs = np.fft.rfft(v[:n])
-    between = np.concatenate([xs[ks[ks >= 5] * loops + j] for j in range(1, loops)]) if loops > 1 else xs[:0]
+    between = np.concatenate([xs[ks[ks >= 5] * loops + j] for j in range(1, loops)])
     noise = float(np.sqrt(np.mean(np.abs(between) ** 2))) if between.size else 0.0
     amp = np.abs(xs[ks * loops])
     keep = amp >= MIN_SNR * max(noise, 1e-12)
@@ -204,7 +214,7 @@ def _rows(found: Sequence[_Harmonics], config: AxisConfig, cap_hz: float) -> _Ro
     groups: dict[tuple[float, float], list[_Harmonics]] = {}
     for h in found:
         groups.setdefault(h.key, []).append(h)
-    f, f_ref, d, sigma, kk = [], [], [], [], []
+    f, f_ref, stages, models, sigma, kk = [], [], [], [], [], []
     for members in groups.values():
         members = sorted(members, key=lambda h: h.rate_hz)
         ref = members[0]
@@ -217,23 +227,25 @@ def _rows(found: Sequence[_Harmonics], config: AxisConfig, cap_hz: float) -> _Ro
                 if fk > cap_hz:
                     continue
                 stage = h.stage[a] / ref.stage[b]
-                model = (h.model[a] * _known(config, np.array([fk]))[0]) / (
-                    ref.model[b] * _known(config, np.array([fr]))[0]
-                )
+                model = h.model[a] / ref.model[b]
                 if stage == 0 or model == 0:
                     continue
                 f.append(fk)
                 f_ref.append(fr)
-                d.append(np.log(stage / model))
+                stages.append(stage)
+                models.append(model)
                 sigma.append(math.hypot(h.sigma[a], ref.sigma[b]))
                 kk.append(k)
     if not f:
         return None
-    return _Rows(np.array(f), np.array(f_ref), np.array(d), np.array(sigma), np.array(kk))
+    fa, fr_a = np.array(f), np.array(f_ref)
+    model_ratio = np.array(models) * _known(config, fa) / _known(config, fr_a)
+    d = np.log(np.array(stages) / model_ratio)
+    return _Rows(fa, fr_a, d, np.array(sigma), np.array(kk))
 
 
-def _design(rows: _Rows, taus: F64) -> tuple[F64, F64, F64]:
-    """Real design matrix, right-hand side and row weights: creep columns, delay (ms), pole gain (ms^2)."""
+def _design(rows: _Rows, taus: F64) -> tuple[F64, F64]:
+    """Weighted real design matrix and right-hand side: creep columns, delay (ms), pole gain (ms^2)."""
     g = [1.0 / (1.0 + 2j * math.pi * rows.f * t) - 1.0 / (1.0 + 2j * math.pi * rows.f_ref * t) for t in taus]
     delay = -2j * math.pi * (rows.f - rows.f_ref) * 1e-3
     pole = -0.5 * (2.0 * math.pi) ** 2 * (rows.f**2 - rows.f_ref**2) * 1e-6 + 0j
@@ -242,7 +254,7 @@ def _design(rows: _Rows, taus: F64) -> tuple[F64, F64, F64]:
     wt = wt / math.sqrt(float(np.mean(wt**2)))
     a = np.vstack([m.real * wt[:, None], m.imag * wt[:, None]])
     b = np.concatenate([rows.d.real * wt, rows.d.imag * wt])
-    return a, b, np.concatenate([wt, wt])
+    return a, b
 
 
 def _solve(a: F64, b: F64, n_creep: int, creep: bool) -> F64:
@@ -273,7 +285,6 @@ def identify_fast_creep(experiments: Sequence[Experiment], config: AxisConfig) -
     found = [h for h in (_harmonics(e, model) for e in experiments) if h is not None]
     if not found:
         return None
-    rates = [h.rate_hz for h in found]
     dt = min(h.dt_s for h in found)
     cap = 0.1 / dt
     mode = bare.resonance()
@@ -282,15 +293,13 @@ def identify_fast_creep(experiments: Sequence[Experiment], config: AxisConfig) -
     rows = _rows(found, bare, cap)
     if rows is None or rows.f.size < 8:
         return None
-    tau_min = max(TAU_MIN_S, 2.0 * dt)
-    tau_max = TAU_MAX_LINES / (2.0 * max(rates))
-    if tau_max <= tau_min:
+    taus = np.array(fast_taus(dt, max(h.rate_hz for h in found)))
+    if taus.size == 0:
         return None
-    count = max(2, round(math.log10(tau_max / tau_min) * PER_DECADE) + 1)
-    taus = np.logspace(math.log10(tau_min), math.log10(tau_max), count)
+    tau_min, tau_max = float(taus[0]), float(taus[-1])
     n = taus.size
     train = rows.k % 4 == 1
-    a, b, _ = _design(rows, taus)
+    a, b = _design(rows, taus)
     tr = np.concatenate([train, train])
     lag_only = _solve(a[tr], b[tr], n, creep=False)
     with_creep = _solve(a[tr], b[tr], n, creep=True)
@@ -340,9 +349,7 @@ def adopt_fast_creep(
         return config, found
     keep = [(t, w) for t, w in zip(found.fast.taus_s, found.fast.weights, strict=True) if w > 0.0]
     part = FastCreepConfig(taus_s=[t for t, _ in keep], weights=[w for _, w in keep])
-    axes = dict(config.axes)
-    axes[axis] = axes[axis].model_copy(update={"fast_creep": part})
-    return config.model_copy(update={"axes": axes}), found
+    return config.with_axis(axis, fast_creep=part), found
 
 
-__all__ = ["RateFinding", "adopt_fast_creep", "identify_fast_creep"]
+__all__ = ["RateFinding", "adopt_fast_creep", "fast_taus", "identify_fast_creep"]

@@ -120,8 +120,7 @@ def without_extensions(config: ScannerConfig, axis: AxisName) -> tuple[ScannerCo
     names = [str(k) for k in (ax.extensions or {})]
     if not names:
         return config, []
-    bare = ax.model_copy(update={"extensions": None})
-    return config.model_copy(update={"axes": {**config.axes, axis: bare}}), names
+    return config.with_axis(axis, extensions=None), names
 
 
 def with_tracking_bound(config: ScannerConfig, frame: Frame) -> ScannerConfig:
@@ -818,15 +817,11 @@ def choose_for_experiments(
     config = base
     if choice.fit is not None:
         section = cf.family_model_config(choice.fit.params)
-        axes = dict(base.axes)
-        axes[axis] = ax.model_copy(update={"model": "family", "family": section})
-        config = base.model_copy(update={"axes": axes})
+        config = base.with_axis(axis, model="family", family=section)
         report["family"] = section.model_dump()
         report["family_rms_um"] = choice.fit.rms_um
     elif ax.dynamic is not None:
-        axes = dict(base.axes)
-        axes[axis] = ax.model_copy(update={"model": "dynamic"})
-        config = base.model_copy(update={"axes": axes})
+        config = base.with_axis(axis, model="dynamic")
     return ThesisFit(report, config, float(choice.heldout_rms_um[choice.chosen]))
 
 

@@ -330,10 +330,7 @@ def run(args: argparse.Namespace) -> int:
         )
         model_name: str = result.choice.model
         if family is not None and chosen is not None:
-            axes_cfg = dict(cfg.axes)
-            name = cast(AxisName, axis)
-            axes_cfg[name] = axes_cfg[name].model_copy(update={"model": "family", "family": section})
-            cfg = cfg.model_copy(update={"axes": axes_cfg})
+            cfg = cfg.with_axis(cast(AxisName, axis), model="family", family=section)
             model_name = f"family ({chosen.name}, held out: {family.method})"
         line_s = calibrate_any.shortest_line_s(exps)
         if line_s is not None:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -67,7 +68,7 @@ class FastCreep:
         if self.total >= MAX_FAST_CREEP:
             raise ModelError(f"total fast creep {self.total:.4g} must stay below {MAX_FAST_CREEP}")
 
-    @property
+    @cached_property
     def total(self) -> float:
         """``W``, the fraction of the motion that arrives late."""
         return float(sum(self.weights))
@@ -88,7 +89,7 @@ class FastCreep:
 
     def forward(self, xm: F64, dt_s: float, c: F64) -> tuple[F64, F64]:
         """``y`` for the wrapped model's positions ``xm`` from element states ``c``; the states after."""
-        a, w = self._a(dt_s), np.asarray(self.weights)
+        a, w, _ = _coefficients(self.taus_s, self.weights, float(dt_s))
         y = xm.copy()
         c_out = np.empty_like(c)
         for j in range(a.size):
@@ -100,18 +101,26 @@ class FastCreep:
 
     def inverse(self, y: F64, dt_s: float, c: F64) -> tuple[F64, F64]:
         """The wrapped model's positions ``xm`` whose :meth:`forward` is ``y``; the states after."""
-        a, w = self._a(dt_s), np.asarray(self.weights, dtype=np.float64)
-        g = 1.0 + float(np.sum(w * (1.0 - a)))
+        a, w, g = _coefficients(self.taus_s, self.weights, float(dt_s))
         state = np.array(c, dtype=np.float64)
         xm = np.empty(y.size)
         y = np.ascontiguousarray(y, dtype=np.float64)
         kernels.fast_creep_loop(y, a, w, 1.0 + self.total, g, state, xm)
         return xm, state
 
-    def _a(self, dt_s: float) -> F64:
-        if not (math.isfinite(dt_s) and dt_s > 0.0):
-            raise ModelError(f"dt_s must be finite and > 0, got {dt_s!r}")
-        return np.exp(-float(dt_s) / np.asarray(self.taus_s, dtype=np.float64))
+
+@lru_cache(maxsize=64)
+def _coefficients(taus: tuple[float, ...], weights: tuple[float, ...], dt_s: float) -> tuple[F64, F64, float]:
+    """``a_j = exp(-dt / tau_j)``, the weights and the inverse's ``G`` at one sample interval (read-only;
+    computed once per part and interval, not per block)."""
+    if not (math.isfinite(dt_s) and dt_s > 0.0):
+        raise ModelError(f"dt_s must be finite and > 0, got {dt_s!r}")
+    a = np.exp(-dt_s / np.asarray(taus, dtype=np.float64))
+    w = np.asarray(weights, dtype=np.float64)
+    g = 1.0 + float(np.sum(w * (1.0 - a)))
+    a.flags.writeable = False
+    w.flags.writeable = False
+    return a, w, g
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -193,8 +202,8 @@ class FastCreepAxisModel(AxisModel):
             return FastCreepState(inner, state.c, state.position_um)
         xm = float(self.inner.position(inner))
         # the wrapped position moves slowly during a hold; the elements relax towards where it ends
-        decay = np.exp(-samples * float(dt_s) / np.asarray(self.fast.taus_s))
-        c = xm + (state.c - xm) * decay
+        a, _, _ = _coefficients(self.fast.taus_s, self.fast.weights, float(dt_s))
+        c = xm + (state.c - xm) * a**samples
         y = (xm + float(np.dot(self.fast.weights, c))) / (1.0 + self.fast.total)
         return FastCreepState(inner, _frozen(c), y)
 
