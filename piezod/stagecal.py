@@ -842,7 +842,9 @@ def audit_and_extend(
     undetermined, withholds them: they are tried all the same); those with a runtime part
     (:func:`piezod.extensions.adopt_findings`) are profiled on the chosen member, the static parts
     it did not name are probed there, those the member's held-out RMS does not need are left out
-    (:func:`refine_adoption`), and the model choice is redone on the
+    (:func:`profile_member`); when the findings include a runtime part, the same is done on the
+    best member of each other law (:func:`other_laws`), and the parts profiled on the member that
+    predicts best through them are taken. The model choice is redone on the
     frame seen through their exact inverse (:func:`choose_for_experiments`). The extended model is
     adopted when its held-out RMS is below the chosen model's, else the findings are reported
     as not adopted.
@@ -871,6 +873,7 @@ def audit_and_extend(
         The config to write (``chosen.config`` or the extended one), ``report`` with ``findings``,
         ``withheld``, ``adopted``, ``skipped``, ``heldout_rms_um`` (chosen / extended) and ``text``.
     """
+    from piezod import calibrate_family as cf
     from piezod.audit import result_json as audit_json
     from piezod.audit import run_audit
     from piezod.calibrate_family import CHOICE_TIE_FRACTION
@@ -881,6 +884,7 @@ def audit_and_extend(
         extended_config,
         trend_horizon_s,
     )
+    from piezod.model.parts import PART_EFFECTS
     from piezod.model.sensor import SENSOR_EFFECTS
 
     doc = audit_json(run_audit(experiments, [], options=adoption_audit_options(folds)))
@@ -899,21 +903,39 @@ def audit_and_extend(
         "skipped": list(adoption.skipped),
         "heldout_rms_um": {"chosen": chosen.fit_error_pct},
     }
-    adoption, refined = refine_adoption(
-        experiments, adoption, str(chosen.report.get("chosen", "")), ramp_v_per_s, rest_voltage_v
-    )
+    first = str(chosen.report.get("chosen", ""))
+    profiled, refined, heldout = profile_member(experiments, adoption, first, ramp_v_per_s, rest_voltage_v)
+    best = first, heldout if profiled.effects and math.isfinite(heldout) else chosen.fit_error_pct
+    report["profiled"] = {first: best[1]}
+    others = other_laws(chosen.report) if set(adoption.effects) & set(PART_EFFECTS) else []
+    for name in others:
+        trial, notes, rms = profile_member(experiments, adoption, name, ramp_v_per_s, rest_voltage_v)
+        report["profiled"][name] = rms
+        if trial.effects and rms < best[1] * (1.0 - CHOICE_TIE_FRACTION):
+            best, profiled, refined = (name, rms), trial, notes
+    if best[0] != first:
+        refined = [
+            f"parts profiled on {best[0]} ({best[1] * 1e3:.2f} nm held out through them; "
+            f"{first}: {report['profiled'][first] * 1e3:.2f} nm)",
+            *refined,
+        ]
+    adoption = profiled
     report["refined"] = refined
     report["skipped"] = list(adoption.skipped)
     if not adoption.effects:
         report["text"] = adoption.summary()
         return _with_dynamics(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
+    members = redo_shortlist(chosen.report)
+    profiled_member = cf.parse_member(best[0])
+    if members is not None and profiled_member is not None and profiled_member[:2] not in members:
+        members.append(profiled_member[:2])
     redone = choose_for_experiments(
         experiments_through(experiments, adoption.effects),
         axis,
         base,
         ramp_v_per_s,
         rest_voltage_v,
-        members=redo_shortlist(chosen.report),
+        members=members,
     )
     report["heldout_rms_um"]["extended"] = redone.fit_error_pct
     # A lag the held-out data cannot place (the sensor path predicts as well as the drive lag the
@@ -1050,6 +1072,39 @@ def redo_shortlist(report: Mapping[str, Any]) -> list[tuple[str, str]] | None:
     return pairs
 
 
+#: The audit's runtime parts are also profiled on the best member of each other law whose held-out
+#: RMS in the first choice was within this factor of the chosen one's (:func:`other_laws`).
+OTHER_LAW_FACTOR = 2.5
+
+
+def other_laws(report: Mapping[str, Any], factor: float = OTHER_LAW_FACTOR) -> list[str]:
+    """The best member of each law other than the chosen member's in the first choice's
+    ``report``, within ``factor`` of the chosen one's held-out RMS, best first.
+
+    A static part can change which law fits: a law whose loops are right but whose static map
+    cannot bend the way the stage's does (a compression symmetric in position against the
+    member's quadratic map) misfits the frame more than a law that absorbs the bend in its
+    shape functions but not the loops. On a short-travel held-out stage with a hardening
+    Bouc-Wen law and compression the chosen generalised play member left 6.3 nm held out with
+    or without a saturation part, the Bouc-Wen member 10.9 nm without it and 0.9 nm through it
+    (docs/model-family.md 6.2ah). The factor bounds the cost (each profile refits the member
+    a few dozen times); the laws are few.
+    """
+    from piezod import calibrate_family as cf
+
+    rms = {str(k): float(v) for k, v in dict(report.get("heldout_rms_um") or {}).items()}
+    chosen = cf.parse_member(str(report.get("chosen", "")))
+    limit = factor * rms.get(str(report.get("chosen", "")), math.inf)
+    best: dict[str, tuple[float, str]] = {}
+    for name, value in rms.items():
+        member = cf.parse_member(name)
+        if member is None or (chosen is not None and member[0] == chosen[0]) or not value <= limit:
+            continue
+        if member[0] not in best or value < best[member[0]][0]:
+            best[member[0]] = (value, name)
+    return [name for _, name in sorted(best.values())]
+
+
 #: Runtime parts a family member fits itself, with why the adoption leaves them out: the member's
 #: static map ``x = x_c + k x_c^2 / 200`` is the stiffness part's map, so the two in series are
 #: one map with a cubic term the pair trades between them. On a held-out stage the part was
@@ -1067,6 +1122,18 @@ def refine_adoption(
     ramp_v_per_s: float,
     rest_voltage_v: float,
 ) -> tuple[Adoption, list[str]]:
+    """:func:`profile_member` without the held-out RMS: the refined adoption and its notes."""
+    adopted, notes, _ = profile_member(experiments, adoption, chosen, ramp_v_per_s, rest_voltage_v)
+    return adopted, notes
+
+
+def profile_member(
+    experiments: Sequence[Experiment],
+    adoption: Adoption,
+    chosen: str,
+    ramp_v_per_s: float,
+    rest_voltage_v: float,
+) -> tuple[Adoption, list[str], float]:
     """Profile the adopted runtime parts and the sensor path on the chosen member's fit, and keep
     the parts that predict held-out data better.
 
@@ -1089,9 +1156,10 @@ def refine_adoption(
 
     Returns
     -------
-    adoption, notes
+    adoption, notes, heldout_rms_um
         The adoption with the refined values, the probed parts and without the parts left out,
-        and one line per refined or probed part.
+        one line per refined or probed part, and the member's held-out RMS through the parts kept
+        (``nan`` for a chosen model that is not a family member).
     """
     import dataclasses
     import json
@@ -1108,7 +1176,7 @@ def refine_adoption(
 
     member = cf.parse_member(chosen)
     if member is None:
-        return adoption, []
+        return adoption, [], math.nan
     law, driver, plays = member
     twice = [e for e in MEMBER_OWN_PARTS if e in adoption.effects]
     if twice:
@@ -1167,13 +1235,14 @@ def refine_adoption(
     effects, joint_notes = refine_jointly(effects, train_rms, experiments, model=fitted)
     notes += joint_notes
     kept, left_out = prune_parts(effects, lambda trial: fit(trial)[1], model=fitted)
+    heldout = fit(kept)[1]
     if not notes and not left_out:
-        return adoption, []
+        return adoption, [], heldout
     gone = set(effects) - set(kept)
     notes = [n for n in notes if n.split(":", 1)[0] not in gone]
     effects = kept
     skipped = adoption.skipped + tuple(f"{line} (left out)" for line in left_out)
-    return dataclasses.replace(adoption, effects=effects, skipped=skipped), notes
+    return dataclasses.replace(adoption, effects=effects, skipped=skipped), notes, heldout
 
 
 def _audit_here(

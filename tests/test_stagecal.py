@@ -413,7 +413,7 @@ def test_a_sensor_lag_the_held_out_data_cannot_place_is_put_at_the_sensor(
     )
     monkeypatch.setattr(piezod.extensions, "adopt_findings", lambda findings, **_: Adoption(effects))
     monkeypatch.setattr(piezod.extensions, "experiments_through", lambda exps, eff: exps)
-    monkeypatch.setattr(sc, "refine_adoption", lambda exps, adoption, *a: (adoption, []))
+    monkeypatch.setattr(sc, "profile_member", lambda exps, adoption, *a: (adoption, [], 0.00361))
     monkeypatch.setattr(
         sc, "choose_for_experiments", lambda *a, **k: sc.ThesisFit({"chosen": "x"}, base, extended_rms)
     )
@@ -422,6 +422,95 @@ def test_a_sensor_lag_the_held_out_data_cannot_place_is_put_at_the_sensor(
     assert bool(out.report["adopted"]) is adopted
     extensions = out.config.axes["x"].extensions or {}
     assert (next(iter(effects)) in extensions) is adopted
+
+
+def test_other_laws_are_the_best_member_of_each_other_law_within_the_factor() -> None:
+    from piezod.stagecal import other_laws
+
+    report = {
+        "chosen": "family/generalised-play/voltage-creep",
+        "heldout_rms_um": {
+            "family/prandtl-ishlinskii": 0.0080,
+            "family/prandtl-ishlinskii/voltage-creep": 0.0082,
+            "family/generalised-play": 0.0063,
+            "family/generalised-play/voltage-creep": 0.0062,
+            "family/generalised-play/64-plays/voltage-creep": 0.0061,
+            "family/coleman-hodgdon": 0.0170,
+            "family/bouc-wen": 0.0110,
+            "family/bouc-wen/voltage-creep": 0.0109,
+            "dynamic": 0.0100,
+        },
+    }
+    assert other_laws(report) == ["family/prandtl-ishlinskii", "family/bouc-wen/voltage-creep"]
+    assert other_laws(report, factor=1.5) == ["family/prandtl-ishlinskii"]
+    assert other_laws({"chosen": "dynamic"}) == []
+
+
+def test_the_parts_are_taken_from_the_other_law_that_predicts_best_through_them(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A static part can change which law fits (a compression symmetric in position, which a
+    Bouc-Wen law's quadratic static map cannot bend to, but a play law's shape functions absorb
+    with the loops misfitted): the audit's parts are profiled on the best member of each other
+    law too, the member that predicts best through them gives the parts, and it joins the redone
+    choice. Audit, profiles and choice stubbed (the real profile: tests of refine_adoption)."""
+    import piezod.audit
+    import piezod.extensions
+    import piezod.stagecal as sc
+    from piezod.extensions import Adoption
+
+    base = load_config(default_sim_config_path())
+    monkeypatch.setattr(piezod.audit, "run_audit", lambda *a, **k: None)
+    monkeypatch.setattr(
+        piezod.audit, "result_json", lambda *a, **k: {"findings": [], "withheld": [], "cause": None}
+    )
+    found = {"saturation": {"x_sat_um": 13.1}}
+    monkeypatch.setattr(piezod.extensions, "adopt_findings", lambda findings, **_: Adoption(found))
+    monkeypatch.setattr(piezod.extensions, "experiments_through", lambda exps, eff: exps)
+    profiled = {
+        "family/generalised-play/voltage-creep": ({}, 0.0063),
+        "family/bouc-wen/voltage-creep": ({"saturation": {"x_sat_um": 13.98}}, 0.0009),
+        "family/prandtl-ishlinskii": ({"saturation": {"x_sat_um": 12.0}}, 0.0075),
+    }
+    calls: list[str] = []
+
+    def profile(exps: object, adoption: Adoption, name: str, *a: object) -> tuple[Adoption, list[str], float]:
+        calls.append(name)
+        effects, rms = profiled[name]
+        return Adoption(effects), [f"refined on {name}"], rms
+
+    seen: dict[str, object] = {}
+
+    def choose(*a: object, members: object = None, **k: object) -> object:
+        seen["members"] = members
+        return sc.ThesisFit({"chosen": "family/bouc-wen/voltage-creep"}, base, 0.0009)
+
+    monkeypatch.setattr(sc, "profile_member", profile)
+    monkeypatch.setattr(sc, "choose_for_experiments", choose)
+    first = {
+        "chosen": "family/generalised-play/voltage-creep",
+        "heldout_rms_um": {
+            "family/generalised-play/voltage-creep": 0.0063,
+            "family/bouc-wen/voltage-creep": 0.0109,
+            "family/prandtl-ishlinskii": 0.0080,
+            "family/coleman-hodgdon": 0.0200,
+        },
+    }
+    out = sc.audit_and_extend([], "x", sc.ThesisFit(first, base, 0.0063), base, 200.0, 0.0)
+    assert calls == [
+        "family/generalised-play/voltage-creep",
+        "family/prandtl-ishlinskii",
+        "family/bouc-wen/voltage-creep",
+    ]
+    assert out.report["profiled"] == {name: rms for name, (_, rms) in profiled.items()}
+    assert out.report["adopted"] == ["saturation: x_sat_um = 13.98"]
+    assert out.config.axes["x"].extensions == {"saturation": {"x_sat_um": 13.98}}
+    assert out.report["refined"][0].startswith("parts profiled on family/bouc-wen/voltage-creep (0.90 nm")
+    assert seen["members"] == [
+        ("generalised-play", "voltage"),
+        ("prandtl-ishlinskii", "position"),
+        ("bouc-wen", "voltage"),
+    ]
 
 
 def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fatal(tmp_path: Path) -> None:
