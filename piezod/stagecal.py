@@ -842,9 +842,10 @@ def audit_and_extend(
     undetermined, withholds them: they are tried all the same); those with a runtime part
     (:func:`piezod.extensions.adopt_findings`) are profiled on the chosen member, the static parts
     it did not name are probed there, those the member's held-out RMS does not need are left out
-    (:func:`profile_member`); when the findings include a runtime part, the same is done on the
-    best member of each other law (:func:`other_laws`), and the parts profiled on the member that
-    predicts best through them are taken. The model choice is redone on the
+    (:func:`profile_member`); when the chosen member leaves out a runtime part the audit named
+    (not one it fits itself), the same is done on the best member of each other law
+    (:func:`other_laws`), and the parts profiled on the member that predicts best through them
+    are taken. The model choice is redone on the
     frame seen through their exact inverse (:func:`choose_for_experiments`). The extended model is
     adopted when its held-out RMS is below the chosen model's, else the findings are reported
     as not adopted.
@@ -907,7 +908,10 @@ def audit_and_extend(
     profiled, refined, heldout = profile_member(experiments, adoption, first, ramp_v_per_s, rest_voltage_v)
     best = first, heldout if profiled.effects and math.isfinite(heldout) else chosen.fit_error_pct
     report["profiled"] = {first: best[1]}
-    others = other_laws(chosen.report) if set(adoption.effects) & set(PART_EFFECTS) else []
+    # a named static part the chosen member does without: its law may absorb the effect in a
+    # misfit of the loops (or the audit was wrong); another law may fit through the part
+    dropped = set(adoption.effects) & set(PART_EFFECTS) - set(MEMBER_OWN_PARTS) - set(profiled.effects)
+    others = other_laws(chosen.report) if dropped else []
     for name in others:
         trial, notes, rms = profile_member(experiments, adoption, name, ramp_v_per_s, rest_voltage_v)
         report["profiled"][name] = rms
@@ -1088,7 +1092,9 @@ def other_laws(report: Mapping[str, Any], factor: float = OTHER_LAW_FACTOR) -> l
     Bouc-Wen law and compression the chosen generalised play member left 6.3 nm held out with
     or without a saturation part, the Bouc-Wen member 10.9 nm without it and 0.9 nm through it
     (docs/model-family.md 6.2ah). The factor bounds the cost (each profile refits the member
-    a few dozen times); the laws are few.
+    a few dozen times, minutes for a play law with position creep); so does
+    :func:`audit_and_extend`, which asks only when the chosen member leaves out a part the audit
+    named.
     """
     from piezod import calibrate_family as cf
 

@@ -512,6 +512,13 @@ def test_the_parts_are_taken_from_the_other_law_that_predicts_best_through_them(
         ("bouc-wen", "voltage"),
     ]
 
+    # the chosen member keeps every part the audit named: no other law is profiled (the cost)
+    calls.clear()
+    profiled["family/generalised-play/voltage-creep"] = ({"saturation": {"x_sat_um": 13.5}}, 0.0050)
+    out = sc.audit_and_extend([], "x", sc.ThesisFit(first, base, 0.0063), base, 200.0, 0.0)
+    assert calls == ["family/generalised-play/voltage-creep"]
+    assert out.config.axes["x"].extensions == {"saturation": {"x_sat_um": 13.5}}
+
 
 def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fatal(tmp_path: Path) -> None:
     """An underrun while the stage held (the fits, the check of the points: a loaded machine) used
