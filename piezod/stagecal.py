@@ -1054,7 +1054,8 @@ def redo_shortlist(report: Mapping[str, Any]) -> list[tuple[str, str]] | None:
     member) for a report without the choice's table.
 
     The parts (a sensor lag, a thermal drift, a stiffening) change every member's residual alike;
-    a member predicting half again worse is not overtaken by them, and refitting every law (the
+    a member predicting half again worse is not overtaken by them (a part the chosen member does
+    without can be another law's: :func:`other_laws`, whose member joins), and refitting every law (the
     position-creep fits of a fine play grid take minutes each) made the audit step the longest
     part of a calibration.
     """
