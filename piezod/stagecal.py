@@ -910,7 +910,7 @@ def audit_and_extend(
     report["profiled"] = {first: best[1]}
     # a named static part the chosen member does without: its law may absorb the effect in a
     # misfit of the loops (or the audit was wrong); another law may fit through the part
-    dropped = set(adoption.effects) & set(PART_EFFECTS) - set(MEMBER_OWN_PARTS) - set(profiled.effects)
+    dropped = (set(adoption.effects) & set(PART_EFFECTS)) - set(MEMBER_OWN_PARTS) - set(profiled.effects)
     others = other_laws(chosen.report) if dropped else []
     for name in others:
         trial, notes, rms = profile_member(experiments, adoption, name, ramp_v_per_s, rest_voltage_v)
