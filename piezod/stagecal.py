@@ -928,7 +928,7 @@ def audit_and_extend(
     report["skipped"] = list(adoption.skipped)
     if not adoption.effects:
         report["text"] = adoption.summary()
-        return _with_dynamics(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
+        return with_dynamics(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
     members = redo_shortlist(chosen.report)
     profiled_member = cf.parse_member(best[0])
     if members is not None and profiled_member is not None and profiled_member[:2] not in members:
@@ -957,16 +957,34 @@ def audit_and_extend(
             + "".join(f"\nrefined {r}" for r in refined)
         )
         extended = ThesisFit(report, extended_config(redone.config, axis, adoption), redone.fit_error_pct)
-        return _with_dynamics(experiments, axis, extended)
+        return with_dynamics(experiments, axis, extended)
     worse = f"held-out RMS {redone.fit_error_pct * 1e3:.2f} nm, not below {chosen.fit_error_pct * 1e3:.2f} nm"
     report["skipped"] = [f"{a} ({worse})" for a in adoption.adopted] + report["skipped"]
     report["text"] = "\n".join(f"not adopted {s}" for s in report["skipped"])
-    return _with_dynamics(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
+    return with_dynamics(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
 
 
-def _with_dynamics(experiments: Sequence[Experiment], axis: AxisName, fit: ThesisFit) -> ThesisFit:
-    """``fit`` with the stage's mode (:func:`_with_resonance`), then with the fast creep its model
-    misses (:func:`_with_fast_creep`, measured through the mode)."""
+def with_dynamics(experiments: Sequence[Experiment], axis: AxisName, fit: ThesisFit) -> ThesisFit:
+    """``fit`` with the stage's mode, then with the fast creep its model misses (measured through
+    the mode), each identified on the frame and adopted when it predicts held-out data better.
+
+    Parameters
+    ----------
+    experiments
+        The frame (periodic triangular scans at several rates; other scans give no finding).
+    axis
+        The calibrated axis of ``fit.config``.
+    fit
+        The config to extend (its axis model is the one the steps measure against), a report and
+        the held-out RMS (passed through).
+
+    Returns
+    -------
+    ThesisFit
+        The config with the parts adopted; the report with ``resonance`` and ``fast_creep`` (when
+        the frame shows them), each step's note appended to ``adopted`` or ``skipped`` and to
+        ``text``.
+    """
     return _with_fast_creep(experiments, axis, _with_resonance(experiments, axis, fit))
 
 

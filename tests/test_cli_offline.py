@@ -212,3 +212,51 @@ def test_linearity_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     cap = capsys.readouterr()
     assert json.loads(cap.out)["experiments"][0]["label"] == "g1.002"
     assert "max non-linearity" in cap.err
+
+
+def _ringing_frame(path: Path) -> None:
+    """Eight ranges at 1 Hz (3 loops each, 10 kS/s; every 4th experiment is held out) from the
+    thesis model through a 350 Hz mode of Q 15 (exact, from rest, about each experiment's first
+    position), 2 nm of noise, one file."""
+    from piezod.audit.dynamics import resonance
+    from piezod.synth import calibration_plan
+
+    plan = calibration_plan(tuple(np.linspace(100.0, 380.0, 8)), (1.0,), n_loops=3)
+    s = synth_session(MEDIUM_TUBE, plan, samples_per_loop=10_000, noise_um=0.0, seed=4)
+    rec = s.recording
+    assert rec.experiment is not None
+    pos = rec.position_um.copy()
+    for exp in plan:
+        rows = rec.experiment == exp.label
+        x = pos[rows]
+        pos[rows] = x[0] + resonance(x - x[0], 1e-4, 350.0, 15.0, 0)
+    pos += np.random.default_rng(4).normal(0.0, 0.002, pos.size)
+    write_recording(
+        path,
+        Recording(
+            t_s=rec.t_s, voltage_v=rec.voltage_v, position_um=pos, axis=rec.axis, experiment=rec.experiment
+        ),
+    )
+
+
+def test_an_offline_calibration_fits_the_stages_mode_as_on_the_stage(tmp_path: Path) -> None:
+    """``piezod calibrate FRAME.csv --out F.yaml`` runs the mode and fast-creep steps of the
+    calibration on the stage on the written model's residual: a ringing stage's mode is adopted
+    into the YAML and reported (``resonance`` in the JSON, a line on the output);
+    ``--no-dynamics`` leaves them out."""
+    frame = tmp_path / "frame.csv"
+    _ringing_frame(frame)
+    out, js = tmp_path / "cal.yaml", tmp_path / "cal.json"
+    args = ["calibrate", str(frame), "--model", "thesis"]
+    assert main([*args, "--out", str(out), "--json", str(js)]) == 0
+    doc = json.loads(js.read_text())
+    assert doc["resonance"]["adopted"], doc["resonance"]
+    assert doc["resonance"]["f0_hz"] == pytest.approx(350.0, rel=0.03)
+    assert any(line.startswith("resonance f0") for line in doc["dynamics"])
+    written = load_config(out).axes["x"]
+    assert written.resonance().f0_hz == doc["resonance"]["f0_hz"]
+    assert "resonance f0" in out.read_text()  # the YAML's header says what was adopted
+    bare, bare_js = tmp_path / "bare.yaml", tmp_path / "bare.json"
+    assert main([*args, "--no-dynamics", "--out", str(bare), "--json", str(bare_js)]) == 0
+    assert "resonance" not in (load_config(bare).axes["x"].extensions or {})
+    assert "resonance" not in json.loads(bare_js.read_text())

@@ -33,7 +33,7 @@ from piezod.cli._common import (
     positive_float,
     write_json,
 )
-from piezod.config import AxisName, dump_config, load_config, with_recorded_utc
+from piezod.config import AxisName, ScannerConfig, dump_config, load_config, with_recorded_utc
 from piezod.errors import CalibrationError, RecordingError
 from piezod.family_heldout import (
     AUDIT_LAWS,
@@ -120,6 +120,12 @@ def register(sub: Any) -> None:
         default=2048,
         metavar="N",
         help="keep every k-th sample so that a loop has at most N (0 = all; default 2048)",
+    )
+    p.add_argument(
+        "--no-dynamics",
+        action="store_true",
+        help="with --out: do not fit the stage's mode and the fast creep on the written model's residual "
+        "(by default each is adopted when it predicts held-out data better, as on the stage)",
     )
     add_reading_options(p)
     add_port_options(p)
@@ -332,6 +338,11 @@ def run(args: argparse.Namespace) -> int:
         if family is not None and chosen is not None:
             cfg = cfg.with_axis(cast(AxisName, axis), model="family", family=section)
             model_name = f"family ({chosen.name}, held out: {family.method})"
+        dynamics: list[str] = []
+        if not args.no_dynamics:
+            cfg, dynamics = _with_dynamics(exps, cast(AxisName, axis), cfg, doc)
+            for line in dynamics:
+                print(line, file=out)
         line_s = calibrate_any.shortest_line_s(exps)
         if line_s is not None:
             cfg = calibrate_any.with_tracking_bound(cfg, axis, line_s)
@@ -355,6 +366,7 @@ def run(args: argparse.Namespace) -> int:
         )
         if args.config:
             header += f"\nbase: {args.config} (limits and other axes kept)"
+        header += "".join(f"\n{line}" for line in dynamics)
         dump_config(cfg, args.out, header=header)
         load_config(args.out)
         print(f"wrote {args.out}", file=out)
@@ -363,6 +375,23 @@ def run(args: argparse.Namespace) -> int:
         print(f"piezod calibrate: the fit did not converge: {result.message}", file=out)
         return 1
     return 0
+
+
+def _with_dynamics(
+    exps: Sequence[Experiment], axis: AxisName, cfg: ScannerConfig, doc: dict[str, Any]
+) -> tuple[ScannerConfig, list[str]]:
+    """``cfg`` with the mode and the fast creep the recordings show on its axis model's residual
+    (:func:`piezod.stagecal.with_dynamics`, as ``piezod calibrate --sim/--port`` does); their
+    summaries go to ``doc`` (``resonance``, ``fast_creep``), and one line per step is returned."""
+    from piezod.stagecal import ThesisFit, with_dynamics
+
+    stepped = with_dynamics(exps, axis, ThesisFit({}, cfg, math.nan))
+    for key in ("resonance", "fast_creep"):
+        if key in stepped.report:
+            doc[key] = stepped.report[key]
+    lines = [line for line in str(stepped.report.get("text") or "").splitlines() if line]
+    doc["dynamics"] = lines
+    return stepped.config, lines
 
 
 def _chosen_member(family: FamilyComparison) -> MemberScore:
