@@ -150,7 +150,9 @@ def _period(v: F64) -> tuple[int, int]:
     """Samples per period and whole periods of a periodic drive (the strongest line of its spectrum)."""
     spectrum = np.abs(np.fft.rfft(v - v.mean()))
     loops = int(np.argmax(spectrum[1:])) + 1
-    return round(v.size / loops), loops
+    # floor: a record with a partial period at its end (a real recording: P-885's 40.13 periods)
+    # must not round the period up past its last sample; a wrong period fails the periodicity check
+    return v.size // loops, loops
 
 
 def _detrended(y: F64, loops: int, per: int) -> F64:

@@ -87,6 +87,22 @@ def test_scans_that_are_not_periodic_give_no_finding() -> None:
     assert identify_fast_creep([Experiment("walk", "x", t, v, 0.09 * v)], CONFIG) is None
 
 
+def test_a_scan_ending_in_part_of_a_period_is_no_error() -> None:
+    """A recording that ends part of a period after its last whole one (here 10 periods of a 1 Hz
+    line and 7 samples: 5000.6 samples per period rounded up past the last sample, as on the
+    P-885 recordings, where `piezod calibrate` raised) is judged, not an error; beside the frame's
+    whole-period scans the fast creep is still found."""
+    model = axis_model(CONFIG)
+    per = round(RATE)
+    phase = (np.arange(10 * per + 7) % per) / per
+    v = 60.0 * np.where(phase < 0.5, 2.0 * phase, 2.0 - 2.0 * phase)
+    x, _ = model.forward(v, 1.0 / RATE, model.rest(0.0))
+    x, _ = TRUTH.forward(x, 1.0 / RATE, np.full(len(TRUTH.taus_s), x[0]))
+    tail = Experiment("tail", "x", np.arange(v.size) / RATE, v, x)
+    found = identify_fast_creep([*_frame(TRUTH), tail], CONFIG)
+    assert found is not None and found.adopted, found
+
+
 def test_the_adopted_fast_creep_is_written_into_the_scanner_yaml(tmp_path: Path) -> None:
     base = load_config(default_sim_config_path())
     config = base.model_copy(update={"axes": {**base.axes, "x": CONFIG}})
