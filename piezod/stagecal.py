@@ -1077,22 +1077,37 @@ def redo_shortlist(report: Mapping[str, Any]) -> list[tuple[str, str]] | None:
     position-creep fits of a fine play grid take minutes each) made the audit step the longest
     part of a calibration.
     """
+
+    if str(report.get("chosen", "")) not in _choice_rms(report):
+        return None
+    pairs: list[tuple[str, str]] = []
+    for _, member, _ in _members_within(report, REDO_SHORTLIST_FACTOR):
+        if member[:2] not in pairs:
+            pairs.append(member[:2])
+    return pairs
+
+
+def _choice_rms(report: Mapping[str, Any]) -> dict[str, float]:
+    """Held-out RMS per candidate of a model choice's ``report``."""
+    return {str(k): float(v) for k, v in dict(report.get("heldout_rms_um") or {}).items()}
+
+
+def _members_within(
+    report: Mapping[str, Any], factor: float
+) -> list[tuple[str, tuple[str, str, int | None], float]]:
+    """``(name, (law, creep driver, plays), held-out RMS)`` of the family members in a choice's
+    ``report`` within ``factor`` of the chosen candidate's held-out RMS (the chosen one always; every
+    member when the report has no RMS for it), in the report's order."""
     from piezod import calibrate_family as cf
 
-    rms = {str(k): float(v) for k, v in dict(report.get("heldout_rms_um") or {}).items()}
+    rms = _choice_rms(report)
     chosen = str(report.get("chosen", ""))
-    if chosen not in rms:
-        return None
-    limit = REDO_SHORTLIST_FACTOR * rms.get(chosen, math.inf)
-    pairs: list[tuple[str, str]] = []
-    for name, value in rms.items():
-        member = cf.parse_member(name)
-        if member is None or not (value <= limit or name == chosen):
-            continue
-        pair = (member[0], member[1])
-        if pair not in pairs:
-            pairs.append(pair)
-    return pairs
+    limit = factor * rms.get(chosen, math.inf)
+    return [
+        (name, member, value)
+        for name, value in rms.items()
+        if (member := cf.parse_member(name)) is not None and (value <= limit or name == chosen)
+    ]
 
 
 #: The audit's runtime parts are also profiled on the best member of each other law whose held-out
@@ -1117,13 +1132,10 @@ def other_laws(report: Mapping[str, Any], factor: float = OTHER_LAW_FACTOR) -> l
     """
     from piezod import calibrate_family as cf
 
-    rms = {str(k): float(v) for k, v in dict(report.get("heldout_rms_um") or {}).items()}
     chosen = cf.parse_member(str(report.get("chosen", "")))
-    limit = factor * rms.get(str(report.get("chosen", "")), math.inf)
     best: dict[str, tuple[float, str]] = {}
-    for name, value in rms.items():
-        member = cf.parse_member(name)
-        if member is None or (chosen is not None and member[0] == chosen[0]) or not value <= limit:
+    for name, member, value in _members_within(report, factor):
+        if chosen is not None and member[0] == chosen[0]:
             continue
         if member[0] not in best or value < best[member[0]][0]:
             best[member[0]] = (value, name)
