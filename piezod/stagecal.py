@@ -41,6 +41,7 @@ from piezod.service.schemas import ScanRequest
 if TYPE_CHECKING:
     from piezod.calibrate_dynamic import DynamicCalibrationData
     from piezod.extensions import Adoption
+    from piezod.lag_placement import PlacementProgram
 
 Progress = Callable[[str, float], None]
 
@@ -197,22 +198,77 @@ def run_frame(
         "axis": frame.axis,
         "experiments": len(frame.scans),
     }
-    engine.start_program(frame.axis, segments, path, meta, record_every=frame_record_every(engine.rate_hz))
-    total = frame.duration_s
+    return _play_program(
+        engine, frame.axis, segments, path, meta, frame.duration_s, "calibration frame", progress, timeout_s
+    )
+
+
+def run_placement(
+    engine: Engine,
+    config: ScannerConfig,
+    axis: AxisName,
+    path: Path,
+    frame: Frame | None = None,
+    *,
+    progress: Progress | None = None,
+    timeout_s: float | None = None,
+) -> Path:
+    """Play the lag placement experiment (:func:`piezod.lag_placement.placement_program`) on the
+    stage, recorded to ``path`` (experiment :data:`piezod.lag_placement.PLACEMENT_LABEL`).
+
+    With the ``frame``, its last scan is played again after it (experiment :data:`FRAME_END_LABEL`):
+    the stage is then left as the frame left it, on the same branch at the same voltage, and the
+    verification starts from the end of this recording (:func:`frame_end`) as it would have from
+    the frame's.
+    """
+    from piezod.lag_placement import PLACEMENT_LABEL, program_for
+
+    program = program_for(config, axis, engine.rate_hz)
+    segments = [Segment(program.volts, PLACEMENT_LABEL, record=True)]
+    total = program.duration_s
+    if frame is not None:
+        last = frame.scans[-1]
+        segments += [Segment(seg.volts, FRAME_END_LABEL, seg.record) for seg in last.segments(engine.rate_hz)]
+        total += last.duration_s
+    meta = {
+        "content": "lag placement (uncorrected ramps with short spikes), then the frame's last scan",
+        "axis": axis,
+        "experiments": len({seg.label for seg in segments}),
+    }
+    what = "lag placement experiment"
+    return _play_program(engine, axis, segments, path, meta, total, what, progress, timeout_s)
+
+
+#: Label of the frame's last scan played again after the lag placement experiment.
+FRAME_END_LABEL = "frame-end"
+
+
+def _play_program(
+    engine: Engine,
+    axis: AxisName,
+    segments: list[Segment],
+    path: Path,
+    meta: dict[str, Any],
+    total_s: float,
+    what: str,
+    progress: Progress | None,
+    timeout_s: float | None,
+) -> Path:
+    engine.start_program(axis, segments, path, meta, record_every=frame_record_every(engine.rate_hz))
     t0 = time.monotonic()
     deadline = None if timeout_s is None else t0 + timeout_s
     while engine.status().state == "scanning":
         if progress is not None:
-            progress("frame", min(time.monotonic() - t0, total))
+            progress(what, min(time.monotonic() - t0, total_s))
         if deadline is not None and time.monotonic() > deadline:
             engine.stop()
-            raise CalibrationError(f"the calibration frame did not finish within {timeout_s:g} s")
+            raise CalibrationError(f"the {what} did not finish within {timeout_s:g} s")
         time.sleep(0.1)
     state = engine.wait_idle(10.0)
     engine.wait_recorded()
     if state != "idle":
         faults = "; ".join(f"{f.code}: {f.message}" for f in engine.status().faults[-3:])
-        raise CalibrationError(f"the calibration frame ended in state {state}: {faults}")
+        raise CalibrationError(f"the {what} ended in state {state}: {faults}")
     return path
 
 
@@ -835,6 +891,7 @@ def audit_and_extend(
     *,
     folds: int = 4,
     since_unix_s: float = math.nan,
+    placement: tuple[Experiment, PlacementProgram] | None = None,
 ) -> ThesisFit:
     """Audit the frame, adopt the material findings that have a runtime part if they predict better.
 
@@ -867,6 +924,9 @@ def audit_and_extend(
     since_unix_s
         When the frame's clock read 0 (:func:`piezod.extensions.session_origin_unix_s`): adopted
         time parts go on from there.
+    placement
+        The lag placement experiment and its program: the written model's sensor path is then
+        placed by it (:func:`with_lag_placed`) before the dynamics are identified.
 
     Returns
     -------
@@ -887,6 +947,10 @@ def audit_and_extend(
     )
     from piezod.model.parts import PART_EFFECTS
     from piezod.model.sensor import SENSOR_EFFECTS
+
+    def finish(fit: ThesisFit) -> ThesisFit:
+        placed = with_lag_placed(placement, axis, fit, experiments, ramp_v_per_s, rest_voltage_v)
+        return with_dynamics(experiments, axis, placed)
 
     doc = audit_json(run_audit(experiments, [], options=adoption_audit_options(folds)))
     # Findings withheld on an undetermined audit baseline are tried all the same: each part is
@@ -928,7 +992,8 @@ def audit_and_extend(
     report["skipped"] = list(adoption.skipped)
     if not adoption.effects:
         report["text"] = adoption.summary()
-        return with_dynamics(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
+        kept = ThesisFit(report, chosen.config, chosen.fit_error_pct)
+        return finish(kept)
     members = redo_shortlist(chosen.report)
     profiled_member = cf.parse_member(best[0])
     if members is not None and profiled_member is not None and profiled_member[:2] not in members:
@@ -957,11 +1022,12 @@ def audit_and_extend(
             + "".join(f"\nrefined {r}" for r in refined)
         )
         extended = ThesisFit(report, extended_config(redone.config, axis, adoption), redone.fit_error_pct)
-        return with_dynamics(experiments, axis, extended)
+        return finish(extended)
     worse = f"held-out RMS {redone.fit_error_pct * 1e3:.2f} nm, not below {chosen.fit_error_pct * 1e3:.2f} nm"
     report["skipped"] = [f"{a} ({worse})" for a in adoption.adopted] + report["skipped"]
     report["text"] = "\n".join(f"not adopted {s}" for s in report["skipped"])
-    return with_dynamics(experiments, axis, ThesisFit(report, chosen.config, chosen.fit_error_pct))
+    kept = ThesisFit(report, chosen.config, chosen.fit_error_pct)
+    return finish(kept)
 
 
 def with_dynamics(experiments: Sequence[Experiment], axis: AxisName, fit: ThesisFit) -> ThesisFit:
@@ -986,6 +1052,143 @@ def with_dynamics(experiments: Sequence[Experiment], axis: AxisName, fit: Thesis
         ``text``.
     """
     return _with_fast_creep(experiments, axis, _with_resonance(experiments, axis, fit))
+
+
+def with_lag_placed(
+    placement: tuple[Experiment, PlacementProgram] | None,
+    axis: AxisName,
+    fit: ThesisFit,
+    experiments: Sequence[Experiment] = (),
+    ramp_v_per_s: float = 0.0,
+    rest_voltage_v: float = 0.0,
+) -> ThesisFit:
+    """``fit`` with as much of its sensor path at the drive as the lag placement experiment places
+    there (:func:`piezod.lag_placement.place_lag`); unchanged without the experiment or a sensor
+    path.
+
+    With the frame's ``experiments`` the family member is then refitted with its drive lag held
+    there (:func:`refit_at_drive_lag`): fitted with the lag at the sensor, its creep took the
+    rate dependence the lag gives the loops, and a moved lag beside it would count that twice.
+    The report gets ``lag_placement`` and the step's note under ``adopted`` or ``skipped``.
+    """
+    from piezod import calibrate_family as cf
+    from piezod.lag_placement import LagPlacement, moved_config, place_lag
+
+    if placement is None:
+        return fit
+    experiment, program = placement
+    member = cf.parse_member(str(fit.report.get("model_choice", {}).get("chosen", "")))
+    refit: dict[str, float] = {}
+
+    def adopt(
+        _: Sequence[Experiment], __: str, config: ScannerConfig
+    ) -> tuple[ScannerConfig, LagPlacement | None]:
+        found = place_lag(experiment, program, config, axis)
+        if found is None or not found.adopted:
+            return config, found
+        moved = moved_config(config, axis, found.moved_s)
+        if not experiments or member is None:
+            return moved, found
+        moved, refit["heldout_rms_um"] = refit_at_drive_lag(
+            experiments, moved, axis, member[2], ramp_v_per_s, rest_voltage_v
+        )
+        return moved, found
+
+    def summary(found: LagPlacement) -> dict[str, Any]:
+        return {
+            "movable_s": found.movable_s,
+            "moved_s": found.moved_s,
+            "jumps_um": list(found.jumps_um),
+            "jumps_moved_um": list(found.jumps_moved_um),
+            "adopted": found.adopted,
+            **refit,
+        }
+
+    placed = _with_step([experiment], axis, fit, "lag_placement", adopt, summary)
+    if "heldout_rms_um" in refit:
+        placed = _noted(
+            placed,
+            dict(placed.report),
+            f"refitted with the drive lag held there: {refit['heldout_rms_um'] * 1e3:.2f} nm held out "
+            f"(with the lag at the sensor: {fit.fit_error_pct * 1e3:.2f} nm)",
+            "adopted",
+            placed.config,
+        )
+    return placed
+
+
+def drive_lagged(experiments: Sequence[Experiment], tau_s: float) -> list[Experiment]:
+    """The experiments with their voltages through a first-order lag ``tau_s`` (the amplifier's
+    pole: what the ceramic sees), each settled at its first voltage."""
+    import dataclasses
+
+    from scipy.signal import lfilter
+
+    if tau_s <= 0.0:
+        return list(experiments)
+    out = []
+    for e in experiments:
+        v = np.asarray(e.voltage_v, dtype=np.float64)
+        t = np.asarray(e.t_s, dtype=np.float64)
+        if v.size < 2:
+            out.append(e)
+            continue
+        a = math.exp(-float(np.median(np.diff(t))) / tau_s)
+        lagged = lfilter([1.0 - a], [1.0, -a], v, zi=[a * v[0]])[0]
+        out.append(dataclasses.replace(e, voltage_v=np.asarray(lagged, dtype=np.float64)))
+    return out
+
+
+def refit_at_drive_lag(
+    experiments: Sequence[Experiment],
+    config: ScannerConfig,
+    axis: AxisName,
+    plays: int | None,
+    ramp_v_per_s: float,
+    rest_voltage_v: float,
+) -> tuple[ScannerConfig, float]:
+    """``config``'s family member refitted on the frame seen through its runtime parts and sensor
+    path, with its drive lag held at ``lag_time_constant_s`` (the frame's voltages through that
+    pole, :func:`drive_lagged`, and no lag fitted).
+
+    Returns
+    -------
+    config, heldout_rms_um
+        The config with the refitted member (fitted on every experiment, as the model choice's
+        final fit), and its held-out RMS (fitted on the choice's training experiments).
+
+    Raises
+    ------
+    CalibrationError
+        The axis model is not a family member, or a fit fails.
+    """
+    from piezod import calibrate_family as cf
+    from piezod.extensions import experiments_through
+    from piezod.model.parts import PART_EFFECTS
+    from piezod.model.sensor import SENSOR_EFFECTS
+
+    ax = config.axes[axis]
+    if ax.model != "family" or ax.family is None:
+        raise CalibrationError(f"axis {axis}: the drive lag is refitted on a family member only")
+    section = ax.family
+    tau = section.lag_time_constant_s
+    effects = {
+        str(k): dict(v) for k, v in (ax.extensions or {}).items() if k in PART_EFFECTS or k in SENSOR_EFFECTS
+    }
+    seen = drive_lagged(experiments_through(experiments, effects), tau)
+    data = _frame_session(seen, ramp_v_per_s, rest_voltage_v)
+    law = section.params()
+    options: dict[str, Any] = {
+        "plays": plays or cf.DEFAULT_PLAYS,
+        "creep_driver": section.creep_driver,
+        "alpha_per_v": section.alpha_per_v,
+        "fit_lag": False,
+        "start": law.hysteresis if isinstance(law.hysteresis, BoucWenParams) else None,
+    }
+    heldout = cf.fit_family(data, section.law, train=cf.holdout_mask(data.n_experiments), **options)
+    final = cf.fit_family(data, section.law, **options)
+    refitted = cf.family_model_config(final.params).model_copy(update={"lag_time_constant_s": tau})
+    return config.with_axis(axis, family=refitted), heldout.heldout_rms_um
 
 
 def _noted(fit: ThesisFit, report: dict[str, Any], note: str, key: str, config: ScannerConfig) -> ThesisFit:
@@ -1289,13 +1492,42 @@ def _audit_here(
     base: ScannerConfig,
     ramp_v_per_s: float,
     rest_voltage_v: float,
+    placement_path: Path | None = None,
+    rate_hz: float | None = None,
 ) -> ThesisFit:
     from piezod.extensions import session_origin_unix_s
 
     exps = read_experiments([frame_path], axis=axis)
+    placement = None if placement_path is None else read_placement(placement_path, base, axis, rate_hz)
     return audit_and_extend(
-        exps, axis, chosen, base, ramp_v_per_s, rest_voltage_v, since_unix_s=session_origin_unix_s(frame_path)
+        exps,
+        axis,
+        chosen,
+        base,
+        ramp_v_per_s,
+        rest_voltage_v,
+        since_unix_s=session_origin_unix_s(frame_path),
+        placement=placement,
     )
+
+
+def read_placement(
+    path: Path, config: ScannerConfig, axis: AxisName, rate_hz: float | None = None
+) -> tuple[Experiment, PlacementProgram]:
+    """The lag placement experiment recorded in ``path`` (:func:`run_placement`) and its program
+    on ``config``'s limits at ``rate_hz`` (default the config's sample rate).
+
+    Raises
+    ------
+    CalibrationError
+        The recording holds no experiment labelled :data:`piezod.lag_placement.PLACEMENT_LABEL`.
+    """
+    from piezod.lag_placement import PLACEMENT_LABEL, program_for
+
+    found = [e for e in read_experiments([path], axis=axis) if e.label == PLACEMENT_LABEL]
+    if not found:
+        raise CalibrationError(f"{path}: no experiment {PLACEMENT_LABEL!r} of axis {axis}")
+    return found[0], program_for(config, axis, rate_hz or config.sample_rate_hz)
 
 
 def _linearity_here(path: Path, axis: AxisName, sensor: SensorPath | None = None) -> tuple[float, float]:
@@ -1418,10 +1650,13 @@ class AnalysisWorker:
         *,
         ramp_v_per_s: float,
         rest_voltage_v: float,
+        placement_path: Path | None = None,
+        rate_hz: float | None = None,
     ) -> ThesisFit:
-        """:func:`audit_and_extend` on the frame recording (in the worker process)."""
+        """:func:`audit_and_extend` on the frame recording (in the worker process), with the lag
+        placement experiment in ``placement_path`` (played at ``rate_hz``) when given."""
         return self._pool.submit(
-            _audit_here, frame_path, axis, chosen, base, ramp_v_per_s, rest_voltage_v
+            _audit_here, frame_path, axis, chosen, base, ramp_v_per_s, rest_voltage_v, placement_path, rate_hz
         ).result()
 
     def linearity(

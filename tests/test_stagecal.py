@@ -47,7 +47,16 @@ def _run(tmp_path: Path, frame: str) -> dict[str, object]:
     # where the time went, phase by phase
     phases = doc["phase_seconds"]
     assert isinstance(phases, dict)
-    assert set(phases) == {"frame", "thesis_fit", "dynamic_fit", "model_choice", "audit", "verification"}
+    assert set(phases) == {
+        "frame",
+        "lag_placement",
+        "thesis_fit",
+        "dynamic_fit",
+        "model_choice",
+        "audit",
+        "verification",
+    }
+    assert Path(doc["frame"]["lag_placement_recording"]).is_file()  # type: ignore[index]
     assert sum(phases.values()) <= float(doc["seconds"]) + 1.0  # type: ignore[arg-type]
     return doc
 

@@ -50,6 +50,7 @@ from piezod.config import AxisName, ScannerConfig, dump_config, load_config
 from piezod.effects_bench import StageBench
 from piezod.errors import RangeUnreachableError, SafetyError
 from piezod.extensions import experiments_through_sensor
+from piezod.lag_placement import PLACEMENT_LABEL, program_for
 from piezod.linearity import experiment_linearity
 from piezod.rate_id import adopt_fast_creep
 from piezod.recording import Experiment, Recording, write_recording
@@ -64,6 +65,7 @@ from piezod.stagecal import (
     choose_for_experiments,
     default_frame,
     verification_points,
+    with_lag_placed,
 )
 
 
@@ -206,6 +208,21 @@ def main() -> int:
         help="skip the calibration: verify this scanner config (e.g. an edited --config-out) after the frame",
     )
     ap.add_argument(
+        "--lag-placement",
+        action="store_true",
+        help="with --verify: play the lag placement experiment after the frame and move as much of that "
+        "config's sensor path to the drive as it places there, as piezod calibrate does (with --audit "
+        "it is always played)",
+    )
+    ap.add_argument(
+        "--member",
+        default=None,
+        metavar="NAME",
+        help="with --verify --lag-placement: the family member the config holds (e.g. "
+        "family/generalised-play/64-plays/voltage-creep, its calibration's `chosen`), refitted with the "
+        "drive lag held where the experiment places it",
+    )
+    ap.add_argument(
         "--resonance",
         action="store_true",
         help="with --verify: fit the stage's resonance on the frame's residual of that config, as piezod "
@@ -238,6 +255,18 @@ def main() -> int:
     # where the frame left the stage: its last voltage and readback (noise averaged, as frame_end)
     last_x = float(np.mean(exps[-1].position_um[-FRAME_END_SAMPLES:]))
     print(f"frame: {len(exps)} experiments, {bench.t:.0f} s simulated")
+    placement = None
+    if args.lag_placement or (args.audit and not (args.offline or args.verify)):
+        # as piezod calibrate plays it: after the frame, ramped to from where the frame left the stage
+        program = program_for(base, axis, rate)
+        bench.ramp(float(program.volts[0]), ramp)
+        t, x = bench.play(program.volts)
+        placement = (Experiment(PLACEMENT_LABEL, axis, t, program.volts, x), program)
+        # then the frame's last scan again, as piezod calibrate leaves the stage as the frame did
+        for seg in frame.scans[-1].segments(rate):
+            bench.ramp(float(seg.volts[0]), ramp)
+            _, x = bench.play(np.asarray(seg.volts, dtype=np.float64))
+        last_x = float(np.mean(x[-FRAME_END_SAMPLES:]))
     if args.verify or args.offline:
         choice = (
             ThesisFit({"chosen": f"given: {args.verify}"}, load_config(args.verify), float("nan"))
@@ -252,7 +281,7 @@ def main() -> int:
     if args.audit and not (args.offline or args.verify):
         # as piezod calibrate does by default: the frame audited, the findings with a runtime part
         # adopted when the extended model predicts the held-out experiments better
-        audited = audit_and_extend(exps, axis, choice, with_dyn, ramp, rest)
+        audited = audit_and_extend(exps, axis, choice, with_dyn, ramp, rest, placement=placement)
         print(f"audit of the frame: findings {', '.join(audited.report['findings']) or 'none'}")
         print(audited.report["text"])
         choice = dataclasses.replace(audited, report={**choice.report, "audit": audited.report})
@@ -261,6 +290,11 @@ def main() -> int:
             Path(args.json).write_text(json.dumps({"stage": str(path), "choice": choice.report}, indent=2))
         return 0
     calibrated = choice.config
+    if args.verify and placement is not None:
+        named = {**choice.report, "model_choice": {"chosen": args.member}} if args.member else choice.report
+        placed = with_lag_placed(placement, axis, dataclasses.replace(choice, report=named), exps, ramp, rest)
+        calibrated = placed.config
+        print("\n".join(placed.report.get("adopted", []) + placed.report.get("skipped", [])))
     if args.resonance:
         calibrated, found = adopt_resonance(exps, axis, calibrated)
         print(found.note if found is not None else "resonance: the frame cannot resolve one")

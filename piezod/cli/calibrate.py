@@ -141,6 +141,13 @@ def register(sub: Any) -> None:
         "when they predict the held-out experiments better)",
     )
     stage.add_argument(
+        "--no-lag-placement",
+        action="store_true",
+        help="do not play the lag placement experiment after the frame (~20 s of ramps with short "
+        "spikes; by default it measures how much of the audit's sensor lag is the amplifier's pole at "
+        "the drive, docs/model-family.md 6.2ak)",
+    )
+    stage.add_argument(
         "--recordings-dir", metavar="DIR", help="where the frame and verification recordings go"
     )
     stage.add_argument("--plot", metavar="F.png", help="plot of the verification (matplotlib)")

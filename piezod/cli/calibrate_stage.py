@@ -21,6 +21,7 @@ from piezod.stagecal import (
     frame_summary,
     plot_verification,
     run_frame,
+    run_placement,
     summary,
     tracker_note,
     verification_points,
@@ -109,6 +110,10 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     f"axes.{axis}.sensor_full_scale_um to its range",
                     file=say,
                 )
+            placement_path: Path | None = None
+            if not (getattr(args, "no_audit", False) or getattr(args, "no_lag_placement", False)):
+                placement_path = run_placement(engine, base, axis, recdir / "lag-placement.csv", frame)
+                print(f"lag placement experiment recorded ({took('lag_placement')})", file=say)
             rest_v = base.axes[axis].safe_voltage_v
             fitted = worker.fit_thesis(frame_path, base, axis)
             print(
@@ -152,6 +157,8 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     axis,
                     ramp_v_per_s=base.service.ramp_rate_v_per_s,
                     rest_voltage_v=rest_v,
+                    placement_path=placement_path,
+                    rate_hz=engine.rate_hz,
                 )
                 found = ", ".join(audited.report["findings"]) or "none"
                 if audited.report.get("withheld"):
@@ -185,6 +192,8 @@ def run_on_stage(args: argparse.Namespace) -> int:
             if audit_report is not None:
                 report["audit"] = audit_report
             report["frame"] = {"summary": frame_summary(frame), "recording": str(recorded_path)}
+            if placement_path is not None:
+                report["frame"]["lag_placement_recording"] = str(placement_path)
             if clipped:
                 report["frame"]["clipped"] = {
                     "sensor_full_scale_um": full_scale,
@@ -202,7 +211,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
             if not args.no_verify:
                 # the run starts where the frame left the stage, in the sensor's coordinates (if the
                 # stage still holds the frame's last voltage: a position read at another is not the state)
-                v_end, x_end = worker.frame_end(recorded_path, axis)
+                v_end, x_end = worker.frame_end(placement_path or recorded_path, axis)
                 held = engine.status().voltage_v.get(axis)
                 span_v = base.axes[axis].voltage_max_v - base.axes[axis].voltage_min_v
 
