@@ -216,7 +216,8 @@ def run_placement(
     """Play the lag placement experiment (:func:`piezod.lag_placement.placement_program`) on the
     stage, recorded to ``path`` (experiment :data:`piezod.lag_placement.PLACEMENT_LABEL`).
 
-    With the ``frame``, its last scan is played again after it (experiment :data:`FRAME_END_LABEL`):
+    With the ``frame``, its last :data:`FRAME_END_SCANS` scans are played again after it (experiment
+    :data:`FRAME_END_LABEL`):
     the stage is then left as the frame left it, on the same branch at the same voltage, and the
     verification starts from the end of this recording (:func:`frame_end`) as it would have from
     the frame's.
@@ -227,9 +228,11 @@ def run_placement(
     segments = [Segment(program.volts, PLACEMENT_LABEL, record=True)]
     total = program.duration_s
     if frame is not None:
-        last = frame.scans[-1]
-        segments += [Segment(seg.volts, FRAME_END_LABEL, seg.record) for seg in last.segments(engine.rate_hz)]
-        total += last.duration_s
+        for last in frame.scans[-FRAME_END_SCANS:]:
+            segments += [
+                Segment(seg.volts, FRAME_END_LABEL, seg.record) for seg in last.segments(engine.rate_hz)
+            ]
+            total += last.duration_s
     meta = {
         "content": "lag placement (uncorrected ramps with short spikes), then the frame's last scan",
         "axis": axis,
@@ -239,8 +242,11 @@ def run_placement(
     return _play_program(engine, axis, segments, path, meta, total, what, progress, timeout_s)
 
 
-#: Label of the frame's last scan played again after the lag placement experiment.
+#: Label of the frame's last scans played again after the lag placement experiment.
 FRAME_END_LABEL = "frame-end"
+#: How many of the frame's last scans are played again after it (the default frame's four offset
+#: scans, 35 s): the creep the experiment's full-range loops leave then relaxes as the frame's did.
+FRAME_END_SCANS = 4
 
 
 def _play_program(

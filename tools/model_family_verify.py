@@ -58,6 +58,7 @@ from piezod.resonance_id import adopt_resonance
 from piezod.service.axes import AxisDriver
 from piezod.stagecal import (
     FRAME_END_SAMPLES,
+    FRAME_END_SCANS,
     Frame,
     ThesisFit,
     audit_and_extend,
@@ -263,7 +264,7 @@ def main() -> int:
         t, x = bench.play(program.volts)
         placement = (Experiment(PLACEMENT_LABEL, axis, t, program.volts, x), program)
         # then the frame's last scan again, as piezod calibrate leaves the stage as the frame did
-        for seg in frame.scans[-1].segments(rate):
+        for seg in (seg for scan in frame.scans[-FRAME_END_SCANS:] for seg in scan.segments(rate)):
             bench.ramp(float(seg.volts[0]), ramp)
             _, x = bench.play(np.asarray(seg.volts, dtype=np.float64))
         last_x = float(np.mean(x[-FRAME_END_SAMPLES:]))
