@@ -150,16 +150,22 @@ def program_for(config: ScannerConfig, axis: AxisName, rate_hz: float) -> Placem
     return placement_program(ax.voltage_min_v, ax.voltage_max_v, ax.slew_rate_v_per_s, rate_hz)
 
 
+def first_order_lag(values: F64, dt_s: float, tau_s: float) -> F64:
+    """``values`` through the exact discrete first-order lag ``tau_s`` (settled at the first one)."""
+    x = np.asarray(values, dtype=np.float64)
+    if x.size == 0 or tau_s <= 0.0:
+        return x
+    a = math.exp(-dt_s / tau_s)
+    out: F64 = np.asarray(lfilter([1.0 - a], [1.0, -a], x, zi=[a * x[0]])[0], dtype=np.float64)
+    return out
+
+
 def through_sensor(position_um: F64, dt_s: float, path: SensorPath) -> F64:
     """What the sensor path makes of positions: the first-order lag, then the delay (as
     :mod:`piezod.model.sensor` describes it); the first sample is taken as settled."""
-    x = np.asarray(position_um, dtype=np.float64)
+    x = first_order_lag(np.asarray(position_um, dtype=np.float64), dt_s, path.lag_time_constant_s)
     if x.size == 0:
         return x
-    tau = path.lag_time_constant_s
-    if tau > 0.0:
-        a = math.exp(-dt_s / tau)
-        x = lfilter([1.0 - a], [1.0, -a], x, zi=[a * x[0]])[0]
     k = path.delay_s / dt_s
     whole = math.floor(k)
     frac = k - whole

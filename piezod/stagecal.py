@@ -234,7 +234,7 @@ def run_placement(
             ]
             total += last.duration_s
     meta = {
-        "content": "lag placement (uncorrected ramps with short spikes), then the frame's last scan",
+        "content": "lag placement (uncorrected ramps with short spikes), then the frame's last scans",
         "axis": axis,
         "experiments": len({seg.label for seg in segments}),
     }
@@ -998,8 +998,7 @@ def audit_and_extend(
     report["skipped"] = list(adoption.skipped)
     if not adoption.effects:
         report["text"] = adoption.summary()
-        kept = ThesisFit(report, chosen.config, chosen.fit_error_pct)
-        return finish(kept)
+        return finish(ThesisFit(report, chosen.config, chosen.fit_error_pct))
     members = redo_shortlist(chosen.report)
     profiled_member = cf.parse_member(best[0])
     if members is not None and profiled_member is not None and profiled_member[:2] not in members:
@@ -1032,8 +1031,7 @@ def audit_and_extend(
     worse = f"held-out RMS {redone.fit_error_pct * 1e3:.2f} nm, not below {chosen.fit_error_pct * 1e3:.2f} nm"
     report["skipped"] = [f"{a} ({worse})" for a in adoption.adopted] + report["skipped"]
     report["text"] = "\n".join(f"not adopted {s}" for s in report["skipped"])
-    kept = ThesisFit(report, chosen.config, chosen.fit_error_pct)
-    return finish(kept)
+    return finish(ThesisFit(report, chosen.config, chosen.fit_error_pct))
 
 
 def with_dynamics(experiments: Sequence[Experiment], axis: AxisName, fit: ThesisFit) -> ThesisFit:
@@ -1128,20 +1126,18 @@ def drive_lagged(experiments: Sequence[Experiment], tau_s: float) -> list[Experi
     pole: what the ceramic sees), each settled at its first voltage."""
     import dataclasses
 
-    from scipy.signal import lfilter
+    from piezod.lag_placement import first_order_lag
 
     if tau_s <= 0.0:
         return list(experiments)
     out = []
     for e in experiments:
-        v = np.asarray(e.voltage_v, dtype=np.float64)
         t = np.asarray(e.t_s, dtype=np.float64)
-        if v.size < 2:
+        if t.size < 2:
             out.append(e)
             continue
-        a = math.exp(-float(np.median(np.diff(t))) / tau_s)
-        lagged = lfilter([1.0 - a], [1.0, -a], v, zi=[a * v[0]])[0]
-        out.append(dataclasses.replace(e, voltage_v=np.asarray(lagged, dtype=np.float64)))
+        dt = float(np.median(np.diff(t)))
+        out.append(dataclasses.replace(e, voltage_v=first_order_lag(np.asarray(e.voltage_v), dt, tau_s)))
     return out
 
 
