@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
+from piezod.audit.dynamics import pure_delay
 from piezod.config import AxisName, ScannerConfig
 from piezod.errors import CalibrationError
 from piezod.model.sensor import SensorPath
@@ -166,12 +167,7 @@ def through_sensor(position_um: F64, dt_s: float, path: SensorPath) -> F64:
     x = first_order_lag(np.asarray(position_um, dtype=np.float64), dt_s, path.lag_time_constant_s)
     if x.size == 0:
         return x
-    k = path.delay_s / dt_s
-    whole = math.floor(k)
-    frac = k - whole
-    padded = np.concatenate([np.full(whole + 1, x[0]), x])[: x.size + 1]
-    out: F64 = (1.0 - frac) * padded[1:] + frac * padded[:-1]
-    return out
+    return pure_delay(x, dt_s, path.delay_s, 0)
 
 
 def movable_s(config: ScannerConfig, axis: AxisName) -> float:

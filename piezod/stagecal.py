@@ -222,17 +222,7 @@ def run_placement(
     verification starts from the end of this recording (:func:`frame_end`) as it would have from
     the frame's.
     """
-    from piezod.lag_placement import PLACEMENT_LABEL, program_for
-
-    program = program_for(config, axis, engine.rate_hz)
-    segments = [Segment(program.volts, PLACEMENT_LABEL, record=True)]
-    total = program.duration_s
-    if frame is not None:
-        for last in frame.scans[-FRAME_END_SCANS:]:
-            segments += [
-                Segment(seg.volts, FRAME_END_LABEL, seg.record) for seg in last.segments(engine.rate_hz)
-            ]
-            total += last.duration_s
+    segments, total = placement_segments(config, axis, engine.rate_hz, frame)
     meta = {
         "content": "lag placement (uncorrected ramps with short spikes), then the frame's last scans",
         "axis": axis,
@@ -240,6 +230,22 @@ def run_placement(
     }
     what = "lag placement experiment"
     return _play_program(engine, axis, segments, path, meta, total, what, progress, timeout_s)
+
+
+def placement_segments(
+    config: ScannerConfig, axis: AxisName, rate_hz: float, frame: Frame | None = None
+) -> tuple[list[Segment], float]:
+    """The segments :func:`run_placement` plays (the experiment, then the ``frame``'s last
+    :data:`FRAME_END_SCANS` scans) and their time on the stage (s), without the ramps between them."""
+    from piezod.lag_placement import PLACEMENT_LABEL, program_for
+
+    program = program_for(config, axis, rate_hz)
+    segments = [Segment(program.volts, PLACEMENT_LABEL, record=True)]
+    total = program.duration_s
+    for last in frame.scans[-FRAME_END_SCANS:] if frame is not None else ():
+        segments += [Segment(seg.volts, FRAME_END_LABEL, seg.record) for seg in last.segments(rate_hz)]
+        total += last.duration_s
+    return segments, total
 
 
 #: Label of the frame's last scans played again after the lag placement experiment.
@@ -1166,17 +1172,14 @@ def refit_at_drive_lag(
     """
     from piezod import calibrate_family as cf
     from piezod.extensions import experiments_through
-    from piezod.model.parts import PART_EFFECTS
-    from piezod.model.sensor import SENSOR_EFFECTS
 
     ax = config.axes[axis]
     if ax.model != "family" or ax.family is None:
         raise CalibrationError(f"axis {axis}: the drive lag is refitted on a family member only")
     section = ax.family
     tau = section.lag_time_constant_s
-    effects = {
-        str(k): dict(v) for k, v in (ax.extensions or {}).items() if k in PART_EFFECTS or k in SENSOR_EFFECTS
-    }
+    # experiments_through takes the sensor path and the runtime parts and ignores the rest
+    effects = {str(k): v for k, v in (ax.extensions or {}).items()}
     seen = drive_lagged(experiments_through(experiments, effects), tau)
     data = _frame_session(seen, ramp_v_per_s, rest_voltage_v)
     law = section.params()

@@ -58,13 +58,13 @@ from piezod.resonance_id import adopt_resonance
 from piezod.service.axes import AxisDriver
 from piezod.stagecal import (
     FRAME_END_SAMPLES,
-    FRAME_END_SCANS,
     Frame,
     ThesisFit,
     audit_and_extend,
     check_points,
     choose_for_experiments,
     default_frame,
+    placement_segments,
     verification_points,
     with_lag_placed,
 )
@@ -258,15 +258,15 @@ def main() -> int:
     print(f"frame: {len(exps)} experiments, {bench.t:.0f} s simulated")
     placement = None
     if args.lag_placement or (args.audit and not (args.offline or args.verify)):
-        # as piezod calibrate plays it: after the frame, ramped to from where the frame left the stage
-        program = program_for(base, axis, rate)
-        bench.ramp(float(program.volts[0]), ramp)
-        t, x = bench.play(program.volts)
-        placement = (Experiment(PLACEMENT_LABEL, axis, t, program.volts, x), program)
-        # then the frame's last scan again, as piezod calibrate leaves the stage as the frame did
-        for seg in (seg for scan in frame.scans[-FRAME_END_SCANS:] for seg in scan.segments(rate)):
-            bench.ramp(float(seg.volts[0]), ramp)
-            _, x = bench.play(np.asarray(seg.volts, dtype=np.float64))
+        # as piezod calibrate plays it after the frame (each segment ramped to, as the daemon does):
+        # the experiment, then the frame's last scans again
+        segments, _ = placement_segments(base, axis, rate, frame)
+        for seg in segments:
+            seg_v = np.asarray(seg.volts, dtype=np.float64)
+            bench.ramp(float(seg_v[0]), ramp)
+            t, x = bench.play(seg_v)
+            if seg.label == PLACEMENT_LABEL:
+                placement = (Experiment(PLACEMENT_LABEL, axis, t, seg_v, x), program_for(base, axis, rate))
         last_x = float(np.mean(x[-FRAME_END_SAMPLES:]))
     if args.verify or args.offline:
         choice = (
