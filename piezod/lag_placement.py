@@ -20,8 +20,13 @@ model's error along the ramp cancels in the difference:
 
 of the readback's residual from the written model's prediction (``post`` after the spike has
 died out, ``pre`` just before it). A drive lag the model leaves out gives ``J < 0``, one it has
-too much of ``J > 0``; ``J`` is close to linear in the time moved from the sensor path to the
-drive, so the time to move is its zero.
+too much of ``J > 0``; ``J`` is close to linear in the time moved between the sensor path and the
+drive, so the time to move is its zero. The calibration moves time from the sensor path to the
+drive (``J < 0``), which keeps the lags' sum the frame's loops pin. The zero is also measured where
+it asks for the other moves -- part of the member's own drive lag to the sensor path (``J > 0``),
+or more drive lag than the sensor path holds (the frame pins the sum loosely: the member's creep
+can take part of a drive lag's rate dependence; :data:`ADDED_MAX`) -- and reported, not made: on
+the stages where they act they made the fastest verified line worse (docs/model-family.md 6.2an).
 
 This module is pure numpy (the model's forward and a first-order filter); the stage side plays
 :func:`placement_program` as one recorded segment.
@@ -69,6 +74,12 @@ POST_S = 0.15
 ADOPT_FRACTION = 0.5
 #: ... and the time is at least this much (s): less is below what a 20 Hz line feels.
 MIN_MOVED_S = 5e-5
+#: The zero is sought up to this fraction of the written lags' sum of drive lag beyond the sensor
+#: path, or :data:`ADDED_MIN_S` when that is more (the frame fits a drive lag short when its creep
+#: takes part of it, not by more than that; a tenth of :data:`SPIKE_S` keeps the spike's peak on
+#: the lagged drive).
+ADDED_MAX = 1.0
+ADDED_MIN_S = 1e-3
 
 
 @dataclass(frozen=True, slots=True)
@@ -180,23 +191,47 @@ def movable_s(config: ScannerConfig, axis: AxisName) -> float:
     return path.lag_time_constant_s + path.delay_s
 
 
+def drive_lag_s(config: ScannerConfig, axis: AxisName) -> float:
+    """The family member's own drive lag, which can move to the sensor path (0 when the axis model
+    is not a family member)."""
+    ax = config.axes[axis]
+    if ax.model != "family" or ax.family is None:
+        return 0.0
+    return float(ax.family.lag_time_constant_s)
+
+
+def added_limit_s(config: ScannerConfig, axis: AxisName) -> float:
+    """How far the drive lag may grow beyond the sensor path's time (:data:`ADDED_MAX`); 0 when
+    the axis model is not a family member."""
+    ax = config.axes[axis]
+    if ax.model != "family" or ax.family is None:
+        return 0.0
+    return max(ADDED_MAX * (movable_s(config, axis) + drive_lag_s(config, axis)), ADDED_MIN_S)
+
+
 def moved_config(config: ScannerConfig, axis: AxisName, moved_s: float) -> ScannerConfig:
     """``config`` with ``moved_s`` of ``axis``'s sensor path (its lag first, then its delay) moved
-    to the family member's drive lag (a first-order pole, ``lag_time_constant_s``)."""
+    to the family member's drive lag (a first-order pole, ``lag_time_constant_s``), and what
+    exceeds the sensor path added to the drive lag; a negative ``moved_s`` moves that much of the
+    drive lag to the sensor path's lag instead."""
     ax = config.axes[axis]
-    if moved_s <= 0.0:
+    if moved_s == 0.0:
         return config
-    if ax.family is None or moved_s > movable_s(config, axis) * (1.0 + 1e-9):
+    if ax.family is None or moved_s < -drive_lag_s(config, axis) * (1.0 + 1e-9):
         raise CalibrationError(
-            f"axis {axis}: cannot move {moved_s * 1e3:.3f} ms of its sensor path to the drive"
+            f"axis {axis}: cannot move {abs(moved_s) * 1e3:.3f} ms of its drive lag to the sensor"
         )
     path = ax.sensor_path()
-    lag = max(path.lag_time_constant_s - moved_s, 0.0)
-    delay = max(path.delay_s - max(moved_s - path.lag_time_constant_s, 0.0), 0.0)
+    if moved_s > 0.0:
+        lag = max(path.lag_time_constant_s - moved_s, 0.0)
+        delay = max(path.delay_s - max(moved_s - path.lag_time_constant_s, 0.0), 0.0)
+    else:
+        lag, delay = path.lag_time_constant_s - moved_s, path.delay_s
     extensions = {str(k): dict(v) for k, v in (ax.extensions or {}).items() if k != "delay"}
     if lag > 0.0 or delay > 0.0:
         extensions["delay"] = {"delay_s": delay, "lag_time_constant_s": lag}
-    family = ax.family.model_copy(update={"lag_time_constant_s": ax.family.lag_time_constant_s + moved_s})
+    drive = max(ax.family.lag_time_constant_s + moved_s, 0.0)
+    family = ax.family.model_copy(update={"lag_time_constant_s": drive})
     return config.with_axis(axis, family=family, extensions=extensions or None)
 
 
@@ -253,8 +288,15 @@ class LagPlacement:
     ----------
     movable_s
         The sensor path's time (lag plus delay) that could move to the drive.
+    drive_lag_s
+        The member's own drive lag, which could move to the sensor path.
+    placed_s
+        Where the jumps' zero lies, as time moved to the drive: from ``-drive_lag_s`` (the member's
+        drive lag moved to the sensor path) to ``movable_s`` plus :func:`added_limit_s` (drive lag
+        added beyond the sensor path's).
     moved_s
-        The time the jumps place at the drive (their zero, within ``[0, movable_s]``).
+        The move the calibration makes: ``placed_s`` within ``[0, movable_s]`` (the sensor path
+        to the drive; the other directions are reported, not made: docs/model-family.md 6.2an).
     jumps_um
         Per pattern, ``J`` of the written model (um).
     jumps_moved_um
@@ -266,6 +308,8 @@ class LagPlacement:
     """
 
     movable_s: float
+    drive_lag_s: float
+    placed_s: float
     moved_s: float
     jumps_um: tuple[float, ...]
     jumps_moved_um: tuple[float, ...]
@@ -281,15 +325,18 @@ def _rms(values: F64) -> float:
 def place_lag(
     experiment: Experiment, program: PlacementProgram, config: ScannerConfig, axis: AxisName
 ) -> LagPlacement | None:
-    """Measure where ``config``'s sensor path belongs from the placement experiment.
+    """Measure where ``config``'s lags belong from the placement experiment.
 
-    The jumps are computed with none and all of the movable time at the drive, the zero of
-    their mean taken by the secant (they are close to linear in it), and checked there.
+    The jumps are computed as written and with a move in their sign's direction (the whole
+    sensor path to the drive when they are negative, or :func:`added_limit_s` at the drive when
+    there is none; the member's whole drive lag to the sensor path when positive), the zero of
+    their mean taken by the secant (they are close to linear in it). The part of it that moves
+    the sensor path to the drive is the move, checked there; the rest is reported.
 
     Returns
     -------
     LagPlacement or None
-        None when the axis has no movable time (no sensor path, or a model without a drive lag).
+        None when the axis model has no drive lag to place (not a family member).
 
     Raises
     ------
@@ -303,31 +350,53 @@ def place_lag(
             f"{experiment.label}: {got * dt:.3f} s recorded, not the placement program's "
             f"{program.duration_s:.3f} s"
         )
-    total = movable_s(config, axis)
-    if total <= 0.0:
+    forward, back, added = movable_s(config, axis), drive_lag_s(config, axis), added_limit_s(config, axis)
+    if added <= 0.0:
         return None
+    hi = forward + added
 
     def jumps_at(moved_s: float) -> F64:
         placed = moved_config(config, axis, moved_s)
         return jumps_um(experiment, program, predicted_readback(experiment, placed, axis))
 
-    at_none, at_all = jumps_at(0.0), jumps_at(total)
+    at_none = jumps_at(0.0)
     if not np.any(np.isfinite(at_none)):
         raise CalibrationError(f"{experiment.label}: no pattern inside the sensor's range")
-    j0, j1 = float(np.nanmean(at_none)), float(np.nanmean(at_all))
-    moved = total * j0 / (j0 - j1) if j0 != j1 else 0.0
-    moved = float(np.clip(moved, 0.0, total))
+    j0 = float(np.nanmean(at_none))
+    end = (forward if forward > 0.0 else hi) if j0 < 0.0 else -back
+    placed = 0.0
+    if end != 0.0:
+        j1 = float(np.nanmean(jumps_at(end)))
+        placed = end * j0 / (j0 - j1) if j0 != j1 else 0.0
+        placed = float(np.clip(placed, -back, hi) if placed * end > 0.0 else 0.0)
+    moved = float(np.clip(placed, 0.0, forward))
     at_moved = jumps_at(moved) if moved > 0.0 else at_none
     before, after = _rms(at_none), _rms(at_moved)
     adopted = moved >= MIN_MOVED_S and after <= ADOPT_FRACTION * before
-    verdict = "moved to the drive" if adopted else "left at the sensor"
-    note = (
-        f"lag placement: {moved * 1e3:.3f} of the sensor path's {total * 1e3:.3f} ms at the drive "
-        f"(spike jumps {before * 1e3:.1f} -> {after * 1e3:.1f} nm RMS over {np.isfinite(at_none).sum()} "
-        f"patterns): {verdict}"
-    )
+    n = int(np.isfinite(at_none).sum())
+    if forward > 0.0:
+        verdict = "moved to the drive" if adopted else "left at the sensor"
+        note = (
+            f"lag placement: {moved * 1e3:.3f} of the sensor path's {forward * 1e3:.3f} ms at the drive "
+            f"(spike jumps {before * 1e3:.1f} -> {after * 1e3:.1f} nm RMS over {n} patterns): {verdict}"
+        )
+    else:
+        note = (
+            f"lag placement: no sensor path to move to the drive "
+            f"(spike jumps {before * 1e3:.1f} nm RMS over {n} patterns)"
+        )
+    if abs(placed - moved) >= MIN_MOVED_S:
+        there = _rms(jumps_at(placed))
+        asked = (
+            f"{-placed * 1e3:.3f} of the member's {back * 1e3:.3f} ms drive lag at the sensor"
+            if placed < 0.0
+            else f"{(placed - forward) * 1e3:.3f} ms more drive lag than written"
+        )
+        note += f"; the jumps' zero asks for {asked} ({there * 1e3:.1f} nm there): reported, not made"
     return LagPlacement(
-        total,
+        forward,
+        back,
+        placed,
         moved,
         tuple(float(j) for j in at_none),
         tuple(float(j) for j in at_moved),

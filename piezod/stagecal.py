@@ -1073,8 +1073,8 @@ def with_lag_placed(
     rest_voltage_v: float = 0.0,
 ) -> ThesisFit:
     """``fit`` with as much of its sensor path at the drive as the lag placement experiment places
-    there (:func:`piezod.lag_placement.place_lag`); unchanged without the experiment or a sensor
-    path.
+    there (:func:`piezod.lag_placement.place_lag`; what else its jumps ask for is reported, not
+    made); unchanged without the experiment or a sensor path.
 
     With the frame's ``experiments`` the family member is then refitted with its drive lag held
     there (:func:`refit_at_drive_lag`): fitted with the lag at the sensor, its creep took the
@@ -1107,6 +1107,8 @@ def with_lag_placed(
     def summary(found: LagPlacement) -> dict[str, Any]:
         return {
             "movable_s": found.movable_s,
+            "drive_lag_s": found.drive_lag_s,
+            "placed_s": found.placed_s,
             "moved_s": found.moved_s,
             "jumps_um": list(found.jumps_um),
             "jumps_moved_um": list(found.jumps_moved_um),

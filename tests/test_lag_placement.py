@@ -73,10 +73,61 @@ def test_a_sensor_lag_stays_at_the_sensor() -> None:
     assert "left at the sensor" in found.note
 
 
-def test_nothing_to_place_without_a_sensor_path() -> None:
+def test_a_drive_lag_the_frame_left_short_is_reported_not_added() -> None:
     base = load_config(CONFIG)
-    exp, program = _recorded(_with_lags(base, drive_s=5e-4, sensor_s=0.0))
-    assert place_lag(exp, program, _with_lags(base, 0.0, 0.0), "x") is None  # type: ignore[arg-type]
+    exp, program = _recorded(_with_lags(base, drive_s=7e-4, sensor_s=0.0))
+    for written_s in (0.0, 4e-4):
+        found = place_lag(exp, program, _with_lags(base, written_s, 0.0), "x")  # type: ignore[arg-type]
+        assert found is not None and not found.adopted and found.movable_s == 0.0 and found.moved_s == 0.0
+        assert written_s + found.placed_s == pytest.approx(7e-4, rel=0.1)
+        assert "ms more drive lag than written" in found.note and "no sensor path" in found.note
+
+
+def test_beyond_the_sensor_path_the_whole_path_moves_and_the_rest_is_reported() -> None:
+    base = load_config(CONFIG)
+    exp, program = _recorded(_with_lags(base, drive_s=9e-4, sensor_s=0.0))
+    found = place_lag(exp, program, _with_lags(base, 0.0, 5e-4), "x")  # type: ignore[arg-type]
+    assert found is not None and found.adopted and found.moved_s == pytest.approx(5e-4)
+    assert found.placed_s == pytest.approx(9e-4, rel=0.1)
+    assert "moved to the drive" in found.note and "more drive lag than written" in found.note
+
+
+def test_nothing_to_place_on_a_model_without_a_drive_lag() -> None:
+    config = load_config(Path(__file__).resolve().parents[1] / "configs" / "sim-stage-calibrated.yaml")
+    assert config.axes["x"].model != "family"
+    program = program_for(config, "x", config.sample_rate_hz)
+    t = np.arange(program.volts.size) / program.rate_hz
+    exp = Experiment(PLACEMENT_LABEL, "x", t, program.volts, np.zeros_like(t))
+    assert place_lag(exp, program, config, "x") is None
+
+
+def test_a_drive_lag_the_member_has_too_much_of_is_reported_not_moved() -> None:
+    base = load_config(CONFIG)
+    exp, program = _recorded(_with_lags(base, drive_s=2.0e-4, sensor_s=4.0e-4))
+    written = _with_lags(base, drive_s=6.0e-4, sensor_s=0.0)
+    found = place_lag(exp, program, written, "x")  # type: ignore[arg-type]
+    assert found is not None and not found.adopted and found.moved_s == 0.0
+    assert found.drive_lag_s == pytest.approx(6.0e-4)
+    assert found.placed_s == pytest.approx(-4.0e-4, rel=0.15)
+    assert all(j > 0 for j in found.jumps_um)
+    assert (
+        "of the member's 0.600 ms drive lag at the sensor" in found.note
+        and "reported, not made" in found.note
+    )
+    placed = moved_config(written, "x", found.placed_s).axes["x"]
+    assert placed.family is not None
+    assert placed.family.lag_time_constant_s + placed.sensor_path().lag_time_constant_s == pytest.approx(
+        6.0e-4
+    )
+
+
+def test_a_drive_lag_that_is_right_stays_at_the_drive() -> None:
+    base = load_config(CONFIG)
+    truth = _with_lags(base, drive_s=5.0e-4, sensor_s=0.0)
+    exp, program = _recorded(truth)
+    found = place_lag(exp, program, truth, "x")  # type: ignore[arg-type]
+    assert found is not None and not found.adopted
+    assert abs(found.moved_s) < 1.0e-4
 
 
 def test_the_lag_moves_first_then_the_delay() -> None:
@@ -88,8 +139,15 @@ def test_the_lag_moves_first_then_the_delay() -> None:
     assert path.lag_time_constant_s == pytest.approx(0.0) and path.delay_s == pytest.approx(1e-4)
     whole = moved_config(base, "x", 5e-4).axes["x"]
     assert whole.sensor_path().identity
-    with pytest.raises(CalibrationError, match="cannot move"):
-        moved_config(base, "x", 6e-4)
+    more = moved_config(base, "x", 6e-4).axes["x"]
+    assert more.sensor_path().identity
+    assert more.family is not None and more.family.lag_time_constant_s == pytest.approx(7e-4)
+    back = moved_config(base, "x", -1e-4).axes["x"]
+    assert back.family is not None and back.family.lag_time_constant_s == pytest.approx(0.0)
+    assert back.sensor_path().lag_time_constant_s == pytest.approx(4e-4)
+    assert back.sensor_path().delay_s == pytest.approx(2e-4)
+    with pytest.raises(CalibrationError, match="of its drive lag to the sensor"):
+        moved_config(base, "x", -2e-4)
 
 
 def test_a_recording_of_another_program_is_refused() -> None:

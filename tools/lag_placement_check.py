@@ -6,8 +6,9 @@
 ``F.yaml`` is a scanner config calibrated on that stage (``piezod calibrate --sim ... --out
 F.yaml``); the experiment (:mod:`piezod.lag_placement`) is played from rest after a ramp, read
 through the stage's sensor, and :func:`piezod.lag_placement.place_lag` says how much of the
-config's sensor path it places at the drive (docs/model-family.md 6.2ak). ``--out`` writes the
-config with that much moved when the step would adopt it.
+config's sensor path it places at the drive, and where the jumps' zero lies when it asks for
+another move (docs/model-family.md 6.2ak, 6.2an). ``--out`` writes the config with the move the
+calibration would make; with ``--placed``, at the jumps' zero (the member kept as written).
 """
 
 from __future__ import annotations
@@ -29,6 +30,11 @@ def main() -> int:
     ap.add_argument("--config", required=True, metavar="F.yaml", help="the config calibrated on it")
     ap.add_argument("--axis", default="x")
     ap.add_argument("--out", default=None, metavar="F.yaml", help="the config with the lag placed")
+    ap.add_argument(
+        "--placed",
+        action="store_true",
+        help="with --out: the config at the jumps' zero (placed_s), a move the calibration may not make",
+    )
     args = ap.parse_args()
     axis: AxisName = args.axis
     path = resolve_stage(args.stage)
@@ -49,15 +55,16 @@ def main() -> int:
     took = time.perf_counter() - t0
     name = path.stem
     if found is None:
-        print(f"{name}: no sensor path to place ({program.duration_s:.1f} s program)")
+        print(f"{name}: no lag to place ({program.duration_s:.1f} s program)")
         return 0
     print(f"{name}: {found.note} ({program.duration_s:.1f} s program, analysis {took:.1f} s)")
     fmt = " ".join
     print(f"  jumps, written model: {fmt(f'{1e3 * j:+7.1f}' for j in found.jumps_um)} nm")
     print(f"  jumps, placed:        {fmt(f'{1e3 * j:+7.1f}' for j in found.jumps_moved_um)} nm")
-    if args.out and found.adopted:
-        dump_config(moved_config(config, axis, found.moved_s), args.out, header=f"{found.note} ({name})")
-        print(f"-> {args.out}")
+    if args.out and (found.adopted or args.placed):
+        moved_s = found.placed_s if args.placed else found.moved_s
+        dump_config(moved_config(config, axis, moved_s), args.out, header=f"{found.note} ({name})")
+        print(f"-> {args.out} ({moved_s * 1e3:+.3f} ms moved to the drive)")
     return 0
 
 
