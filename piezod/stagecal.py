@@ -1118,11 +1118,17 @@ def with_lag_placed(
 
     placed = _with_step([experiment], axis, fit, "lag_placement", adopt, summary)
     if "heldout_rms_um" in refit:
+        # a config given as written (tools/model_family_verify.py --verify) has no held-out figure
+        before = (
+            f" (with the lag at the sensor: {fit.fit_error_pct * 1e3:.2f} nm)"
+            if math.isfinite(fit.fit_error_pct)
+            else ""
+        )
         placed = _noted(
             placed,
             dict(placed.report),
-            f"refitted with the drive lag held there: {refit['heldout_rms_um'] * 1e3:.2f} nm held out "
-            f"(with the lag at the sensor: {fit.fit_error_pct * 1e3:.2f} nm)",
+            f"refitted with the drive lag held there: {refit['heldout_rms_um'] * 1e3:.2f} nm held out"
+            + before,
             "adopted",
             placed.config,
         )
