@@ -372,10 +372,11 @@ def _probe_axis(effect: str, experiments: Sequence[Experiment]) -> _ProbeAxis | 
         x_max = _largest_position(experiments)
         if not x_max > 0.0:
             return None
-        step = PROBE_SATURATION_STEP
         q_lo, q_hi = _saturation_domain(x_max)
         if q_hi <= q_lo:
             return None
+        # on a small stage the registry's least x_sat can compress less than the probe's steps
+        step = min(PROBE_SATURATION_STEP, 0.5 * q_hi)
         return _ProbeAxis(lambda q: x_max / math.sqrt(q), (step, 2.0 * step), (q_lo, q_hi))
     return None
 

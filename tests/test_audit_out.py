@@ -24,7 +24,7 @@ def test_findings_map_to_parts_and_the_rest_is_named() -> None:
             {"effect": "stiffness", "params": {"sensitivity_pct_per_um": -0.16}},
             {"effect": "delay", "params": {"delay_s": 0.0158, "lag_time_constant_s": 0.0}},
             {"effect": "resonance", "params": {"f0_hz": 665.0, "q": 10.0}},
-            {"effect": "saturation", "params": {"x_sat_um": 2.0}},  # outside the physical range
+            {"effect": "saturation", "params": {"x_sat_um": 0.5}},  # outside the physical range
             {"effect": "drift", "params": {"rate_nm_per_s": None}},
         ]
     )

@@ -219,6 +219,24 @@ def test_static_parts_the_audit_did_not_name_are_probed() -> None:
     assert probe_parts({}, flat, _frame(-20.0, 130.0, 100.0)) == ({}, [])
 
 
+@pytest.mark.parametrize("x_max", [0.5, 1.2, 3.0, 10.0, 100.0, 1000.0])
+def test_every_probed_value_is_one_the_runtime_part_takes(x_max: float) -> None:
+    """On a stage of any size the probes stay inside the registry's physical bounds (a 2.4 um
+    buzzer-disc scanner's saturation probe once asked for x_sat 6.9 um against a 10 um bound, and
+    the calibration stopped on the part's ModelError)."""
+    from piezod.extensions import probe_parts
+    from piezod.model.parts import Parts
+
+    def rms(fx: dict[str, dict[str, float]]) -> float:
+        Parts.from_effects(fx)  # raises on a value outside the bounds
+        x_sat = fx.get("saturation", {}).get("x_sat_um", math.inf)
+        return math.sqrt(1e-6 + (x_max / x_sat - x_max / (3.0 * x_max)) ** 2)
+
+    out, notes = probe_parts({}, rms, _frame(-10.0, 10.0, x_max))
+    assert "saturation" in out, notes
+    assert out["saturation"]["x_sat_um"] >= 1.4 * x_max
+
+
 def test_parts_that_trade_are_profiled_together() -> None:
     """Polarity and saturation in a valley (each one's optimum moves with the other): one at a time
     from (-1.5 %, 346 um) stops short; the joint quadratic step reaches (-3 %, 500 um), keeps the

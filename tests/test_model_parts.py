@@ -131,7 +131,7 @@ def test_the_axis_config_wraps_its_model_in_the_parts() -> None:
     assert isinstance(model, PartsAxisModel) and model.parts.sensitivity_pct_per_um == -0.08
     assert isinstance(axis_model(AxisConfig(**base)), FamilyAxisModel)
     with pytest.raises(ValueError, match=r"extensions: .*saturation\.x_sat_um"):
-        AxisConfig(**base, extensions={"saturation": {"x_sat_um": 1.0}})
+        AxisConfig(**base, extensions={"saturation": {"x_sat_um": 0.5}})
     # the engine's axis driver streams it without knowing (blocks, hold, adopt into another model)
     full = AxisConfig(**{**base, "slew_rate_v_per_s": 1e6}, extensions=ALL.effects())
     d = AxisDriver("x", full, 100_000.0)

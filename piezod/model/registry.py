@@ -25,7 +25,7 @@ stiffness       sensitivity_pct_per_um                       -0.5 ... 0.5 %/um
 polarity        negative_sensitivity_pct                     -50 ... 50 %
 resonance       f0_hz, q                                     50 ... 1e5 Hz, 0.5 ... 200
 delay           delay_s, lag_time_constant_s                 0 ... 50 ms, 0 ... 50 ms
-saturation      x_sat_um                                     10 ... 1e4 um
+saturation      x_sat_um                                     1 ... 1e4 um
 creep           pct_per_decade                               0 ... 5 %/decade
 asymmetry       asymmetry_pct                                -5 ... 5 %
 ==============  ==========================================  ===================================
@@ -165,7 +165,7 @@ REGISTRY: dict[str, EffectSpec] = {
             "saturation",
             "compression at large excursions",
             "x_sat tanh(x / x_sat)",
-            (ParamSpec("x_sat_um", "um", (10.0, 1e4), (60.0, 150.0)),),
+            (ParamSpec("x_sat_um", "um", (1.0, 1e4), (60.0, 150.0)),),
             ("domain switching saturates the strain near the coercive field (Jaffe et al. 1971)",),
         ),
         EffectSpec(
