@@ -61,6 +61,34 @@ def _run(tmp_path: Path, frame: str) -> dict[str, object]:
     return doc
 
 
+def test_a_failed_audit_step_keeps_the_frame_and_its_model(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A step after the model choice that fails (thorn33's saturation probe raised a ModelError in
+    the audit step, and the whole run stopped after ten minutes on the stage) leaves the chosen
+    model written, says why on a WARNING line and in the report; the stage over the pty."""
+    import io
+    from contextlib import redirect_stdout
+
+    from piezod.errors import ModelError
+    from piezod.stagecal import AnalysisWorker
+
+    def fails(*_: object, **__: object) -> object:
+        raise ModelError("saturation.x_sat_um = 6.9 outside its physical range [10.0, 10000.0]")
+
+    monkeypatch.setattr(AnalysisWorker, "audit_and_extend", fails)
+    out, report = tmp_path / "cal.yaml", tmp_path / "cal.json"
+    args = ["calibrate", "--sim", "--config", str(default_sim_config_path()), "--frame", "reduced"]
+    printed = io.StringIO()
+    with redirect_stdout(printed):
+        status = main([*args, "--no-verify", "--out", str(out), "--json", str(report)])
+    assert status == 0, printed.getvalue()
+    assert "WARNING: the audit step failed" in printed.getvalue()
+    doc = json.loads(report.read_text())
+    assert "6.9 outside its physical range" in doc["audit"]["error"]
+    assert load_config(out).axes["x"].model == doc["model_choice"]["chosen"].split("/")[0]
+
+
 @pytest.mark.timeout(1200)  # 214 s in a full-suite run beside two CPU-bound jobs (session 19)
 def test_reduced_frame_calibrates_and_verifies_inside_the_frame(tmp_path: Path) -> None:
     doc = _run(tmp_path, "reduced")

@@ -10,7 +10,7 @@ from typing import Any
 
 from piezod.cli._common import board_url, fresh_dir, human_stream, scanner_config_path, write_json
 from piezod.config import AxisName, dump_config, load_config, with_recorded_utc
-from piezod.errors import CalibrationError
+from piezod.errors import CalibrationError, ModelError
 from piezod.progress import progress_bar
 from piezod.service.engine import Engine
 from piezod.stagecal import (
@@ -149,17 +149,29 @@ def run_on_stage(args: argparse.Namespace) -> int:
             calibrated = choice.config
             audit_report: dict[str, Any] | None = None
             extra = ""
+            audited = None
             if not getattr(args, "no_audit", False):
-                audited = worker.audit_and_extend(
-                    frame_path,
-                    choice,
-                    dynamic.config,
-                    axis,
-                    ramp_v_per_s=base.service.ramp_rate_v_per_s,
-                    rest_voltage_v=rest_v,
-                    placement_path=placement_path,
-                    rate_hz=engine.rate_hz,
-                )
+                try:
+                    audited = worker.audit_and_extend(
+                        frame_path,
+                        choice,
+                        dynamic.config,
+                        axis,
+                        ramp_v_per_s=base.service.ramp_rate_v_per_s,
+                        rest_voltage_v=rest_v,
+                        placement_path=placement_path,
+                        rate_hz=engine.rate_hz,
+                    )
+                except (ModelError, CalibrationError) as exc:
+                    # the frame's model choice stands on its own; a step after it that fails
+                    # must not throw the recorded frame and its fits away
+                    print(
+                        f"WARNING: the audit step failed ({took('audit')}): {exc}; the chosen model "
+                        "is written without the audit's parts",
+                        file=say,
+                    )
+                    audit_report = {"error": str(exc)}
+            if audited is not None:
                 found = ", ".join(audited.report["findings"]) or "none"
                 if audited.report.get("withheld"):
                     found += (
