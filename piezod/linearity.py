@@ -417,6 +417,37 @@ class LinearityReport:
         }
 
 
+def noise_pct(position_um: NDArray[np.float64], measured_range_um: float) -> float:
+    """The sensor's white noise as a nonlinearity (4.16): ``100 s / x'_R``.
+
+    (4.16) divides the regression's residual standard deviation by the range, so the sensor's noise
+    counts as nonlinearity: 3 nm on a 0.6 um line is 0.5 % whatever the scanner does (a 2.2 um
+    buzzer-disc stage, docs/model-family.md 6.2ao). ``s`` is the readback's third-difference floor
+    (:func:`piezod.audit.residuals.noise_floor`: white noise, the smooth scan ignored). Taking it
+    out of (4.16) in quadrature is not done: a 1 % error of the floor leaves 0.07 % of a 0.5 %
+    figure.
+
+    Parameters
+    ----------
+    position_um
+        The scan's readback.
+    measured_range_um
+        ``x'_R`` (4.14).
+
+    Returns
+    -------
+    float
+        nan when the floor cannot be estimated.
+    """
+    from piezod.audit.residuals import noise_floor
+
+    x = np.asarray(position_um, dtype=np.float64)
+    floor = noise_floor(x[np.isfinite(x)])
+    if not (math.isfinite(floor) and measured_range_um > 0.0):
+        return math.nan
+    return 100.0 * floor / measured_range_um
+
+
 def linearity(
     experiments: Sequence[Experiment],
     *,

@@ -29,7 +29,7 @@ from piezod import calibrate_any
 from piezod.calibrate import calibrate, calibrated_config, result_json
 from piezod.config import AxisName, ScannerConfig
 from piezod.errors import CalibrationError, ModelError, PiezodError
-from piezod.linearity import linearity
+from piezod.linearity import linearity, noise_pct
 from piezod.model.boucwen import BoucWenParams
 from piezod.model.sensor import SensorPath
 from piezod.model.thesis import scan_range_um
@@ -759,6 +759,15 @@ def verify(
             aside = "clamped_figures", f"clamped ({limited[-1].message})"
         if aside is None:
             row.update(nonlinearity_pct=nl, length_error_pct=le)
+            # the readback the figures were computed from: aligned through the sensor path
+            seen = read_experiments([path], axis="x")
+            if sensor is not None:
+                from piezod.extensions import experiments_through_sensor
+
+                seen = experiments_through_sensor(seen, sensor)
+            noise = noise_pct(seen[0].position_um, row["range_um"] * (1.0 + le / 100.0))
+            if math.isfinite(noise):
+                row["noise_pct"] = noise
         else:
             row.update(nonlinearity_pct=None, length_error_pct=None, skipped=aside[1])
             row[aside[0]] = {"nonlinearity_pct": nl, "length_error_pct": le}
@@ -1731,6 +1740,9 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
             what += f" (fault before this point, cleared: {'; '.join(r['faults_before'])})"
         if r.get("placement"):
             what += f" ({r['placement']})"
+        noise = r.get("noise_pct")
+        if noise is not None and r.get("nonlinearity_pct") and noise >= 0.5 * r["nonlinearity_pct"]:
+            what += f" (the sensor's noise alone: {noise:.3f} %)"
         lines.append(
             f"{r['model']:<8} {r['range_um']:9.3g} {r['frequency_hz']:7.3g} {r['offset_um']:9.3g} "
             f"{inside:>7} {nl:>9} {le:>9} {tr:>9}  {what}"

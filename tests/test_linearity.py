@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from piezod.errors import RecordingError
-from piezod.linearity import experiment_linearity, linearity
+from piezod.linearity import experiment_linearity, linearity, noise_pct
 from piezod.recording import Experiment
 
 R_UM = 20.0
@@ -175,3 +175,19 @@ def test_a_sine_is_refused_with_the_reason_not_compared_with_a_ramp() -> None:
     target = 10.0 * (2.0 * np.abs(((t * 1.0) % 1.0) - 0.5) * 2.0 - 1.0)
     corrected = Experiment("corrected", None, t, v, target + 0.001, target_um=target)
     assert experiment_linearity(corrected).nonlinearity_pct < 0.1
+
+
+def test_the_sensors_noise_as_a_nonlinearity() -> None:
+    """3 nm of white noise on a 0.6 um line reads as 0.5 % of (4.16) (the buzzer-disc stage of
+    docs/model-family.md 6.2ao): noise_pct says how much of the figure that is, with or without a
+    bow of the scan under it."""
+    t, v, target, _ = _scan(spl=4000)
+    line = 0.6 / R_UM * target
+    noise = np.random.default_rng(3).normal(0.0, 0.003, t.size)
+    for bow in (0.0, 0.002):
+        x = line + bow * (line / 0.3) ** 2 + noise
+        res = experiment_linearity(_exp(t, v, x, line))
+        measured = 0.6 * (1.0 + res.length_error_pct / 100.0)
+        assert res.nonlinearity_pct > 0.45
+        assert noise_pct(x, measured) == pytest.approx(100.0 * 0.003 / measured, rel=0.05)
+    assert math.isnan(noise_pct(np.zeros(3), 0.6))
