@@ -191,3 +191,14 @@ def test_the_sensors_noise_as_a_nonlinearity() -> None:
         assert res.nonlinearity_pct > 0.45
         assert noise_pct(x, measured) == pytest.approx(100.0 * 0.003 / measured, rel=0.05)
     assert math.isnan(noise_pct(np.zeros(3), 0.6))
+
+
+def test_the_verification_table_names_the_noise_when_it_is_most_of_the_figure() -> None:
+    from piezod.stagecal import format_table
+
+    row = {"model": "family", "range_um": 0.6, "frequency_hz": 0.63, "offset_um": 0.1, "inside_frame": True}
+    noisy = {**row, "what": "inside: small range", "nonlinearity_pct": 0.522, "length_error_pct": 0.069}
+    quiet = {**row, "what": "inside: mid range", "nonlinearity_pct": 0.014, "length_error_pct": -0.015}
+    table = format_table([{**noisy, "noise_pct": 0.506}, {**quiet, "noise_pct": 0.004}]).splitlines()
+    assert table[2].endswith("inside: small range (the sensor's noise alone: 0.506 %)")
+    assert table[3].endswith("inside: mid range")
