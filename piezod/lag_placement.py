@@ -355,9 +355,14 @@ def place_lag(
         return None
     hi = forward + added
 
+    seen: dict[float, F64] = {}
+
     def jumps_at(moved_s: float) -> F64:
-        placed = moved_config(config, axis, moved_s)
-        return jumps_um(experiment, program, predicted_readback(experiment, placed, axis))
+        # the move made and the one reported are often the secant's end: one forward pass each
+        if moved_s not in seen:
+            placed = moved_config(config, axis, moved_s)
+            seen[moved_s] = jumps_um(experiment, program, predicted_readback(experiment, placed, axis))
+        return seen[moved_s]
 
     at_none = jumps_at(0.0)
     if not np.any(np.isfinite(at_none)):
@@ -370,7 +375,7 @@ def place_lag(
         placed = end * j0 / (j0 - j1) if j0 != j1 else 0.0
         placed = float(np.clip(placed, -back, hi) if placed * end > 0.0 else 0.0)
     moved = float(np.clip(placed, 0.0, forward))
-    at_moved = jumps_at(moved) if moved > 0.0 else at_none
+    at_moved = jumps_at(moved)
     before, after = _rms(at_none), _rms(at_moved)
     adopted = moved >= MIN_MOVED_S and after <= ADOPT_FRACTION * before
     n = int(np.isfinite(at_none).sum())

@@ -740,7 +740,7 @@ def verify(
             )
             rows.append(row)
             continue
-        nl, le = worker.linearity(path, "x", sensor)
+        nl, le, noise = worker.linearity(path, "x", sensor)
         limited = [f for f in engine.faults.recent(200) if f.time_s >= mark and f.code == "LIMIT"]
         rec = read_recording(path)
         full_scale = engine.settings.full_scale_um("x")
@@ -759,13 +759,6 @@ def verify(
             aside = "clamped_figures", f"clamped ({limited[-1].message})"
         if aside is None:
             row.update(nonlinearity_pct=nl, length_error_pct=le)
-            # the readback the figures were computed from: aligned through the sensor path
-            seen = read_experiments([path], axis="x")
-            if sensor is not None:
-                from piezod.extensions import experiments_through_sensor
-
-                seen = experiments_through_sensor(seen, sensor)
-            noise = noise_pct(seen[0].position_um, row["range_um"] * (1.0 + le / 100.0))
             if math.isfinite(noise):
                 row["noise_pct"] = noise
         else:
@@ -1552,14 +1545,21 @@ def read_placement(
     return found[0], program_for(config, axis, rate_hz or config.sample_rate_hz)
 
 
-def _linearity_here(path: Path, axis: AxisName, sensor: SensorPath | None = None) -> tuple[float, float]:
+def verified_linearity(
+    path: Path, axis: AxisName, sensor: SensorPath | None = None
+) -> tuple[float, float, float]:
+    """(4.16) and (4.15) of the first experiment of ``axis`` in ``path``, in %, the readback aligned
+    through ``sensor`` (the axis's sensor path) when given, and the sensor's white noise alone as a
+    nonlinearity on that readback (:func:`piezod.linearity.noise_pct`; nan when it cannot be
+    estimated)."""
     exps = read_experiments([path], axis=axis)
     if sensor is not None:
         from piezod.extensions import experiments_through_sensor
 
         exps = experiments_through_sensor(exps, sensor)
     e = linearity(exps).experiments[0]
-    return float(e.nonlinearity_pct), float(e.length_error_pct)
+    nl, le = float(e.nonlinearity_pct), float(e.length_error_pct)
+    return nl, le, noise_pct(exps[0].position_um, e.trace.nominal_range_um * (1.0 + le / 100.0))
 
 
 def _frame_end_here(path: Path, axis: AxisName) -> tuple[float, float]:
@@ -1683,10 +1683,10 @@ class AnalysisWorker:
 
     def linearity(
         self, path: Path, axis: AxisName = "x", sensor: SensorPath | None = None
-    ) -> tuple[float, float]:
-        """(nonlinearity %, length error %) of the first experiment of ``axis`` in ``path`` (the
-        readback aligned through ``sensor``, the axis's sensor path, when given)."""
-        return self._pool.submit(_linearity_here, path, axis, sensor).result()
+    ) -> tuple[float, float, float]:
+        """:func:`verified_linearity` (nonlinearity %, length error %, the sensor's noise alone %)
+        in the worker process."""
+        return self._pool.submit(verified_linearity, path, axis, sensor).result()
 
     def check_points(
         self,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -567,7 +568,7 @@ def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fa
 
     from piezod.stagecal import VerifyPoint, verify
 
-    worker = SimpleNamespace(linearity=lambda path, axis, sensor: (0.01, -0.02))
+    worker = SimpleNamespace(linearity=lambda path, axis, sensor: (0.01, -0.02, math.nan))
     engine = _HeldEngine("fault")
     pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside"), VerifyPoint(5.0, 2.0, 0.0, True, "inside")]
     rows = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
@@ -584,7 +585,7 @@ def test_a_verification_scan_read_at_the_sensors_full_scale_reports_no_figures(t
 
     from piezod.stagecal import VerifyPoint, verify
 
-    worker = SimpleNamespace(linearity=lambda path, axis, sensor: (0.01, -0.02))
+    worker = SimpleNamespace(linearity=lambda path, axis, sensor: (0.01, -0.02, math.nan))
     engine = _HeldEngine("idle", reading_um=(40.0, 99.99))
     pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside")]
     (row,) = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]

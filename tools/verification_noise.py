@@ -3,10 +3,9 @@
     python tools/verification_noise.py RUN/rec/verify-family-*.csv [--config F.yaml]
 
 For each recording of a verification point (``piezod calibrate --sim/--port --recordings-dir``):
-(4.14)-(4.16) as the verification computes them from the readback (aligned through the sensor path
-of ``--config``, the calibrated YAML, as the verification does), and
-:func:`piezod.linearity.noise_pct`, the readback's third-difference noise floor over the measured
-range (docs/model-family.md 6.2ao).
+what the verification computes from it (:func:`piezod.stagecal.verified_linearity`: (4.16), (4.15)
+and the sensor's noise alone as a nonlinearity, on the readback aligned through the sensor path of
+``--config``, the calibrated YAML; docs/model-family.md 6.2ao).
 """
 
 from __future__ import annotations
@@ -15,9 +14,7 @@ import argparse
 from pathlib import Path
 
 from piezod.config import load_config
-from piezod.extensions import experiments_through_sensor
-from piezod.linearity import linearity, noise_pct
-from piezod.recording import read_experiments
+from piezod.stagecal import verified_linearity
 
 
 def main() -> int:
@@ -27,17 +24,10 @@ def main() -> int:
     ap.add_argument("--config", type=Path, default=None, help="the calibrated YAML (its sensor path)")
     args = ap.parse_args()
     sensor = None if args.config is None else load_config(args.config).axes[args.axis].sensor_path()
-    print(f"{'recording':<24} {'range um':>9} {'nonlin %':>9} {'length %':>9} {'noise %':>9}")
+    print(f"{'recording':<24} {'nonlin %':>9} {'length %':>9} {'noise %':>9}")
     for path in args.recordings:
-        exp = read_experiments([path], axis=args.axis)[0]
-        if sensor is not None:
-            exp = experiments_through_sensor([exp], sensor)[0]
-        e = linearity([exp]).experiments[0]
-        measured = e.trace.measured_range_um
-        print(
-            f"{path.name:<24} {e.trace.nominal_range_um:9.3g} {e.nonlinearity_pct:9.3f} "
-            f"{e.length_error_pct:+9.3f} {noise_pct(exp.position_um, measured):9.3f}"
-        )
+        nl, le, noise = verified_linearity(path, args.axis, sensor)
+        print(f"{path.name:<24} {nl:9.3f} {le:+9.3f} {noise:9.3f}")
     return 0
 
 

@@ -106,7 +106,7 @@ def _demo_steps(engine: Engine, worker: AnalysisWorker, frame: Frame, say: TextI
         engine.start_scan(req, path=path)
         engine.wait_idle(60.0)
         engine.wait_recorded()
-        nl, le = worker.linearity(path, "x")
+        nl, le, _ = worker.linearity(path, "x")
         rows.append((what, nl, le, path))
     _table(rows, say)
 
