@@ -22,6 +22,7 @@ import numpy as np
 
 from piezod.config import ScannerConfig, dump_config, load_config
 from piezod.errors import ConfigError, ModelError, RecordingError
+from piezod.fitstats import lowers
 from piezod.model.parts import PART_EFFECTS, TIME_PARTS, Parts, part_effects
 from piezod.model.resonance import RESONANCE_PARAMS, ResonancePart
 from piezod.model.sensor import SENSOR_EFFECTS, SensorPath
@@ -402,6 +403,7 @@ def probe_parts(
     train_rms: Callable[[dict[str, dict[str, float]]], float],
     experiments: Sequence[Experiment],
     model: str = "the refitted model",
+    floor_um: float = 0.0,
 ) -> tuple[dict[str, dict[str, float]], list[str]]:
     """Try the static parts the audit did not name on a refitted model's training RMS.
 
@@ -414,7 +416,8 @@ def probe_parts(
     saturation compressing the frame's largest position by 1 % and 2 %), a parabola in the mean
     square through them and the part left off, and one more fit at its vertex (inside the
     registry's physical bounds). The best point is added when it lowers the training RMS by
-    :data:`PROBE_GAIN`; the next part is probed with it. A polarity is probed only on a frame
+    :data:`PROBE_GAIN` of what the RMS has above the frame's noise ``floor_um``
+    (:func:`piezod.fitstats.lowers`); the next part is probed with it. A polarity is probed only on a frame
     reaching below 0 V (:data:`PROBE_MIN_NEGATIVE_SHARE`). The held-out data decide later
     (:func:`prune_parts`).
 
@@ -451,7 +454,7 @@ def probe_parts(
                 if vertex != 0.0 and vertex not in tried:
                     tried[vertex] = rms(vertex)
         q_best = min(tried, key=lambda q: tried[q])
-        if math.isfinite(tried[q_best]) and tried[q_best] < current * (1.0 - PROBE_GAIN):
+        if lowers(tried[q_best], current, PROBE_GAIN, floor_um):
             out[effect] = {name: probe.value(q_best)}
             notes.append(
                 f"{effect}: probed, {name} = {probe.value(q_best):.6g} (training RMS of {model} "
@@ -481,6 +484,7 @@ def refine_jointly(
     train_rms: Callable[[dict[str, dict[str, float]]], float],
     experiments: Sequence[Experiment],
     model: str = "the refitted model",
+    floor_um: float = 0.0,
 ) -> tuple[dict[str, dict[str, float]], list[str]]:
     """Profile the runtime parts' primary parameters together on a refitted model's training RMS.
 
@@ -497,7 +501,8 @@ def refine_jointly(
     each coordinate, a step along both of every pair) and the fit at its vertex, kept within
     :data:`JOINT_TRUST_STEPS` steps and the registry's physical bounds, is taken when it is the
     best point so far; :data:`JOINT_ITERATIONS` such steps at most, each from the best point, until
-    one lowers the training RMS by less than :data:`JOINT_MIN_GAIN`.
+    one lowers the training RMS by less than :data:`JOINT_MIN_GAIN` of what it has above the
+    frame's noise ``floor_um`` (:func:`piezod.fitstats.lowers`).
 
     Returns
     -------
@@ -562,7 +567,7 @@ def refine_jointly(
                 step_best, val_best = vertex, v
         if not val_best < best:
             break
-        gained = val_best < best * (1.0 - JOINT_MIN_GAIN) ** 2
+        gained = lowers(math.sqrt(val_best), math.sqrt(best), JOINT_MIN_GAIN, floor_um)
         best_q, best = step_best, val_best
         if not gained:
             break
@@ -700,6 +705,7 @@ def prune_parts(
     heldout_rms: Callable[[dict[str, dict[str, float]]], float],
     model: str = "the refitted model",
     tie_fraction: float | None = None,
+    floor_um: float = 0.0,
 ) -> tuple[dict[str, dict[str, float]], list[str]]:
     """Leave out the runtime parts that do not lower a refitted model's held-out RMS.
 
@@ -709,8 +715,9 @@ def prune_parts(
     is not one: where a lag sits is decided by :func:`piezod.stagecal.audit_and_extend`) must earn
     its place: while the model refitted through all the parts but one predicts the held-out
     experiments no worse than through all of them (within ``tie_fraction``, default the model
-    choice's :data:`piezod.calibrate_family.CHOICE_TIE_FRACTION`), the part whose removal costs
-    least is left out.
+    choice's :data:`piezod.calibrate_family.CHOICE_TIE_FRACTION`, of what the RMS has above the
+    frame's noise ``floor_um``: :func:`piezod.fitstats.lowers`), the part whose removal costs least
+    is left out.
 
     Parameters
     ----------
@@ -723,6 +730,8 @@ def prune_parts(
         The refitted model, for the notes.
     tie_fraction
         Relative held-out gain a part must bring.
+    floor_um
+        The frame's noise floor (um; 0: the gain is taken on the RMS itself).
 
     Returns
     -------
@@ -739,7 +748,7 @@ def prune_parts(
     while parts := [e for e in out if e in PART_EFFECTS]:
         without = {e: heldout_rms({k: v for k, v in out.items() if k != e}) for e in parts}
         effect = min(without, key=lambda e: without[e])
-        if with_all < without[effect] * (1.0 - tie_fraction):
+        if lowers(with_all, without[effect], tie_fraction, floor_um):
             break
         left_out.append(
             f"{effect}: held-out RMS of {model} {with_all * 1e3:.2f} nm with it, "

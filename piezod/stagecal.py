@@ -29,6 +29,7 @@ from piezod import calibrate_any
 from piezod.calibrate import calibrate, calibrated_config, result_json
 from piezod.config import AxisName, ScannerConfig
 from piezod.errors import CalibrationError, ModelError, PiezodError
+from piezod.fitstats import excess_rms, lowers
 from piezod.linearity import linearity, noise_pct
 from piezod.model.boucwen import BoucWenParams
 from piezod.model.sensor import SensorPath
@@ -835,6 +836,18 @@ def _choose_here(
     )
 
 
+def frame_noise_floor(experiments: Sequence[Experiment]) -> float:
+    """The frame's sensor noise (um rms; :func:`piezod.audit.residuals.pooled_noise_floor` of the
+    readback): what no model's residual RMS goes below, taken out of the adoption's gains.
+
+    The family fits keep every ``k``-th sample (:func:`_frame_session`), so their residuals carry
+    the readback's noise per sample unchanged."""
+    from piezod.audit.residuals import pooled_noise_floor
+
+    floor, _ = pooled_noise_floor([np.asarray(e.position_um, dtype=np.float64) for e in experiments])
+    return floor if math.isfinite(floor) else 0.0
+
+
 def _frame_session(
     experiments: Sequence[Experiment], ramp_v_per_s: float, rest_voltage_v: float
 ) -> DynamicCalibrationData:
@@ -990,10 +1003,11 @@ def audit_and_extend(
     # misfit of the loops (or the audit was wrong); another law may fit through the part
     dropped = (set(adoption.effects) & set(PART_EFFECTS)) - set(MEMBER_OWN_PARTS) - set(profiled.effects)
     others = other_laws(chosen.report) if dropped else []
+    floor = frame_noise_floor(experiments)
     for name in others:
         trial, notes, rms = profile_member(experiments, adoption, name, ramp_v_per_s, rest_voltage_v)
         report["profiled"][name] = rms
-        if trial.effects and rms < best[1] * (1.0 - CHOICE_TIE_FRACTION):
+        if trial.effects and lowers(rms, best[1], CHOICE_TIE_FRACTION, floor):
             best, profiled, refined = (name, rms), trial, notes
     if best[0] != first:
         refined = [
@@ -1025,7 +1039,8 @@ def audit_and_extend(
     # voltage overshoot every reversal, which moves a hysteretic stage's branch; a drive lag left
     # uncompensated only delays the stage.
     sensor_only = set(adoption.effects) <= set(SENSOR_EFFECTS)
-    tie = sensor_only and redone.fit_error_pct <= chosen.fit_error_pct * (1.0 + CHOICE_TIE_FRACTION)
+    limit = excess_rms(chosen.fit_error_pct, floor) * (1.0 + CHOICE_TIE_FRACTION)
+    tie = sensor_only and excess_rms(redone.fit_error_pct, floor) <= limit
     if redone.fit_error_pct < chosen.fit_error_pct or tie:
         report["adopted"] = list(adoption.adopted)
         report["model_choice"] = redone.report
@@ -1404,7 +1419,9 @@ def profile_member(
     sensor path the member is fitted without a drive lag of its own, which would otherwise take
     any part of the lag the sensor path leaves.
     Then a runtime part the member's held-out RMS does not need is left out
-    (:func:`piezod.extensions.prune_parts`; it goes to the adoption's ``skipped``).
+    (:func:`piezod.extensions.prune_parts`; it goes to the adoption's ``skipped``). The probe,
+    the joint profile and the pruning take their gains on what the RMS has above the frame's
+    noise floor (:func:`frame_noise_floor`, :func:`piezod.fitstats.lowers`).
     A member refined to a finer play grid is profiled at the default grid
     (:data:`piezod.calibrate_family.DEFAULT_PLAYS`). A chosen model that is not a family member
     leaves the findings as the audit found them.
@@ -1482,14 +1499,15 @@ def profile_member(
         model=fitted,
         sensor_model=f"{fitted} without a drive lag of its own",
     )
-    probed, probe_notes = probe_parts(effects, train_rms, experiments, model=fitted)
+    floor = frame_noise_floor(experiments)
+    probed, probe_notes = probe_parts(effects, train_rms, experiments, model=fitted, floor_um=floor)
     if probe_notes:
         added = [e for e in probed if e not in effects]
         effects, refined_notes = refine_parts(probed, train_rms, fitted, only=added)
         notes += probe_notes + refined_notes
-    effects, joint_notes = refine_jointly(effects, train_rms, experiments, model=fitted)
+    effects, joint_notes = refine_jointly(effects, train_rms, experiments, model=fitted, floor_um=floor)
     notes += joint_notes
-    kept, left_out = prune_parts(effects, lambda trial: fit(trial)[1], model=fitted)
+    kept, left_out = prune_parts(effects, lambda trial: fit(trial)[1], model=fitted, floor_um=floor)
     heldout = fit(kept)[1]
     if not notes and not left_out:
         return adoption, [], heldout

@@ -219,6 +219,43 @@ def test_static_parts_the_audit_did_not_name_are_probed() -> None:
     assert probe_parts({}, flat, _frame(-20.0, 130.0, 100.0)) == ({}, [])
 
 
+def test_a_part_is_judged_on_what_the_rms_has_above_the_sensor_noise() -> None:
+    """Read through 3 nm of noise, a polarity that takes the model error from 0.5 to 0.3 nm moves
+    the RMS by 1 %: below PROBE_GAIN and the pruning's tie on the RMS, half of the error above
+    the frame's noise floor (as on thorn33, docs/model-family.md 6.2ap). The pruning keeps it on
+    the same terms; a part that does not lower what is above the floor is not kept."""
+    from piezod.extensions import PROBE_GAIN, probe_parts, prune_parts
+
+    noise = 3e-3
+
+    def rms(fx: dict[str, dict[str, float]]) -> float:
+        p = fx.get("polarity", {}).get("negative_sensitivity_pct", 0.0)
+        return math.hypot(noise, 3e-4, 1.4e-4 * (p + 3.0))
+
+    frame = _frame(-12.0, 12.0, 2.2)
+    assert not rms({"polarity": {"negative_sensitivity_pct": -3.0}}) < (1.0 - PROBE_GAIN) * rms({})
+    assert probe_parts({}, rms, frame) == ({}, [])
+    out, notes = probe_parts({}, rms, frame, floor_um=noise)
+    assert math.isclose(out["polarity"]["negative_sensitivity_pct"], -3.0, abs_tol=0.2), notes
+    assert prune_parts(out, rms)[0] == {}
+    assert prune_parts(out, rms, floor_um=noise)[0] == out
+    assert prune_parts(out, lambda fx: math.hypot(noise, 1e-3), floor_um=noise)[0] == {}
+
+
+def test_the_gain_above_the_noise_floor() -> None:
+    """excess_rms takes the floor out in quadrature (0 below it, the RMS itself without a floor);
+    lowers is the plain relative gain with no floor, and a failed fit never lowers anything."""
+    from piezod.fitstats import excess_rms, lowers
+
+    assert excess_rms(5.0, 3.0) == 4.0
+    assert excess_rms(2.0, 3.0) == 0.0
+    assert excess_rms(2.0, 0.0) == excess_rms(2.0, math.nan) == 2.0
+    assert lowers(0.94, 1.0, 0.05) and not lowers(0.96, 1.0, 0.05)
+    assert lowers(3.02, 3.14, 0.05, 3.0) and not lowers(3.02, 3.14, 0.05)
+    assert not lowers(2.9, 2.95, 0.05, 3.0)  # nothing above the floor to lower
+    assert not lowers(math.inf, 1.0, 0.05) and lowers(1.0, math.inf, 0.05)
+
+
 @pytest.mark.parametrize("x_max", [0.5, 1.2, 3.0, 10.0, 100.0, 1000.0])
 def test_every_probed_value_is_one_the_runtime_part_takes(x_max: float) -> None:
     """On a stage of any size the probes stay inside the registry's physical bounds (a 2.4 um
