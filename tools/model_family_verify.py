@@ -133,14 +133,28 @@ class PlayedFrame:
     rest_voltage_v: float
 
 
-def play_default_frame(stage: str, axis: AxisName = "x") -> PlayedFrame:
-    """:func:`piezod.stagecal.default_frame` played on the preset ``stage`` (name or YAML path)."""
+def truth_config(cfg: StageConfig) -> StageConfig:
+    """``cfg`` without what lies between the stage's position and its readback: the sensor's noise
+    and a delay or lag placed at the sensor. Stepped beside the stage it gives where the stage is."""
+    fx = cfg.effects
+    if fx.delay is not None and fx.delay.at == "sensor":
+        fx = fx.model_copy(update={"delay": None})
+    return cfg.model_copy(update={"sensor_noise_nm_rms": 0.0, "effects": fx})
+
+
+def play_default_frame(stage: str, axis: AxisName = "x", truth: bool = False) -> PlayedFrame:
+    """:func:`piezod.stagecal.default_frame` played on the preset ``stage`` (name or YAML path);
+    with ``truth`` the stage's true position is stepped beside it (:func:`truth_config`)."""
     path = resolve_stage(stage)
     if path is None:
         raise SystemExit(f"no stage {stage!r}")
     base = load_config(path)
+    cfg = StageConfig.from_file(path)
     bench = StageBench(
-        Stage(StageConfig.from_file(path), axes=(axis,)), base.sample_rate_hz, keep_history=False
+        Stage(cfg, axes=(axis,)),
+        base.sample_rate_hz,
+        keep_history=False,
+        truth=Stage(truth_config(cfg), axes=(axis,)) if truth else None,
     )
     ramp = base.service.ramp_rate_v_per_s
     frame = default_frame(base, axis)
@@ -190,6 +204,12 @@ def main() -> int:
         help="audit the frame and adopt its findings, as piezod calibrate does",
     )
     ap.add_argument("--skip-dynamic", action="store_true", help="verify the chosen model only")
+    ap.add_argument(
+        "--truth",
+        action="store_true",
+        help="also measure every verified scan on the stage's true position (no sensor noise, "
+        "no sensor lag or delay), stepped beside it",
+    )
     ap.add_argument(
         "--offline",
         action="store_true",
@@ -249,7 +269,7 @@ def main() -> int:
         print(markdown(json.loads(Path(args.markdown).read_text())))
         return 0
     t0 = time.perf_counter()
-    played = play_default_frame(args.stage)
+    played = play_default_frame(args.stage, truth=args.truth)
     path, base, axis = played.path, played.base, played.axis
     bench, frame, exps = played.bench, played.frame, played.experiments
     rate, ramp, rest = base.sample_rate_hz, played.ramp_v_per_s, played.rest_voltage_v
@@ -364,6 +384,10 @@ def main() -> int:
             if not sensor.identity:
                 exp = experiments_through_sensor([exp], sensor)[0]
             lin = experiment_linearity(exp)
+            true_lin = None
+            if bench.truth is not None and bench.last_truth is not None:
+                true_exp = Experiment("verify", axis, t[k0:], v[k0:], bench.last_truth[k0:])
+                true_lin = experiment_linearity(dataclasses.replace(true_exp, target_um=target[k0:]))
             rows.append(
                 {
                     "model": kind,
@@ -379,6 +403,9 @@ def main() -> int:
                     "placement": pt.note,
                 }
             )
+            if true_lin is not None:
+                rows[-1]["true_nonlinearity_pct"] = float(true_lin.nonlinearity_pct)
+                rows[-1]["true_length_error_pct"] = float(true_lin.length_error_pct)
             r = rows[-1]
             print(
                 f"{kind:<8} {pt.why:<34} {pt.range_um:6.1f} um {pt.frequency_hz:7.3f} Hz "
@@ -386,6 +413,11 @@ def main() -> int:
                 f"length error {r['length_error_pct']:+.3f} %"
                 + (f" ({faults} clamped)" if faults else "")
                 + (f" ({slewed} samples slew-limited)" if slewed else "")
+                + (
+                    f"; true position {true_lin.nonlinearity_pct:.3f} %, {true_lin.length_error_pct:+.3f} %"
+                    if true_lin is not None
+                    else ""
+                )
             )
     summary: dict[str, dict[str, float]] = {}
     for kind in kinds:
@@ -397,6 +429,11 @@ def main() -> int:
                     "max_nonlinearity_pct": max(r["nonlinearity_pct"] for r in sel),
                     "max_abs_length_error_pct": max(abs(r["length_error_pct"]) for r in sel),
                 }
+                if all("true_nonlinearity_pct" in r for r in sel):
+                    summary[f"{kind}/{'inside' if inside else 'outside'}/true position"] = {
+                        "max_nonlinearity_pct": max(r["true_nonlinearity_pct"] for r in sel),
+                        "max_abs_length_error_pct": max(abs(r["true_length_error_pct"]) for r in sel),
+                    }
     for name, line in summary.items():
         print(
             f"{name:<20} max nonlinearity {line['max_nonlinearity_pct']:.3f} %, max |length error| "
