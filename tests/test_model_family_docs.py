@@ -8,6 +8,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -30,7 +31,7 @@ def test_each_results_section_names_its_command() -> None:
         assert command in _section(title), (title, command)
 
 
-def test_verification_tables_have_the_tool_format_and_the_held_out_stage_is_labelled() -> None:
+def _tool() -> Any:
     spec = importlib.util.spec_from_file_location("mfv", ROOT / "tools" / "model_family_verify.py")
     assert spec is not None and spec.loader is not None
     mfv = importlib.util.module_from_spec(spec)
@@ -40,6 +41,11 @@ def test_verification_tables_have_the_tool_format_and_the_held_out_stage_is_labe
         spec.loader.exec_module(mfv)
     finally:
         del sys.modules[spec.name]
+    return mfv
+
+
+def test_verification_tables_have_the_tool_format_and_the_held_out_stage_is_labelled() -> None:
+    mfv = _tool()
     result = {
         "choice": {
             "chosen": "a",
@@ -70,6 +76,26 @@ def test_verification_tables_have_the_tool_format_and_the_held_out_stage_is_labe
         )
     assert "Held-out physics" in _section("### 6.2") and "boucwen-stage" in _section("### 6.2")
     assert "developed against" in _section("### 6.2")
+
+
+def test_the_true_position_is_the_stage_without_its_sensor() -> None:
+    """``--truth`` steps the stage without its sensor noise and sensor-side delay and lag: the same
+    position, free of what lies between it and the readback."""
+    import numpy as np
+
+    from hil_sim.stage import Stage, StageConfig
+
+    mfv = _tool()
+    cfg = StageConfig.from_file(ROOT / "configs" / "sim-thorn33-holdout-stage.yaml")
+    assert cfg.sensor_noise_nm_rms > 0 and cfg.effects.delay is not None and cfg.effects.delay.at == "sensor"
+    truth = mfv.truth_config(cfg)
+    assert truth.sensor_noise_nm_rms == 0.0 and truth.effects.delay is None
+    assert (truth.creep, truth.axes, truth.amplifier_lag_s) == (cfg.creep, cfg.axes, cfg.amplifier_lag_s)
+    v = 10.0 * np.sin(np.linspace(0.0, 2.0 * np.pi, 4000))
+    quiet = cfg.model_copy(update={"sensor_noise_nm_rms": 0.0})
+    x_true = Stage(truth, axes=("x",)).step(v, 2.5e-4)
+    x_lagged = Stage(quiet, axes=("x",)).step(v, 2.5e-4)
+    assert 0.0 < float(np.max(np.abs(x_true - x_lagged))) < 0.05 * float(np.ptp(x_true))
 
 
 @pytest.mark.slow

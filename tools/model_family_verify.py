@@ -91,7 +91,7 @@ def markdown(result: dict[str, Any]) -> str:
         )
     for key, s in result["summary"].items():
         lines.append(
-            f"| **{key.split('/')[0]}** | **max {key.split('/')[1]}** | | | |"
+            f"| **{key.split('/')[0]}** | **max {', '.join(key.split('/')[1:])}** | | | |"
             f" **{s['max_nonlinearity_pct']:.3f}** | **{s['max_abs_length_error_pct']:.3f}** |"
         )
     return "\n".join(lines)
