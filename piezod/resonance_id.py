@@ -38,7 +38,7 @@ from scipy.ndimage import uniform_filter1d
 from scipy.optimize import least_squares
 
 from piezod.audit.dynamics import resonance
-from piezod.audit.residuals import pooled_noise_floor
+from piezod.audit.residuals import experiments_noise_floor
 from piezod.config import AxisConfig, ScannerConfig
 from piezod.errors import ConfigError, ModelError
 from piezod.fitstats import lowers
@@ -119,6 +119,11 @@ def _line_rate_hz(e: Experiment) -> float:
     return 0.5 * turns / duration if duration > 0 else 0.0
 
 
+def _held_out(i: int, every: int) -> bool:
+    """Experiment ``i`` is held out (every ``every``-th, as the model choice holds out)."""
+    return i % every == every - 1
+
+
 def _pieces(experiments: Sequence[Experiment], config: AxisConfig, every: int) -> list[_Piece]:
     from piezod.service.axes import axis_model
 
@@ -138,7 +143,7 @@ def _pieces(experiments: Sequence[Experiment], config: AxisConfig, every: int) -
         keep = np.zeros(t.size, dtype=bool)
         keep[t.size // 3 : t.size - width // 2] = True
         rate = _high_pass(np.gradient(m, dt), width)
-        out.append(_Piece(dt, width, m, _high_pass(y - m, width), rate, keep, (i % every) != every - 1))
+        out.append(_Piece(dt, width, m, _high_pass(y - m, width), rate, keep, not _held_out(i, every)))
     return out
 
 
@@ -239,8 +244,7 @@ def identify_resonance(
         why.append(f"Q {q:.3g} < {MIN_Q:g}: it acts as a lag, it does not ring")
     if not f_lo * 1.0001 < f0 < f_hi * 0.9999:
         why.append(f"f0 on the search's bound [{f_lo:.4g}, {f_hi:.4g}] Hz")
-    held_exps = [e for i, e in enumerate(experiments) if i % every == every - 1]
-    floor, _ = pooled_noise_floor([np.asarray(e.position_um, dtype=np.float64) for e in held_exps])
+    floor = experiments_noise_floor([e for i, e in enumerate(experiments) if _held_out(i, every)])
     if not (ho[1] == ho[0] == 0.0 or lowers(ho[1], ho[0], MIN_GAIN, floor)):
         why.append(f"held-out gain below {100 * MIN_GAIN:g} %")
     adopted = not why

@@ -836,18 +836,6 @@ def _choose_here(
     )
 
 
-def frame_noise_floor(experiments: Sequence[Experiment]) -> float:
-    """The frame's sensor noise (um rms; :func:`piezod.audit.residuals.pooled_noise_floor` of the
-    readback): what no model's residual RMS goes below, taken out of the adoption's gains.
-
-    The family fits keep every ``k``-th sample (:func:`_frame_session`), so their residuals carry
-    the readback's noise per sample unchanged."""
-    from piezod.audit.residuals import pooled_noise_floor
-
-    floor, _ = pooled_noise_floor([np.asarray(e.position_um, dtype=np.float64) for e in experiments])
-    return floor if math.isfinite(floor) else 0.0
-
-
 def _frame_session(
     experiments: Sequence[Experiment], ramp_v_per_s: float, rest_voltage_v: float
 ) -> DynamicCalibrationData:
@@ -964,6 +952,7 @@ def audit_and_extend(
     from piezod import calibrate_family as cf
     from piezod.audit import result_json as audit_json
     from piezod.audit import run_audit
+    from piezod.audit.residuals import experiments_noise_floor
     from piezod.calibrate_family import CHOICE_TIE_FRACTION
     from piezod.extensions import (
         adopt_findings,
@@ -996,16 +985,22 @@ def audit_and_extend(
         "heldout_rms_um": {"chosen": chosen.fit_error_pct},
     }
     first = str(chosen.report.get("chosen", ""))
-    profiled, refined, heldout = profile_member(experiments, adoption, first, ramp_v_per_s, rest_voltage_v)
+    # the family fits keep every k-th sample (_frame_session): their residuals carry the
+    # readback's noise per sample unchanged
+    floor = experiments_noise_floor(experiments)
+    profiled, refined, heldout = profile_member(
+        experiments, adoption, first, ramp_v_per_s, rest_voltage_v, floor_um=floor
+    )
     best = first, heldout if profiled.effects and math.isfinite(heldout) else chosen.fit_error_pct
     report["profiled"] = {first: best[1]}
     # a named static part the chosen member does without: its law may absorb the effect in a
     # misfit of the loops (or the audit was wrong); another law may fit through the part
     dropped = (set(adoption.effects) & set(PART_EFFECTS)) - set(MEMBER_OWN_PARTS) - set(profiled.effects)
     others = other_laws(chosen.report) if dropped else []
-    floor = frame_noise_floor(experiments)
     for name in others:
-        trial, notes, rms = profile_member(experiments, adoption, name, ramp_v_per_s, rest_voltage_v)
+        trial, notes, rms = profile_member(
+            experiments, adoption, name, ramp_v_per_s, rest_voltage_v, floor_um=floor
+        )
         report["profiled"][name] = rms
         if trial.effects and lowers(rms, best[1], CHOICE_TIE_FRACTION, floor):
             best, profiled, refined = (name, rms), trial, notes
@@ -1403,6 +1398,7 @@ def profile_member(
     chosen: str,
     ramp_v_per_s: float,
     rest_voltage_v: float,
+    floor_um: float | None = None,
 ) -> tuple[Adoption, list[str], float]:
     """Profile the adopted runtime parts and the sensor path on the chosen member's fit, and keep
     the parts that predict held-out data better.
@@ -1421,7 +1417,9 @@ def profile_member(
     Then a runtime part the member's held-out RMS does not need is left out
     (:func:`piezod.extensions.prune_parts`; it goes to the adoption's ``skipped``). The probe,
     the joint profile and the pruning take their gains on what the RMS has above the frame's
-    noise floor (:func:`frame_noise_floor`, :func:`piezod.fitstats.lowers`).
+    noise floor (``floor_um``, by default
+    :func:`piezod.audit.residuals.experiments_noise_floor` of the frame;
+    :func:`piezod.fitstats.lowers`).
     A member refined to a finer play grid is profiled at the default grid
     (:data:`piezod.calibrate_family.DEFAULT_PLAYS`). A chosen model that is not a family member
     leaves the findings as the audit found them.
@@ -1437,6 +1435,7 @@ def profile_member(
     import json
 
     from piezod import calibrate_family as cf
+    from piezod.audit.residuals import experiments_noise_floor
     from piezod.extensions import (
         experiments_through,
         probe_parts,
@@ -1499,7 +1498,7 @@ def profile_member(
         model=fitted,
         sensor_model=f"{fitted} without a drive lag of its own",
     )
-    floor = frame_noise_floor(experiments)
+    floor = experiments_noise_floor(experiments) if floor_um is None else floor_um
     probed, probe_notes = probe_parts(effects, train_rms, experiments, model=fitted, floor_um=floor)
     if probe_notes:
         added = [e for e in probed if e not in effects]

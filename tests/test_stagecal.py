@@ -451,7 +451,7 @@ def test_a_sensor_lag_the_held_out_data_cannot_place_is_put_at_the_sensor(
     )
     monkeypatch.setattr(piezod.extensions, "adopt_findings", lambda findings, **_: Adoption(effects))
     monkeypatch.setattr(piezod.extensions, "experiments_through", lambda exps, eff: exps)
-    monkeypatch.setattr(sc, "profile_member", lambda exps, adoption, *a: (adoption, [], 0.00361))
+    monkeypatch.setattr(sc, "profile_member", lambda exps, adoption, *a, **k: (adoption, [], 0.00361))
     monkeypatch.setattr(
         sc, "choose_for_experiments", lambda *a, **k: sc.ThesisFit({"chosen": "x"}, base, extended_rms)
     )
@@ -512,7 +512,9 @@ def test_the_parts_are_taken_from_the_other_law_that_predicts_best_through_them(
     }
     calls: list[str] = []
 
-    def profile(exps: object, adoption: Adoption, name: str, *a: object) -> tuple[Adoption, list[str], float]:
+    def profile(
+        exps: object, adoption: Adoption, name: str, *a: object, **k: object
+    ) -> tuple[Adoption, list[str], float]:
         calls.append(name)
         effects, rms = profiled[name]
         return Adoption(effects), [f"refined on {name}"], rms

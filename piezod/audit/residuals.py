@@ -9,12 +9,16 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from piezod.audit.data import AuditData
 from piezod.fitstats import solve_linear
+
+if TYPE_CHECKING:
+    from piezod.recording import Experiment
 
 F64 = NDArray[np.float64]
 
@@ -56,6 +60,14 @@ def pooled_noise_floor(segments: Sequence[F64]) -> tuple[float, F64]:
     ok = np.isfinite(per)
     pooled = math.sqrt(float(np.sum(w[ok] * per[ok] ** 2) / np.sum(w[ok]))) if ok.any() else math.nan
     return pooled, per
+
+
+def experiments_noise_floor(experiments: Sequence[Experiment]) -> float:
+    """The readback's noise over ``experiments`` (um rms; :func:`pooled_noise_floor` of their
+    positions, 0 when none has one): what no model's residual RMS on them goes below, taken out of
+    the calibration's adoption gains (:func:`piezod.fitstats.lowers`)."""
+    floor, _ = pooled_noise_floor([np.asarray(e.position_um, dtype=np.float64) for e in experiments])
+    return floor if math.isfinite(floor) else 0.0
 
 
 def noise_floor_data(data: AuditData) -> tuple[float, F64]:
