@@ -62,6 +62,15 @@ class BranchLinearity:
         ``100 sigma / x'_R`` (4.16).
     length_error_pct
         ``100 (x'_R - R) / R`` (4.15).
+    pixels
+        Pixels per line of the pixel figures (0: not computed).
+    pixel_nonlinearity_pct
+        (4.16) of the line-averaged profile at the image's pixels (:func:`pixel_profile`): the
+        regression's residual averaged over the samples of each pixel and over the lines, its RMS
+        over the pixels, per ``x'_R``; nan when not computed.
+    pixel_noise_pct
+        What noise alone leaves in that figure (:func:`pixel_profile`), per ``x'_R``; nan when it
+        cannot be estimated.
     """
 
     direction: int
@@ -73,6 +82,9 @@ class BranchLinearity:
     sigma_um: float
     nonlinearity_pct: float
     length_error_pct: float
+    pixels: int = 0
+    pixel_nonlinearity_pct: float = math.nan
+    pixel_noise_pct: float = math.nan
 
     def to_json(self) -> dict[str, Any]:
         """Plain dict for JSON output."""
@@ -85,7 +97,14 @@ class BranchLinearity:
             "sigma_um": self.sigma_um,
             "nonlinearity_pct": self.nonlinearity_pct,
             "length_error_pct": self.length_error_pct,
+            "pixels": self.pixels,
+            "pixel_nonlinearity_pct": _json_float(self.pixel_nonlinearity_pct),
+            "pixel_noise_pct": _json_float(self.pixel_noise_pct),
         }
+
+
+def _json_float(value: float) -> float | None:
+    return value if math.isfinite(value) else None
 
 
 @dataclass(frozen=True, slots=True)
@@ -138,6 +157,16 @@ class ExperimentLinearity:
         return max(self.trace.length_error_pct, self.retrace.length_error_pct, key=abs)
 
     @property
+    def pixel_nonlinearity_pct(self) -> float:
+        """The worse branch's line-averaged nonlinearity at the image's pixels (nan if not computed)."""
+        return _worse(self.trace.pixel_nonlinearity_pct, self.retrace.pixel_nonlinearity_pct)
+
+    @property
+    def pixel_noise_pct(self) -> float:
+        """The larger of the branches' noise in that figure (nan if not estimated)."""
+        return _worse(self.trace.pixel_noise_pct, self.retrace.pixel_noise_pct)
+
+    @property
     def measured_range_um(self) -> float:
         """Mean of the branches' measured ranges."""
         return 0.5 * (self.trace.measured_range_um + self.retrace.measured_range_um)
@@ -158,9 +187,16 @@ class ExperimentLinearity:
             "overscan": self.overscan,
             "nonlinearity_pct": self.nonlinearity_pct,
             "length_error_pct": self.length_error_pct,
+            "pixel_nonlinearity_pct": _json_float(self.pixel_nonlinearity_pct),
+            "pixel_noise_pct": _json_float(self.pixel_noise_pct),
             "trace": self.trace.to_json(),
             "retrace": self.retrace.to_json(),
         }
+
+
+def _worse(a: float, b: float) -> float:
+    finite = [v for v in (a, b) if math.isfinite(v)]
+    return max(finite) if finite else math.nan
 
 
 def _metadata_float(exp: Experiment, key: str) -> float | None:
@@ -176,8 +212,16 @@ def _metadata_float(exp: Experiment, key: str) -> float | None:
     return value
 
 
+#: Pixels per line of the pixel figures when a recording does not say (the scan request's default).
+DEFAULT_PIXELS = 256
+
+
 def experiment_linearity(
-    exp: Experiment, *, range_um: float | None = None, overscan: float | None = None
+    exp: Experiment,
+    *,
+    range_um: float | None = None,
+    overscan: float | None = None,
+    pixels: int | None = None,
 ) -> ExperimentLinearity:
     """Metrics (4.14)-(4.16) of one experiment (see the module docstring).
 
@@ -190,6 +234,9 @@ def experiment_linearity(
         Nominal scan range (um); overrides the recording's metadata.
     overscan
         Overscan fraction; overrides the recording's ``overscan`` metadata.
+    pixels
+        Pixels per line of the pixel figures; overrides the recording's ``pixels`` metadata
+        (default :data:`DEFAULT_PIXELS`).
 
     Raises
     ------
@@ -255,10 +302,14 @@ def experiment_linearity(
         reference = "pixel"
         scale_to_nominal = 1.0
 
+    px = pixels if pixels is not None else _metadata_float(exp, "pixels")
+    px = DEFAULT_PIXELS if px is None else int(px)
+    if px < 1:
+        raise RecordingError(f"pixels must be >= 1, got {px}", *where)
     branches = []
     for d in (1, -1):
         sel = keep & (direction == d)
-        branches.append(_branch(d, x[sel], xi[sel], line[sel], float(nominal), scale_to_nominal, exp))
+        branches.append(_branch(d, x[sel], xi[sel], line[sel], float(nominal), scale_to_nominal, exp, px))
     return ExperimentLinearity(
         label=exp.label,
         axis=exp.axis,
@@ -313,16 +364,30 @@ def _lines(
 
 
 def _branch(
-    d: int, x: F64, xi: F64, line: NDArray[np.intp], nominal: float, scale: float, exp: Experiment
+    d: int,
+    x: F64,
+    xi: F64,
+    line: NDArray[np.intp],
+    nominal: float,
+    scale: float,
+    exp: Experiment,
+    pixels: int,
 ) -> BranchLinearity:
     try:
-        return branch_linearity(d, x, xi, line, nominal, scale)
+        return branch_linearity(d, x, xi, line, nominal, scale, pixels=pixels)
     except RecordingError as exc:
         raise RecordingError(f"experiment {exp.describe()}: {exc.reason}", exp.path, exp.first_line) from None
 
 
 def branch_linearity(
-    direction: int, x: F64, xi: F64, line: NDArray[np.integer[Any]], nominal: float, scale: float = 1.0
+    direction: int,
+    x: F64,
+    xi: F64,
+    line: NDArray[np.integer[Any]],
+    nominal: float,
+    scale: float = 1.0,
+    *,
+    pixels: int = 0,
 ) -> BranchLinearity:
     """(4.14)-(4.16) of one branch: ``x`` regressed on ``xi`` with one intercept per ``line``.
 
@@ -344,6 +409,8 @@ def branch_linearity(
         Nominal range ``R`` (um).
     scale
         ``R`` per commanded um (``x'_R = g R / scale``).
+    pixels
+        Pixels per line of the pixel figures (:func:`pixel_profile`); 0: not computed.
 
     Raises
     ------
@@ -367,6 +434,7 @@ def branch_linearity(
     sigma = math.sqrt(float(r @ r) / (n - n_lines - 1))
     # g is measured um per target um; x'_R of (4.14) is g times the commanded span, compared with R.
     measured = g * nominal / scale
+    px_sigma, px_noise = pixel_profile(r, xi, inv, pixels) if pixels > 0 else (math.nan, math.nan)
     return BranchLinearity(
         direction=direction,
         n=n,
@@ -377,7 +445,85 @@ def branch_linearity(
         sigma_um=sigma,
         nonlinearity_pct=100.0 * sigma / measured,
         length_error_pct=100.0 * (measured - nominal) / nominal,
+        pixels=pixels,
+        pixel_nonlinearity_pct=100.0 * px_sigma / measured,
+        pixel_noise_pct=100.0 * px_noise / measured,
     )
+
+
+def pixel_profile(
+    residual_um: F64, xi: F64, line: NDArray[np.integer[Any]], pixels: int
+) -> tuple[float, float]:
+    """The regression's residual as the image sees it: averaged over the samples of each pixel and
+    over the lines, and what noise alone leaves in that average.
+
+    (4.16) is the residual's standard deviation over the samples, so the sensor's noise counts in
+    full (3 nm on a 0.6 um line is 0.5 %). An image pixel averages the samples it holds, and a
+    grating's profile is read on the average of its lines: the residual's mean per pixel and line,
+    averaged over the lines, keeps what every line has in common (the scanner's nonlinearity) and
+    divides the noise by the square root of the samples behind each pixel.
+
+    Parameters
+    ----------
+    residual_um
+        The regression's residual (one intercept per line removed), um.
+    xi
+        Nominal coordinate of every sample: pixel ``j`` of a line holds the samples whose ``xi``
+        lies in the ``j``-th of ``pixels`` equal parts of that line's span.
+    line
+        Line of every sample.
+    pixels
+        Pixels per line (>= 1).
+
+    Returns
+    -------
+    tuple of float
+        ``(sigma, noise)`` in um: the RMS over the pixels of the line-averaged residual, and the
+        RMS that noise alone gives it: the lines' scatter about their average as it enters the
+        average (noise, and whatever else differs from line to line), or with one line the
+        samples' scatter within each pixel (white noise). ``noise`` is nan when neither can be
+        estimated; the figure's square is about the scanner's squared nonlinearity plus
+        ``noise**2``.
+    """
+    if pixels < 1:
+        raise ValueError(f"pixels must be >= 1, got {pixels}")
+    r = np.asarray(residual_um, dtype=np.float64)
+    q = np.asarray(xi, dtype=np.float64)
+    ids, inv = np.unique(np.asarray(line), return_inverse=True)
+    n_lines = ids.size
+    lo = np.full(n_lines, np.inf)
+    hi = np.full(n_lines, -np.inf)
+    np.minimum.at(lo, inv, q)
+    np.maximum.at(hi, inv, q)
+    span = hi - lo
+    ok = span[inv] > 0
+    if not ok.any():
+        return math.nan, math.nan
+    u = (q[ok] - lo[inv[ok]]) / span[inv[ok]]
+    cell = inv[ok] * pixels + np.minimum((u * pixels).astype(np.int64), pixels - 1)
+    size = n_lines * pixels
+    cnt = np.bincount(cell, minlength=size).reshape(n_lines, pixels).astype(np.float64)
+    s1 = np.bincount(cell, r[ok], minlength=size).reshape(n_lines, pixels)
+    s2 = np.bincount(cell, r[ok] * r[ok], minlength=size).reshape(n_lines, pixels)
+    have = cnt > 0
+    m_lp = np.where(have, s1 / np.where(have, cnt, 1.0), 0.0)
+    per_pixel = have.sum(axis=0)
+    seen = per_pixel > 0
+    m_p = m_lp.sum(axis=0)[seen] / per_pixel[seen]
+    sigma = math.sqrt(float(np.mean(m_p * m_p)))
+    several = per_pixel >= 2
+    if several.any():
+        dev = np.where(have, m_lp - (m_lp.sum(axis=0) / np.maximum(per_pixel, 1))[None, :], 0.0)
+        var = (dev * dev).sum(axis=0)[several] / (per_pixel[several] - 1)
+        noise2 = float(np.mean(var / per_pixel[several]))
+    else:
+        within = cnt >= 2
+        if not within.any():
+            return sigma, math.nan
+        c = cnt[within]
+        var_w = np.maximum(s2[within] - s1[within] ** 2 / c, 0.0) / (c - 1.0)
+        noise2 = float(np.mean(var_w / c))
+    return sigma, math.sqrt(noise2)
 
 
 class NotAScanError(RecordingError):

@@ -741,7 +741,8 @@ def verify(
             )
             rows.append(row)
             continue
-        nl, le, noise = worker.linearity(path, "x", sensor)
+        figures = worker.linearity(path, "x", sensor)
+        nl, le = figures.nonlinearity_pct, figures.length_error_pct
         limited = [f for f in engine.faults.recent(200) if f.time_s >= mark and f.code == "LIMIT"]
         rec = read_recording(path)
         full_scale = engine.settings.full_scale_um("x")
@@ -760,8 +761,9 @@ def verify(
             aside = "clamped_figures", f"clamped ({limited[-1].message})"
         if aside is None:
             row.update(nonlinearity_pct=nl, length_error_pct=le)
-            if math.isfinite(noise):
-                row["noise_pct"] = noise
+            for key in ("noise_pct", "pixel_nonlinearity_pct", "pixel_noise_pct"):
+                if math.isfinite(value := getattr(figures, key)):
+                    row[key] = value
         else:
             row.update(nonlinearity_pct=None, length_error_pct=None, skipped=aside[1])
             row[aside[0]] = {"nonlinearity_pct": nl, "length_error_pct": le}
@@ -1562,13 +1564,32 @@ def read_placement(
     return found[0], program_for(config, axis, rate_hz or config.sample_rate_hz)
 
 
-def verified_linearity(
-    path: Path, axis: AxisName, sensor: SensorPath | None = None
-) -> tuple[float, float, float]:
-    """(4.16) and (4.15) of the first experiment of ``axis`` in ``path``, in %, the readback aligned
-    through ``sensor`` (the axis's sensor path) when given, and the sensor's white noise alone as a
-    nonlinearity on that readback (:func:`piezod.linearity.noise_pct`; nan when it cannot be
-    estimated)."""
+@dataclass(frozen=True, slots=True)
+class VerifiedFigures:
+    """What the verification reads from one scan's readback (all in %, nan when not estimated).
+
+    Attributes
+    ----------
+    nonlinearity_pct, length_error_pct
+        (4.16) and (4.15).
+    noise_pct
+        The sensor's white noise alone as a nonlinearity (:func:`piezod.linearity.noise_pct`).
+    pixel_nonlinearity_pct, pixel_noise_pct
+        (4.16) of the line-averaged profile at the image's pixels and what noise alone leaves in
+        it (:func:`piezod.linearity.pixel_profile`): the scan's nonlinearity as an image reads it,
+        below a noisy sensor's (4.16).
+    """
+
+    nonlinearity_pct: float
+    length_error_pct: float
+    noise_pct: float
+    pixel_nonlinearity_pct: float
+    pixel_noise_pct: float
+
+
+def verified_linearity(path: Path, axis: AxisName, sensor: SensorPath | None = None) -> VerifiedFigures:
+    """The figures of the first experiment of ``axis`` in ``path`` (:class:`VerifiedFigures`), the
+    readback aligned through ``sensor`` (the axis's sensor path) when given."""
     exps = read_experiments([path], axis=axis)
     if sensor is not None:
         from piezod.extensions import experiments_through_sensor
@@ -1576,7 +1597,13 @@ def verified_linearity(
         exps = experiments_through_sensor(exps, sensor)
     e = linearity(exps).experiments[0]
     nl, le = float(e.nonlinearity_pct), float(e.length_error_pct)
-    return nl, le, noise_pct(exps[0].position_um, e.trace.nominal_range_um * (1.0 + le / 100.0))
+    return VerifiedFigures(
+        nonlinearity_pct=nl,
+        length_error_pct=le,
+        noise_pct=noise_pct(exps[0].position_um, e.trace.nominal_range_um * (1.0 + le / 100.0)),
+        pixel_nonlinearity_pct=float(e.pixel_nonlinearity_pct),
+        pixel_noise_pct=float(e.pixel_noise_pct),
+    )
 
 
 def _frame_end_here(path: Path, axis: AxisName) -> tuple[float, float]:
@@ -1700,9 +1727,8 @@ class AnalysisWorker:
 
     def linearity(
         self, path: Path, axis: AxisName = "x", sensor: SensorPath | None = None
-    ) -> tuple[float, float, float]:
-        """:func:`verified_linearity` (nonlinearity %, length error %, the sensor's noise alone %)
-        in the worker process."""
+    ) -> VerifiedFigures:
+        """:func:`verified_linearity` in the worker process."""
         return self._pool.submit(verified_linearity, path, axis, sensor).result()
 
     def check_points(
@@ -1738,15 +1764,18 @@ class AnalysisWorker:
 
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
-    """A table like thesis tables 4.3 / 4.4; ``tracked %``: the sensitivity the daemon's tracker
-    had learnt by the end of the point, relative to the model (the stage's drift since the frame)."""
+    """A table like thesis tables 4.3 / 4.4; ``pixels %``: (4.16) of the line-averaged profile at
+    the image's pixels (:class:`VerifiedFigures`); ``tracked %``: the sensitivity the daemon's
+    tracker had learnt by the end of the point, relative to the model (the stage's drift since the
+    frame)."""
     head = (
         f"{'model':<8} {'range um':>9} {'f Hz':>7} {'offset um':>9} {'frame':>7} "
-        f"{'nonlin %':>9} {'length %':>9} {'tracked %':>9}  what"
+        f"{'nonlin %':>9} {'pixels %':>9} {'length %':>9} {'tracked %':>9}  what"
     )
     lines = [head, "-" * len(head)]
     for r in rows:
         nl = "-" if r.get("nonlinearity_pct") is None else f"{r['nonlinearity_pct']:.3f}"
+        px = "-" if r.get("pixel_nonlinearity_pct") is None else f"{r['pixel_nonlinearity_pct']:.3f}"
         le = "-" if r.get("length_error_pct") is None else f"{r['length_error_pct']:+.3f}"
         tr = "-" if r.get("tracked_scale") is None else f"{100.0 * (r['tracked_scale'] - 1.0):+.3f}"
         inside = "inside" if r["inside_frame"] else "outside"
@@ -1759,10 +1788,14 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
             what += f" ({r['placement']})"
         noise = r.get("noise_pct")
         if noise is not None and r.get("nonlinearity_pct") and noise >= 0.5 * r["nonlinearity_pct"]:
-            what += f" (the sensor's noise alone: {noise:.3f} %)"
+            what += f" (the sensor's noise alone: {noise:.3f} %"
+            px_noise = r.get("pixel_noise_pct")
+            if px_noise is not None and r.get("pixel_nonlinearity_pct"):
+                what += f"; at the pixels {px_noise:.3f} %"
+            what += ")"
         lines.append(
             f"{r['model']:<8} {r['range_um']:9.3g} {r['frequency_hz']:7.3g} {r['offset_um']:9.3g} "
-            f"{inside:>7} {nl:>9} {le:>9} {tr:>9}  {what}"
+            f"{inside:>7} {nl:>9} {px:>9} {le:>9} {tr:>9}  {what}"
         )
     return "\n".join(lines)
 
@@ -1797,7 +1830,8 @@ def tracker_note(rows: Sequence[dict[str, Any]], model: str) -> str | None:
 
 
 def summary(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
-    """Worst figures per model, inside and outside the frame."""
+    """Worst figures per model, inside and outside the frame: (4.16) as read, (4.16) of the
+    line-averaged profile at the image's pixels (:class:`VerifiedFigures`), |(4.15)|."""
     out: dict[str, dict[str, float | None]] = {}
     for model in sorted({r["model"] for r in rows}):
         for inside in (True, False):
@@ -1809,8 +1843,10 @@ def summary(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, float | None]
                 and r.get("nonlinearity_pct") is not None
             ]
             key = f"{model}_{'inside' if inside else 'outside'}"
+            px = [r["pixel_nonlinearity_pct"] for r in sel if r.get("pixel_nonlinearity_pct") is not None]
             out[key] = {
                 "max_nonlinearity_pct": max((r["nonlinearity_pct"] for r in sel), default=None),
+                "max_pixel_nonlinearity_pct": max(px, default=None),
                 "max_abs_length_error_pct": max((abs(r["length_error_pct"]) for r in sel), default=None),
             }
     return out
@@ -1843,7 +1879,12 @@ def verification_figure(rows: Sequence[dict[str, Any]]) -> Any:
         sel = [r for r in rows if r["model"] == model]
         nl = [math.nan if r.get("nonlinearity_pct") is None else r["nonlinearity_pct"] for r in sel]
         le = [math.nan if r.get("length_error_pct") is None else r["length_error_pct"] for r in sel]
+        px = [r.get("pixel_nonlinearity_pct") for r in sel]
+        px = [math.nan if v is None else v for v in px]
         axes[0].bar(x + k * width, nl, width, label=model)
+        axes[0].plot(
+            x + k * width, px, "k_", ms=12, mew=2, label="line-averaged at the pixels" if k == 0 else None
+        )
         axes[1].bar(x + k * width, le, width, label=model)
     outside = [i for i, r in enumerate(pts) if not r["inside_frame"]]
     for i in outside:

@@ -202,3 +202,50 @@ def test_the_verification_table_names_the_noise_when_it_is_most_of_the_figure() 
     table = format_table([{**noisy, "noise_pct": 0.506}, {**quiet, "noise_pct": 0.004}]).splitlines()
     assert table[2].endswith("inside: small range (the sensor's noise alone: 0.506 %)")
     assert table[3].endswith("inside: mid range")
+
+
+def test_the_line_averaged_profile_at_the_pixels_reads_below_the_sensors_noise() -> None:
+    """3 nm of noise on a 0.6 um line is 0.5 % of (4.16) whatever the scan; averaged over the
+    samples of each of 256 pixels and over the lines, it is noise / sqrt(samples behind a pixel),
+    which the pixel figure says, and a bow of the scan under it comes back in quadrature."""
+    for lines, bow in ((8, 0.0), (8, 0.002), (40, 0.002), (2, 0.002)):
+        t, v, target, _ = _scan(lines=lines, spl=4000)
+        line = 0.6 / R_UM * target
+        shape = bow * (line / 0.3) ** 2
+        noise = np.random.default_rng(3).normal(0.0, 0.003, t.size)
+        clean = experiment_linearity(_exp(t, v, line + shape, line))
+        res = experiment_linearity(_exp(t, v, line + shape + noise, line))
+        assert res.nonlinearity_pct > 0.45
+        # a smooth bow is the same at the pixels and on the samples
+        assert clean.pixel_nonlinearity_pct == pytest.approx(clean.nonlinearity_pct, rel=0.01, abs=1e-9)
+        assert clean.pixel_noise_pct < 1e-3
+        behind = 2000 / 256 * max(1, lines // 2)
+        assert res.pixel_noise_pct == pytest.approx(100 * 0.003 / 0.6 / math.sqrt(behind), rel=0.15)
+        excess = math.sqrt(max(res.pixel_nonlinearity_pct**2 - res.pixel_noise_pct**2, 0.0))
+        assert excess == pytest.approx(clean.nonlinearity_pct, abs=0.5 * res.pixel_noise_pct)
+    assert res.trace.pixels == 256
+    assert res.to_json()["pixel_nonlinearity_pct"] == res.pixel_nonlinearity_pct
+    fewer = experiment_linearity(_exp(t, v, line + shape + noise, line, pixels="32"))
+    assert fewer.trace.pixels == 32 and fewer.pixel_noise_pct < res.pixel_noise_pct
+    with pytest.raises(RecordingError, match="pixels must be >= 1"):
+        experiment_linearity(_exp(t, v, line, line), pixels=0)
+
+
+def test_the_verification_table_shows_the_pixel_figure_beside_the_noisy_one() -> None:
+    from piezod.stagecal import format_table, summary
+
+    row = {"model": "family", "range_um": 0.6, "frequency_hz": 0.63, "offset_um": 0.1, "inside_frame": True}
+    noisy = {
+        **row,
+        "what": "inside: small range",
+        "nonlinearity_pct": 0.522,
+        "length_error_pct": 0.069,
+        "noise_pct": 0.506,
+        "pixel_nonlinearity_pct": 0.041,
+        "pixel_noise_pct": 0.03,
+    }
+    table = format_table([noisy]).splitlines()
+    assert "nonlin %  pixels %  length %" in table[0]
+    assert "0.522     0.041" in table[2]
+    assert table[2].endswith("(the sensor's noise alone: 0.506 %; at the pixels 0.030 %)")
+    assert summary([noisy])["family_inside"]["max_pixel_nonlinearity_pct"] == 0.041

@@ -17,7 +17,7 @@ from piezod.cli import main
 from piezod.config import default_sim_config_path, load_config, recorded_age_s
 from piezod.errors import CalibrationError
 from piezod.recording import Experiment
-from piezod.stagecal import default_frame, verification_points
+from piezod.stagecal import VerifiedFigures, default_frame, verification_points
 
 
 def _run(tmp_path: Path, frame: str) -> dict[str, object]:
@@ -560,6 +560,10 @@ def test_the_parts_are_taken_from_the_other_law_that_predicts_best_through_them(
     assert out.config.axes["x"].extensions == {"saturation": {"x_sat_um": 13.5}}
 
 
+def _figures(nl: float, le: float) -> VerifiedFigures:
+    return VerifiedFigures(nl, le, math.nan, math.nan, math.nan)
+
+
 def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fatal(tmp_path: Path) -> None:
     """An underrun while the stage held (the fits, the check of the points: a loaded machine) used
     to end `piezod calibrate` with 'cannot start a scan while fault' at the verification's warm-up;
@@ -570,7 +574,7 @@ def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fa
 
     from piezod.stagecal import VerifyPoint, verify
 
-    worker = SimpleNamespace(linearity=lambda path, axis, sensor: (0.01, -0.02, math.nan))
+    worker = SimpleNamespace(linearity=lambda path, axis, sensor: _figures(0.01, -0.02))
     engine = _HeldEngine("fault")
     pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside"), VerifyPoint(5.0, 2.0, 0.0, True, "inside")]
     rows = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
@@ -587,7 +591,7 @@ def test_a_verification_scan_read_at_the_sensors_full_scale_reports_no_figures(t
 
     from piezod.stagecal import VerifyPoint, verify
 
-    worker = SimpleNamespace(linearity=lambda path, axis, sensor: (0.01, -0.02, math.nan))
+    worker = SimpleNamespace(linearity=lambda path, axis, sensor: _figures(0.01, -0.02))
     engine = _HeldEngine("idle", reading_um=(40.0, 99.99))
     pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside")]
     (row,) = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]

@@ -398,6 +398,8 @@ def main() -> int:
                     "offset_um": pt.offset_um,
                     "nonlinearity_pct": float(lin.nonlinearity_pct),
                     "length_error_pct": float(lin.length_error_pct),
+                    "pixel_nonlinearity_pct": float(lin.pixel_nonlinearity_pct),
+                    "pixel_noise_pct": float(lin.pixel_noise_pct),
                     "clamped": faults,
                     "slew_limited": slewed,
                     "placement": pt.note,
@@ -410,7 +412,8 @@ def main() -> int:
             print(
                 f"{kind:<8} {pt.why:<34} {pt.range_um:6.1f} um {pt.frequency_hz:7.3f} Hz "
                 f"offset {pt.offset_um:+6.2f} um: nonlinearity {r['nonlinearity_pct']:.3f} %, "
-                f"length error {r['length_error_pct']:+.3f} %"
+                f"length error {r['length_error_pct']:+.3f} %, "
+                f"at the pixels {r['pixel_nonlinearity_pct']:.3f} % (noise {r['pixel_noise_pct']:.3f} %)"
                 + (f" ({faults} clamped)" if faults else "")
                 + (f" ({slewed} samples slew-limited)" if slewed else "")
                 + (
@@ -427,6 +430,7 @@ def main() -> int:
             if sel:
                 summary[f"{kind}/{'inside' if inside else 'outside'}"] = {
                     "max_nonlinearity_pct": max(r["nonlinearity_pct"] for r in sel),
+                    "max_pixel_nonlinearity_pct": max(r["pixel_nonlinearity_pct"] for r in sel),
                     "max_abs_length_error_pct": max(abs(r["length_error_pct"]) for r in sel),
                 }
                 if all("true_nonlinearity_pct" in r for r in sel):
@@ -438,6 +442,11 @@ def main() -> int:
         print(
             f"{name:<20} max nonlinearity {line['max_nonlinearity_pct']:.3f} %, max |length error| "
             f"{line['max_abs_length_error_pct']:.3f} %"
+            + (
+                f", at the pixels {line['max_pixel_nonlinearity_pct']:.3f} %"
+                if "max_pixel_nonlinearity_pct" in line
+                else ""
+            )
         )
     print(f"{time.perf_counter() - t0:.0f} s")
     if args.json:

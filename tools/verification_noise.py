@@ -4,8 +4,9 @@
 
 For each recording of a verification point (``piezod calibrate --sim/--port --recordings-dir``):
 what the verification computes from it (:func:`piezod.stagecal.verified_linearity`: (4.16), (4.15)
-and the sensor's noise alone as a nonlinearity, on the readback aligned through the sensor path of
-``--config``, the calibrated YAML; docs/model-family.md 6.2ao).
+and the sensor's noise alone as a nonlinearity; (4.16) of the line-averaged profile at the image's
+pixels and the noise left in it; on the readback aligned through the sensor path of ``--config``,
+the calibrated YAML; docs/model-family.md 6.2ao).
 """
 
 from __future__ import annotations
@@ -24,10 +25,15 @@ def main() -> int:
     ap.add_argument("--config", type=Path, default=None, help="the calibrated YAML (its sensor path)")
     args = ap.parse_args()
     sensor = None if args.config is None else load_config(args.config).axes[args.axis].sensor_path()
-    print(f"{'recording':<24} {'nonlin %':>9} {'length %':>9} {'noise %':>9}")
+    print(
+        f"{'recording':<24} {'nonlin %':>9} {'length %':>9} {'noise %':>9} {'pixels %':>9} {'px noise %':>10}"
+    )
     for path in args.recordings:
-        nl, le, noise = verified_linearity(path, args.axis, sensor)
-        print(f"{path.name:<24} {nl:9.3f} {le:+9.3f} {noise:9.3f}")
+        f = verified_linearity(path, args.axis, sensor)
+        print(
+            f"{path.name:<24} {f.nonlinearity_pct:9.3f} {f.length_error_pct:+9.3f} {f.noise_pct:9.3f} "
+            f"{f.pixel_nonlinearity_pct:9.3f} {f.pixel_noise_pct:10.3f}"
+        )
     return 0
 
 

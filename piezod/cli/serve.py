@@ -106,8 +106,8 @@ def _demo_steps(engine: Engine, worker: AnalysisWorker, frame: Frame, say: TextI
         engine.start_scan(req, path=path)
         engine.wait_idle(60.0)
         engine.wait_recorded()
-        nl, le, _ = worker.linearity(path, "x")
-        rows.append((what, nl, le, path))
+        figures = worker.linearity(path, "x")
+        rows.append((what, figures.nonlinearity_pct, figures.length_error_pct, path))
     _table(rows, say)
 
 
