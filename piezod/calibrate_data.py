@@ -224,6 +224,9 @@ class DynamicCalibrationData:
         compared sample: a group is a set of samples of one experiment that share an unknown
         position offset (a line pattern's rising and falling flanks, whose positions differ by
         the line width the fit need not know).
+    offset_time_s
+        ``None``, or the time (s) of every compared sample: each offset group's offset is then a
+        straight line in time (an offset and a drift rate) instead of a constant.
     """
 
     hysteresis_voltage_v: F64
@@ -236,6 +239,7 @@ class DynamicCalibrationData:
     rest_voltage_v: float
     experiments: tuple[ExperimentLayout, ...]
     offset_group: NDArray[np.intp] | None = None
+    offset_time_s: F64 | None = None
 
     @property
     def n_experiments(self) -> int:
@@ -255,10 +259,18 @@ class DynamicCalibrationData:
         out: NDArray[np.intp] = np.repeat(np.arange(self.n_experiments, dtype=np.intp), self.counts)
         return out
 
+    def n_offset_parameters(self, rows: NDArray[np.bool_]) -> int:
+        """The unknown offsets' parameters on ``rows`` (2 per group with :attr:`offset_time_s`)."""
+        groups = int(np.unique(self.groups()[rows]).size)
+        return groups * (1 if self.offset_time_s is None else 2)
+
     def centred(self, a: F64) -> F64:
         """``a`` (compared samples along axis 0) less its mean per offset group (per experiment
-        unless :attr:`offset_group` says otherwise): what is left once the unknown offsets are
+        unless :attr:`offset_group` says otherwise), and with :attr:`offset_time_s` less its
+        straight line in time per group too: what is left once the unknown offsets are
         eliminated."""
+        if self.offset_time_s is not None:
+            return _detrended(a, self.groups(), self.offset_time_s)
         if self.offset_group is None:
             sums = np.add.reduceat(a, self.starts, axis=0)
             means = sums / (self.counts if a.ndim == 1 else self.counts[:, None])
@@ -533,6 +545,29 @@ def prepare_dynamic(
         rest_voltage_v=float(rest_voltage_v),
         experiments=tuple(layouts),
     )
+
+
+def _detrended(a: F64, group: NDArray[np.intp], t: F64) -> F64:
+    """``a`` less its least-squares straight line in ``t`` within every group (a linear projection:
+    it commutes with the fits' linear combinations of columns)."""
+    n = np.bincount(group).astype(np.float64)
+    size = n.size
+    safe = np.maximum(n, 1.0)
+    tc = t - (np.bincount(group, weights=t, minlength=size) / safe)[group]
+    stt = np.bincount(group, weights=tc * tc, minlength=size)
+    inv = np.where(stt > 0, 1.0 / np.where(stt > 0, stt, 1.0), 0.0)
+    if a.ndim == 1:
+        ac = a - (np.bincount(group, weights=a, minlength=size) / safe)[group]
+        slope = np.bincount(group, weights=ac * tc, minlength=size) * inv
+        out1: F64 = ac - slope[group] * tc
+        return out1
+    sums = np.zeros((size, *a.shape[1:]))
+    np.add.at(sums, group, a)
+    ac2 = a - (sums / safe[:, None])[group]
+    cross = np.zeros((size, *a.shape[1:]))
+    np.add.at(cross, group, ac2 * tc[:, None])
+    out: F64 = ac2 - (cross * inv[:, None])[group] * tc[:, None]
+    return out
 
 
 __all__ = [

@@ -697,7 +697,7 @@ def _result(s: _Session, params: FamilyParams, iterations: int, n_coefficients: 
     train = resid[s.train_rows]
     held = resid[s.test_rows]
     n = int(train.size)
-    n_offsets = int(np.unique(s.data.groups()[s.train_rows]).size)
+    n_offsets = s.data.n_offset_parameters(s.train_rows)
     return FamilyFit(
         params=params,
         residuals_um=train,

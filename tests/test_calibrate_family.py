@@ -289,3 +289,37 @@ def test_the_generalised_play_law_fits_at_least_as_well_as_its_special_case(driv
     assert gp.heldout_rms_um < 0.5 * pi.heldout_rms_um
     # sensor noise 2 nm rms; the law the stage follows is in the fitted family
     assert gp.heldout_rms_um < 0.008
+
+
+def test_one_sensors_offsets_are_an_offset_and_a_drift_of_the_whole_session() -> None:
+    """The calibration frame is read by one sensor: its fits eliminate one offset and one drift
+    rate for the session (``offset_time_s``), not an offset per experiment, so a model position
+    that is off in one scan and not in another is a misfit, not a free offset."""
+    import dataclasses
+
+    from piezod.stagecal import one_sensor_offsets
+
+    data = _pi_session()
+    one = one_sensor_offsets(data)
+    assert np.all(one.groups() == 0)
+    t = one.offset_time_s
+    assert t is not None and t.size == data.position_um.size
+    # the experiments' times follow the session's clock
+    firsts = t[data.starts]
+    assert np.all(np.diff(firsts) > 0)
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(t.size, 3))
+    # an offset and a drift are eliminated, nothing else
+    trend = 0.7 - 0.02 * t
+    np.testing.assert_allclose(one.centred(a + trend[:, None]), one.centred(a), atol=1e-9)
+    np.testing.assert_allclose(one.centred(one.centred(a)), one.centred(a), atol=1e-9)
+    np.testing.assert_allclose(one.centred(a[:, 1]), one.centred(a)[:, 1], atol=1e-12)
+    step = np.where(np.arange(t.size) >= data.starts[1], 0.5, 0.0)
+    assert np.linalg.norm(one.centred(step)) > 0.1 * np.linalg.norm(step - step.mean())
+    # per experiment (the default) a step between experiments is an offset, eliminated
+    np.testing.assert_allclose(data.centred(step), 0.0, atol=1e-12)
+    # the fit's degrees of freedom count the two
+    rows = np.ones(t.size, dtype=bool)
+    assert one.n_offset_parameters(rows) == 2
+    assert data.n_offset_parameters(rows) == data.n_experiments
+    assert dataclasses.replace(one, offset_time_s=None).n_offset_parameters(rows) == 1
