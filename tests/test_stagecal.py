@@ -772,3 +772,22 @@ def test_a_recalibration_measures_the_axis_extensions_again() -> None:
     assert fresh.axes["x"].extensions is None and fresh.axes["x"].resonance().off
     assert fresh.axes["y"] == extended.axes["y"]
     assert without_extensions(config, "x") == (config, [])
+
+
+def test_parts_on_the_absolute_position_tie_the_offsets_to_one_sensor_when_they_spread() -> None:
+    """An offset per experiment, unless a part acts on the absolute position (saturation,
+    stiffness) and the chosen member's offsets spread by more than OFFSET_SPREAD_LIMIT of the
+    frame's travel (birch35: 1.9 um over 19 um under its saturation); the reason says so."""
+    from piezod.stagecal import OFFSET_SPREAD_LIMIT, needs_one_sensor, one_sensor
+
+    offsets = {"one_sensor": False, "spread_um": 1.9, "travel_um": 19.0}
+    report = {"chosen": "family/generalised-play", "offsets": offsets}
+    reason = needs_one_sensor(report, {"saturation": {"x_sat_um": 26.0}})
+    assert reason is not None
+    assert "spread by 1.9 um over a 19 um frame (more than 5 %) under saturation" in reason
+    assert needs_one_sensor(report, {"polarity": {"negative_sensitivity_pct": -3.0}}) is None
+    within = {**report, "offsets": {**report["offsets"], "spread_um": 0.9 * OFFSET_SPREAD_LIMIT * 19.0}}
+    assert needs_one_sensor(within, {"stiffness": {"sensitivity_pct_per_um": 2.0}}) is None
+    tied = {**report, "offsets": {**report["offsets"], "one_sensor": True}}
+    assert needs_one_sensor(tied, {"saturation": {}}) is None and one_sensor(tied) and not one_sensor(report)
+    assert needs_one_sensor({"chosen": "dynamic"}, {"saturation": {}}) is None
