@@ -910,7 +910,7 @@ def needs_one_sensor(choice_report: Mapping[str, Any], effects: Mapping[str, Any
     )
 
 
-def one_sensor(choice_report: Mapping[str, Any]) -> bool:
+def tied_to_one_sensor(choice_report: Mapping[str, Any]) -> bool:
     """Whether a model choice's report (:func:`choose_for_experiments`) fitted with the offsets of
     one sensor."""
     return bool(choice_report.get("offsets", {}).get("one_sensor", False))
@@ -1004,9 +1004,12 @@ def audit_and_extend(
     (not one it fits itself), the same is done on the best member of each other law
     (:func:`other_laws`), and the parts profiled on the member that predicts best through them
     are taken. The model choice is redone on the
-    frame seen through their exact inverse (:func:`choose_for_experiments`). The extended model is
-    adopted when its held-out RMS is below the chosen model's, else the findings are reported
-    as not adopted.
+    frame seen through their exact inverse (:func:`choose_for_experiments`). When a part acts on the
+    absolute position and the member chosen through the parts has offsets that spread between the
+    scans (:func:`needs_one_sensor`), the profile and the choice are done again with the offsets of
+    one sensor (:func:`one_sensor_offsets`), and the chosen member is refitted that way to compare
+    with. The extended model is adopted when its held-out RMS is below the chosen model's, else the
+    findings are reported as not adopted.
 
     Parameters
     ----------
@@ -1075,7 +1078,7 @@ def audit_and_extend(
     # readback's noise per sample unchanged
     floor = experiments_noise_floor(experiments)
     named = adoption
-    tied = one_sensor(chosen.report)
+    tied = tied_to_one_sensor(chosen.report)
     # what the extended model is compared with: the chosen model under the same offsets
     chosen_rms = chosen.fit_error_pct
     while True:
@@ -1226,7 +1229,7 @@ def with_lag_placed(
             member[2],
             ramp_v_per_s,
             rest_voltage_v,
-            one_sensor=one_sensor(fit.report.get("model_choice", {})),
+            one_sensor=tied_to_one_sensor(fit.report.get("model_choice", {})),
         )
         return moved, found
 

@@ -778,7 +778,7 @@ def test_parts_on_the_absolute_position_tie_the_offsets_to_one_sensor_when_they_
     """An offset per experiment, unless a part acts on the absolute position (saturation,
     stiffness) and the chosen member's offsets spread by more than OFFSET_SPREAD_LIMIT of the
     frame's travel (birch35: 1.9 um over 19 um under its saturation); the reason says so."""
-    from piezod.stagecal import OFFSET_SPREAD_LIMIT, needs_one_sensor, one_sensor
+    from piezod.stagecal import OFFSET_SPREAD_LIMIT, needs_one_sensor, tied_to_one_sensor
 
     offsets = {"one_sensor": False, "spread_um": 1.9, "travel_um": 19.0}
     report = {"chosen": "family/generalised-play", "offsets": offsets}
@@ -789,5 +789,6 @@ def test_parts_on_the_absolute_position_tie_the_offsets_to_one_sensor_when_they_
     within = {**report, "offsets": {**report["offsets"], "spread_um": 0.9 * OFFSET_SPREAD_LIMIT * 19.0}}
     assert needs_one_sensor(within, {"stiffness": {"sensitivity_pct_per_um": 2.0}}) is None
     tied = {**report, "offsets": {**report["offsets"], "one_sensor": True}}
-    assert needs_one_sensor(tied, {"saturation": {}}) is None and one_sensor(tied) and not one_sensor(report)
+    assert needs_one_sensor(tied, {"saturation": {}}) is None
+    assert tied_to_one_sensor(tied) and not tied_to_one_sensor(report)
     assert needs_one_sensor({"chosen": "dynamic"}, {"saturation": {}}) is None
