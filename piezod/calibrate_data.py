@@ -550,23 +550,18 @@ def prepare_dynamic(
 def _detrended(a: F64, group: NDArray[np.intp], t: F64) -> F64:
     """``a`` less its least-squares straight line in ``t`` within every group (a linear projection:
     it commutes with the fits' linear combinations of columns)."""
+    cols = a.reshape(a.shape[0], -1)
     n = np.bincount(group).astype(np.float64)
-    size = n.size
     safe = np.maximum(n, 1.0)
-    tc = t - (np.bincount(group, weights=t, minlength=size) / safe)[group]
-    stt = np.bincount(group, weights=tc * tc, minlength=size)
+    tc = t - (np.bincount(group, weights=t, minlength=n.size) / safe)[group]
+    stt = np.bincount(group, weights=tc * tc, minlength=n.size)
     inv = np.where(stt > 0, 1.0 / np.where(stt > 0, stt, 1.0), 0.0)
-    if a.ndim == 1:
-        ac = a - (np.bincount(group, weights=a, minlength=size) / safe)[group]
-        slope = np.bincount(group, weights=ac * tc, minlength=size) * inv
-        out1: F64 = ac - slope[group] * tc
-        return out1
-    sums = np.zeros((size, *a.shape[1:]))
-    np.add.at(sums, group, a)
-    ac2 = a - (sums / safe[:, None])[group]
-    cross = np.zeros((size, *a.shape[1:]))
-    np.add.at(cross, group, ac2 * tc[:, None])
-    out: F64 = ac2 - (cross * inv[:, None])[group] * tc[:, None]
+    sums = np.zeros((n.size, cols.shape[1]))
+    np.add.at(sums, group, cols)
+    centred = cols - (sums / safe[:, None])[group]
+    cross = np.zeros_like(sums)
+    np.add.at(cross, group, centred * tc[:, None])
+    out: F64 = (centred - (cross * inv[:, None])[group] * tc[:, None]).reshape(a.shape)
     return out
 
 

@@ -98,13 +98,9 @@ class BranchLinearity:
             "nonlinearity_pct": self.nonlinearity_pct,
             "length_error_pct": self.length_error_pct,
             "pixels": self.pixels,
-            "pixel_nonlinearity_pct": _json_float(self.pixel_nonlinearity_pct),
-            "pixel_noise_pct": _json_float(self.pixel_noise_pct),
+            "pixel_nonlinearity_pct": self.pixel_nonlinearity_pct,
+            "pixel_noise_pct": self.pixel_noise_pct,
         }
-
-
-def _json_float(value: float) -> float | None:
-    return value if math.isfinite(value) else None
 
 
 @dataclass(frozen=True, slots=True)
@@ -187,8 +183,8 @@ class ExperimentLinearity:
             "overscan": self.overscan,
             "nonlinearity_pct": self.nonlinearity_pct,
             "length_error_pct": self.length_error_pct,
-            "pixel_nonlinearity_pct": _json_float(self.pixel_nonlinearity_pct),
-            "pixel_noise_pct": _json_float(self.pixel_noise_pct),
+            "pixel_nonlinearity_pct": self.pixel_nonlinearity_pct,
+            "pixel_noise_pct": self.pixel_noise_pct,
             "trace": self.trace.to_json(),
             "retrace": self.retrace.to_json(),
         }

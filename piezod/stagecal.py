@@ -1078,23 +1078,21 @@ def audit_and_extend(
     # readback's noise per sample unchanged
     floor = experiments_noise_floor(experiments)
     named = adoption
-    tied = tied_to_one_sensor(chosen.report)
-    # what the extended model is compared with: the chosen model under the same offsets
-    chosen_rms = chosen.fit_error_pct
-    while True:
-        adoption = named
+
+    def profile_and_redo(tied: bool) -> tuple[Adoption, list[str], ThesisFit | None]:
+        """The parts profiled on the chosen member (and on the other laws when it drops one), and
+        the choice redone through those kept (None when none is)."""
         profiled, refined, heldout = profile_member(
-            experiments, adoption, first, ramp_v_per_s, rest_voltage_v, floor_um=floor, one_sensor=tied
+            experiments, named, first, ramp_v_per_s, rest_voltage_v, floor_um=floor, one_sensor=tied
         )
         best = first, heldout if profiled.effects and math.isfinite(heldout) else chosen.fit_error_pct
         report["profiled"] = {first: best[1]}
         # a named static part the chosen member does without: its law may absorb the effect in a
         # misfit of the loops (or the audit was wrong); another law may fit through the part
-        dropped = (set(adoption.effects) & set(PART_EFFECTS)) - set(MEMBER_OWN_PARTS) - set(profiled.effects)
-        others = other_laws(chosen.report) if dropped else []
-        for name in others:
+        dropped = (set(named.effects) & set(PART_EFFECTS)) - set(MEMBER_OWN_PARTS) - set(profiled.effects)
+        for name in other_laws(chosen.report) if dropped else []:
             trial, notes, rms = profile_member(
-                experiments, adoption, name, ramp_v_per_s, rest_voltage_v, floor_um=floor, one_sensor=tied
+                experiments, named, name, ramp_v_per_s, rest_voltage_v, floor_um=floor, one_sensor=tied
             )
             report["profiled"][name] = rms
             if trial.effects and lowers(rms, best[1], CHOICE_TIE_FRACTION, floor):
@@ -1105,18 +1103,16 @@ def audit_and_extend(
                 f"{first}: {report['profiled'][first] * 1e3:.2f} nm)",
                 *refined,
             ]
-        adoption = profiled
         report["refined"] = refined
-        report["skipped"] = list(adoption.skipped)
-        if not adoption.effects:
-            report["text"] = adoption.summary()
-            return finish(ThesisFit(report, chosen.config, chosen.fit_error_pct))
+        report["skipped"] = list(profiled.skipped)
+        if not profiled.effects:
+            return profiled, refined, None
         members = redo_shortlist(chosen.report)
         profiled_member = cf.parse_member(best[0])
         if members is not None and profiled_member is not None and profiled_member[:2] not in members:
             members.append(profiled_member[:2])
         redone = choose_for_experiments(
-            experiments_through(experiments, adoption.effects),
+            experiments_through(experiments, profiled.effects),
             axis,
             base,
             ramp_v_per_s,
@@ -1124,9 +1120,13 @@ def audit_and_extend(
             members=members,
             one_sensor=tied,
         )
-        reason = None if tied else needs_one_sensor(redone.report, adoption.effects)
-        if reason is None:
-            break
+        return profiled, refined, redone
+
+    tied = tied_to_one_sensor(chosen.report)
+    # what the extended model is compared with: the chosen model under the same offsets
+    chosen_rms = chosen.fit_error_pct
+    adoption, refined, redone = profile_and_redo(tied)
+    if redone is not None and (reason := needs_one_sensor(redone.report, adoption.effects)) is not None:
         # the parts act on the absolute position the offsets per experiment left free
         tied = True
         report["offsets"] = {"one_sensor": True, "reason": reason}
@@ -1136,6 +1136,10 @@ def audit_and_extend(
                 experiments, axis, base, ramp_v_per_s, rest_voltage_v, members=[again[:2]], one_sensor=True
             ).fit_error_pct
             report["heldout_rms_um"]["chosen_one_sensor"] = chosen_rms
+        adoption, refined, redone = profile_and_redo(tied)
+    if redone is None:
+        report["text"] = adoption.summary()
+        return finish(ThesisFit(report, chosen.config, chosen.fit_error_pct))
     report["heldout_rms_um"]["extended"] = redone.fit_error_pct
     # A lag the held-out data cannot place (the sensor path predicts as well as the drive lag the
     # fit takes instead) is put at the sensor: a sensor lag compensated at the drive makes the

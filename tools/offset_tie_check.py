@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from model_family_verify import play_default_frame
 
-from piezod.calibrate_family import fit_family, holdout_mask, session_positions
-from piezod.stagecal import _frame_session
+from piezod.calibrate_family import fit_family, holdout_mask
+from piezod.stagecal import _frame_session, offset_spread
 
 
 def main() -> int:
@@ -48,11 +48,10 @@ def main() -> int:
             parts = []
             for name, session in sessions.items():
                 fit = fit_family(session, law, creep_driver=driver, train=train)
-                res = data.position_um - session_positions(data, fit.params)
-                off = np.add.reduceat(res, data.starts) / data.counts
+                spread, _ = offset_spread(data, fit.params)
                 parts.append(
                     f"{name}: train {1e3 * fit.rms_um:.2f} held out {1e3 * fit.heldout_rms_um:.2f} nm, "
-                    f"offsets spread {1e3 * np.ptp(off):.0f} nm"
+                    f"offsets spread {1e3 * spread:.0f} nm"
                 )
             print(f"{law}, {driver} creep | " + " | ".join(parts), flush=True)
     print(f"{time.perf_counter() - t0:.0f} s")
