@@ -718,6 +718,7 @@ def verify(
             # it is reported with the next point, cleared, and the verification goes on.
             row["faults_before"] = row.get("faults_before", []) + _fault_texts(engine.acknowledge_fault())
         mark = engine.uptime_s
+        lines_before = engine.tracker_lines("x")
         try:
             engine.check_scan(req)
         except PiezodError as exc:
@@ -769,6 +770,9 @@ def verify(
             row[aside[0]] = {"nonlinearity_pct": nl, "length_error_pct": le}
         # the sensitivity the daemon's tracker had learnt by the end of the point, relative to the model
         row["tracked_scale"] = engine.tracked_scale("x")
+        lines_after = engine.tracker_lines("x")
+        if lines_before is not None and lines_after is not None:
+            row["tracker_lines"] = {k: lines_after[k] - lines_before[k] for k in lines_after}
         rows.append(row)
     return rows
 
@@ -1950,6 +1954,61 @@ def tracker_note(rows: Sequence[dict[str, Any]], model: str) -> str | None:
         f"the sensitivity tracker moved {model}'s sensitivity by up to {worst:+.3f} % during the "
         "verification; the figures include that correction: the calibrated gain is off by about "
         "as much, or the stage drifted since the frame (warming, the time the fits took)"
+    )
+
+
+def tracker_far_off_note(rows: Sequence[dict[str, Any]], model: str) -> str | None:
+    """One line when the daemon's sensitivity tracker set aside lines of ``model``'s verification
+    as too far off to be a drift (else None).
+
+    The tracker follows a drift of the sensitivity, a few per cent at most; a line whose length is
+    off by more than its ``outlier`` bound (5 %) is taken for a fault and not followed. When a
+    verification's lines are that far off, the model is wrong (birch35's first run, session 36:
+    every line 6-25 % long, the tracker at +0.000), and the table's tracked 0 must not read as "no
+    drift".
+    """
+    counts = [r["tracker_lines"] for r in rows if r["model"] == model and r.get("tracker_lines")]
+    far = sum(c["far_off"] for c in counts)
+    if far == 0:
+        return None
+    seen = sum(c["far_off"] + c["used"] for c in counts)
+    return (
+        f"the sensitivity tracker set aside {far} of the {seen} lines of {model}'s verification it "
+        "was given as too far off to be a drift of the sensitivity; it corrected none of that error"
+    )
+
+
+#: Inside its own frame, a written model whose verified lines are off by more than this much in
+#: length (%) or (4.16) is wrong, not merely short of a target: the calibration says so loudly.
+WRONG_LENGTH_PCT = 1.0
+WRONG_NONLINEARITY_PCT = 0.5
+
+
+def wrong_model_warning(rows: Sequence[dict[str, Any]], model: str) -> str | None:
+    """A warning when ``model`` verified grossly off inside the frame it was calibrated on (more
+    than :data:`WRONG_LENGTH_PCT` in length or :data:`WRONG_NONLINEARITY_PCT` in (4.16)), else
+    None. The figures are what the lab's images would show."""
+    inside = summary([r for r in rows if r["model"] == model]).get(f"{model}_inside", {})
+    length, nonlin = inside.get("max_abs_length_error_pct"), inside.get("max_nonlinearity_pct")
+    worse = []
+    if length is not None and length > WRONG_LENGTH_PCT:
+        signed = max(
+            (
+                float(r["length_error_pct"])
+                for r in rows
+                if r["model"] == model and r["inside_frame"] and r.get("length_error_pct") is not None
+            ),
+            key=abs,
+        )
+        worse.append(f"length error {signed:+.3f} %")
+    if nonlin is not None and nonlin > WRONG_NONLINEARITY_PCT:
+        worse.append(f"nonlinearity {nonlin:.3f} %")
+    if not worse:
+        return None
+    return (
+        f"the written model ({model}) scans inside its own calibration frame with up to "
+        f"{' and '.join(worse)}: the model is wrong for this stage (its images would be that far "
+        "off); do not use it unchecked: look at the audit above, measure the frame again"
     )
 
 

@@ -103,9 +103,11 @@ def test_reduced_frame_calibrates_and_verifies_inside_the_frame(tmp_path: Path) 
         assert row["inside_frame"] is True
         # the scale the tracker learnt meanwhile: the built-in stage does not drift
         assert abs(row["tracked_scale"] - 1.0) < 0.002
+        assert row["tracker_lines"]["far_off"] == 0
         # One pixel (0.2 %) is the thesis's goal; the calibrated thesis model does far better here.
         assert row["nonlinearity_pct"] < 0.2
         assert abs(row["length_error_pct"]) < 0.5
+    assert "verification_warning" not in doc and "tracker_far_off_note" not in doc
     # the frame was audited for the effects a runtime part can take; what was (not) adopted is said
     audit = doc["audit"]
     assert isinstance(audit, dict) and {"findings", "adopted", "skipped", "text"} <= set(audit)
@@ -646,6 +648,9 @@ class _HeldEngine:
     def tracked_scale(self, axis: str) -> float:
         return 1.0
 
+    def tracker_lines(self, axis: str) -> dict[str, int] | None:
+        return None
+
 
 def test_the_analysis_worker_yields_the_cpu_to_streaming() -> None:
     """The fits run in a worker process niced below the daemon's: on a machine short of cores the
@@ -756,6 +761,41 @@ def test_the_verification_says_how_much_gain_the_tracker_took() -> None:
     assert note is not None and "by up to -0.300 %" in note and "drifted since the frame" in note
     assert tracker_note(rows[:1] + rows[3:], "family") is None
     assert tracker_note([row("family", None)], "family") is None
+
+
+def test_a_model_verified_grossly_off_inside_its_frame_is_called_wrong() -> None:
+    """birch35's first run (session 36) verified every line 6-25 % long and the tracker showed
+    +0.000: it had set every line aside as too far off to be a drift. The run now says both: that
+    the tracker corrected none of it, and that the written model is wrong for the stage."""
+    from piezod.stagecal import tracker_far_off_note, wrong_model_warning
+
+    def row(model: str, inside: bool, length: float | None, nonlin: float, far: int) -> dict[str, object]:
+        return {
+            "model": model,
+            "inside_frame": inside,
+            "length_error_pct": length,
+            "nonlinearity_pct": None if length is None else nonlin,
+            "tracker_lines": {"used": 4 - far, "far_off": far, "too_fast": 0},
+        }
+
+    bad = [
+        row("family", True, 5.9, 0.2, 4),
+        row("family", True, -9.8, 0.6, 4),
+        row("family", False, 25.0, 0.4, 4),
+    ]
+    note = tracker_far_off_note(bad, "family")
+    assert note is not None and "set aside 12 of the 12 lines" in note
+    warning = wrong_model_warning(bad, "family")
+    assert warning is not None and "length error -9.800 %" in warning and "nonlinearity 0.600 %" in warning
+    good = [
+        row("family", True, 0.08, 0.04, 0),
+        row("family", False, 0.9, 0.3, 0),
+        row("dynamic", True, 20.0, 1.0, 4),
+    ]
+    assert tracker_far_off_note(good, "family") is None and wrong_model_warning(good, "family") is None
+    # outside the frame 1 % is the target, not a wrong model
+    assert wrong_model_warning([row("family", False, 3.0, 0.3, 0)], "family") is None
+    assert wrong_model_warning([row("family", True, None, 0.0, 0)], "family") is None
 
 
 def test_a_recalibration_measures_the_axis_extensions_again() -> None:

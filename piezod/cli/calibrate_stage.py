@@ -23,11 +23,13 @@ from piezod.stagecal import (
     run_frame,
     run_placement,
     summary,
+    tracker_far_off_note,
     tracker_note,
     verification_points,
     verify,
     with_tracking_bound,
     without_extensions,
+    wrong_model_warning,
 )
 
 
@@ -269,6 +271,12 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 if (note := tracker_note(rows, models[0])) is not None:
                     print(f"note: {note}", file=say)
                     report["tracker_note"] = note
+                if (note := tracker_far_off_note(rows, models[0])) is not None:
+                    print(f"note: {note}", file=say)
+                    report["tracker_far_off_note"] = note
+                if (warning := wrong_model_warning(rows, models[0])) is not None:
+                    print(f"WARNING: {warning}", file=say)
+                    report["verification_warning"] = warning
                 report["verification"] = rows
                 report["verification_summary"] = summary(rows)
                 if args.plot:

@@ -925,6 +925,19 @@ class Engine:
         tracker = self._trackers.get(axis)
         return 1.0 if tracker is None else tracker.scale
 
+    def tracker_lines(self, axis: str) -> dict[str, int] | None:
+        """How many lines the tracker of ``axis`` took (``used``), set aside as too far off to be a
+        drift (``far_off``) or as faster than the calibration measured (``too_fast``) since its
+        model was switched in; None without tracking."""
+        tracker = self._trackers.get(axis)
+        if tracker is None:
+            return None
+        return {
+            "used": tracker.lines_used,
+            "far_off": tracker.lines_ignored,
+            "too_fast": tracker.lines_too_fast,
+        }
+
     def fault(self, source: FaultSource, code: str, message: str, index: int | None = None) -> None:
         """Record a fault (and tell ``on_fault``); repeats of one kind within a second are counted only."""
         self.faults.add(source, code, message, index)
