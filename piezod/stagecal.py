@@ -1988,20 +1988,15 @@ def wrong_model_warning(rows: Sequence[dict[str, Any]], model: str) -> str | Non
     """A warning when ``model`` verified grossly off inside the frame it was calibrated on (more
     than :data:`WRONG_LENGTH_PCT` in length or :data:`WRONG_NONLINEARITY_PCT` in (4.16)), else
     None. The figures are what the lab's images would show."""
-    inside = summary([r for r in rows if r["model"] == model]).get(f"{model}_inside", {})
-    length, nonlin = inside.get("max_abs_length_error_pct"), inside.get("max_nonlinearity_pct")
+    inside = [
+        r for r in rows if r["model"] == model and r["inside_frame"] and r.get("length_error_pct") is not None
+    ]
     worse = []
-    if length is not None and length > WRONG_LENGTH_PCT:
-        signed = max(
-            (
-                float(r["length_error_pct"])
-                for r in rows
-                if r["model"] == model and r["inside_frame"] and r.get("length_error_pct") is not None
-            ),
-            key=abs,
-        )
-        worse.append(f"length error {signed:+.3f} %")
-    if nonlin is not None and nonlin > WRONG_NONLINEARITY_PCT:
+    length = max((float(r["length_error_pct"]) for r in inside), key=abs, default=0.0)
+    if abs(length) > WRONG_LENGTH_PCT:
+        worse.append(f"length error {length:+.3f} %")
+    nonlin = max((float(r["nonlinearity_pct"]) for r in inside), default=0.0)
+    if nonlin > WRONG_NONLINEARITY_PCT:
         worse.append(f"nonlinearity {nonlin:.3f} %")
     if not worse:
         return None
