@@ -277,12 +277,9 @@ class DynamicCalibrationData:
             out: F64 = a - np.repeat(means, self.counts, axis=0)
             return out
         g = self.offset_group
-        n = np.bincount(g).astype(np.float64)
-        if a.ndim == 1:
-            return a - (np.bincount(g, weights=a, minlength=n.size) / np.maximum(n, 1.0))[g]
-        sums2 = np.zeros((n.size, *a.shape[1:]))
-        np.add.at(sums2, g, a)
-        centred: F64 = a - (sums2 / np.maximum(n, 1.0)[:, None])[g]
+        cols = a.reshape(a.shape[0], -1)
+        n = np.maximum(np.bincount(g), 1).astype(np.float64)
+        centred: F64 = (cols - (_group_sums(cols, g, n.size) / n[:, None])[g]).reshape(a.shape)
         return centred
 
     def time_scales_s(self) -> tuple[float, float]:
@@ -556,12 +553,16 @@ def _detrended(a: F64, group: NDArray[np.intp], t: F64) -> F64:
     tc = t - (np.bincount(group, weights=t, minlength=n.size) / safe)[group]
     stt = np.bincount(group, weights=tc * tc, minlength=n.size)
     inv = np.where(stt > 0, 1.0 / np.where(stt > 0, stt, 1.0), 0.0)
-    sums = np.zeros((n.size, cols.shape[1]))
-    np.add.at(sums, group, cols)
-    centred = cols - (sums / safe[:, None])[group]
-    cross = np.zeros_like(sums)
-    np.add.at(cross, group, centred * tc[:, None])
+    centred = cols - (_group_sums(cols, group, n.size) / safe[:, None])[group]
+    cross = _group_sums(centred * tc[:, None], group, n.size)
     out: F64 = (centred - (cross * inv[:, None])[group] * tc[:, None]).reshape(a.shape)
+    return out
+
+
+def _group_sums(cols: F64, group: NDArray[np.intp], size: int) -> F64:
+    """Sums of the columns of ``cols`` (samples along axis 0) per group, shape ``(size, columns)``
+    (a bincount per column: faster than ``np.add.at`` for one column and for a hundred)."""
+    out: F64 = np.stack([np.bincount(group, weights=c, minlength=size) for c in cols.T], axis=1)
     return out
 
 
