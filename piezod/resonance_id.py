@@ -50,8 +50,12 @@ F64 = NDArray[np.float64]
 
 #: Width of the moving average the residuals are high-passed with (s).
 HIGH_PASS_S = 0.05
-#: Least quality factor of a resonance that rings (below it, it acts as a lag).
-MIN_Q = 1.0
+#: Least quality factor of a resonance that rings (below it, it acts as a lag or as a rate misfit's
+#: stand-in). The first modes of the simulated stages have Q 4-80 and nPoint's measured one rings
+#: sharply; every fit with Q 1-2 on them stood in for something else: a sensor delay (909 Hz, Q 1.4,
+#: docs/model-family.md 6.2y) or a member's excess millisecond creep (birch35's 255 Hz, Q 1.66, whose
+#: stage rings at 1020 Hz, Q 22; 6.2aw).
+MIN_Q = 2.0
 #: The resonance must lie at least this many times above the fastest line rate.
 MIN_HARMONIC = 5.0
 #: Relative fall of the held-out high-passed residual RMS a resonance must bring.
@@ -241,7 +245,7 @@ def identify_resonance(
     ho = (_rms(held, _lefts(held, None, q), lag0), _rms(held, _lefts(held, f0, q), lag1))
     why = []
     if q < MIN_Q:
-        why.append(f"Q {q:.3g} < {MIN_Q:g}: it acts as a lag, it does not ring")
+        why.append(f"Q {q:.3g} < {MIN_Q:g}: it does not ring")
     if not f_lo * 1.0001 < f0 < f_hi * 0.9999:
         why.append(f"f0 on the search's bound [{f_lo:.4g}, {f_hi:.4g}] Hz")
     floor = experiments_noise_floor([e for i, e in enumerate(experiments) if _held_out(i, every)])
