@@ -202,7 +202,9 @@ class FastCreepConfig(StrictModel):
     arrive with the relaxation time ``taus_s[j]``; the static gain is unchanged."""
 
     taus_s: list[float] = Field(description="relaxation times (s), ascending, > 0")
-    weights: list[float] = Field(description="fractions of the motion, >= 0, one per relaxation time")
+    weights: list[float] = Field(
+        description="fractions of the motion, one per relaxation time (negative: less creep than the model's)"
+    )
 
     def part(self) -> FastCreep:
         """The frozen part."""

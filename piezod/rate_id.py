@@ -22,18 +22,23 @@ with ``g_j(f) = 1 / (1 + 2 pi i f tau_j)`` (fast creep of weight ``w_j``, :mod:`
 term; its phase is the delay's). Harmonics up to the 61st of the fastest line make this a
 measurement from the frame's slowest line's fundamental to about 30 times its fastest line rate.
 
-The weights are non-negative on :data:`PER_DECADE` log-spaced times from a tenth of a millisecond
-(or two sample intervals) to :data:`TAU_MAX_LINES` of the frame's fastest line (longer creep the
-frame's lines show directly, and the calibrated model carries it), fitted by bounded linear least
+The weights sit on :data:`PER_DECADE` log-spaced times from a tenth of a millisecond (or two sample
+intervals) to :data:`TAU_MAX_LINES` of the frame's fastest line (longer creep the frame's lines show
+directly, and the calibrated model carries it). Each is at most 0.1 and at least minus the model's
+own creep near its time (:func:`member_creep_share`): a family member's spectrum is fitted on the
+frame's loops, which resolve a few milliseconds at best, and its smoothness prior carries the
+resolved weights flat to a tenth of a millisecond; where that is more creep than the stage has, the
+harmonics say so and a negative weight takes it out (docs/model-family.md 6.2aw; a member with 3-5x
+the stage's creep at 3-30 ms made a 20 Hz line 1.4 % long). They are fitted by bounded linear least
 squares with a ridge :data:`RIDGE` on the weights (the pole's gain and a creep element much faster
 than the line are alike up to the highest harmonics; the ridge puts such a pair on the pole, which
-is not adopted: the readback cannot say on which side of the stage a lag sits,
-docs/model-family.md 6.2aa). Rows are weighted by their noise (the readback's spectrum between the
-harmonics) with a floor :data:`LOG_FLOOR` for what the linear picture leaves.
+is not adopted: the readback cannot say on which side of the stage a lag sits, docs/model-family.md
+6.2aa). Rows are weighted by their noise (the readback's spectrum between the harmonics) with a
+floor :data:`LOG_FLOOR` for what the linear picture leaves.
 
-Adopted when the weights total at least :data:`MIN_TOTAL` and, fitted on the harmonics ``k = 1
-(mod 4)``, they predict the others (``k = 3 (mod 4)``: other frequencies) better than the delay
-and pole alone by :data:`MIN_GAIN` of the held-out RMS; then fitted on all harmonics.
+Adopted when the weights' absolute values total at least :data:`MIN_TOTAL` and, fitted on the
+harmonics ``k = 1 (mod 4)``, they predict the others (``k = 3 (mod 4)``: other frequencies) better
+than the delay and pole alone by :data:`MIN_GAIN` of the held-out RMS; then fitted on all harmonics.
 """
 
 from __future__ import annotations
@@ -50,7 +55,7 @@ from piezod.config import AxisConfig, FastCreepConfig, ScannerConfig
 from piezod.errors import ConfigError
 from piezod.model.axis_model import AxisModel
 from piezod.model.family import CreepSpectrum
-from piezod.model.fast_creep import FastCreep
+from piezod.model.fast_creep import MAX_FAST_CREEP, FastCreep
 from piezod.recording import Experiment
 
 F64 = NDArray[np.float64]
@@ -259,9 +264,43 @@ def _design(rows: _Rows, taus: F64) -> tuple[F64, F64]:
     return a, b
 
 
-def _solve(a: F64, b: F64, n_creep: int, creep: bool) -> F64:
+def member_creep_share(config: AxisConfig, taus: F64) -> F64:
+    """How much of the motion the wrapped model's own creep spectrum puts near each of ``taus``.
+
+    Parameters
+    ----------
+    config
+        The axis config whose model the fast creep wraps.
+    taus
+        The fast spectrum's relaxation times (s), log-spaced, ascending.
+
+    Returns
+    -------
+    numpy.ndarray
+        Per element the member's creep weight density at ``tau_j`` (interpolated in ``ln tau``,
+        zero outside the member's span) times one fast element's width, as a fraction of the
+        model's motion (a weight ``w_i`` of the hysteretic motion is ``w_i / (1 + W)`` of it, for
+        either creep driver to first order). Zero for a model that is not a family member: only a
+        family member's spectrum reaches below the times its frame resolves (module docstring).
+    """
+    fam = config.family
+    out: F64 = np.zeros(taus.size)
+    if config.model != "family" or fam is None or len(fam.creep_taus_s) < 2 or taus.size == 0:
+        return out
+    log_member = np.log(np.asarray(fam.creep_taus_s, dtype=np.float64))
+    weights = np.asarray(fam.creep_weights, dtype=np.float64)
+    share = weights / (1.0 + float(weights.sum()))
+    member_step = float(log_member[-1] - log_member[0]) / (log_member.size - 1)
+    log_fast = np.log(taus)
+    fast_step = float(log_fast[-1] - log_fast[0]) / (log_fast.size - 1) if log_fast.size > 1 else member_step
+    out = np.interp(log_fast, log_member, share, left=0.0, right=0.0) * (fast_step / member_step)
+    return out
+
+
+def _solve(a: F64, b: F64, n_creep: int, creep: bool, floor: F64) -> F64:
+    """Creep weights in ``[-floor, 0.1]`` (none unless ``creep``), the delay (ms), the pole's gain (ms^2)."""
     cols = a.shape[1]
-    lower = np.r_[np.zeros(n_creep), -10.0, 0.0]
+    lower = np.r_[-floor if creep else np.zeros(n_creep), -10.0, 0.0]
     upper = np.r_[np.full(n_creep, 0.1 if creep else 1e-12), 10.0, 25.0]
     ridge = RIDGE * math.sqrt(a.shape[0] / 2.0)
     pen = np.zeros((n_creep, cols))
@@ -303,26 +342,35 @@ def identify_fast_creep(experiments: Sequence[Experiment], config: AxisConfig) -
     train = rows.k % 4 == 1
     a, b = _design(rows, taus)
     tr = np.concatenate([train, train])
-    lag_only = _solve(a[tr], b[tr], n, creep=False)
-    with_creep = _solve(a[tr], b[tr], n, creep=True)
+    floor = member_creep_share(bare, taus)
+    lag_only = _solve(a[tr], b[tr], n, creep=False, floor=floor)
+    with_creep = _solve(a[tr], b[tr], n, creep=True, floor=floor)
     train_rms = (_rms(a[tr], b[tr], lag_only), _rms(a[tr], b[tr], with_creep))
     held = (_rms(a[~tr], b[~tr], lag_only), _rms(a[~tr], b[~tr], with_creep))
-    final = _solve(a, b, n, creep=True)
+    final = _solve(a, b, n, creep=True, floor=floor)
     w = final[:n]
-    w[w < 1e-6] = 0.0
+    w[np.abs(w) < 1e-6] = 0.0
+    spread = float(np.sum(np.abs(w)))
+    beyond = spread >= MAX_FAST_CREEP
+    if beyond:
+        w *= 0.99 * MAX_FAST_CREEP / spread  # reported, never adopted
     fast = FastCreep(tuple(map(float, taus)), tuple(map(float, w)))
-    material = fast.total >= MIN_TOTAL
+    material = fast.spread >= MIN_TOTAL
     better = held[1] <= (1.0 - MIN_GAIN) * held[0]
-    adopted = material and better
-    peak = float(taus[int(np.argmax(w))]) if fast.total > 0 else float("nan")
+    adopted = material and better and not beyond
+    peak = float(taus[int(np.argmax(np.abs(w)))]) if np.any(w) else float("nan")
     if adopted:
         why = "adopted"
+    elif beyond:
+        why = f"not adopted: the weights' absolute sum {spread:.3g} is beyond any stage"
     elif not material:
         why = "not adopted: below the least total"
     else:
         why = "not adopted: no better on the held-out harmonics"
+    less = " (negative: the model's own creep there is too much)" if fast.total < 0.0 else ""
+    span = f"{1e3 * tau_min:.2g}-{1e3 * tau_max:.3g} ms"
     note = (
-        f"fast creep {100 * fast.total:.2f} % of the motion ({1e3 * tau_min:.2g}-{1e3 * tau_max:.3g} ms, "
+        f"fast creep {100 * fast.total:.2f} % of the motion{less} ({span}, "
         f"largest at {1e3 * peak:.3g} ms) from {rows.f.size} harmonic ratios up to {rows.f.max():.0f} Hz "
         f"(held-out log-ratio RMS {held[0]:.4f} -> {held[1]:.4f}): {why}"
     )
@@ -349,9 +397,9 @@ def adopt_fast_creep(
     found = identify_fast_creep(experiments, config.axes[axis])
     if found is None or not found.adopted:
         return config, found
-    keep = [(t, w) for t, w in zip(found.fast.taus_s, found.fast.weights, strict=True) if w > 0.0]
+    keep = [(t, w) for t, w in zip(found.fast.taus_s, found.fast.weights, strict=True) if w != 0.0]
     part = FastCreepConfig(taus_s=[t for t, _ in keep], weights=[w for _, w in keep])
     return config.with_axis(axis, fast_creep=part), found
 
 
-__all__ = ["RateFinding", "adopt_fast_creep", "fast_taus", "identify_fast_creep"]
+__all__ = ["RateFinding", "adopt_fast_creep", "fast_taus", "identify_fast_creep", "member_creep_share"]

@@ -13,8 +13,17 @@ it back as a linear filter on the wrapped model's position ``x_m`` with unit sta
 and ``y = x_m``, so the wrapped model's calibration (its slow response) is unchanged. In the
 frequency domain ``F(f) = (1 + sum_j w_j / (1 + 2 pi i f tau_j)) / (1 + W)`` (:meth:`FastCreep.response`).
 
+A weight may be negative: it takes out creep the wrapped model has too much of at ``tau_j``. A
+family member's creep spectrum is fitted on the frame's loops, which resolve a few milliseconds
+at best; its weights below that are carried there by the fit's smoothness prior, not measured,
+and can be several times the stage's (docs/model-family.md 6.2aw). :mod:`piezod.rate_id` bounds
+a negative weight by the wrapped model's own creep near ``tau_j``.
+
 The inverse is exact per sample: ``x_m[n] = ((1 + W) y[n] - sum_j w_j a_j c_j[n-1]) / G`` with
-``G = 1 + sum_j w_j (1 - a_j) >= 1``, then the element updates. Each sample's ``x_m`` moves the
+``G = 1 + sum_j w_j (1 - a_j)``, then the element updates. With ``sum_j |w_j| < 1`` (the part
+allows less than :data:`MAX_FAST_CREEP`) ``G > 0`` and the inverse is stable: every element's
+discrete response ``(1 - a_j) / (1 - a_j / z)`` has magnitude at most 1 for ``|z| >= 1``, so
+``1 + sum_j w_j (1 - a_j) / (1 - a_j / z)`` has no zero there. Each sample's ``x_m`` moves the
 next sample's elements, so it is a sequential loop, ``O(J)`` per sample for ``J`` elements,
 compiled (:func:`piezod.model.kernels.fast_creep_loop`; a few ns per sample). The forward runs
 one first-order filter per element (``scipy.signal.lfilter``), vectorised over a block.
@@ -37,21 +46,24 @@ from piezod.model import kernels
 from piezod.model.axis_model import AxisModel
 
 F64 = NDArray[np.float64]
-#: Largest total fast-creep weight accepted: ``W`` of the motion arriving late; a real stage's
-#: creep below a second is a few percent, so half the motion is far beyond any stage.
+#: Bound on the fast creep's weights, ``sum_j |w_j|`` (fractions of the motion): a real stage's creep
+#: below a second is a few percent, so half the motion is far beyond any stage (and below 1 the
+#: inverse is stable, see the module docstring).
 MAX_FAST_CREEP = 0.5
 
 
 @dataclass(frozen=True)
 class FastCreep:
-    """Frozen weights ``w_j >= 0`` (fractions of the motion) on relaxation times ``tau_j`` (s).
+    """Frozen weights ``w_j`` (fractions of the motion; negative: less creep than the wrapped model's)
+    on relaxation times ``tau_j`` (s).
 
     Attributes
     ----------
     taus_s
         Relaxation times (s), strictly ascending, finite, > 0.
     weights
-        Weights, finite, >= 0, summing below :data:`MAX_FAST_CREEP`. Empty: the part is off.
+        Weights, finite, their absolute values summing below :data:`MAX_FAST_CREEP`. Empty: the
+        part is off.
     """
 
     taus_s: tuple[float, ...] = ()
@@ -63,20 +75,28 @@ class FastCreep:
         finite = all(math.isfinite(t) and t > 0.0 for t in self.taus_s)
         if not finite or any(b <= a for a, b in zip(self.taus_s, self.taus_s[1:], strict=False)):
             raise ModelError("fast creep relaxation times must be finite, > 0 and ascending")
-        if not all(math.isfinite(w) and w >= 0.0 for w in self.weights):
-            raise ModelError("fast creep weights must be finite and >= 0")
-        if self.total >= MAX_FAST_CREEP:
-            raise ModelError(f"total fast creep {self.total:.4g} must stay below {MAX_FAST_CREEP}")
+        if not all(math.isfinite(w) for w in self.weights):
+            raise ModelError("fast creep weights must be finite")
+        if self.spread >= MAX_FAST_CREEP:
+            raise ModelError(
+                f"fast creep weights' absolute values sum to {self.spread:.4g}; "
+                f"they must stay below {MAX_FAST_CREEP}"
+            )
 
     @cached_property
     def total(self) -> float:
-        """``W``, the fraction of the motion that arrives late."""
+        """``W``, the fraction of the motion that arrives late (negative: less than the wrapped model's)."""
         return float(sum(self.weights))
+
+    @cached_property
+    def spread(self) -> float:
+        """``sum_j |w_j|``, what :data:`MAX_FAST_CREEP` bounds."""
+        return float(sum(abs(w) for w in self.weights))
 
     @property
     def identity(self) -> bool:
         """No weight: the part is off."""
-        return self.total == 0.0
+        return self.spread == 0.0
 
     def response(self, frequency_hz: ArrayLike) -> NDArray[np.complex128]:
         """``F(f)``: the part's complex gain at ``frequency_hz`` (1 at 0 Hz)."""
