@@ -256,6 +256,12 @@ def main() -> int:
         "--resonance), as piezod calibrate does, and verify the config with it when adopted",
     )
     ap.add_argument(
+        "--redo-dynamics",
+        action="store_true",
+        help="with --verify: drop that config's resonance and fast creep and identify both again "
+        "(--resonance --fast-creep) on this code, e.g. on a written YAML to compare two versions",
+    )
+    ap.add_argument(
         "--markdown", default=None, metavar="F.json", help="print the tables of a saved --json run"
     )
     ap.add_argument(
@@ -316,6 +322,10 @@ def main() -> int:
         placed = with_lag_placed(placement, axis, dataclasses.replace(choice, report=named), exps, ramp, rest)
         calibrated = placed.config
         print("\n".join(placed.report.get("adopted", []) + placed.report.get("skipped", [])))
+    if args.redo_dynamics:
+        kept = {k: v for k, v in (calibrated.axes[axis].extensions or {}).items() if k != "resonance"}
+        calibrated = calibrated.with_axis(axis, extensions=kept or None, fast_creep=None)
+        args.resonance = args.fast_creep = True
     if args.resonance:
         calibrated, found = adopt_resonance(exps, axis, calibrated)
         print(found.note if found is not None else "resonance: the frame cannot resolve one")
