@@ -289,11 +289,11 @@ def member_creep_share(config: AxisConfig, taus: F64) -> F64:
         return out
     log_member = np.log(np.asarray(fam.creep_taus_s, dtype=np.float64))
     weights = np.asarray(fam.creep_weights, dtype=np.float64)
-    share = weights / (1.0 + float(weights.sum()))
-    member_step = float(log_member[-1] - log_member[0]) / (log_member.size - 1)
+    # per unit of ln tau, each element over its own width (a YAML's times need not be evenly spaced)
+    density = weights / (1.0 + float(weights.sum())) / np.gradient(log_member)
     log_fast = np.log(taus)
-    fast_step = float(log_fast[-1] - log_fast[0]) / (log_fast.size - 1) if log_fast.size > 1 else member_step
-    out = np.interp(log_fast, log_member, share, left=0.0, right=0.0) * (fast_step / member_step)
+    width = np.gradient(log_fast) if log_fast.size > 1 else np.ones(1)
+    out = np.interp(log_fast, log_member, density, left=0.0, right=0.0) * width
     return out
 
 
