@@ -297,10 +297,11 @@ def member_creep_share(config: AxisConfig, taus: F64) -> F64:
     return out
 
 
-def _solve(a: F64, b: F64, n_creep: int, creep: bool, floor: F64) -> F64:
-    """Creep weights in ``[-floor, 0.1]`` (none unless ``creep``), the delay (ms), the pole's gain (ms^2)."""
+def _solve(a: F64, b: F64, n_creep: int, floor: F64 | None) -> F64:
+    """Creep weights in ``[-floor, 0.1]`` (none if ``floor`` is None), the delay (ms), pole gain (ms^2)."""
     cols = a.shape[1]
-    lower = np.r_[-floor if creep else np.zeros(n_creep), -10.0, 0.0]
+    creep = floor is not None
+    lower = np.r_[-floor if floor is not None else np.zeros(n_creep), -10.0, 0.0]
     upper = np.r_[np.full(n_creep, 0.1 if creep else 1e-12), 10.0, 25.0]
     ridge = RIDGE * math.sqrt(a.shape[0] / 2.0)
     pen = np.zeros((n_creep, cols))
@@ -343,11 +344,11 @@ def identify_fast_creep(experiments: Sequence[Experiment], config: AxisConfig) -
     a, b = _design(rows, taus)
     tr = np.concatenate([train, train])
     floor = member_creep_share(bare, taus)
-    lag_only = _solve(a[tr], b[tr], n, creep=False, floor=floor)
-    with_creep = _solve(a[tr], b[tr], n, creep=True, floor=floor)
+    lag_only = _solve(a[tr], b[tr], n, None)
+    with_creep = _solve(a[tr], b[tr], n, floor)
     train_rms = (_rms(a[tr], b[tr], lag_only), _rms(a[tr], b[tr], with_creep))
     held = (_rms(a[~tr], b[~tr], lag_only), _rms(a[~tr], b[~tr], with_creep))
-    final = _solve(a, b, n, creep=True, floor=floor)
+    final = _solve(a, b, n, floor)
     w = final[:n]
     w[np.abs(w) < 1e-6] = 0.0
     spread = float(np.sum(np.abs(w)))

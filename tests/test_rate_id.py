@@ -144,7 +144,7 @@ def test_a_member_with_too_much_millisecond_creep_gets_it_taken_out() -> None:
 def test_a_model_without_a_creep_spectrum_gets_no_negative_weight() -> None:
     """The thesis model has no spectrum to take creep out of: the lower bound stays at zero."""
     assert not np.any(member_creep_share(CONFIG, np.geomspace(1e-4, 0.02, 10)))
-    found = identify_fast_creep(_frame(FastCreep()), CONFIG.model_copy(update={"thesis": THESIS}))
+    found = identify_fast_creep(_frame(FastCreep()), CONFIG)
     assert found is None or min(found.fast.weights, default=0.0) >= 0.0
 
 
