@@ -566,6 +566,46 @@ def _figures(nl: float, le: float) -> VerifiedFigures:
     return VerifiedFigures(nl, le, math.nan, math.nan, math.nan)
 
 
+def _clipped(path: Path, axis: str, full_scale_um: float) -> int:
+    """The analysis worker's count of readings at the sensor's full scale, in this process."""
+    from piezod.stagecal import clipped_readings
+
+    return clipped_readings(path, axis, full_scale_um)  # type: ignore[arg-type]
+
+
+def test_the_verification_reads_no_recording_in_the_daemons_process(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Parsing a scan's recording holds the interpreter (a 0.02 Hz line of 20 MB stalled the other
+    threads for 270 ms, beyond the engine's 150 ms lead: "slow block" warnings while the stage held
+    between the verification's scans). The figures and the count of readings at the sensor's full
+    scale come from the analysis worker; the process that streams never parses a recording."""
+    from types import SimpleNamespace
+
+    import piezod.recording
+    import piezod.stagecal as sc
+
+    def no_parsing(*a: object, **k: object) -> None:
+        raise AssertionError("a recording parsed in the daemon's process")
+
+    asked: list[float] = []
+
+    def clipped(path: Path, axis: str, full_scale_um: float) -> int:
+        asked.append(full_scale_um)
+        rec = real_read(path)
+        return int(np.count_nonzero(np.abs(rec.position_um) >= full_scale_um * 0.9999))
+
+    real_read = piezod.recording.read_recording
+    monkeypatch.setattr(sc, "read_recording", no_parsing)
+    monkeypatch.setattr(piezod.recording, "read_recording", no_parsing)
+    worker = SimpleNamespace(linearity=lambda path, axis, sensor: _figures(0.01, -0.02), clipped=clipped)
+    engine = _HeldEngine("idle", reading_um=(40.0, 99.99))
+    pts = [sc.VerifyPoint(10.0, 1.0, 0.0, True, "inside"), sc.VerifyPoint(5.0, 2.0, 0.0, True, "inside")]
+    rows = sc.verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
+    assert asked == [100.0, 100.0]
+    assert all(r["skipped"].startswith("readback at the sensor's full scale") for r in rows)
+
+
 def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fatal(tmp_path: Path) -> None:
     """An underrun while the stage held (the fits, the check of the points: a loaded machine) used
     to end `piezod calibrate` with 'cannot start a scan while fault' at the verification's warm-up;
@@ -576,7 +616,7 @@ def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fa
 
     from piezod.stagecal import VerifyPoint, verify
 
-    worker = SimpleNamespace(linearity=lambda path, axis, sensor: _figures(0.01, -0.02))
+    worker = SimpleNamespace(linearity=lambda path, axis, sensor: _figures(0.01, -0.02), clipped=_clipped)
     engine = _HeldEngine("fault")
     pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside"), VerifyPoint(5.0, 2.0, 0.0, True, "inside")]
     rows = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
@@ -593,7 +633,7 @@ def test_a_verification_scan_read_at_the_sensors_full_scale_reports_no_figures(t
 
     from piezod.stagecal import VerifyPoint, verify
 
-    worker = SimpleNamespace(linearity=lambda path, axis, sensor: _figures(0.01, -0.02))
+    worker = SimpleNamespace(linearity=lambda path, axis, sensor: _figures(0.01, -0.02), clipped=_clipped)
     engine = _HeldEngine("idle", reading_um=(40.0, 99.99))
     pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside")]
     (row,) = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
@@ -718,7 +758,7 @@ def test_scans_whose_readback_reached_the_sensors_full_scale_are_left_out_of_the
     recording as made is kept; with fewer than two ranges left the calibration stops and says why."""
     from piezod.recording import Recording, read_experiments
     from piezod.recording_writer import write_recording
-    from piezod.stagecal import Frame, FrameScan, frame_in_sensor_range
+    from piezod.stagecal import AnalysisWorker, Frame, FrameScan, frame_in_sensor_range
 
     fs = 100.0
     scans = tuple(FrameScan(r, f) for r in (60.0, 120.0, 140.0) for f in (1.0, 2.0))
@@ -746,6 +786,17 @@ def test_scans_whose_readback_reached_the_sensors_full_scale_are_left_out_of_the
     few = r"full scale \(\+-60 um\) in 4 of 6 scans.*sensor_full_scale_um"
     with pytest.raises(CalibrationError, match=few):
         frame_in_sensor_range(path, Frame("x", scans), 60.0, tmp_path / "few.csv")
+    # as `piezod calibrate` runs it: in the analysis worker (parsing a frame holds the interpreter),
+    # the same result and the same error
+    with AnalysisWorker() as worker:
+        assert worker.frame_in_sensor_range(path, Frame("x", scans), fs, tmp_path / "w.csv") == (
+            tmp_path / "w.csv",
+            kept,
+            clipped,
+        )
+        assert worker.clipped(path, "x", fs) == sum(clipped.values())
+        with pytest.raises(CalibrationError, match=few):
+            worker.frame_in_sensor_range(path, Frame("x", scans), 60.0, tmp_path / "few.csv")
 
 
 def test_the_verification_says_how_much_gain_the_tracker_took() -> None:

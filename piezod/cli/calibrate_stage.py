@@ -17,7 +17,6 @@ from piezod.stagecal import (
     AnalysisWorker,
     default_frame,
     format_table,
-    frame_in_sensor_range,
     frame_summary,
     plot_verification,
     run_frame,
@@ -101,7 +100,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
             # and the verification's placement use the scans within it (the recording is kept whole)
             full_scale = engine.settings.full_scale_um(axis)
             recorded_path = frame_path
-            frame_path, frame, clipped = frame_in_sensor_range(
+            frame_path, frame, clipped = worker.frame_in_sensor_range(
                 recorded_path, frame, full_scale, recdir / "frame-in-sensor-range.csv"
             )
             if clipped:
