@@ -584,6 +584,7 @@ def test_the_verification_reads_no_recording_in_the_daemons_process(
 
     import piezod.recording
     import piezod.stagecal as sc
+    from piezod.readback import at_full_scale
 
     def no_parsing(*a: object, **k: object) -> None:
         raise AssertionError("a recording parsed in the daemon's process")
@@ -592,8 +593,7 @@ def test_the_verification_reads_no_recording_in_the_daemons_process(
 
     def clipped(path: Path, axis: str, full_scale_um: float) -> int:
         asked.append(full_scale_um)
-        rec = real_read(path)
-        return int(np.count_nonzero(np.abs(rec.position_um) >= full_scale_um * 0.9999))
+        return at_full_scale(real_read(path).position_um, full_scale_um)
 
     real_read = piezod.recording.read_recording
     monkeypatch.setattr(sc, "read_recording", no_parsing)
