@@ -742,11 +742,10 @@ def verify(
             )
             rows.append(row)
             continue
-        figures = worker.linearity(path, "x", sensor)
-        nl, le = figures.nonlinearity_pct, figures.length_error_pct
-        limited = [f for f in engine.faults.recent(200) if f.time_s >= mark and f.code == "LIMIT"]
         full_scale = engine.settings.full_scale_um("x")
-        clipped = worker.clipped(path, "x", full_scale)
+        figures = worker.linearity(path, "x", sensor, full_scale)
+        nl, le, clipped = figures.nonlinearity_pct, figures.length_error_pct, figures.clipped
+        limited = [f for f in engine.faults.recent(200) if f.time_s >= mark and f.code == "LIMIT"]
         # figures that are not the model's are never reported, only kept aside with the reason: a
         # readback at the sensor's full scale scores the ADC's end code, a clamped scan the amplifier
         aside: tuple[str, str] | None = None
@@ -1703,6 +1702,8 @@ class VerifiedFigures:
         (4.16) of the line-averaged profile at the image's pixels and what noise alone leaves in
         it (:func:`piezod.linearity.pixel_profile`): the scan's nonlinearity as an image reads it,
         below a noisy sensor's (4.16).
+    clipped
+        The axis's readings at the sensor's full scale in the recording (0 when none was given).
     """
 
     nonlinearity_pct: float
@@ -1710,12 +1711,18 @@ class VerifiedFigures:
     noise_pct: float
     pixel_nonlinearity_pct: float
     pixel_noise_pct: float
+    clipped: int = 0
 
 
-def verified_linearity(path: Path, axis: AxisName, sensor: SensorPath | None = None) -> VerifiedFigures:
+def verified_linearity(
+    path: Path, axis: AxisName, sensor: SensorPath | None = None, full_scale_um: float | None = None
+) -> VerifiedFigures:
     """The figures of the first experiment of ``axis`` in ``path`` (:class:`VerifiedFigures`), the
-    readback aligned through ``sensor`` (the axis's sensor path) when given."""
+    readback aligned through ``sensor`` (the axis's sensor path) when given, and with
+    ``full_scale_um`` the count of the axis's readings at the sensor's full scale (one parse of
+    the recording for both)."""
     exps = read_experiments([path], axis=axis)
+    clipped = 0 if full_scale_um is None else sum(readback_clipped(exps, full_scale_um).values())
     if sensor is not None:
         from piezod.extensions import experiments_through_sensor
 
@@ -1728,18 +1735,12 @@ def verified_linearity(path: Path, axis: AxisName, sensor: SensorPath | None = N
         noise_pct=noise_pct(exps[0].position_um, e.trace.nominal_range_um * (1.0 + le / 100.0)),
         pixel_nonlinearity_pct=float(e.pixel_nonlinearity_pct),
         pixel_noise_pct=float(e.pixel_noise_pct),
+        clipped=clipped,
     )
 
 
 def _frame_end_here(path: Path, axis: AxisName) -> tuple[float, float]:
     return frame_end(read_recording(path), axis)
-
-
-def clipped_readings(path: Path, axis: AxisName, full_scale_um: float) -> int:
-    """How many of ``axis``'s readings in the recording at ``path`` sit at the sensor's full scale."""
-    rec = read_recording(path)
-    position = rec.position_um if rec.axis is None else rec.position_um[rec.axis == axis]
-    return at_full_scale(position, full_scale_um)
 
 
 def _check_points_here(
@@ -1858,16 +1859,16 @@ class AnalysisWorker:
         ).result()
 
     def linearity(
-        self, path: Path, axis: AxisName = "x", sensor: SensorPath | None = None
+        self,
+        path: Path,
+        axis: AxisName = "x",
+        sensor: SensorPath | None = None,
+        full_scale_um: float | None = None,
     ) -> VerifiedFigures:
-        """:func:`verified_linearity` in the worker process."""
-        return self._pool.submit(verified_linearity, path, axis, sensor).result()
-
-    def clipped(self, path: Path, axis: AxisName, full_scale_um: float) -> int:
-        """:func:`clipped_readings` in the worker process: parsing a verification scan's recording
+        """:func:`verified_linearity` in the worker process: parsing a verification scan's recording
         holds the interpreter (a 0.02 Hz line of 20 MB: 1.1 s, with other threads stalled for up to
         270 ms, beyond the daemon's 150 ms lead)."""
-        return self._pool.submit(clipped_readings, path, axis, full_scale_um).result()
+        return self._pool.submit(verified_linearity, path, axis, sensor, full_scale_um).result()
 
     def frame_in_sensor_range(
         self, frame_path: Path, frame: Frame, full_scale_um: float, out_path: Path

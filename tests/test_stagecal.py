@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -566,11 +567,18 @@ def _figures(nl: float, le: float) -> VerifiedFigures:
     return VerifiedFigures(nl, le, math.nan, math.nan, math.nan)
 
 
-def _clipped(path: Path, axis: str, full_scale_um: float) -> int:
-    """The analysis worker's count of readings at the sensor's full scale, in this process."""
-    from piezod.stagecal import clipped_readings
+def _linearity(nl: float, le: float) -> Any:
+    """A stand-in for the analysis worker's figures: ``nl`` and ``le``, and the recording's count of
+    readings at the sensor's full scale (:func:`piezod.stagecal.verified_linearity` counts it so)."""
+    from piezod.recording import read_experiments
+    from piezod.stagecal import readback_clipped
 
-    return clipped_readings(path, axis, full_scale_um)  # type: ignore[arg-type]
+    def figures(path: Path, axis: str, sensor: object, full_scale_um: float | None = None) -> VerifiedFigures:
+        exps = read_experiments([path], axis=axis)
+        clipped = 0 if full_scale_um is None else sum(readback_clipped(exps, full_scale_um).values())
+        return dataclasses.replace(_figures(nl, le), clipped=clipped)
+
+    return figures
 
 
 def test_the_verification_reads_no_recording_in_the_daemons_process(
@@ -591,19 +599,42 @@ def test_the_verification_reads_no_recording_in_the_daemons_process(
 
     asked: list[float] = []
 
-    def clipped(path: Path, axis: str, full_scale_um: float) -> int:
+    def figures(path: Path, axis: str, sensor: object, full_scale_um: float) -> VerifiedFigures:
         asked.append(full_scale_um)
-        return at_full_scale(real_read(path).position_um, full_scale_um)
+        clipped = at_full_scale(real_read(path).position_um, full_scale_um)
+        return dataclasses.replace(_figures(0.01, -0.02), clipped=clipped)
 
     real_read = piezod.recording.read_recording
     monkeypatch.setattr(sc, "read_recording", no_parsing)
     monkeypatch.setattr(piezod.recording, "read_recording", no_parsing)
-    worker = SimpleNamespace(linearity=lambda path, axis, sensor: _figures(0.01, -0.02), clipped=clipped)
+    worker = SimpleNamespace(linearity=figures)
     engine = _HeldEngine("idle", reading_um=(40.0, 99.99))
     pts = [sc.VerifyPoint(10.0, 1.0, 0.0, True, "inside"), sc.VerifyPoint(5.0, 2.0, 0.0, True, "inside")]
     rows = sc.verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
     assert asked == [100.0, 100.0]
     assert all(r["skipped"].startswith("readback at the sensor's full scale") for r in rows)
+
+
+def test_the_verified_figures_count_the_readings_at_the_sensors_full_scale(tmp_path: Path) -> None:
+    """The verification's figures and its count of readings at the sensor's full scale come from one
+    parse of the scan's recording, in the analysis worker (:func:`verified_linearity`)."""
+    from piezod.readback import at_full_scale
+    from piezod.recording import Recording
+    from piezod.recording_writer import write_recording
+    from piezod.stagecal import AnalysisWorker, verified_linearity
+
+    fs, n = 100.0, 4000
+    phase = (np.arange(n) % 1000) / 1000.0
+    target = -20.0 + 125.0 * np.where(phase < 0.5, 2.0 * phase, 2.0 - 2.0 * phase)
+    x = np.clip(target, -fs, fs * 32767 / 32768)
+    path = tmp_path / "scan.csv"
+    write_recording(path, Recording(np.arange(n) * 1e-3, 0.5 * target, x, target_um=target))
+    expected = at_full_scale(x, fs)
+    assert expected > 0
+    assert verified_linearity(path, "x").clipped == 0
+    assert verified_linearity(path, "x", None, fs).clipped == expected
+    with AnalysisWorker() as worker:
+        assert worker.linearity(path, "x", None, fs).clipped == expected
 
 
 def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fatal(tmp_path: Path) -> None:
@@ -616,7 +647,7 @@ def test_a_fault_while_the_stage_held_before_the_verification_is_reported_not_fa
 
     from piezod.stagecal import VerifyPoint, verify
 
-    worker = SimpleNamespace(linearity=lambda path, axis, sensor: _figures(0.01, -0.02), clipped=_clipped)
+    worker = SimpleNamespace(linearity=_linearity(0.01, -0.02))
     engine = _HeldEngine("fault")
     pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside"), VerifyPoint(5.0, 2.0, 0.0, True, "inside")]
     rows = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
@@ -633,7 +664,7 @@ def test_a_verification_scan_read_at_the_sensors_full_scale_reports_no_figures(t
 
     from piezod.stagecal import VerifyPoint, verify
 
-    worker = SimpleNamespace(linearity=lambda path, axis, sensor: _figures(0.01, -0.02), clipped=_clipped)
+    worker = SimpleNamespace(linearity=_linearity(0.01, -0.02))
     engine = _HeldEngine("idle", reading_um=(40.0, 99.99))
     pts = [VerifyPoint(10.0, 1.0, 0.0, True, "inside")]
     (row,) = verify(engine, pts, tmp_path, "family", worker)  # type: ignore[arg-type]
@@ -794,7 +825,6 @@ def test_scans_whose_readback_reached_the_sensors_full_scale_are_left_out_of_the
             kept,
             clipped,
         )
-        assert worker.clipped(path, "x", fs) == sum(clipped.values())
         with pytest.raises(CalibrationError, match=few):
             worker.frame_in_sensor_range(path, Frame("x", scans), 60.0, tmp_path / "few.csv")
 
