@@ -813,8 +813,16 @@ class Board:
         mspf = self._caps.max_samples_per_frame
         first_row = first + offset
         now = self._t
+        drop_from = self.faults.drop_sensor_from
         for lo in range(0, table.shape[0], mspf):
-            self._ep.send(Sensor(first_row + lo * dec, dec, table[lo : lo + mspf]), now)
+            msg = Sensor(first_row + lo * dec, dec, table[lo : lo + mspf])
+            if drop_from is not None and msg.first_index >= drop_from:
+                self._held_out.append(self._ep.data_to_send())
+                self._ep.send(msg, now)
+                self._ep.data_to_send()
+                self.injected["frames_dropped"] += 1
+                continue
+            self._ep.send(msg, now)
         self._sensor_rows_sent += table.shape[0]
 
     def _played_codes(self, first: int, n: int) -> NDArray[np.int16]:

@@ -137,10 +137,14 @@ class FaultHooks:
     force_nak
         Per request type, ``(reason, detail)`` of the NAK every such request gets instead of
         being applied (a refused CONFIGURE also latches ``CONFIG_REJECTED``).
+    drop_sensor_from
+        SENSOR frames whose first row is at this sample index or later are lost on the way to the
+        host (their sequence numbers are used: the host can tell frames were lost). ``None``: none.
     """
 
     drop_replies: dict[MessageType, int] = field(default_factory=dict)
     force_nak: dict[MessageType, tuple[NakReason, int]] = field(default_factory=dict)
+    drop_sensor_from: int | None = None
 
 
 __all__ = ["BoardConfig", "FaultHooks"]

@@ -16,6 +16,7 @@ from wire_board import TestBoard
 
 from firmware_proto import (
     HEADER_SIZE,
+    NO_INDEX,
     Ack,
     BoardState,
     Capabilities,
@@ -368,6 +369,106 @@ def test_corrupted_board_stream_resyncs_and_every_loss_is_counted(config: Scanne
     assert all(g.explained for g in events.of(SensorGap))
     idx = np.concatenate([bl.indices for bl in blocks])
     assert np.all(np.diff(idx) > 0)  # what did arrive is in order, without duplicates
+
+
+class ReaderStalledAfterStop(Transport):
+    """The board's wire, the host's reader held up once, right after the STATUS that shows the
+    clock stopped (as a busy machine does): the session meets its deadline for the run's
+    missing readback late."""
+
+    def __init__(self, inner: Transport, stall_s: float) -> None:
+        self.inner = inner
+        self.url = inner.url
+        self.read_timeout_s = inner.read_timeout_s
+        self.write_timeout_s = inner.write_timeout_s
+        self.stall_s = stall_s
+        self.stalled = False
+        self._running = False
+        self._stall_next = False
+        self._decoder = FrameDecoder()
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        if self._stall_next and not self.stalled:
+            self.stalled = True
+            time.sleep(self.stall_s)
+        data = self.inner.read(max_bytes)
+        for f in self._decoder.feed(data):
+            if isinstance(f, Frame) and isinstance(f.msg, Status):
+                if f.msg.state == BoardState.RUNNING:
+                    self._running = True
+                elif self._running and f.msg.state == BoardState.IDLE:
+                    self._stall_next = True
+        return data
+
+    def write(self, data: bytes) -> None:
+        self.inner.write(data)
+
+    def close(self) -> None:
+        self.inner.close()
+
+    @property
+    def closed(self) -> bool:
+        return self.inner.closed
+
+
+def test_the_last_runs_lost_readback_is_counted_when_finish_returns(config: ScannerConfig) -> None:
+    # the readback of the run's last 50 ms is lost; the reader stalls for 40 status periods
+    # after the STOP: finish() waited 5 periods and the counters lacked those rows (CI, session 39)
+    wires: list[ReaderStalledAfterStop] = []
+
+    def connect() -> Transport:
+        wires.append(ReaderStalledAfterStop(b.connect(), stall_s=0.4))
+        return wires[-1]
+
+    with TestBoard(seed=1) as b:
+        events = Events()
+        with BoardSession.open(
+            transport_factory=connect, config=config, sample_rate_hz=RATE, on_event=events
+        ) as s:
+            streamer = Streamer(s, _source(), lead_s=0.05)
+            streamer.start(0)
+            time.sleep(0.3)
+            st = s.status
+            assert st is not None and st.last_played_index != NO_INDEX
+            b.board.faults.drop_sensor_from = st.last_played_index + 1
+            time.sleep(0.05)
+            stats = streamer.finish()
+            c = s.counters()
+    assert wires[-1].stalled and stats.runs[0].ended_by == "stop"
+    assert c.sensor_rows_lost >= 0.04 * RATE and c.sensor_rows_lost_unexplained == 0
+    assert c.sensor_rows + c.sensor_rows_lost == stats.samples_played > 0
+    assert all(g.explained for g in events.of(SensorGap))
+
+
+def test_the_padding_a_short_run_played_before_its_stop_is_accounted(
+    board: TestBoard, config: ScannerConfig
+) -> None:
+    class TwoRows:
+        """One row, then a second once the streamer is finishing: a run far shorter than its prefill."""
+
+        def __init__(self) -> None:
+            self.inner = _source()
+            self.calls = 0
+
+        def next_block(self, n: int) -> np.ndarray:
+            self.calls += 1
+            if self.calls > 1:
+                deadline = time.monotonic() + 10.0
+                while not streamer._finishing and time.monotonic() < deadline:
+                    time.sleep(0.001)
+            return self.inner.next_block(1)
+
+    with BoardSession.open(transport_factory=board.connect, config=config, sample_rate_hz=RATE) as s:
+        streamer = Streamer(s, TwoRows(), lead_s=0.05, block_samples=1)
+        streamer.start(0)
+        stats = streamer.finish()
+        c = s.counters()
+    run = stats.runs[0]
+    assert run.ended_by == "stop" and run.samples_sent == run.samples_played == 2
+    # the clock ran on the padding until the STOP arrived (a round trip is far longer than 2 rows)
+    assert run.padding_played > 0 and stats.padding_played == run.padding_played
+    assert c.sensor_rows + c.sensor_rows_lost == stats.samples_played + stats.padding_played
+    assert c.sensor_rows_lost == 0 and stats.unexplained_output_loss == 0
 
 
 def test_a_reply_resent_from_the_board_cache_is_not_a_loss() -> None:

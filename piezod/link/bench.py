@@ -161,7 +161,8 @@ def stream_bench(
     rate = float(rate_hz)
     lead_min_ms = None if stats.lead_min_samples is None else 1000.0 * stats.lead_min_samples / rate
     lead_mean_ms = None if not stats.lead_count else 1000.0 * stats.lead_sum_samples / stats.lead_count / rate
-    sensor_expected = stats.samples_played  # decimation 1: one sensor row per played sample
+    # decimation 1: one sensor row per row played, padding of a short run included
+    sensor_expected = stats.samples_played + stats.padding_played
     sensor_missing = max(0, sensor_expected - c.sensor_rows)
     unexplained = stats.unexplained_output_loss + c.sensor_rows_lost_unexplained
     # rows that neither arrived nor were reported lost would also be unexplained

@@ -894,6 +894,7 @@ class BoardSession:
     def _close_sensor_run(self, last_played: int, now: float, out: list[LinkEvent]) -> None:
         """The clock stopped after ``last_played``: count the sensor rows of the run that never came."""
         self._tail = None
+        self._cond.notify_all()
         nxt = self._sensor_next
         if nxt is not None and nxt <= last_played:
             missing = (last_played - nxt) // self._sensor_stride + 1
@@ -1078,6 +1079,21 @@ class BoardSession:
                     last = f"state {st.state.name}" if st is not None else "no STATUS at all"
                     raise LinkTimeoutError(f"{self.url}: no matching STATUS within {timeout_s:g} s ({last})")
                 self._cond.wait(left)
+
+    def wait_readback_settled(self, timeout_s: float) -> bool:
+        """Wait until every sensor row of the stopped run is accounted: read, or counted lost.
+
+        The rows a stopped run's readback still lacks are counted lost 4 status periods after
+        the STATUS that showed its clock stopped, when the reader next runs; on a busy machine
+        that can be well after those 4 periods. Returns at once when no stopped run is open.
+
+        Returns
+        -------
+        bool
+            False when the run was still open after ``timeout_s`` (e.g. the link broke).
+        """
+        with self._lock:
+            return self._cond.wait_for(lambda: self._tail is None, timeout_s)
 
     # -- streaming ------------------------------------------------------------------------------
 

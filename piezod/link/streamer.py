@@ -201,6 +201,18 @@ class RunRecord:
             return 0
         return min(self.last_played_index + 1, self.end_index) - self.start_index
 
+    @property
+    def padding_played(self) -> int:
+        """Padding rows the board played after the run's last sample, before its STOP arrived.
+
+        A run shorter than its prefill is padded with its last row (the clock starts only on a
+        full prefill); the STOP that ends it takes a round trip, and the board plays the padding
+        meanwhile. The sensor reads those rows back like any other.
+        """
+        if self.last_played_index is None:
+            return 0
+        return max(0, self.last_played_index + 1 - max(self.end_index, self.start_index))
+
 
 @dataclass(slots=True)
 class StreamStats:
@@ -233,6 +245,11 @@ class StreamStats:
     def samples_played(self) -> int:
         """Samples the board applied over all runs."""
         return sum(r.samples_played for r in self.runs)
+
+    @property
+    def padding_played(self) -> int:
+        """Padding rows played after the last sample of short runs (:attr:`RunRecord.padding_played`)."""
+        return sum(r.padding_played for r in self.runs)
 
     @property
     def unexplained_output_loss(self) -> int:
@@ -454,7 +471,9 @@ class Streamer:
                 log.warning("STOP failed: %s", exc)
             self._end_run("stopped", st.last_played_index if st is not None else None)
         self._unsubscribe()
-        time.sleep(5 * self.status_period_s)  # the session accounts a lost sensor tail after 4 periods
+        settle_s = max(1.0, 50 * self.status_period_s)
+        if not self.session.wait_readback_settled(settle_s):
+            log.warning("the last run's sensor readback was not accounted within %g s", settle_s)
         self.check()
         return self.stats
 
