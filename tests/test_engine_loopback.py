@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import re
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -14,6 +16,7 @@ from piezod.cli.ctl import status_text
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
 from piezod.errors import EngineStateError, RangeUnreachableError, SafetyError
 from piezod.recording import read_recording
+from piezod.service import engine as engine_module
 from piezod.service.engine import Engine
 from piezod.service.jobs import Segment
 from piezod.service.schemas import MoveRequest, ScanChange, ScanRequest
@@ -60,6 +63,23 @@ def test_scan_is_streamed_recorded_and_measured(engine: Engine, tmp_path: Path) 
     # the stage followed: the readback spans about the commanded range (uncalibrated model: within 10 %)
     span = np.ptp(rec.position_um[x])
     assert 13.5 < span < 16.5
+
+
+def test_a_slow_block_says_where_its_time_went(
+    engine: Engine, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    # every block reported: the warning splits its time into the lock, the thread's own CPU and
+    # the process's garbage collections (a stall of another thread's making shows as neither)
+    monkeypatch.setattr(engine_module, "SLOW_BLOCK_S", -1.0)
+    with caplog.at_level(logging.WARNING, logger="piezod.service.engine"):
+        time.sleep(0.3)
+    lines = [r.getMessage() for r in caplog.records if "slow block" in r.getMessage()]
+    assert lines, "no block reported"
+    assert re.search(
+        r"slow block: \d+ samples took \d+ ms \(\d+ ms waiting for the engine lock, \d+ ms of this "
+        r"thread's CPU, \d+ ms of garbage collection in the process\), job \w+",
+        lines[-1],
+    ), lines[-1]
 
 
 def test_a_program_recorded_every_nth_sample_keeps_the_clocks_samples(engine: Engine, tmp_path: Path) -> None:

@@ -61,6 +61,7 @@ from piezod.link.session import (
 )
 from piezod.link.streamer import MatchedBlock
 from piezod.readback import SENSOR_RANGE_KEY
+from piezod.service import gcwatch
 from piezod.service.axes import AxisDriver, PeriodicPlan, plan_axes
 from piezod.service.clipping import SensorClips
 from piezod.service.faults import FaultLog, FaultSource, link_event_fault
@@ -148,6 +149,7 @@ class Engine:
             name: AxisDriver(name, axis, self.rate_hz) for name, axis in config.axes.items()
         }
         self._lock = threading.RLock()
+        gcwatch.install()
         self._job: Job = HoldJob("starting")
         self._queue: deque[Job] = deque()
         self._state: EngineState = "starting"
@@ -323,6 +325,8 @@ class Engine:
         out = np.empty((len(self.drivers), n))
         filled = 0
         t_call = time.monotonic()
+        cpu_call = time.thread_time()
+        gc_call = gcwatch.collection_seconds()
         with self._lock:
             t_locked = time.monotonic()
             while filled < n:
@@ -349,10 +353,13 @@ class Engine:
         if t_done - t_call > SLOW_BLOCK_S:
             # a block must be computed in a fraction of the lead; say where the time went
             log.warning(
-                "slow block: %d samples took %.0f ms (%.0f ms waiting for the engine lock), job %s",
+                "slow block: %d samples took %.0f ms (%.0f ms waiting for the engine lock, %.0f ms of "
+                "this thread's CPU, %.0f ms of garbage collection in the process), job %s",
                 n,
                 1e3 * (t_done - t_call),
                 1e3 * (t_locked - t_call),
+                1e3 * (time.thread_time() - cpu_call),
+                1e3 * (gcwatch.collection_seconds() - gc_call),
                 type(self._job).__name__,
             )
         self._index += n
