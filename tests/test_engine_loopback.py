@@ -15,6 +15,7 @@ import pytest
 from piezod.cli.ctl import status_text
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
 from piezod.errors import EngineStateError, RangeUnreachableError, SafetyError
+from piezod.model import kernels
 from piezod.recording import read_recording
 from piezod.service import engine as engine_module
 from piezod.service.engine import Engine
@@ -63,6 +64,27 @@ def test_scan_is_streamed_recorded_and_measured(engine: Engine, tmp_path: Path) 
     # the stage followed: the readback spans about the commanded range (uncalibrated model: within 10 %)
     span = np.ptp(rec.position_um[x])
     assert 13.5 < span < 16.5
+
+
+def test_the_compiled_loops_are_loaded_before_the_stream_starts(
+    sim_config: ScannerConfig,
+    tmp_path: Path,
+    spawn_board: Callable[..., Any],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a model switched in while streaming (the calibrated family model at `piezod calibrate`'s
+    # verification) loaded the loops in the daemon's process then: 0.26 s from numba's cache,
+    # 7.8 s cold, the streaming thread stalled ("slow block", session 40's held-out runs)
+    calls: list[bool] = []
+    with spawn_board(default_sim_config_path()) as sim:
+        eng = Engine(sim_config, sim.path, recording_dir=tmp_path)
+        assert type(eng.drivers["x"].model).__name__ == "ThesisAxisModel"  # needs no compiled loop
+        monkeypatch.setattr(kernels, "warm_up", lambda: calls.append(eng.status().state == "starting"))
+        eng.open()
+        try:
+            assert calls == [True]
+        finally:
+            eng.close()
 
 
 def test_a_slow_block_says_where_its_time_went(
