@@ -9,41 +9,33 @@ thread's own CPU), so a stall can be told from a slow model or a starved process
 from __future__ import annotations
 
 import gc
-import threading
 import time
 from typing import Any
 
-_lock = threading.Lock()
-_started: dict[int, float] = {}
+# Collections never overlap (the collector runs one at a time, holding the interpreter lock), so
+# the callback needs no lock of its own; one taken there could deadlock a thread whose allocation
+# under that lock started the collection.
+_started = 0.0
 _total_s = 0.0
-_installed = False
 
 
 def _callback(phase: str, info: dict[str, Any]) -> None:
-    global _total_s
-    ident = threading.get_ident()
+    global _started, _total_s
     if phase == "start":
-        _started[ident] = time.perf_counter()
-        return
-    t0 = _started.pop(ident, None)
-    if t0 is not None:
-        with _lock:
-            _total_s += time.perf_counter() - t0
+        _started = time.perf_counter()
+    else:
+        _total_s += time.perf_counter() - _started
 
 
 def install() -> None:
     """Start timing the collections of this process (idempotent)."""
-    global _installed
-    with _lock:
-        if not _installed:
-            gc.callbacks.append(_callback)
-            _installed = True
+    if _callback not in gc.callbacks:
+        gc.callbacks.append(_callback)
 
 
 def collection_seconds() -> float:
     """Seconds spent in garbage collections since :func:`install` (all threads)."""
-    with _lock:
-        return _total_s
+    return _total_s
 
 
 __all__ = ["collection_seconds", "install"]
