@@ -371,16 +371,37 @@ def test_corrupted_board_stream_resyncs_and_every_loss_is_counted(config: Scanne
     assert np.all(np.diff(idx) > 0)  # what did arrive is in order, without duplicates
 
 
-class ReaderStalledAfterStop(Transport):
+class WireTap(Transport):
+    """The board's wire as a host transport, with what a test does to the bytes towards the host
+    (:meth:`read`) in a subclass."""
+
+    def __init__(self, inner: Transport) -> None:
+        self.inner = inner
+        self.url = inner.url
+        self.read_timeout_s = inner.read_timeout_s
+        self.write_timeout_s = inner.write_timeout_s
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        return self.inner.read(max_bytes)
+
+    def write(self, data: bytes) -> None:
+        self.inner.write(data)
+
+    def close(self) -> None:
+        self.inner.close()
+
+    @property
+    def closed(self) -> bool:
+        return self.inner.closed
+
+
+class ReaderStalledAfterStop(WireTap):
     """The board's wire, the host's reader held up once, right after the STATUS that shows the
     clock stopped (as a busy machine does): the session meets its deadline for the run's
     missing readback late."""
 
     def __init__(self, inner: Transport, stall_s: float) -> None:
-        self.inner = inner
-        self.url = inner.url
-        self.read_timeout_s = inner.read_timeout_s
-        self.write_timeout_s = inner.write_timeout_s
+        super().__init__(inner)
         self.stall_s = stall_s
         self.stalled = False
         self._running = False
@@ -399,16 +420,6 @@ class ReaderStalledAfterStop(Transport):
                 elif self._running and f.msg.state == BoardState.IDLE:
                     self._stall_next = True
         return data
-
-    def write(self, data: bytes) -> None:
-        self.inner.write(data)
-
-    def close(self) -> None:
-        self.inner.close()
-
-    @property
-    def closed(self) -> bool:
-        return self.inner.closed
 
 
 def test_the_last_runs_lost_readback_is_counted_when_finish_returns(config: ScannerConfig) -> None:
@@ -662,15 +673,12 @@ def test_probe_bad_url_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture
 # -- a confused board: forged, well-framed frames between the board's own ----------------------------
 
 
-class ForgingTransport(Transport):
+class ForgingTransport(WireTap):
     """The board's wire with frames inserted towards the host, between two of the board's frames,
     numbered as the board's next one (the host sees no lost frame to explain them)."""
 
     def __init__(self, inner: Transport, expected_seq: Any) -> None:
-        self.inner = inner
-        self.url = inner.url
-        self.read_timeout_s = inner.read_timeout_s
-        self.write_timeout_s = inner.write_timeout_s
+        super().__init__(inner)
         self.expected_seq = expected_seq  # () -> the seq the host expects next
         self.forged: queue.Queue[Message] = queue.Queue()
         self._pending = b""
@@ -684,16 +692,6 @@ class ForgingTransport(Transport):
             seq = seqs[-1] + 1 if seqs else self.expected_seq()
             out += encode(self.forged.get_nowait(), seq & 0xFFFFFFFF)
         return out
-
-    def write(self, data: bytes) -> None:
-        self.inner.write(data)
-
-    def close(self) -> None:
-        self.inner.close()
-
-    @property
-    def closed(self) -> bool:
-        return self.inner.closed
 
 
 def test_forged_readback_and_status_neither_confuse_the_run_nor_run_ahead(
