@@ -460,9 +460,11 @@ def test_the_padding_a_short_run_played_before_its_stop_is_accounted(
         def __init__(self) -> None:
             self.inner = _source()
             self.calls = 0
+            self.asked = threading.Event()
 
         def next_block(self, n: int) -> np.ndarray:
             self.calls += 1
+            self.asked.set()
             if self.calls > 1:
                 deadline = time.monotonic() + 10.0
                 while not streamer._finishing and time.monotonic() < deadline:
@@ -470,12 +472,15 @@ def test_the_padding_a_short_run_played_before_its_stop_is_accounted(
             return self.inner.next_block(1)
 
     with BoardSession.open(transport_factory=board.connect, config=config, sample_rate_hz=RATE) as s:
-        streamer = Streamer(s, TwoRows(), lead_s=0.05, block_samples=1)
+        source = TwoRows()
+        streamer = Streamer(s, source, lead_s=0.05, block_samples=1)
         streamer.start(0)
+        assert source.asked.wait(10.0)  # a finish() before the first row would leave the run empty
         stats = streamer.finish()
         c = s.counters()
     run = stats.runs[0]
-    assert run.ended_by == "stop" and run.samples_sent == run.samples_played == 2
+    # two rows, or one when finish() began before the feeding thread asked again (CI, session 40)
+    assert run.ended_by == "stop" and 1 <= run.samples_sent == run.samples_played <= 2
     # the clock ran on the padding until the STOP arrived (a round trip is far longer than 2 rows)
     assert run.padding_played > 0 and stats.padding_played == run.padding_played
     assert c.sensor_rows + c.sensor_rows_lost == stats.samples_played + stats.padding_played
