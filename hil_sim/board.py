@@ -36,10 +36,11 @@ handling, which change state together, in different files.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -481,9 +482,8 @@ class Board:
             if isinstance(event, DecodeError):
                 self._on_decode_error(event, now)
             elif isinstance(event, Frame) and event.ack_requested and self._reply_dropped(event):
-                self._held_out.append(self._ep.data_to_send())
-                self._on_frame(event, now)
-                self._ep.data_to_send()  # the reply (and what it triggered) is lost on the way
+                # the reply (and what it triggered) is lost on the way
+                self._lost_on_the_way(functools.partial(self._on_frame, event, now))
                 self.injected["replies_dropped"] += 1
             elif isinstance(event, Frame):
                 self._on_frame(event, now)
@@ -532,6 +532,13 @@ class Board:
         if self._cfg.corrupt_rate > 0.0:
             out = self._corrupt(out, self._cfg.corrupt_rate, "bytes_out")
         return out
+
+    def _lost_on_the_way(self, send: Callable[[], object]) -> None:
+        """Run ``send`` and lose what it writes (the frames keep their sequence numbers): the
+        bytes written before it go out as usual."""
+        self._held_out.append(self._ep.data_to_send())
+        send()
+        self._ep.data_to_send()
 
     def _reply_dropped(self, frame: Frame) -> bool:
         left = self.faults.drop_replies.get(frame.msg.TYPE, 0)
@@ -817,9 +824,7 @@ class Board:
         for lo in range(0, table.shape[0], mspf):
             msg = Sensor(first_row + lo * dec, dec, table[lo : lo + mspf])
             if drop_from is not None and msg.first_index >= drop_from:
-                self._held_out.append(self._ep.data_to_send())
-                self._ep.send(msg, now)
-                self._ep.data_to_send()
+                self._lost_on_the_way(functools.partial(self._ep.send, msg, now))
                 self.injected["frames_dropped"] += 1
                 continue
             self._ep.send(msg, now)

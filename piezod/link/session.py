@@ -1080,20 +1080,23 @@ class BoardSession:
                     raise LinkTimeoutError(f"{self.url}: no matching STATUS within {timeout_s:g} s ({last})")
                 self._cond.wait(left)
 
-    def wait_readback_settled(self, timeout_s: float) -> bool:
+    def wait_readback_settled(self, timeout_s: float | None = None) -> bool:
         """Wait until every sensor row of the stopped run is accounted: read, or counted lost.
 
         The rows a stopped run's readback still lacks are counted lost 4 status periods after
         the STATUS that showed its clock stopped, when the reader next runs; on a busy machine
         that can be well after those 4 periods. Returns at once when no stopped run is open.
+        ``timeout_s`` defaults to the link's silence limit (:attr:`LinkSettings.silence_limit_s`):
+        a reader that has not run for that long belongs to a link that is down.
 
         Returns
         -------
         bool
             False when the run was still open after ``timeout_s`` (e.g. the link broke).
         """
+        wait_s = self.settings.silence_limit_s if timeout_s is None else timeout_s
         with self._lock:
-            return self._cond.wait_for(lambda: self._tail is None, timeout_s)
+            return self._cond.wait_for(lambda: self._tail is None, wait_s)
 
     # -- streaming ------------------------------------------------------------------------------
 
