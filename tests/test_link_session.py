@@ -33,7 +33,7 @@ from firmware_proto import (
 )
 from piezod.cli import main
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
-from piezod.errors import ConfigError, LinkTimeoutError, SafetyError, VersionMismatchError
+from piezod.errors import ConfigError, LinkClosedError, LinkTimeoutError, SafetyError, VersionMismatchError
 from piezod.link.seqwatch import SeqWatch
 from piezod.link.session import (
     BoardCounter,
@@ -449,6 +449,50 @@ def test_the_last_runs_lost_readback_is_counted_when_finish_returns(config: Scan
     assert c.sensor_rows_lost >= 0.04 * RATE and c.sensor_rows_lost_unexplained == 0
     assert c.sensor_rows + c.sensor_rows_lost == stats.samples_played > 0
     assert all(g.explained for g in events.of(SensorGap))
+
+
+class BrokenAfterStop(ReaderStalledAfterStop):
+    """The board's wire, broken (as by an unplug) right after the STATUS that shows the clock
+    stopped, before the run's missing readback is due."""
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        if self._stall_next and not self.stalled:
+            self.stalled = True
+            raise LinkClosedError(f"{self.url}: unplugged (test)")
+        return super().read(max_bytes)
+
+
+def test_a_link_broken_before_the_stopped_runs_readback_was_due_counts_it_lost_at_once(
+    config: ScannerConfig, caplog: pytest.LogCaptureFixture
+) -> None:
+    # the rows the dead connection will never bring were left open until a reconnect dropped
+    # them silently; finish() waited the whole silence limit for them
+    wires: list[BrokenAfterStop] = []
+
+    def connect() -> Transport:
+        wires.append(BrokenAfterStop(b.connect(), stall_s=0.0))
+        return wires[-1]
+
+    with TestBoard(seed=1) as b:
+        events = Events()
+        with BoardSession.open(
+            transport_factory=connect, config=config, sample_rate_hz=RATE, on_event=events
+        ) as s:
+            streamer = Streamer(s, _source(), lead_s=0.05)
+            streamer.start(0)
+            time.sleep(0.3)
+            st = s.status
+            assert st is not None and st.last_played_index != NO_INDEX
+            b.board.faults.drop_sensor_from = st.last_played_index + 1
+            time.sleep(0.05)
+            stats = streamer.finish()
+            c = s.counters()
+    assert wires[0].stalled and stats.runs[0].ended_by == "stop"
+    assert c.link_downs == 1
+    assert c.sensor_rows_lost >= 0.04 * RATE and c.sensor_rows_lost_unexplained == 0
+    assert c.sensor_rows + c.sensor_rows_lost == stats.samples_played > 0
+    assert all(g.explained for g in events.of(SensorGap))
+    assert "was not accounted" not in caplog.text
 
 
 def test_the_padding_a_short_run_played_before_its_stop_is_accounted(

@@ -482,11 +482,16 @@ class BoardSession:
             reqs = list(conn.requests.values())
             conn.requests.clear()
             closing = self._closing or not conn.established  # a failed handshake raises in _connect
+            out: list[LinkEvent] = []
             if not closing:
                 self._tally.add("link_downs")
                 self._down_since = time.monotonic()
                 self._link_broke_in_run = self._sensor_next is not None
+                if self._tail is not None:
+                    # the stopped run's rows still missing would have come on this connection
+                    self._close_sensor_run(self._tail[0], self._down_since, out)
             self._cond.notify_all()
+        self._emit_all(out)
         for r in reqs:
             if not r.done.is_set():
                 r.error = error

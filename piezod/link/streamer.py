@@ -581,13 +581,23 @@ class Streamer:
     def _loop(self) -> None:
         wait = min(max(self.frame_samples / self.rate_hz, 0.002), 0.01)
         while not self._quit.is_set():
-            if self._link_down is not None:
-                raise self._link_down
+            # read before the snapshot: every STATUS the board sent before the link broke is in it
+            link_down = self._link_down
             now = time.monotonic()
             st, st_time, st_count = self.session.status_snapshot()
             fresh = st is not None and st_count > self._status_mark
             if fresh and st is not None and not self._plausible(st, st_count):
                 fresh = False  # nothing the board reported can be trusted: send nothing on it
+            if link_down is not None:
+                # a run the board reported stopped before the break ended as it did, not by the link
+                if (
+                    fresh
+                    and st is not None
+                    and st.state in (BoardState.IDLE, BoardState.RAMPING)
+                    and self._on_status(st, st_time, now, new=st_count != self._seen_count)
+                ):
+                    return
+                raise link_down
             if fresh and st is not None:
                 if self._limit_violation:
                     self.session.stop()
