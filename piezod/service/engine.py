@@ -62,7 +62,7 @@ from piezod.link.session import (
 from piezod.link.streamer import MatchedBlock
 from piezod.model import kernels
 from piezod.readback import SENSOR_RANGE_KEY
-from piezod.service import gcwatch
+from piezod.service import cpuwait, gcwatch
 from piezod.service.axes import AxisDriver, PeriodicPlan, plan_axes
 from piezod.service.clipping import SensorClips
 from piezod.service.faults import FaultLog, FaultSource, link_event_fault
@@ -333,6 +333,7 @@ class Engine:
         t_call = time.monotonic()
         cpu_call = time.thread_time()
         gc_call = gcwatch.collection_seconds()
+        queued_call = cpuwait.run_delay_s()
         with self._lock:
             t_locked = time.monotonic()
             while filled < n:
@@ -358,13 +359,24 @@ class Engine:
         t_done = time.monotonic()
         if t_done - t_call > SLOW_BLOCK_S:
             # a block must be computed in a fraction of the lead; say where the time went
+            queued = cpuwait.run_delay_s() - queued_call
+            took, locked, cpu = t_done - t_call, t_locked - t_call, time.thread_time() - cpu_call
+            if math.isnan(queued):
+                where = "waiting for a core: unknown"
+            else:
+                rest = max(0.0, took - locked - cpu - queued)
+                where = (
+                    f"{1e3 * queued:.0f} ms waiting for a core, {1e3 * rest:.0f} ms blocked otherwise "
+                    "(the interpreter lock held by another thread, or I/O)"
+                )
             log.warning(
                 "slow block: %d samples took %.0f ms (%.0f ms waiting for the engine lock, %.0f ms of "
-                "this thread's CPU, %.0f ms of garbage collection in the process), job %s",
+                "this thread's CPU, %s; %.0f ms of garbage collection in the process), job %s",
                 n,
-                1e3 * (t_done - t_call),
-                1e3 * (t_locked - t_call),
-                1e3 * (time.thread_time() - cpu_call),
+                1e3 * took,
+                1e3 * locked,
+                1e3 * cpu,
+                where,
                 1e3 * (gcwatch.collection_seconds() - gc_call),
                 type(self._job).__name__,
             )
