@@ -34,6 +34,7 @@ from firmware_proto import (
 from piezod.cli import main
 from piezod.config import ScannerConfig, default_sim_config_path, load_config
 from piezod.errors import ConfigError, LinkClosedError, LinkTimeoutError, SafetyError, VersionMismatchError
+from piezod.link.events import LinkCounters
 from piezod.link.seqwatch import SeqWatch
 from piezod.link.session import (
     BoardCounter,
@@ -52,7 +53,7 @@ from piezod.link.session import (
     describe_configure_offset,
     plan_channels,
 )
-from piezod.link.streamer import CodeConverter, MatchedBlock, Streamer, TriangleSource
+from piezod.link.streamer import CodeConverter, MatchedBlock, Streamer, StreamStats, TriangleSource
 from piezod.link.transport import Transport
 
 RATE = 20_000
@@ -422,35 +423,6 @@ class ReaderStalledAfterStop(WireTap):
         return data
 
 
-def test_the_last_runs_lost_readback_is_counted_when_finish_returns(config: ScannerConfig) -> None:
-    # the readback of the run's last 50 ms is lost; the reader stalls for 40 status periods
-    # after the STOP: finish() waited 5 periods and the counters lacked those rows (CI, session 39)
-    wires: list[ReaderStalledAfterStop] = []
-
-    def connect() -> Transport:
-        wires.append(ReaderStalledAfterStop(b.connect(), stall_s=0.4))
-        return wires[-1]
-
-    with TestBoard(seed=1) as b:
-        events = Events()
-        with BoardSession.open(
-            transport_factory=connect, config=config, sample_rate_hz=RATE, on_event=events
-        ) as s:
-            streamer = Streamer(s, _source(), lead_s=0.05)
-            streamer.start(0)
-            time.sleep(0.3)
-            st = s.status
-            assert st is not None and st.last_played_index != NO_INDEX
-            b.board.faults.drop_sensor_from = st.last_played_index + 1
-            time.sleep(0.05)
-            stats = streamer.finish()
-            c = s.counters()
-    assert wires[-1].stalled and stats.runs[0].ended_by == "stop"
-    assert c.sensor_rows_lost >= 0.04 * RATE and c.sensor_rows_lost_unexplained == 0
-    assert c.sensor_rows + c.sensor_rows_lost == stats.samples_played > 0
-    assert all(g.explained for g in events.of(SensorGap))
-
-
 class BrokenAfterStop(ReaderStalledAfterStop):
     """The board's wire, broken (as by an unplug) right after the STATUS that shows the clock
     stopped, before the run's missing readback is due."""
@@ -462,15 +434,15 @@ class BrokenAfterStop(ReaderStalledAfterStop):
         return super().read(max_bytes)
 
 
-def test_a_link_broken_before_the_stopped_runs_readback_was_due_counts_it_lost_at_once(
-    config: ScannerConfig, caplog: pytest.LogCaptureFixture
-) -> None:
-    # the rows the dead connection will never bring were left open until a reconnect dropped
-    # them silently; finish() waited the whole silence limit for them
-    wires: list[BrokenAfterStop] = []
+def _run_losing_its_last_readback(
+    config: ScannerConfig, wire: type[ReaderStalledAfterStop], stall_s: float
+) -> tuple[ReaderStalledAfterStop, StreamStats, LinkCounters, Events]:
+    """Stream 0.3 s, lose the board's readback from then on, finish; the first wire, the
+    streamer's stats, the session's counters and its events."""
+    wires: list[ReaderStalledAfterStop] = []
 
     def connect() -> Transport:
-        wires.append(BrokenAfterStop(b.connect(), stall_s=0.0))
+        wires.append(wire(b.connect(), stall_s=stall_s))
         return wires[-1]
 
     with TestBoard(seed=1) as b:
@@ -487,7 +459,27 @@ def test_a_link_broken_before_the_stopped_runs_readback_was_due_counts_it_lost_a
             time.sleep(0.05)
             stats = streamer.finish()
             c = s.counters()
-    assert wires[0].stalled and stats.runs[0].ended_by == "stop"
+    return wires[0], stats, c, events
+
+
+def test_the_last_runs_lost_readback_is_counted_when_finish_returns(config: ScannerConfig) -> None:
+    # the readback of the run's last 50 ms is lost; the reader stalls for 40 status periods
+    # after the STOP: finish() waited 5 periods and the counters lacked those rows (CI, session 39)
+    wire, stats, c, events = _run_losing_its_last_readback(config, ReaderStalledAfterStop, 0.4)
+    assert wire.stalled and stats.runs[0].ended_by == "stop"
+    assert c.sensor_rows_lost >= 0.04 * RATE and c.sensor_rows_lost_unexplained == 0
+    assert c.sensor_rows + c.sensor_rows_lost == stats.samples_played > 0
+    assert all(g.explained for g in events.of(SensorGap))
+
+
+def test_a_link_broken_before_the_stopped_runs_readback_was_due_counts_it_lost_at_once(
+    config: ScannerConfig, caplog: pytest.LogCaptureFixture
+) -> None:
+    # the rows the dead connection will never bring were left open until a reconnect dropped
+    # them silently; finish() waited the whole silence limit for them, and the run was recorded
+    # as ended by the link although the board had reported it stopped
+    wire, stats, c, events = _run_losing_its_last_readback(config, BrokenAfterStop, 0.0)
+    assert wire.stalled and stats.runs[0].ended_by == "stop"
     assert c.link_downs == 1
     assert c.sensor_rows_lost >= 0.04 * RATE and c.sensor_rows_lost_unexplained == 0
     assert c.sensor_rows + c.sensor_rows_lost == stats.samples_played > 0

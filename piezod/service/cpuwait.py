@@ -10,6 +10,7 @@ not exist (another OS, a kernel without scheduler statistics) the delay is unkno
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import threading
@@ -29,7 +30,8 @@ class _ThreadFile:
 
     def __del__(self) -> None:
         if self.fd >= 0:
-            os.close(self.fd)
+            with contextlib.suppress(OSError):  # already closed at the interpreter's exit
+                os.close(self.fd)
 
 
 def _fd() -> int:
