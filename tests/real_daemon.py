@@ -200,9 +200,10 @@ class RealDaemon:
             self.sim.close()
             self.sim = None
 
-    def sigkill(self) -> None:
+    def sigkill(self, sig: signal.Signals = signal.SIGKILL) -> None:
+        """End the daemon with ``sig`` (a crash: SIGKILL, or SIGSEGV as a faulting extension would)."""
         assert self.proc is not None
-        self.proc.send_signal(signal.SIGKILL)
+        self.proc.send_signal(sig)
         self.proc.wait()
 
     def __exit__(
