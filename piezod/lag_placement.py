@@ -22,11 +22,14 @@ of the readback's residual from the written model's prediction (``post`` after t
 died out, ``pre`` just before it). A drive lag the model leaves out gives ``J < 0``, one it has
 too much of ``J > 0``; ``J`` is close to linear in the time moved between the sensor path and the
 drive, so the time to move is its zero. The calibration moves time from the sensor path to the
-drive (``J < 0``), which keeps the lags' sum the frame's loops pin. The zero is also measured where
-it asks for the other moves -- part of the member's own drive lag to the sensor path (``J > 0``),
-or more drive lag than the sensor path holds (the frame pins the sum loosely: the member's creep
-can take part of a drive lag's rate dependence; :data:`ADDED_MAX`) -- and reported, not made: on
-the stages where they act they made the fastest verified line worse (docs/model-family.md 6.2an).
+drive (``J < 0``) or from the member's own drive lag to the sensor path (``J > 0``), which keeps
+the lags' sum the frame's loops pin. A drive lag left too long drives every line with a lead the
+stage does not need: on held-out stages whose sensor lag the member took at the drive, the
+frame's fast lines came out long against its slow ones (by up to 0.15 %; docs/model-family.md
+6.2bj). The zero is also measured where it asks for more drive lag than the sensor path holds
+(the frame pins the sum loosely: the member's creep can take part of a drive lag's rate
+dependence; :data:`ADDED_MAX`), and reported, not made: on the stage where it acted it made the
+fastest verified line worse (docs/model-family.md 6.2an).
 
 This module is pure numpy (the model's forward and a first-order filter); the stage side plays
 :func:`placement_program` as one recorded segment.
@@ -69,7 +72,7 @@ PATTERNS: tuple[tuple[float, float, int], ...] = (
 PRE_S = (0.15, 0.005)
 POST_AFTER_S = 0.05
 POST_S = 0.15
-#: The sensor path's time moved to the drive is adopted when the jumps at it are at most this
+#: A move (either way) is adopted when the jumps at it are at most this
 #: fraction of the jumps at none moved (RMS over the patterns).
 ADOPT_FRACTION = 0.5
 #: ... and the time is at least this much (s): less is below what a 20 Hz line feels.
@@ -295,8 +298,8 @@ class LagPlacement:
         drive lag moved to the sensor path) to ``movable_s`` plus :func:`added_limit_s` (drive lag
         added beyond the sensor path's).
     moved_s
-        The move the calibration makes: ``placed_s`` within ``[0, movable_s]`` (the sensor path
-        to the drive; the other directions are reported, not made: docs/model-family.md 6.2an).
+        The move the calibration makes: ``placed_s`` within ``[-drive_lag_s, movable_s]`` (more
+        drive lag than the sensor path holds is reported, not made: docs/model-family.md 6.2an).
     jumps_um
         Per pattern, ``J`` of the written model (um).
     jumps_moved_um
@@ -331,7 +334,8 @@ def place_lag(
     sensor path to the drive when they are negative, or :func:`added_limit_s` at the drive when
     there is none; the member's whole drive lag to the sensor path when positive), the zero of
     their mean taken by the secant (they are close to linear in it). The part of it that moves
-    the sensor path to the drive is the move, checked there; the rest is reported.
+    the sensor path to the drive, or the member's drive lag to the sensor path, is the move,
+    checked there; more drive lag than the sensor path holds is reported.
 
     Returns
     -------
@@ -374,12 +378,18 @@ def place_lag(
         j1 = float(np.nanmean(jumps_at(end)))
         placed = end * j0 / (j0 - j1) if j0 != j1 else 0.0
         placed = float(np.clip(placed, -back, hi) if placed * end > 0.0 else 0.0)
-    moved = float(np.clip(placed, 0.0, forward))
+    moved = float(np.clip(placed, -back, forward))
     at_moved = jumps_at(moved)
     before, after = _rms(at_none), _rms(at_moved)
-    adopted = moved >= MIN_MOVED_S and after <= ADOPT_FRACTION * before
+    adopted = abs(moved) >= MIN_MOVED_S and after <= ADOPT_FRACTION * before
     n = int(np.isfinite(at_none).sum())
-    if forward > 0.0:
+    if moved < 0.0:
+        verdict = "moved to the sensor" if adopted else "left at the drive"
+        note = (
+            f"lag placement: {-moved * 1e3:.3f} of the member's {back * 1e3:.3f} ms drive lag at the sensor "
+            f"(spike jumps {before * 1e3:.1f} -> {after * 1e3:.1f} nm RMS over {n} patterns): {verdict}"
+        )
+    elif forward > 0.0:
         verdict = "moved to the drive" if adopted else "left at the sensor"
         note = (
             f"lag placement: {moved * 1e3:.3f} of the sensor path's {forward * 1e3:.3f} ms at the drive "
@@ -390,13 +400,9 @@ def place_lag(
             f"lag placement: no sensor path to move to the drive "
             f"(spike jumps {before * 1e3:.1f} nm RMS over {n} patterns)"
         )
-    if abs(placed - moved) >= MIN_MOVED_S:
+    if placed - moved >= MIN_MOVED_S:
         there = _rms(jumps_at(placed))
-        asked = (
-            f"{-placed * 1e3:.3f} of the member's {back * 1e3:.3f} ms drive lag at the sensor"
-            if placed < 0.0
-            else f"{(placed - forward) * 1e3:.3f} ms more drive lag than written"
-        )
+        asked = f"{(placed - forward) * 1e3:.3f} ms more drive lag than written"
         note += f"; the jumps' zero asks for {asked} ({there * 1e3:.1f} nm there): reported, not made"
     return LagPlacement(
         forward,

@@ -1199,13 +1199,17 @@ def with_lag_placed(
     ramp_v_per_s: float = 0.0,
     rest_voltage_v: float = 0.0,
 ) -> ThesisFit:
-    """``fit`` with as much of its sensor path at the drive as the lag placement experiment places
-    there (:func:`piezod.lag_placement.place_lag`; what else its jumps ask for is reported, not
-    made); unchanged without the experiment or a sensor path.
+    """``fit`` with its lags where the lag placement experiment places them
+    (:func:`piezod.lag_placement.place_lag`): as much of its sensor path at the drive as it places
+    there, or as much of the family member's own drive lag at the sensor (more drive lag than the
+    sensor path holds is reported, not made); unchanged without the experiment or a lag to move.
 
-    With the frame's ``experiments`` the family member is then refitted with its drive lag held
-    there (:func:`refit_at_drive_lag`): fitted with the lag at the sensor, its creep took the
-    rate dependence the lag gives the loops, and a moved lag beside it would count that twice.
+    When time moves to the drive, with the frame's ``experiments`` the family member is then
+    refitted with its drive lag held there (:func:`refit_at_drive_lag`): fitted with the lag at the
+    sensor, its creep took the rate dependence the lag gives the loops, and a moved lag beside it
+    would count that twice. When the member's drive lag moves to the sensor the member is kept:
+    on eight held-out stages the refit moved the verified lines more than the move itself, and
+    the kept member's lines came nearer to each other (docs/model-family.md 6.2bj).
     The report gets ``lag_placement`` and the step's note under ``adopted`` or ``skipped``.
     """
     from piezod import calibrate_family as cf
@@ -1224,7 +1228,9 @@ def with_lag_placed(
         if found is None or not found.adopted:
             return config, found
         moved = moved_config(config, axis, found.moved_s)
-        if not experiments or member is None:
+        # A member's drive lag moved to the sensor keeps the member: refitted there, it moved the
+        # verified lines by more than the move did (docs/model-family.md 6.2bj).
+        if found.moved_s < 0.0 or not experiments or member is None:
             return moved, found
         moved, refit["heldout_rms_um"] = refit_at_drive_lag(
             experiments,

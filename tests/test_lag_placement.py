@@ -101,21 +101,23 @@ def test_nothing_to_place_on_a_model_without_a_drive_lag() -> None:
     assert place_lag(exp, program, config, "x") is None
 
 
-def test_a_drive_lag_the_member_has_too_much_of_is_reported_not_moved() -> None:
+def test_a_drive_lag_the_member_has_too_much_of_moves_to_the_sensor() -> None:
     base = load_config(CONFIG)
     exp, program = _recorded(_with_lags(base, drive_s=2.0e-4, sensor_s=4.0e-4))
     written = _with_lags(base, drive_s=6.0e-4, sensor_s=0.0)
     found = place_lag(exp, program, written, "x")  # type: ignore[arg-type]
-    assert found is not None and not found.adopted and found.moved_s == 0.0
+    assert found is not None and found.adopted
     assert found.drive_lag_s == pytest.approx(6.0e-4)
-    assert found.placed_s == pytest.approx(-4.0e-4, rel=0.15)
+    assert found.moved_s == found.placed_s == pytest.approx(-4.0e-4, rel=0.15)
     assert all(j > 0 for j in found.jumps_um)
-    assert (
-        "of the member's 0.600 ms drive lag at the sensor" in found.note
-        and "reported, not made" in found.note
-    )
-    placed = moved_config(written, "x", found.placed_s).axes["x"]
+    rms = [float(np.sqrt(np.mean(np.square(j)))) for j in (found.jumps_um, found.jumps_moved_um)]
+    assert rms[1] < 0.2 * rms[0], rms
+    assert "of the member's 0.600 ms drive lag at the sensor" in found.note
+    assert "moved to the sensor" in found.note
+    assert "reported, not made" not in found.note
+    placed = moved_config(written, "x", found.moved_s).axes["x"]
     assert placed.family is not None
+    assert placed.family.lag_time_constant_s == pytest.approx(2.0e-4, rel=0.3)
     assert placed.family.lag_time_constant_s + placed.sensor_path().lag_time_constant_s == pytest.approx(
         6.0e-4
     )
@@ -184,3 +186,18 @@ def test_the_calibration_step_moves_the_lag_and_says_so() -> None:
         and "moved to the drive" in fit.report["adopted"][-1]
     )
     assert with_lag_placed(None, "x", fit) is fit
+
+
+def test_the_calibration_step_moves_a_drive_lag_to_the_sensor_and_says_so() -> None:
+    from piezod.stagecal import ThesisFit, with_lag_placed
+
+    base = load_config(CONFIG)
+    exp, program = _recorded(_with_lags(base, drive_s=1e-4, sensor_s=7e-4))
+    written = _with_lags(base, drive_s=8e-4, sensor_s=0.0)
+    fit = with_lag_placed((exp, program), "x", ThesisFit({"adopted": []}, written, 0.01))  # type: ignore[arg-type]
+    placed = fit.config.axes["x"]
+    assert placed.family is not None and placed.family.lag_time_constant_s == pytest.approx(1e-4, abs=1e-4)
+    assert placed.sensor_path().lag_time_constant_s == pytest.approx(7e-4, rel=0.15)
+    assert fit.report["lag_placement"]["adopted"] is True and fit.report["lag_placement"]["moved_s"] < 0.0
+    note = fit.report["adopted"][-1]
+    assert note.startswith("lag placement:") and "moved to the sensor" in note
