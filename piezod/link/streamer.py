@@ -588,16 +588,6 @@ class Streamer:
             fresh = st is not None and st_count > self._status_mark
             if fresh and st is not None and not self._plausible(st, st_count):
                 fresh = False  # nothing the board reported can be trusted: send nothing on it
-            if link_down is not None:
-                # a run the board reported stopped before the break ended as it did, not by the link
-                if (
-                    fresh
-                    and st is not None
-                    and st.state in (BoardState.IDLE, BoardState.RAMPING)
-                    and self._on_status(st, st_time, now, new=st_count != self._seen_count)
-                ):
-                    return
-                raise link_down
             if fresh and st is not None:
                 if self._limit_violation:
                     self.session.stop()
@@ -618,6 +608,9 @@ class Streamer:
                 acked_played = played
             else:
                 est_played = acked_played = self._run_start() - 1
+            if link_down is not None:
+                # after what the board reported before the break: a run it reported stopped ended so
+                raise link_down
             target = est_played + 1 + self.fill_samples
             limit = min(self._credit, target)
             if self._finishing:
