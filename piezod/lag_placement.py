@@ -383,16 +383,16 @@ def place_lag(
     before, after = _rms(at_none), _rms(at_moved)
     adopted = abs(moved) >= MIN_MOVED_S and after <= ADOPT_FRACTION * before
     n = int(np.isfinite(at_none).sum())
-    if moved < 0.0:
-        verdict = "moved to the sensor" if adopted else "left at the drive"
+    if moved < 0.0 or forward > 0.0:
+        if moved < 0.0:
+            what = f"{-moved * 1e3:.3f} of the member's {back * 1e3:.3f} ms drive lag at the sensor"
+            made, left = "sensor", "drive"
+        else:
+            what = f"{moved * 1e3:.3f} of the sensor path's {forward * 1e3:.3f} ms at the drive"
+            made, left = "drive", "sensor"
+        verdict = f"moved to the {made}" if adopted else f"left at the {left}"
         note = (
-            f"lag placement: {-moved * 1e3:.3f} of the member's {back * 1e3:.3f} ms drive lag at the sensor "
-            f"(spike jumps {before * 1e3:.1f} -> {after * 1e3:.1f} nm RMS over {n} patterns): {verdict}"
-        )
-    elif forward > 0.0:
-        verdict = "moved to the drive" if adopted else "left at the sensor"
-        note = (
-            f"lag placement: {moved * 1e3:.3f} of the sensor path's {forward * 1e3:.3f} ms at the drive "
+            f"lag placement: {what} "
             f"(spike jumps {before * 1e3:.1f} -> {after * 1e3:.1f} nm RMS over {n} patterns): {verdict}"
         )
     else:
