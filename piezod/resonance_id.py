@@ -23,7 +23,10 @@ term alone. The resonance is adopted when
   :data:`MIN_HARMONIC` times the fastest line rate and below 0.4 times the sample rate;
 * it predicts the held-out experiments (every fourth, as the model choice holds out) better: their
   high-passed residual RMS falls by at least :data:`MIN_GAIN` of what it has above the readback's
-  noise floor (:func:`piezod.fitstats.lowers`; the high pass keeps white noise nearly whole).
+  noise floor (:func:`piezod.fitstats.lowers`; the high pass keeps white noise nearly whole), the
+  floor as the readback aligned by the sensor path carries it
+  (:meth:`piezod.model.sensor.SensorPath.noise_gain`: interpolating a fractional delay smooths the
+  noise, and the raw floor could exceed the whole residual).
 """
 
 from __future__ import annotations
@@ -248,7 +251,8 @@ def identify_resonance(
         why.append(f"Q {q:.3g} < {MIN_Q:g}: it does not ring")
     if not f_lo * 1.0001 < f0 < f_hi * 0.9999:
         why.append(f"f0 on the search's bound [{f_lo:.4g}, {f_hi:.4g}] Hz")
-    floor = experiments_noise_floor([e for i, e in enumerate(experiments) if _held_out(i, every)])
+    raw_floor = experiments_noise_floor([e for i, e in enumerate(experiments) if _held_out(i, every)])
+    floor = raw_floor * config.sensor_path().noise_gain(dt)
     if not (ho[1] == ho[0] == 0.0 or lowers(ho[1], ho[0], MIN_GAIN, floor)):
         why.append(f"held-out gain below {100 * MIN_GAIN:g} %")
     adopted = not why

@@ -60,6 +60,30 @@ def test_align_does_not_amplify_the_sensor_noise() -> None:
     assert np.sqrt(np.mean((xa - x[: tk.size]) ** 2)) < 1.2 * noise
 
 
+@pytest.mark.parametrize(
+    ("delay_samples", "lag_samples", "expected"),
+    [
+        (0.0, 0.0, 1.0),
+        (0.5, 0.0, 0.5**0.5),
+        (2.5, 0.0, 0.5**0.5),
+        (2.0, 0.0, 1.0),
+        (1.2, 1.2, None),
+        (0.0, 4.0, None),
+    ],
+)
+def test_noise_gain_is_what_aligning_does_to_white_noise(
+    delay_samples: float, lag_samples: float, expected: float | None
+) -> None:
+    dt = 2.5e-4
+    path = SensorPath(delay_samples * dt, lag_samples * dt)
+    y = np.random.default_rng(5).normal(0.0, 1.0, 200_000)
+    _, x = path.align(np.arange(y.size) * dt, y)
+    gain = path.noise_gain(dt)
+    assert gain == pytest.approx(float(np.std(x[1000:-1000])), rel=0.01)
+    if expected is not None:
+        assert gain == pytest.approx(expected, rel=1e-9)
+
+
 def test_the_sensor_path_is_in_the_yaml_but_not_in_the_drive() -> None:
     base = {"voltage_min_v": -230.0, "voltage_max_v": 230.0, "thesis": THESIS, "model": "thesis"}
     ax = AxisConfig(**base, extensions={"delay": {"delay_s": D, "lag_time_constant_s": TAU}})

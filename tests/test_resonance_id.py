@@ -22,9 +22,9 @@ THESIS = ThesisModelConfig(
 CONFIG = AxisConfig(voltage_min_v=-30.0, voltage_max_v=150.0, thesis=THESIS)
 
 
-def _frame(f0: float | None, q: float, noise_um: float = 0.002) -> list[Experiment]:
+def _frame(f0: float | None, q: float, noise_um: float = 0.002, delay_s: float = 0.0) -> list[Experiment]:
     """Triangles over 3 ranges x 3 rates (3 loops each) through the axis's own model, then through a
-    resonance (exact, from rest) when ``f0`` is given, plus sensor noise."""
+    resonance (exact, from rest) when ``f0`` is given, read ``delay_s`` late, plus sensor noise."""
     rng = np.random.default_rng(3)
     model = axis_model(CONFIG)
     out = []
@@ -35,8 +35,9 @@ def _frame(f0: float | None, q: float, noise_um: float = 0.002) -> list[Experime
             v = range_v * np.where(phase < 0.5, 2.0 * phase, 2.0 - 2.0 * phase)
             x, _ = model.forward(v, 1.0 / RATE, model.rest(0.0))
             y = x if f0 is None else resonance(x, 1.0 / RATE, f0, q, 0)
-            y = y + rng.normal(0.0, noise_um, y.size)
-            out.append(Experiment(f"R{range_v:g}_f{f:g}", "x", np.arange(v.size) / RATE, v, y))
+            t = np.arange(v.size) / RATE
+            y = np.interp(t - delay_s, t, y) + rng.normal(0.0, noise_um, y.size)
+            out.append(Experiment(f"R{range_v:g}_f{f:g}", "x", t, v, y))
     return out
 
 
@@ -47,6 +48,21 @@ def test_a_ringing_stage_is_found_and_adopted() -> None:
     assert found.q == pytest.approx(15.0, rel=0.1)
     assert found.heldout_rms_um[1] <= (1.0 - MIN_GAIN) * found.heldout_rms_um[0]
     assert "adopted" in found.note and found.effect == {"f0_hz": found.f0_hz, "q": found.q}
+
+
+def test_a_mode_is_judged_against_the_noise_the_aligned_readback_carries() -> None:
+    """A readback 2.5 samples late is aligned by interpolating halfway between samples, which halves
+    the noise's variance: against the raw readback's floor the residual had no excess to lower, and
+    a mode that rings was refused (rowan49, docs/model-family.md 6.2bl)."""
+    late = 2.5 / RATE
+    delay = {"delay_s": late, "lag_time_constant_s": 0.0}
+    config = CONFIG.model_copy(update={"extensions": {"delay": delay}})
+    found = identify_resonance(_frame(350.0, 8.0, noise_um=0.008, delay_s=late), config)
+    assert found is not None and found.adopted, found
+    assert found.f0_hz == pytest.approx(350.0, rel=0.02)
+    assert found.heldout_rms_um[0] < 0.008  # below the raw readback's noise
+    none = identify_resonance(_frame(None, 1.0, noise_um=0.008, delay_s=late), config)
+    assert none is None or not none.adopted
 
 
 def test_a_stage_without_a_mode_gets_none() -> None:
