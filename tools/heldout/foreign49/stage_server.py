@@ -1,12 +1,12 @@
 #!/usr/bin/env python3
 """Held-out stage "foreign49": the real hil_sim board and protocol around a stage of foreign physics.
 
-    PYTHONPATH=/work/main python /tmp/foreign49/stage_server.py --link /tmp/foreign49/link
+    PYTHONPATH=. python tools/heldout/foreign49/stage_server.py --link /tmp/foreign49/link
 
 Serves the simulated DAC / HV-amplifier board (``hil_sim.board.Board``, unchanged) on a real pty
 with ``hil_sim.server.SimServer``, keeps the symlink at ``--link``, prints the public path on
 stdout once ready and logs to stderr, until SIGTERM / SIGINT. The host uses
-``/tmp/foreign49/scanner.yaml`` (``--config``) with ``--port <link>``.
+``tools/heldout/foreign49/scanner.yaml`` (``--config``) with ``--port <link>``.
 
 BLIND TEST: whoever runs the controller against this stage should not read below this docstring
 before the run; the physics lives in this file only (not in the scanner YAML).
@@ -234,8 +234,29 @@ def _lin2(u, phi, g, st, out):  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _hysteresis(
-    v, dt, r, w_r, cents, nu, a, rho0, b, s_v, kappa, t_ref, g_min, g_max,
-    eta_m, eta_o, sig_m, sig_a, a0, p, contrib, st, out_d,
+    v,
+    dt,
+    r,
+    w_r,
+    cents,
+    nu,
+    a,
+    rho0,
+    b,
+    s_v,
+    kappa,
+    t_ref,
+    g_min,
+    g_max,
+    eta_m,
+    eta_o,
+    sig_m,
+    sig_a,
+    a0,
+    p,
+    contrib,
+    st,
+    out_d,
 ):  # pragma: no cover - compiled
     """KP hysteresis with thermally activated half-widths and accommodation, one channel.
 
@@ -433,7 +454,7 @@ class ForeignStage(Stage):
     BIN_CAPACITY = 8192
     MAX_CHUNK = 256
 
-    def __init__(self, seed: int = 0, truth: str | None = None, truth_every: int = 10) -> None:  # noqa: D107
+    def __init__(self, seed: int = 0, truth: str | None = None, truth_every: int = 10) -> None:
         self._p = PARAMS
         self._seed = int(seed)
         self._disc = _Discrete(self._p)
@@ -445,7 +466,8 @@ class ForeignStage(Stage):
         self._nu = np.empty((C, self._c.size))
         for ch in range(C):
             w = np.exp(-self._r / p["kp_r_decay_v"][ch])
-            nu = (1.0 + p["kp_c_tilt"][ch] * self._c / 250.0) * np.exp(-((self._c / p["kp_c_taper_v"][ch]) ** 2))
+            taper = np.exp(-((self._c / p["kp_c_taper_v"][ch]) ** 2))
+            nu = (1.0 + p["kp_c_tilt"][ch] * self._c / 250.0) * taper
             # normalise: the KP part's mean small-signal slope over +-200 V is 1 - rho0
             grid = np.linspace(-200.0, 200.0, 401)
             a = p["kp_a_v"][ch]
@@ -600,10 +622,29 @@ class ForeignStage(Stage):
         d = np.empty_like(v)
         for ch in range(C):
             _hysteresis(
-                vc[ch], dt, self._r, self._w_r[ch], self._c, self._nu[ch], p["kp_a_v"][ch], p["rho0"][ch],
-                p["b_um_per_v"][ch], p["ta_s_v"][ch], p["ta_kappa"][ch], p["ta_t_ref_s"], p["ta_g_min"],
-                p["ta_g_max"], p["acc_eta_m_per_v"], p["acc_eta_o_per_v"], p["acc_sigma_m"][ch],
-                p["acc_sigma_a"][ch], p["acc_a0_v"], s.plays[ch], s.contrib[ch], s.hyst[ch], d[ch],
+                vc[ch],
+                dt,
+                self._r,
+                self._w_r[ch],
+                self._c,
+                self._nu[ch],
+                p["kp_a_v"][ch],
+                p["rho0"][ch],
+                p["b_um_per_v"][ch],
+                p["ta_s_v"][ch],
+                p["ta_kappa"][ch],
+                p["ta_t_ref_s"],
+                p["ta_g_min"],
+                p["ta_g_max"],
+                p["acc_eta_m_per_v"],
+                p["acc_eta_o_per_v"],
+                p["acc_sigma_m"][ch],
+                p["acc_sigma_a"][ch],
+                p["acc_a0_v"],
+                s.plays[ch],
+                s.contrib[ch],
+                s.hyst[ch],
+                d[ch],
             )
         # 5. creep
         c = self._creep(d, t0, dt)
@@ -647,8 +688,19 @@ class ForeignStage(Stage):
         out = np.empty_like(d)
         for ch in range(C):
             _creep_block(
-                d[ch], t0, dt, p["creep_gamma"][ch], p["creep_beta"][ch], p["creep_tau0_s"][ch],
-                s.fir[ch], s.nfir, s.bs[ch], s.be[ch], s.bd[ch], int(s.nb[ch]), out[ch],
+                d[ch],
+                t0,
+                dt,
+                p["creep_gamma"][ch],
+                p["creep_beta"][ch],
+                p["creep_tau0_s"][ch],
+                s.fir[ch],
+                s.nfir,
+                s.bs[ch],
+                s.be[ch],
+                s.bd[ch],
+                int(s.nb[ch]),
+                out[ch],
             )
         # the block joins the FIR buffer; what falls out of it joins the bins
         s.fir_dt = dt
