@@ -1,0 +1,82 @@
+#!/usr/bin/env python3
+"""foreign49's stage in process, parts of its physics switched off, under a written scanner YAML.
+
+    OMP_NUM_THREADS=1 python tools/heldout/foreign49/take_apart.py F.yaml [noenv] [noacc] [nota] [nocreep]
+
+Plays ``piezod calibrate``'s frame and verification points (``tools/model_family_verify.py
+--skip-dynamic --verify F.yaml``) on :class:`stage_server.ForeignStage`'s x axis (y and z held at
+0 V) instead of a hil_sim stage, with the named parts off: ``noenv`` the warm-up and the HVAC cycle,
+``noacc`` the accommodation, ``nota`` the thermally activated loop widths, ``nocreep`` the creep.
+``F.yaml`` is what ``piezod calibrate --port`` wrote on the stage (docs/model-family.md 6.2bm).
+"""
+
+from __future__ import annotations
+
+import copy
+import importlib.util
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[2]
+sys.path.insert(0, str(HERE))
+
+import stage_server as fs  # noqa: E402
+
+SWITCHES = {
+    "noenv": ("env_warm_k", "env_hvac_k"),
+    "noacc": ("acc_sigma_m", "acc_sigma_a"),
+    "nota": ("ta_kappa",),
+    "nocreep": ("creep_gamma",),
+}
+
+
+class OneAxis:
+    """The foreign stage's x axis as the one-axis stage :class:`piezod.effects_bench.StageBench` drives."""
+
+    def __init__(self, seed: int) -> None:
+        self.stage = fs.ForeignStage(seed=seed)
+
+    def step(self, voltage_v: Any, dt_s: float) -> np.ndarray:
+        v = np.asarray(voltage_v, dtype=np.float64)
+        return np.asarray(self.stage.step(np.stack([v, np.zeros_like(v), np.zeros_like(v)]), dt_s)[0])
+
+    def sense(self, position_um: Any, lsb_um: float | None = None) -> np.ndarray:
+        return self.stage.sense(position_um)
+
+
+def main(argv: list[str]) -> int:
+    if not argv or any(a not in SWITCHES for a in argv[1:]):
+        print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
+        return 2
+    params = copy.deepcopy(fs.PARAMS)
+    for name in argv[1:]:
+        for key in SWITCHES[name]:
+            params[key] = params[key] * 0.0
+    fs.PARAMS.clear()
+    fs.PARAMS.update(params)
+    # the verification tool reads the base config (limits, rate) and a simulation section from one
+    # YAML; the section is a placeholder: the stage below replaces whatever it describes
+    scanner = yaml.safe_load((HERE / "scanner.yaml").read_text())
+    scanner["simulation"] = yaml.safe_load((ROOT / "configs" / "sim-stage.yaml").read_text())["simulation"]
+    with tempfile.TemporaryDirectory() as tmp:
+        stage_yaml = Path(tmp) / "foreign49-stage.yaml"
+        stage_yaml.write_text(yaml.safe_dump(scanner, sort_keys=False))
+        tool = ROOT / "tools" / "model_family_verify.py"
+        spec = importlib.util.spec_from_file_location("model_family_verify", tool)
+        assert spec is not None and spec.loader is not None
+        mfv = importlib.util.module_from_spec(spec)
+        sys.modules["model_family_verify"] = mfv
+        spec.loader.exec_module(mfv)
+        mfv.Stage = lambda cfg, axes=None: OneAxis(7)
+        sys.argv = [tool.name, "--stage", str(stage_yaml), "--skip-dynamic", "--verify", argv[0]]
+        return int(mfv.main())
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
