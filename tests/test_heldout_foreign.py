@@ -1,0 +1,52 @@
+"""The held-out stage of foreign physics (tools/heldout/foreign49) still serves the real protocol.
+
+docs/model-family.md 6.2bm gives the commands that calibrate piezod on it over ``--port``; this
+keeps them runnable: the stage server starts on a real pty, ``piezod probe`` completes the
+handshake over it, and SIGTERM ends it cleanly.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SERVER = ROOT / "tools" / "heldout" / "foreign49" / "stage_server.py"
+
+
+def test_the_foreign_stage_serves_the_protocol_on_a_pty(tmp_path: Path) -> None:
+    link = tmp_path / "link"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    server = subprocess.Popen(
+        [sys.executable, str(SERVER), "--link", str(link)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+        text=True,
+    )
+    try:
+        assert server.stdout is not None
+        printed = server.stdout.readline().strip()  # once ready (after compiling its loops)
+        assert printed == str(link), server.stderr.read() if server.stderr else ""
+        probe = subprocess.run(
+            [sys.executable, "-m", "piezod", "probe", str(link), "--timeout", "20", "--json", "-"],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=120,
+        )
+        assert probe.returncode == 0, probe.stderr
+        assert json.loads(probe.stdout)
+    finally:
+        server.send_signal(signal.SIGTERM)
+        try:
+            rc = server.wait(timeout=30)
+        finally:
+            if server.poll() is None:
+                server.kill()
+    assert rc == 0
+    assert not link.exists()
