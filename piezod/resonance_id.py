@@ -251,8 +251,8 @@ def identify_resonance(
         why.append(f"Q {q:.3g} < {MIN_Q:g}: it does not ring")
     if not f_lo * 1.0001 < f0 < f_hi * 0.9999:
         why.append(f"f0 on the search's bound [{f_lo:.4g}, {f_hi:.4g}] Hz")
-    raw_floor = experiments_noise_floor([e for i, e in enumerate(experiments) if _held_out(i, every)])
-    floor = raw_floor * config.sensor_path().noise_gain(dt)
+    held_raw = [e for i, e in enumerate(experiments) if _held_out(i, every)]
+    floor = experiments_noise_floor(held_raw) * config.sensor_path().noise_gain(dt)
     if not (ho[1] == ho[0] == 0.0 or lowers(ho[1], ho[0], MIN_GAIN, floor)):
         why.append(f"held-out gain below {100 * MIN_GAIN:g} %")
     adopted = not why

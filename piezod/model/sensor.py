@@ -130,6 +130,12 @@ class SensorPath:
         ----------
         dt_s
             The readback's sample interval (s).
+
+        Returns
+        -------
+        float
+            The aligned noise's RMS over the raw noise's (1 for the identity path): the RMS of the
+            align filter's impulse response.
         """
         if self.identity:
             return 1.0
