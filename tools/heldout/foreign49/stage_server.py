@@ -142,7 +142,7 @@ def _second_order(f_hz: float, zeta: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True)
-def _expm(m):  # pragma: no cover - compiled
+def _expm(m: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """Matrix exponential of a small matrix: scaling and squaring of a 16-term Taylor series."""
     n = m.shape[0]
     norm = 0.0
@@ -218,7 +218,9 @@ class _Discrete:
 
 
 @njit(cache=True)
-def _lin2(u, phi, g, st, out):  # pragma: no cover - compiled
+def _lin2(
+    u: np.ndarray, phi: np.ndarray, g: np.ndarray, st: np.ndarray, out: np.ndarray
+) -> None:  # pragma: no cover - compiled
     """Second-order FOH filter of one channel; st = [y, y', u_prev]; out = y."""
     y0, y1, up = st[0], st[1], st[2]
     p00, p01, p10, p11 = phi[0, 0], phi[0, 1], phi[1, 0], phi[1, 1]
@@ -234,30 +236,30 @@ def _lin2(u, phi, g, st, out):  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _hysteresis(
-    v,
-    dt,
-    r,
-    w_r,
-    cents,
-    nu,
-    a,
-    rho0,
-    b,
-    s_v,
-    kappa,
-    t_ref,
-    g_min,
-    g_max,
-    eta_m,
-    eta_o,
-    sig_m,
-    sig_a,
-    a0,
-    p,
-    contrib,
-    st,
-    out_d,
-):  # pragma: no cover - compiled
+    v: np.ndarray,
+    dt: float,
+    r: np.ndarray,
+    w_r: np.ndarray,
+    cents: np.ndarray,
+    nu: np.ndarray,
+    a: float,
+    rho0: float,
+    b: float,
+    s_v: float,
+    kappa: float,
+    t_ref: float,
+    g_min: float,
+    g_max: float,
+    eta_m: float,
+    eta_o: float,
+    sig_m: float,
+    sig_a: float,
+    a0: float,
+    p: np.ndarray,
+    contrib: np.ndarray,
+    st: np.ndarray,
+    out_d: np.ndarray,
+) -> None:  # pragma: no cover - compiled
     """KP hysteresis with thermally activated half-widths and accommodation, one channel.
 
     st = [T, v_prev, m, A, o, offset0]; p, contrib: per half-width play state / KP output.
@@ -317,7 +319,7 @@ def _hysteresis(
 
 
 @njit(cache=True)
-def _jc(t, gamma, beta, tau0):  # pragma: no cover - compiled
+def _jc(t: float, gamma: float, beta: float, tau0: float) -> float:  # pragma: no cover - compiled
     """Creep compliance J(t) (fraction of the motion), 0 for t <= 0."""
     if t <= 0.0:
         return 0.0
@@ -325,7 +327,17 @@ def _jc(t, gamma, beta, tau0):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _bins_at(t, bs, be, bd, lo, hi, gamma, beta, tau0):  # pragma: no cover - compiled
+def _bins_at(
+    t: float,
+    bs: np.ndarray,
+    be: np.ndarray,
+    bd: np.ndarray,
+    lo: int,
+    hi: int,
+    gamma: float,
+    beta: float,
+    tau0: float,
+) -> float:  # pragma: no cover - compiled
     s = 0.0
     for q in range(lo, hi):
         s += bd[q] * (_jc(t - bs[q], gamma, beta, tau0) - _jc(t - be[q], gamma, beta, tau0))
@@ -334,8 +346,20 @@ def _bins_at(t, bs, be, bd, lo, hi, gamma, beta, tau0):  # pragma: no cover - co
 
 @njit(cache=True)
 def _creep_block(
-    d, t0, dt, gamma, beta, tau0, fir, nfir, bs, be, bd, nb, out_c
-):  # pragma: no cover - compiled
+    d: np.ndarray,
+    t0: float,
+    dt: float,
+    gamma: float,
+    beta: float,
+    tau0: float,
+    fir: np.ndarray,
+    nfir: int,
+    bs: np.ndarray,
+    be: np.ndarray,
+    bd: np.ndarray,
+    nb: int,
+    out_c: np.ndarray,
+) -> None:  # pragma: no cover - compiled
     """Creep of one channel over a block: C_k = int J'(t_k - s) D(s) ds (D held over each sample).
 
     History: bins [bs, be) of mean D (oldest first, nb of them) up to the FIR buffer's start, then
@@ -395,7 +419,9 @@ def _creep_block(
 
 
 @njit(cache=True)
-def _merge_bins(t_now, eps, bs, be, bd, nb):  # pragma: no cover - compiled
+def _merge_bins(
+    t_now: float, eps: float, bs: np.ndarray, be: np.ndarray, bd: np.ndarray, nb: int
+) -> int:  # pragma: no cover - compiled
     """Merge neighbouring bins (from the newest) while a group spans at most eps x its age."""
     if nb <= 1:
         return nb
@@ -511,7 +537,7 @@ class ForeignStage(Stage):
         return self._s.time_s
 
     @property
-    def model(self) -> Any:  # type: ignore[override]
+    def model(self) -> Any:
         raise AttributeError("the foreign stage has no hil_sim StageModel")
 
     def reset(self, rest_voltage_v: Any = None) -> None:
@@ -552,10 +578,10 @@ class ForeignStage(Stage):
         )
         self._rng = np.random.default_rng([self._seed, 49])
 
-    def snapshot(self) -> Any:  # type: ignore[override]
+    def snapshot(self) -> Any:
         return (copy.deepcopy(self._s), copy.deepcopy(self._rng.bit_generator.state))
 
-    def restore(self, snapshot: Any) -> None:  # type: ignore[override]
+    def restore(self, snapshot: Any) -> None:
         self._s = copy.deepcopy(snapshot[0])
         self._rng = np.random.default_rng()
         self._rng.bit_generator.state = copy.deepcopy(snapshot[1])
@@ -660,7 +686,7 @@ class ForeignStage(Stage):
         xm += p["env_drift_um_per_k"][:, None] * dT[None, :]
         # 8. sensor lag
         a, g0, g1 = lag
-        y = np.empty_like(xm)
+        y: np.ndarray = np.empty_like(xm)
         for ch in range(C):
             z, up = s.lag[ch]
             zi = np.array([g0 * up + a * z])
@@ -674,9 +700,10 @@ class ForeignStage(Stage):
         p = self._p
         ph = self._s.env_phase
         w = 2.0 * math.pi / p["env_hvac_period_s"]
-        return p["env_warm_k"] * -np.expm1(-t / p["env_warm_tau_s"]) + p["env_hvac_k"] * (
+        temp: np.ndarray = p["env_warm_k"] * -np.expm1(-t / p["env_warm_tau_s"]) + p["env_hvac_k"] * (
             np.sin(w * t + ph) - math.sin(ph)
         )
+        return temp
 
     def _creep(self, d: np.ndarray, t0: float, dt: float) -> np.ndarray:
         p = self._p

@@ -73,7 +73,7 @@ def main(argv: list[str]) -> int:
         mfv = importlib.util.module_from_spec(spec)
         sys.modules["model_family_verify"] = mfv
         spec.loader.exec_module(mfv)
-        mfv.Stage = lambda cfg, axes=None: OneAxis(7)
+        mfv.__dict__["Stage"] = lambda cfg, axes=None: OneAxis(7)
         sys.argv = [tool.name, "--stage", str(stage_yaml), "--skip-dynamic", "--verify", argv[0]]
         return int(mfv.main())
 
