@@ -106,7 +106,7 @@ class SensorPath:
         z = y
         tau = self.lag_time_constant_s
         if tau > 0.0:
-            half = max(2, math.ceil(2.0 * tau / dt))
+            half = self._lag_half_window(dt)
             window = min(2 * half + 1, y.size - (1 - y.size % 2))
             if window < 5:
                 raise ModelError(f"too few samples ({y.size}) to undo a sensor lag of {tau:g} s")
@@ -115,6 +115,10 @@ class SensorPath:
         tk = t[keep]
         x: F64 = np.interp(tk + self.delay_s, t, z)
         return tk, x
+
+    def _lag_half_window(self, dt_s: float) -> int:
+        """Half width (samples) of the local quadratic that differentiates the readback for the lag."""
+        return max(2, math.ceil(2.0 * self.lag_time_constant_s / dt_s))
 
     def noise_gain(self, dt_s: float) -> float:
         """RMS of white readback noise after :meth:`align`, relative to before (away from the ends).
@@ -141,7 +145,7 @@ class SensorPath:
             return 1.0
         if not (math.isfinite(dt_s) and dt_s > 0.0):
             raise ModelError(f"sample interval must be > 0 s, got {dt_s!r}")
-        reach = math.ceil(self.delay_s / dt_s) + 2 * max(2, math.ceil(2.0 * self.lag_time_constant_s / dt_s))
+        reach = math.ceil(self.delay_s / dt_s) + 2 * self._lag_half_window(dt_s)
         n = 4 * reach + 64
         impulse = np.zeros(n)
         impulse[n // 2] = 1.0

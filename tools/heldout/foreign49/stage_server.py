@@ -490,12 +490,12 @@ class ForeignStage(Stage):
         self._c = np.asarray(p["kp_c_v"], dtype=np.float64)
         self._w_r = np.empty((C, self._r.size))
         self._nu = np.empty((C, self._c.size))
+        grid = np.linspace(-200.0, 200.0, 401)
         for ch in range(C):
             w = np.exp(-self._r / p["kp_r_decay_v"][ch])
             taper = np.exp(-((self._c / p["kp_c_taper_v"][ch]) ** 2))
             nu = (1.0 + p["kp_c_tilt"][ch] * self._c / 250.0) * taper
             # normalise: the KP part's mean small-signal slope over +-200 V is 1 - rho0
-            grid = np.linspace(-200.0, 200.0, 401)
             a = p["kp_a_v"][ch]
             z = (grid[:, None] - self._c[None, :]) / a
             slope = ((1.0 + z * z) ** -1.5 * nu[None, :]).sum(axis=1).mean()
@@ -603,8 +603,7 @@ class ForeignStage(Stage):
         else:
             v = np.asarray(voltage_v, dtype=np.float64)
         v = np.ascontiguousarray(v)
-        one_d = v.ndim == 1
-        if one_d:
+        if v.ndim == 1:
             raise ValueError("the foreign stage has 3 channels: voltage of shape (3, n)")
         if v.shape[0] != len(AXES):
             raise ValueError(f"voltage_v must have shape (3, n), got {v.shape}")
