@@ -2,12 +2,17 @@
 """foreign49's stage in process, parts of its physics switched off, under a written scanner YAML.
 
     OMP_NUM_THREADS=1 python tools/heldout/foreign49/take_apart.py F.yaml [noenv] [noacc] [nota] [nocreep]
+    OMP_NUM_THREADS=1 python tools/heldout/foreign49/take_apart.py --calibrate OUT.yaml [noenv] ...
 
 Plays ``piezod calibrate``'s frame and verification points (``tools/model_family_verify.py
 --skip-dynamic --verify F.yaml``) on :class:`stage_server.ForeignStage`'s x axis (y and z held at
 0 V) instead of a hil_sim stage, with the named parts off: ``noenv`` the warm-up and the HVAC cycle,
 ``noacc`` the accommodation, ``nota`` the thermally activated loop widths, ``nocreep`` the creep.
 ``F.yaml`` is what ``piezod calibrate --port`` wrote on the stage (docs/model-family.md 6.2bm).
+With ``--calibrate OUT.yaml`` the stage (with those parts off) is calibrated in process as ``piezod
+calibrate`` does (``--audit --resonance --fast-creep``), the result written to ``OUT.yaml`` and
+verified: what the calibration makes of the stage without a part, to say whether that part is
+what the member misses.
 """
 
 from __future__ import annotations
@@ -51,8 +56,11 @@ class OneAxis:
 
 
 def main(argv: list[str]) -> int:
+    calibrate = bool(argv) and argv[0] == "--calibrate"
+    if calibrate:
+        argv = argv[1:]
     if not argv or any(a not in SWITCHES for a in argv[1:]):
-        print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
+        print("\n".join(__doc__.strip().splitlines()[2:4]), file=sys.stderr)
         return 2
     params = copy.deepcopy(fs.PARAMS)
     for name in argv[1:]:
@@ -74,7 +82,8 @@ def main(argv: list[str]) -> int:
         sys.modules["model_family_verify"] = mfv
         spec.loader.exec_module(mfv)
         mfv.__dict__["Stage"] = lambda cfg, axes=None: OneAxis(7)
-        sys.argv = [tool.name, "--stage", str(stage_yaml), "--skip-dynamic", "--verify", argv[0]]
+        what = ["--audit", "--resonance", "--fast-creep", "--config-out"] if calibrate else ["--verify"]
+        sys.argv = [tool.name, "--stage", str(stage_yaml), "--skip-dynamic", *what, argv[0]]
         return int(mfv.main())
 
 
