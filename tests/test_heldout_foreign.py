@@ -1,4 +1,5 @@
-"""The held-out stage of foreign physics (tools/heldout/foreign49) still serves the real protocol.
+"""The held-out stage of foreign physics (tools/heldout/foreign49) still serves the real protocol,
+and its take-apart tool still parses its command line.
 
 docs/model-family.md 6.2bm gives the commands that calibrate piezod on it over ``--port``; this
 keeps them runnable: the stage server starts on a real pty, ``piezod probe`` completes the
@@ -50,3 +51,15 @@ def test_the_foreign_stage_serves_the_protocol_on_a_pty(tmp_path: Path) -> None:
                 server.kill()
     assert rc == 0
     assert not link.exists()
+
+
+def test_take_apart_names_its_usage_on_a_wrong_command_line() -> None:
+    tool = ROOT / "tools" / "heldout" / "foreign49" / "take_apart.py"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    for args in ([], ["--calibrate"], ["F.yaml", "nothere"], ["--calibrate", "OUT.yaml", "noenv", "nothere"]):
+        run = subprocess.run(
+            [sys.executable, str(tool), *args], capture_output=True, text=True, env=env, timeout=300
+        )
+        assert run.returncode == 2, (args, run.stderr)
+        assert "take_apart.py F.yaml" in run.stderr and "--calibrate OUT.yaml" in run.stderr
+        assert "Traceback" not in run.stderr
