@@ -56,7 +56,14 @@ def test_the_foreign_stage_serves_the_protocol_on_a_pty(tmp_path: Path) -> None:
 def test_take_apart_names_its_usage_on_a_wrong_command_line() -> None:
     tool = ROOT / "tools" / "heldout" / "foreign49" / "take_apart.py"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    for args in ([], ["--calibrate"], ["F.yaml", "nothere"], ["--calibrate", "OUT.yaml", "noenv", "nothere"]):
+    wrong: list[list[str]] = [
+        [],
+        ["--calibrate"],
+        ["F.yaml", "nothere"],
+        ["--calibrate", "OUT.yaml", "noenv", "nothere"],
+        ["F.yaml", "--json"],
+    ]
+    for args in wrong:
         run = subprocess.run(
             [sys.executable, str(tool), *args], capture_output=True, text=True, env=env, timeout=300
         )

@@ -3,6 +3,7 @@
 
     OMP_NUM_THREADS=1 python tools/heldout/foreign49/take_apart.py F.yaml [noenv] [noacc] [nota] [nocreep]
     OMP_NUM_THREADS=1 python tools/heldout/foreign49/take_apart.py --calibrate OUT.yaml [noenv] ...
+    (either with --json RUN.json: the verification's rows, each scan's trace and retrace)
 
 Plays ``piezod calibrate``'s frame and verification points (``tools/model_family_verify.py
 --skip-dynamic --verify F.yaml``) on :class:`stage_server.ForeignStage`'s x axis (y and z held at
@@ -56,11 +57,15 @@ class OneAxis:
 
 
 def main(argv: list[str]) -> int:
+    json_out: list[str] = []
+    if "--json" in argv:
+        at = argv.index("--json")
+        json_out, argv = ["--json", *argv[at + 1 : at + 2]], argv[:at] + argv[at + 2 :]
     calibrate = bool(argv) and argv[0] == "--calibrate"
     if calibrate:
         argv = argv[1:]
-    if not argv or any(a not in SWITCHES for a in argv[1:]):
-        print("\n".join(__doc__.strip().splitlines()[2:4]), file=sys.stderr)
+    if not argv or len(json_out) == 1 or any(a not in SWITCHES for a in argv[1:]):
+        print("\n".join(__doc__.strip().splitlines()[2:5]), file=sys.stderr)
         return 2
     params = copy.deepcopy(fs.PARAMS)
     for name in argv[1:]:
@@ -83,7 +88,7 @@ def main(argv: list[str]) -> int:
         spec.loader.exec_module(mfv)
         mfv.__dict__["Stage"] = lambda cfg, axes=None: OneAxis(7)
         what = ["--audit", "--resonance", "--fast-creep", "--config-out"] if calibrate else ["--verify"]
-        sys.argv = [tool.name, "--stage", str(stage_yaml), "--skip-dynamic", *what, argv[0]]
+        sys.argv = [tool.name, "--stage", str(stage_yaml), "--skip-dynamic", *json_out, *what, argv[0]]
         return int(mfv.main())
 
 
