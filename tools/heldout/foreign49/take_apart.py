@@ -3,7 +3,7 @@
 
     OMP_NUM_THREADS=1 python tools/heldout/foreign49/take_apart.py F.yaml [noenv] [noacc] [nota] [nocreep]
     OMP_NUM_THREADS=1 python tools/heldout/foreign49/take_apart.py --calibrate OUT.yaml [noenv] ...
-    (either with --json RUN.json: the verification's rows, each scan's trace and retrace)
+    (either with --json RUN.json: the verification's rows as model_family_verify.py writes them)
 
 Plays ``piezod calibrate``'s frame and verification points (``tools/model_family_verify.py
 --skip-dynamic --verify F.yaml``) on :class:`stage_server.ForeignStage`'s x axis (y and z held at
