@@ -18,6 +18,7 @@ what the member misses.
 
 from __future__ import annotations
 
+import argparse
 import copy
 import importlib.util
 import sys
@@ -57,18 +58,19 @@ class OneAxis:
 
 
 def main(argv: list[str]) -> int:
-    json_out: list[str] = []
-    if "--json" in argv:
-        at = argv.index("--json")
-        json_out, argv = ["--json", *argv[at + 1 : at + 2]], argv[:at] + argv[at + 2 :]
-    calibrate = bool(argv) and argv[0] == "--calibrate"
-    if calibrate:
-        argv = argv[1:]
-    if not argv or len(json_out) == 1 or any(a not in SWITCHES for a in argv[1:]):
-        print("\n".join(__doc__.strip().splitlines()[2:5]), file=sys.stderr)
-        return 2
+    ap = argparse.ArgumentParser(usage="\n".join(__doc__.strip().splitlines()[2:5]))
+    ap.add_argument("yaml", help="the written scanner YAML to verify (with --calibrate: the one to write)")
+    ap.add_argument("parts", nargs="*", help=f"parts of the physics to switch off: {', '.join(SWITCHES)}")
+    ap.add_argument(
+        "--calibrate", action="store_true", help="calibrate in process first, as piezod calibrate does"
+    )
+    ap.add_argument("--json", metavar="RUN.json", help="the verification tool's rows")
+    args = ap.parse_args(argv)
+    unknown = [name for name in args.parts if name not in SWITCHES]
+    if unknown:  # not argparse's choices: it checks an empty list of parts against them too
+        ap.error(f"no part {', '.join(unknown)} (parts: {', '.join(SWITCHES)})")
     params = copy.deepcopy(fs.PARAMS)
-    for name in argv[1:]:
+    for name in args.parts:
         for key in SWITCHES[name]:
             params[key] = params[key] * 0.0
     fs.PARAMS.clear()
@@ -87,8 +89,9 @@ def main(argv: list[str]) -> int:
         sys.modules["model_family_verify"] = mfv
         spec.loader.exec_module(mfv)
         mfv.__dict__["Stage"] = lambda cfg, axes=None: OneAxis(7)
-        what = ["--audit", "--resonance", "--fast-creep", "--config-out"] if calibrate else ["--verify"]
-        sys.argv = [tool.name, "--stage", str(stage_yaml), "--skip-dynamic", *json_out, *what, argv[0]]
+        what = ["--audit", "--resonance", "--fast-creep", "--config-out"] if args.calibrate else ["--verify"]
+        json_out = ["--json", args.json] if args.json else []
+        sys.argv = [tool.name, "--stage", str(stage_yaml), "--skip-dynamic", *json_out, *what, args.yaml]
         return int(mfv.main())
 
 
