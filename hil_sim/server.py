@@ -3,9 +3,12 @@
 ``python -m hil_sim`` (or ``piezod sim``) opens a pty (raw mode, non-blocking master), prints
 ONE line on stdout -- the slave path, or the ``--link`` symlink -- and serves until SIGTERM /
 SIGINT (exit 0). Simulated time follows the monotonic wall clock: a ``select`` loop with a short
-tick feeds the host's bytes to the board and calls :meth:`Board.advance`. When this process was
-not scheduled for longer than :data:`STALL_WARN_S`, the bytes waiting are fed as of the stall's
-start (a board's receiver runs beside its clock), and the stall is logged.
+tick feeds the host's bytes to the board and calls :meth:`Board.advance`. When an iteration comes
+later than :data:`STALL_WARN_S` (this process was not scheduled, or its own work took that long),
+the simulated clock runs one tick over the stall and the stall is logged: a board's clock and its
+receiver run together and are never starved, so the bytes that waited are taken in before the
+board plays on, and simulated time lags the wall clock from then on (the host paces by the played
+index its STATUS frames report, not by its own clock).
 
 - ``--link PATH`` keeps a symlink ``PATH -> /dev/pts/N`` (like ``/dev/serial/by-id``).
 - SIGUSR1 simulates an unplug: the master is closed (the host sees EIO / hang-up), the link
@@ -51,7 +54,7 @@ DEFAULT_TICK_S = 0.002
 """Longest wait of the select loop (s): the granularity of simulated time without host traffic."""
 DEFAULT_UNPLUG_S = 2.0
 _READ_CHUNK = 1 << 16
-#: A loop iteration this late is logged (s): the simulated board could not read or report meanwhile.
+#: A loop iteration this late is a stall (s): the simulated clock runs one tick over it, and it is logged.
 STALL_WARN_S = 0.05
 _MAX_READ_PER_STEP = 1 << 20
 _MAX_BACKLOG = 8 << 20
@@ -193,7 +196,7 @@ class PtyPort:
 
 
 class SimServer:
-    """The select loop pacing a :class:`Board` by the monotonic clock.
+    """The select loop pacing a :class:`Board` by the monotonic clock, less the loop's stalls.
 
     Parameters
     ----------
@@ -248,6 +251,16 @@ class SimServer:
         self._replug_at: float | None = None
         self._last_step: float | None = None
         self._last_work = 0.0
+        self._lag = 0.0
+
+    @property
+    def lag_s(self) -> float:
+        """How far the simulated clock is behind ``clock()`` (s): the stalls' total less a tick each."""
+        return self._lag
+
+    def sim_time(self) -> float:
+        """The simulated board's clock (s): ``clock()`` less the time lost to stalls."""
+        return self.clock() - self._lag
 
     @property
     def public_path(self) -> str:
@@ -328,25 +341,25 @@ class SimServer:
             self._parent_gone = True
             self.request_stop()
         t_step = self.clock()
-        arrival: float | None = None
         if self._last_step is not None and t_step - self._last_step > STALL_WARN_S:
-            # A real board's receiver runs beside its clock; this process was not scheduled (or busy):
-            # what waits in the pty may have come at any time since the last step, so it is taken in
-            # at the earliest, before the clock catches up. Otherwise a starved simulator would
-            # report underruns a board would not have had, as if the host had fallen behind.
-            arrival = self._last_step + self.tick_s
+            # A board's clock and its receiver run together and never starve. Were simulated time to
+            # run over a stall of this process, the board would play the whole stall from what the pty
+            # holds (~0.1 s at 100 kS/s on 3 axes) while the host's next samples wait for room in it:
+            # underruns a board would not have had, reported as if the host had fallen behind.
+            self._lag += t_step - self._last_step - self.tick_s
             log.warning(
-                "simulator loop stalled %.0f ms, %.0f ms of it its own work: input taken in as of the "
-                "stall's start",
+                "simulator loop stalled %.0f ms, %.0f ms of it its own work: the simulated clock ran one "
+                "tick over it (%.0f ms behind the wall clock in all)",
                 1e3 * (t_step - self._last_step),
                 1e3 * self._last_work,
+                1e3 * self._lag,
             )
         self._last_step = t_step
         for port in ports:
             data = port.poll(ready)
             if data:
-                self.board.feed(data, self.clock() if arrival is None else arrival)
-        now = self.clock()
+                self.board.feed(data, t_step - self._lag)
+        now = self.sim_time()
         self.board.advance(now)
         out = self.board.data_to_send()
         for port in ports:

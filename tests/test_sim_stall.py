@@ -1,5 +1,6 @@
-"""hil_sim's select loop when its own process was not scheduled: the board's receiver runs beside
-its clock, so bytes that waited in the pty are taken in before the clock catches up."""
+"""hil_sim's select loop when its own process was not scheduled (or busy): a board's clock and its
+receiver run together and never starve, so the simulated clock runs one tick over the stall, the
+bytes that waited in the pty are taken in then, and simulated time lags the wall clock from then on."""
 
 from __future__ import annotations
 
@@ -38,7 +39,7 @@ class _Board:
 
 
 @pytest.mark.parametrize("gap_s", [0.001, 0.4])
-def test_input_after_a_stall_is_taken_in_as_of_the_stall_start(
+def test_the_simulated_clock_runs_one_tick_over_a_stall(
     gap_s: float, caplog: pytest.LogCaptureFixture
 ) -> None:
     clock = _Clock()
@@ -65,5 +66,27 @@ def test_input_after_a_stall_is_taken_in_as_of_the_stall_start(
     stalled = gap_s > STALL_WARN_S
     expected = last + server.tick_s if stalled else clock.t
     assert board.fed[0][1] == pytest.approx(expected)
-    assert board.advanced[-1] == clock.t  # the clock still catches up to the present
+    assert board.advanced[-1] == pytest.approx(expected)
+    assert server.lag_s == pytest.approx(gap_s - server.tick_s if stalled else 0.0)
     assert ("stalled" in caplog.text) == stalled
+
+
+def test_after_a_stall_simulated_time_runs_at_the_wall_clock_rate_again() -> None:
+    clock = _Clock()
+    board = _Board()
+    server = SimServer(board, clock=clock)  # type: ignore[arg-type]
+    server.open()
+    try:
+        server.step()
+        clock.t += 0.5
+        server.step()
+        behind = server.lag_s
+        for _ in range(5):
+            clock.t += 0.01
+            server.step()
+    finally:
+        server.close()
+    assert behind == pytest.approx(0.5 - server.tick_s)
+    assert server.lag_s == behind  # short iterations are simulated in full
+    assert board.advanced[-1] == pytest.approx(clock.t - behind)
+    assert all(b > a for a, b in zip(board.advanced, board.advanced[1:], strict=False))
