@@ -875,16 +875,20 @@ def one_sensor_offsets(data: DynamicCalibrationData) -> DynamicCalibrationData:
     )
 
 
-#: How far the chosen member's per-experiment offsets may spread, as a fraction of the frame's
-#: travel, under a part that acts on the absolute position (:func:`needs_one_sensor`). On birch35
-#: (a PMN stage) a play 71 V wide held 0.10 of the member's density and its offsets spread by
-#: 1.9 um (10 % of 19 um) at 3.8 nm of centred RMS: the adopted saturation compressed at the
-#: wrong place and every verified line came out 6-25 % long. The tie is not the default: where
-#: the reconstruction between the scans is not exact it costs held-out RMS (preisach-stage's play
-#: member 4.05 -> 7.06 nm with 20 nm of spread), and without such a part a member's offsets do
-#: not reach the scans (tansy30's play member spreads by 31 um over 71 um and verified within the
-#: targets; the daemon adopts the measured position).
-OFFSET_SPREAD_LIMIT = 0.05
+#: How far the chosen member's per-experiment offsets may move a verified line's length (%) through
+#: the parts that act on the absolute position (:func:`needs_one_sensor`). An offset per
+#: experiment leaves the member's absolute position free between the scans; where a part bends
+#: the stage's slope with the position, a member placed ``d`` um off scans at a slope off by ``d``
+#: times the slope's relative change per um (:func:`absolute_slope_gradient`). On birch35 (a PMN
+#: stage, saturation and a +2 %/um stiffness) the generalised play law on 5 centre nodes spread its
+#: offsets by 0.62 um with the range (3 % of the 19 um travel, inside the 5 % this rule used to
+#: allow), its saturation part was profiled at 28.4 um (the stage's 26.0) and every verified
+#: line came out 0.6-1.9 % long; 0.62 um times the 0.044 /um of that part is 2.7 %. The tie is not
+#: the default: where the reconstruction between the scans is not exact it costs held-out RMS
+#: (preisach-stage's play member 4.05 -> 7.06 nm with 20 nm of spread), and without such a part a
+#: member's offsets do not reach the scans (tansy30's play member spreads by 31 um over 71 um and
+#: verified within the targets; the daemon adopts the measured position).
+OFFSET_LENGTH_LIMIT_PCT = 0.1
 
 
 #: Runtime parts that act on the absolute position (:mod:`piezod.model.parts`): the model's
@@ -893,20 +897,42 @@ OFFSET_SPREAD_LIMIT = 0.05
 ABSOLUTE_PARTS = ("saturation", "stiffness")
 
 
+def absolute_slope_gradient(
+    effects: Mapping[str, Any], member_stiffness_pct_per_um: float, travel_um: float
+) -> float:
+    """The largest relative change of the stage's slope per um of absolute position (1/um) over
+    ``travel_um`` on either side of the model's zero: the stiffness part's ``k / 100`` and the
+    member's own static map's, and the saturation part's ``2 tanh(travel / x_sat) / x_sat``
+    (:mod:`piezod.model.parts`)."""
+    gradient = abs(member_stiffness_pct_per_um) / 100.0
+    stiffness = effects.get("stiffness") or {}
+    gradient += abs(float(stiffness.get("sensitivity_pct_per_um", 0.0))) / 100.0
+    x_sat = float((effects.get("saturation") or {}).get("x_sat_um", math.inf))
+    if math.isfinite(x_sat) and x_sat > 0.0:
+        gradient += 2.0 * math.tanh(travel_um / x_sat) / x_sat
+    return gradient
+
+
 def needs_one_sensor(choice_report: Mapping[str, Any], effects: Mapping[str, Any]) -> str | None:
     """Why the parts ``effects`` need the model choice fitted with one sensor's offsets
     (:func:`one_sensor_offsets`), or None: a part that acts on the absolute position
-    (:data:`ABSOLUTE_PARTS`) with a chosen member whose per-experiment offsets spread by more than
-    :data:`OFFSET_SPREAD_LIMIT` of the frame's travel."""
+    (:data:`ABSOLUTE_PARTS`) with a chosen member whose per-experiment offsets spread so far that,
+    through the slope those parts bend (:func:`absolute_slope_gradient`), they could move a line's
+    length by more than :data:`OFFSET_LENGTH_LIMIT_PCT`."""
     offsets = choice_report.get("offsets", {})
     absolute = sorted(set(effects) & set(ABSOLUTE_PARTS))
     spread, travel = offsets.get("spread_um", 0.0), offsets.get("travel_um", 0.0)
-    if offsets.get("one_sensor") or not absolute or spread <= OFFSET_SPREAD_LIMIT * travel:
+    if offsets.get("one_sensor") or not absolute:
+        return None
+    member_k = float((choice_report.get("family") or {}).get("stiffness_pct_per_um", 0.0))
+    length_pct = 100.0 * spread * absolute_slope_gradient(effects, member_k, travel)
+    if length_pct <= OFFSET_LENGTH_LIMIT_PCT:
         return None
     return (
         f"{choice_report.get('chosen')}'s offsets spread by {spread:.3g} um over a {travel:.3g} um frame "
-        f"(more than {100 * OFFSET_SPREAD_LIMIT:g} %) under {', '.join(absolute)}, which act on the "
-        "absolute position: the parts and the choice fitted again with the offsets of one sensor"
+        f"under {', '.join(absolute)}, which act on the absolute position: a line placed that far off "
+        f"would be up to {length_pct:.2g} % off in length (more than {OFFSET_LENGTH_LIMIT_PCT:g} %); the "
+        "parts and the choice fitted again with the offsets of one sensor"
     )
 
 
@@ -1335,6 +1361,7 @@ def refit_at_drive_lag(
     law = section.params()
     options: dict[str, Any] = {
         "plays": plays or cf.DEFAULT_PLAYS,
+        "n_nodes": len(section.gp_nodes_v) or cf.GP_NODES,
         "creep_driver": section.creep_driver,
         "alpha_per_v": section.alpha_per_v,
         "fit_lag": False,
@@ -1552,8 +1579,8 @@ def profile_member(
     :func:`piezod.audit.residuals.experiments_noise_floor` of the frame;
     :func:`piezod.fitstats.lowers`).
     A member refined to a finer play grid is profiled at the default grid
-    (:data:`piezod.calibrate_family.DEFAULT_PLAYS`). A chosen model that is not a family member
-    leaves the findings as the audit found them.
+    (:data:`piezod.calibrate_family.DEFAULT_PLAYS`), on its own centre grid. A chosen model that is
+    not a family member leaves the findings as the audit found them.
 
     Returns
     -------
@@ -1590,7 +1617,13 @@ def profile_member(
     # the profile refits the member a dozen times per part; a finer play grid moves the kinks of
     # the loops, not a part's rate or lag, and costs several times as much per fit
     plays = min(plays or cf.DEFAULT_PLAYS, cf.DEFAULT_PLAYS)
-    fitted = cf.member_name(law, driver, None if plays == cf.DEFAULT_PLAYS else plays)
+    # the centre grid is kept: it bends the slope as a part on the absolute position does, and a
+    # part profiled on another grid is another part (birch35's saturation: 26.0 um on 3 nodes,
+    # 28.4 um on 5; docs/model-family.md 6.2bo)
+    nodes = cf.member_nodes(chosen)
+    fitted = cf.member_name(
+        law, driver, None if plays == cf.DEFAULT_PLAYS else plays, None if nodes == cf.GP_NODES else nodes
+    )
     fits: dict[str, tuple[float, float]] = {}
     # the profiles refit the member through slightly different parts: a Bouc-Wen law starts from
     # the first fit's rates instead of searching them again (the costliest part of its fit)
@@ -1610,6 +1643,7 @@ def profile_member(
                     law,
                     train=train,
                     plays=plays,
+                    n_nodes=nodes,
                     creep_driver=driver,
                     fit_lag=fit_lag,
                     start=first_law,

@@ -897,19 +897,57 @@ def test_a_recalibration_measures_the_axis_extensions_again() -> None:
 
 def test_parts_on_the_absolute_position_tie_the_offsets_to_one_sensor_when_they_spread() -> None:
     """An offset per experiment, unless a part acts on the absolute position (saturation,
-    stiffness) and the chosen member's offsets spread by more than OFFSET_SPREAD_LIMIT of the
-    frame's travel (birch35: 1.9 um over 19 um under its saturation); the reason says so."""
-    from piezod.stagecal import OFFSET_SPREAD_LIMIT, needs_one_sensor, tied_to_one_sensor
+    stiffness) and the chosen member's offsets spread so far that a line placed that far off
+    would be more than OFFSET_LENGTH_LIMIT_PCT off in length (birch35: 1.9 um over 19 um under its
+    saturation; its 5-node generalised play member: 0.62 um); the reason says so."""
+    from piezod.stagecal import (
+        OFFSET_LENGTH_LIMIT_PCT,
+        absolute_slope_gradient,
+        needs_one_sensor,
+        tied_to_one_sensor,
+    )
 
     offsets = {"one_sensor": False, "spread_um": 1.9, "travel_um": 19.0}
     report = {"chosen": "family/generalised-play", "offsets": offsets}
     reason = needs_one_sensor(report, {"saturation": {"x_sat_um": 26.0}})
     assert reason is not None
-    assert "spread by 1.9 um over a 19 um frame (more than 5 %) under saturation" in reason
+    assert "spread by 1.9 um over a 19 um frame under saturation" in reason
+    assert "up to 9.1 % off in length (more than 0.1 %)" in reason
     assert needs_one_sensor(report, {"polarity": {"negative_sensitivity_pct": -3.0}}) is None
-    within = {**report, "offsets": {**report["offsets"], "spread_um": 0.9 * OFFSET_SPREAD_LIMIT * 19.0}}
+    # session 45's 5-node member: 0.62 um of spread, 3 % of the travel, under x_sat 28.4 um
+    five = {**report, "offsets": {**offsets, "spread_um": 0.62}, "family": {"stiffness_pct_per_um": -0.25}}
+    assert needs_one_sensor(five, {"saturation": {"x_sat_um": 28.4}}) is not None
+    # the 3-node member there: 15 nm, no line moved by more than 0.1 %
+    three = {**report, "offsets": {**offsets, "spread_um": 0.015}, "family": {"stiffness_pct_per_um": 0.59}}
+    assert needs_one_sensor(three, {"saturation": {"x_sat_um": 26.0}}) is None
+    # a stiffness part bends the slope by k / 100 per um, with the member's own map beside it
+    g = absolute_slope_gradient({"stiffness": {"sensitivity_pct_per_um": 2.0}}, -0.5, 19.0)
+    assert g == pytest.approx(0.025)
+    limit = OFFSET_LENGTH_LIMIT_PCT / 100.0 / g
+    member_k = {"stiffness_pct_per_um": -0.5}
+    within = {**report, "offsets": {**offsets, "spread_um": 0.9 * limit}, "family": member_k}
     assert needs_one_sensor(within, {"stiffness": {"sensitivity_pct_per_um": 2.0}}) is None
+    beyond = {**within, "offsets": {**offsets, "spread_um": 1.1 * limit}}
+    assert needs_one_sensor(beyond, {"stiffness": {"sensitivity_pct_per_um": 2.0}}) is not None
     tied = {**report, "offsets": {**report["offsets"], "one_sensor": True}}
     assert needs_one_sensor(tied, {"saturation": {}}) is None
     assert tied_to_one_sensor(tied) and not tied_to_one_sensor(report)
     assert needs_one_sensor({"chosen": "dynamic"}, {"saturation": {}}) is None
+
+
+def test_a_refit_at_the_placed_drive_lag_keeps_the_members_centre_grid() -> None:
+    """The lag placement refits the written member with its drive lag held: a generalised play law
+    the choice refined to 5 centre nodes stays on 5 (a grid bends the slope as an absolute part
+    does; the member's parts were profiled on that grid)."""
+    from piezod import calibrate_family as cf
+    from piezod.stagecal import _frame_session, refit_at_drive_lag
+
+    exps = _depoled_pi_session()
+    data = _frame_session(exps, 2000.0, 0.0)
+    fit = cf.fit_family(data, "generalised-play", n_nodes=5, creep_driver="voltage")
+    section = cf.family_model_config(fit.params).model_copy(update={"lag_time_constant_s": 2e-4})
+    config = load_config(default_sim_config_path()).with_axis("x", model="family", family=section)
+    refitted, heldout = refit_at_drive_lag(list(exps), config, "x", None, 2000.0, 0.0)
+    family = refitted.axes["x"].family
+    assert family is not None and len(family.gp_nodes_v) == 5
+    assert family.lag_time_constant_s == 2e-4 and math.isfinite(heldout)
