@@ -33,7 +33,7 @@ FloatArray = NDArray[np.float64]
 #: Per-sample inverse of the richest runtime model (issue 9), ns per sample and axis.
 TARGET_MODEL_NS_PER_SAMPLE = 150.0
 #: The richest runtime model of :func:`bench_models` (the one the 150 ns target is about).
-RICHEST_MODEL = "family/generalised-play/64-plays/voltage-creep+parts"
+RICHEST_MODEL = "family/generalised-play/64-plays/5-nodes/voltage-creep+parts"
 #: The targets of docs/formats.md, section 5.
 TARGET_NS_PER_SAMPLE = 50.0
 TARGET_RATIO = 0.3
@@ -105,8 +105,9 @@ def bench_models() -> dict[str, Any]:
     generalised play law) adds voltage-driven creep, the fast creep of a 2 Hz frame
     (:mod:`piezod.model.fast_creep`, 10 relaxation times) and every other runtime part
     (:mod:`piezod.model.parts`: polarity, thermal,
-    stiffness, saturation, drift) at the finest play grid the calibration's choice writes (64 plays;
-    the Prandtl-Ishlinskii law with voltage creep and every part at 64 plays beside it).
+    stiffness, saturation, drift) at the finest play and centre grids the calibration's choice
+    writes (64 plays over 5 relay-centre nodes; the Prandtl-Ishlinskii law with voltage creep and
+    every part at 64 plays, and the generalised play law over 3 nodes, beside it).
     """
     from piezod.model.axis_model import DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
     from piezod.model.boucwen import BoucWenParams
@@ -124,14 +125,16 @@ def bench_models() -> dict[str, Any]:
     pi = PlayParams.uniform(0.115, 0.45, 320.0, 16, 0.55 * shape / shape.sum())
     ch = HysteresisParams(3e-3, 0.115, 0.072)
 
-    def generalised_play(n: int, decay: float) -> GeneralisedPlayParams:
-        """``n`` plays with weights decaying over ``decay`` plays, density over 3 relay-centre nodes."""
+    def generalised_play(n: int, decay: float, nodes: int = 3) -> GeneralisedPlayParams:
+        """``n`` plays with weights decaying over ``decay`` plays, density over ``nodes`` relay-centre
+        nodes (rising by a quarter from the lowest to the highest)."""
         shape = np.exp(-np.arange(n) / decay)
         w = 0.115 * 0.55 * shape / shape.sum()
+        bend = np.linspace(0.9, 1.15, nodes)
         return GeneralisedPlayParams(
             tuple(float(x) for x in 160.0 * np.arange(1, n + 1) / (n + 1)),
-            (-230.0, 0.0, 230.0),
-            ((0.046, 0.052, 0.058), *((0.9 * v, v, 1.15 * v) for v in map(float, w))),
+            tuple(float(c) for c in np.linspace(-230.0, 230.0, nodes)),
+            tuple(tuple(float(v * b) for b in bend) for v in [0.052, *map(float, w)]),
         )
 
     # generalised play law at a fitted size: 32 plays
@@ -141,6 +144,8 @@ def bench_models() -> dict[str, Any]:
     fshape = np.exp(-np.arange(fine) / (fine / 2.7))
     pi_fine = PlayParams.uniform(0.115, 0.45, 320.0, fine, 0.55 * fshape / fshape.sum())
     gp_fine = generalised_play(fine, fine / 2.7)
+    # and the finest centre grid (calibrate_family.MAX_GP_NODES)
+    gp_finest = generalised_play(fine, fine / 2.7, 5)
     # the Duhem law with direction- and sign-dependent rates at a fitted size (asymmetric)
     bw = BoucWenParams(0.098, -0.037, 0.0159, 0.0097, 0.0155, 0.0081, 1.2)
     # exponent 2 (a sharp knee): the law is its per-sample Runge-Kutta step, inverted by Newton
@@ -183,8 +188,12 @@ def bench_models() -> dict[str, Any]:
             FamilyAxisModel(FamilyParams(pi_fine, creep, 2e-4, 0.05, "voltage")),
             Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
         ),
-        RICHEST_MODEL: PartsAxisModel(
+        "family/generalised-play/64-plays/voltage-creep+parts": PartsAxisModel(
             FastCreepAxisModel(FamilyAxisModel(FamilyParams(gp_fine, creep, 2e-4, 0.05, "voltage")), fast),
+            Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
+        ),
+        RICHEST_MODEL: PartsAxisModel(
+            FastCreepAxisModel(FamilyAxisModel(FamilyParams(gp_finest, creep, 2e-4, 0.05, "voltage")), fast),
             Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
         ),
     }

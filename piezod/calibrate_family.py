@@ -78,6 +78,11 @@ LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play", "coleman-hodg
 #: Relay-centre nodes of the generalised play law's density (its centre dependence is piecewise
 #: linear between them: 3 nodes allow a density that bends once over the recorded span).
 GP_NODES = 3
+#: Finest centre grid the choice tries (:func:`choose_model`). On a Krasnosel'skii-Pokrovskii
+#: stage 5 nodes predicted 3x better than 3 and took the 0.2 Hz line's length error from -0.113 %
+#: to -0.020 %; the law's per-sample inverse costs 1.33x at 5 nodes and 1.80x at 9 (about 167 ns
+#: of the 150 ns budget; docs/model-family.md 6.2bo).
+MAX_GP_NODES = 5
 #: Weight of the generalised play law's penalty on its centre dependence (:func:`_centre_smoothing`).
 GP_CENTRE_SMOOTHING = 0.0
 #: Family members whose held-out RMS is within this fraction of the best one's are a tie, and the
@@ -94,14 +99,21 @@ PLAY_LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play")
 MAX_PLAYS = 64
 
 
-def member_name(law: str, driver: str, plays: int | None = None) -> str:
-    """The choice's name of a family member: ``family/<law>[/<n>-plays][/voltage-creep]`` (the
-    play count only when it is not the choice's default)."""
+def member_name(law: str, driver: str, plays: int | None = None, nodes: int | None = None) -> str:
+    """The choice's name of a family member: ``family/<law>[/<n>-plays][/<k>-nodes][/voltage-creep]``
+    (the play count and the generalised play law's centre nodes only when they are not the
+    choice's defaults)."""
     return (
         f"family/{law}"
         + (f"/{plays}-plays" if plays else "")
+        + (f"/{nodes}-nodes" if nodes else "")
         + ("/voltage-creep" if driver == "voltage" else "")
     )
+
+
+def member_nodes(name: str) -> int:
+    """Centre nodes of a :func:`member_name`'s generalised play law (:data:`GP_NODES` unless named)."""
+    return next((int(p.removesuffix("-nodes")) for p in name.split("/") if p.endswith("-nodes")), GP_NODES)
 
 
 def parse_member(name: str) -> tuple[str, str, int | None] | None:
@@ -998,6 +1010,7 @@ def fit_family(
     creep_driver: str = "position",
     thresholds: F64 | None = None,
     nodes: F64 | None = None,
+    n_nodes: int = GP_NODES,
     centre_smoothing: float = GP_CENTRE_SMOOTHING,
     fit_lag: bool = True,
     fit_stiffness: bool = True,
@@ -1031,7 +1044,10 @@ def fit_family(
         Play half-widths (V) of the Prandtl-Ishlinskii and generalised play laws (default
         :func:`default_thresholds` with ``plays`` plays).
     nodes
-        Relay-centre nodes (V) of the generalised play law (default :func:`default_nodes`).
+        Relay-centre nodes (V) of the generalised play law (default :func:`default_nodes` with
+        ``n_nodes`` nodes).
+    n_nodes
+        How many centre nodes the default grid has.
     centre_smoothing
         Generalised play law: weight of the penalty on density changes between neighbouring
         centre nodes (:func:`_centre_smoothing`); 0 leaves the centre dependence free.
@@ -1085,7 +1101,7 @@ def fit_family(
             theta, w, kappa, tau, it, hyst, searched = _fit_bouc_wen(s, regularisation, voltage, start)
         elif law == "generalised-play":
             r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
-            c = default_nodes(data) if nodes is None else np.asarray(nodes, np.float64)
+            c = default_nodes(data, n_nodes) if nodes is None else np.asarray(nodes, np.float64)
             f_grid, f_rest, slope = _gplay_features(data, r, c)
             theta, w, kappa, tau, _, it = _alternate(
                 s,
@@ -1231,15 +1247,16 @@ class ModelChoice:
 
     def table(self) -> str:
         """One line per candidate: training and held-out RMS, the chosen one marked; failed fits last."""
-        lines = [f"{'model':<40} {'train RMS (nm)':>15} {'held-out RMS (nm)':>18}"]
+        w = max([40, *map(len, self.heldout_rms_um), *map(len, self.failed)])
+        lines = [f"{'model':<{w}} {'train RMS (nm)':>15} {'held-out RMS (nm)':>18}"]
         for name in self.heldout_rms_um:
             mark = "  <- chosen" if name == self.chosen else ""
             if name in self.not_adoptable:
                 mark = "  (not adopted: its inverse is too slow for streaming)"
             train, held = 1e3 * self.train_rms_um[name], 1e3 * self.heldout_rms_um[name]
-            lines.append(f"{name:<40} {train:>15.2f} {held:>18.2f}{mark}")
+            lines.append(f"{name:<{w}} {train:>15.2f} {held:>18.2f}{mark}")
         for name, reason in self.failed.items():
-            lines.append(f"{name:<40} {'failed':>15} {'-':>18}  ({reason})")
+            lines.append(f"{name:<{w}} {'failed':>15} {'-':>18}  ({reason})")
         return "\n".join(lines)
 
 
@@ -1272,7 +1289,12 @@ def choose_model(
     law's resolution is then refined: the same member with twice the plays (up to
     :data:`MAX_PLAYS`) replaces it when it predicts the held-out experiments better by more than
     the tie fraction (a stage whose loops have a few sharp kinks needs a finer grid than a smooth
-    one; the finer member is named ``.../<n>-plays``).
+    one; the finer member is named ``.../<n>-plays``). So is the generalised play law's centre
+    grid, from :data:`GP_NODES` nodes to ``2 n - 1`` up to :data:`MAX_GP_NODES` (``.../<k>-nodes``):
+    its density then bends more than once over the span (a Krasnosel'skii-Pokrovskii stage's
+    loops, docs/model-family.md 6.2bo). A finer grid can also bend the slope the way a part on the
+    absolute position does; :func:`piezod.stagecal.needs_one_sensor` ties such a member's offsets
+    when they would place the part wrongly.
 
     Parameters
     ----------
@@ -1359,7 +1381,31 @@ def choose_model(
                 break
             chosen, n_plays = finer, 2 * n_plays
             scores[chosen] = fit.heldout_rms_um
-        final = fit_family(data, law, plays=n_plays, alpha_per_v=alpha_per_v, creep_driver=driver)
+        n_nodes = GP_NODES
+        while law == "generalised-play" and 2 * n_nodes - 1 <= MAX_GP_NODES:
+            finer = member_name(law, driver, n_plays if n_plays != plays else None, 2 * n_nodes - 1)
+            try:
+                fit = fit_family(
+                    data,
+                    law,
+                    train=train,
+                    plays=n_plays,
+                    n_nodes=2 * n_nodes - 1,
+                    alpha_per_v=alpha_per_v,
+                    creep_driver=driver,
+                )
+            except CalibrationError as exc:
+                failed[finer] = str(exc)
+                break
+            fits[finer] = fit
+            heldout[finer], train_rms[finer] = fit.heldout_rms_um, fit.rms_um
+            if not fit.heldout_rms_um < scores[chosen] * (1.0 - CHOICE_TIE_FRACTION):
+                break
+            chosen, n_nodes = finer, 2 * n_nodes - 1
+            scores[chosen] = fit.heldout_rms_um
+        final = fit_family(
+            data, law, plays=n_plays, n_nodes=n_nodes, alpha_per_v=alpha_per_v, creep_driver=driver
+        )
     holdout = tuple(int(i) for i in np.flatnonzero(~train))
     return ModelChoice(chosen, final, heldout, train_rms, holdout, fits, blocked, failed)
 
@@ -1425,6 +1471,7 @@ __all__ = [
     "fit_family",
     "holdout_mask",
     "member_name",
+    "member_nodes",
     "parse_member",
     "session_positions",
     "solve_linear",

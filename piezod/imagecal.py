@@ -606,19 +606,24 @@ def _profile(
 
 def _fitted(
     data: DynamicCalibrationData,
-    which: tuple[str, str, int | None],
+    which: str,
     mask: NDArray[np.bool_] | None,
     alpha_per_v: float | None,
 ) -> FamilyFit | None:
+    """The family member named ``which`` (:func:`piezod.calibrate_family.member_name`) fitted."""
     from piezod import calibrate_family as cf
 
-    law, driver, plays = which
+    member = cf.parse_member(which)
+    if member is None:
+        raise CalibrationError(f"{which!r} is not a family member")
+    law, driver, plays = member
     try:
         return cf.fit_family(
             data,
             law,
             train=mask,
             plays=plays or cf.DEFAULT_PLAYS,
+            n_nodes=cf.member_nodes(which),
             alpha_per_v=alpha_per_v,
             creep_driver=driver,
         )
@@ -672,18 +677,18 @@ def _search_part(
         return None, choice, (before, math.nan), (note,)
     train = cf.holdout_mask(data.n_experiments)
 
-    def train_rms(which: tuple[str, str, int | None]) -> Callable[[float], float]:
+    def train_rms(which: str) -> Callable[[float], float]:
         def rms(u: float) -> float:
             f = _fitted(part.through(data, float(u)), which, train, alpha_per_v)
             return math.inf if f is None else float(f.rms_um)
 
         return rms
 
-    u1, _ = _profile(train_rms(member), *part.bounds, part.grid)
-    f1 = _fitted(part.through(data, u1), member, train, alpha_per_v)
+    u1, _ = _profile(train_rms(choice.chosen), *part.bounds, part.grid)
+    f1 = _fitted(part.through(data, u1), choice.chosen, train, alpha_per_v)
     if f1 is not None and part.settle is not None:
         part.settle(f1)
-        f1 = _fitted(part.through(data, u1), member, train, alpha_per_v)
+        f1 = _fitted(part.through(data, u1), choice.chosen, train, alpha_per_v)
     held1 = math.inf if f1 is None else float(f1.heldout_rms_um)
     notes = [
         f"{part.effect} profiled on {choice.chosen}: {part.name} {part.value(u1):.4g} {part.unit},"
@@ -704,19 +709,18 @@ def _search_part(
         creep_drivers=tuple(creep_drivers) if creep_drivers is not None else CREEP_DRIVERS,
         adoptable_drivers=drivers,
     )
-    member2 = cf.parse_member(redone.chosen)
-    if member2 is None:
+    if cf.parse_member(redone.chosen) is None:
         raise CalibrationError(
             f"the choice through the {part.effect} part chose {redone.chosen!r}, not a family member"
         )
     refined, _ = refine_parts(
         {part.effect: {part.name: part.value(u1)}},
-        lambda trial: train_rms(member2)(part.variable(trial[part.effect][part.name])),
+        lambda trial: train_rms(redone.chosen)(part.variable(trial[part.effect][part.name])),
         model=redone.chosen,
     )
     u2 = part.variable(float(refined[part.effect][part.name]))
-    f2 = _fitted(part.through(data, u2), member2, train, alpha_per_v)
-    final = _fitted(part.through(data, u2), member2, None, alpha_per_v)
+    f2 = _fitted(part.through(data, u2), redone.chosen, train, alpha_per_v)
+    final = _fitted(part.through(data, u2), redone.chosen, None, alpha_per_v)
     if f2 is None or final is None:
         raise CalibrationError(
             f"{redone.chosen} through a {part.effect} part of {part.value(u2):.4g} {part.unit} failed to fit"

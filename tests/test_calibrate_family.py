@@ -12,12 +12,15 @@ from hil_sim.stage import EffectsConfig, StageConfig, resolve_stage
 from piezod.calibrate_dynamic import DynamicCalibrationData, prepare_dynamic
 from piezod.calibrate_family import (
     CHOICE_TIE_FRACTION,
+    GP_NODES,
+    MAX_GP_NODES,
     MAX_PLAYS,
     choose_model,
     family_model_config,
     fit_family,
     holdout_mask,
     member_name,
+    member_nodes,
     parse_member,
     session_positions,
     solve_linear,
@@ -108,7 +111,7 @@ def test_the_streaming_choice_adopts_either_creep_driver_and_can_still_block_one
     data = _pi_session()
     choice = choose_model(data, alpha_per_v=3e-3, holdout_every=3, adoptable_drivers=REALTIME_CREEP_DRIVERS)
     held = choice.heldout_rms_um
-    base = {k: v for k, v in held.items() if "-plays" not in k}
+    base = {k: v for k, v in held.items() if "-plays" not in k and "-nodes" not in k}
     # among the members at the default resolution: the best held-out RMS, or a member with fewer
     # coefficients within CHOICE_TIE_FRACTION of it (here Prandtl-Ishlinskii, the stage's own law,
     # within 1 % of the generalised play law)
@@ -118,15 +121,15 @@ def test_the_streaming_choice_adopts_either_creep_driver_and_can_still_block_one
     assert base[picked] <= best * (1.0 + CHOICE_TIE_FRACTION), choice.table()
     size = {k: f.n - f.dof for k, f in choice.fits.items() if k in base}
     assert all(size[k] >= size[picked] for k in size if base[k] <= best * (1.0 + CHOICE_TIE_FRACTION))
-    # a finer play grid replaces it only by predicting better by more than the tie fraction
-    if plays is not None:
+    # a finer play or centre grid replaces it only by predicting better by more than the tie fraction
+    if plays is not None or member_nodes(choice.chosen) != GP_NODES:
         assert held[choice.chosen] < base[picked] * (1.0 - CHOICE_TIE_FRACTION)
     assert "not adopted" not in choice.table()
     assert choice.fit is not None
     driver = choice.fit.params.creep_driver
     other = next(d for d in CREEP_DRIVERS if d != driver)
     blocked = choose_model(data, alpha_per_v=3e-3, holdout_every=3, adoptable_drivers=(other,))
-    assert {k for k in blocked.heldout_rms_um if "-plays" not in k} == set(base)
+    assert {k for k in blocked.heldout_rms_um if "-plays" not in k and "-nodes" not in k} == set(base)
     assert blocked.fit is None or blocked.fit.params.creep_driver == other
     assert blocked.chosen != choice.chosen and "not adopted" in blocked.table()
 
@@ -149,6 +152,27 @@ def test_preisach_stage_picks_the_generalised_play_law() -> None:
     held = choice.heldout_rms_um
     assert held["family/generalised-play"] < 0.5 * held["family/prandtl-ishlinskii"]
     assert held["family/prandtl-ishlinskii"] < 0.5 * held["family/coleman-hodgdon"]
+    # the centre grid was refined once, and kept only when it predicts better by the tie fraction
+    plays = member[2]
+    coarse = member_name("generalised-play", "position", plays)
+    finer = member_name("generalised-play", "position", plays, 2 * GP_NODES - 1)
+    assert coarse in held and finer in held, choice.table()
+    nodes = member_nodes(choice.chosen)
+    assert len(h.nodes_v) == nodes <= MAX_GP_NODES
+    if nodes == GP_NODES:
+        assert not held[finer] < held[coarse] * (1.0 - CHOICE_TIE_FRACTION)
+    else:
+        assert held[finer] < held[coarse] * (1.0 - CHOICE_TIE_FRACTION)
+
+
+def test_member_names_carry_a_refined_play_and_centre_grid() -> None:
+    """A member's name says its play count and centre nodes when the choice refined them."""
+    name = member_name("generalised-play", "voltage", 64, 5)
+    assert name == "family/generalised-play/64-plays/5-nodes/voltage-creep"
+    assert parse_member(name) == ("generalised-play", "voltage", 64)
+    assert member_nodes(name) == 5
+    assert member_nodes("family/generalised-play") == GP_NODES
+    assert member_name("prandtl-ishlinskii", "position") == "family/prandtl-ishlinskii"
 
 
 def test_joint_gauss_newton_finishes_what_the_alternation_leaves(monkeypatch: pytest.MonkeyPatch) -> None:
