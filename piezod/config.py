@@ -147,6 +147,12 @@ class FamilyModelConfig(StrictModel):
     creep_driver: Literal["position", "voltage"] = Field(
         default="position", description="what the creep follows: the hysteretic position or the drive voltage"
     )
+    offset_um: float = Field(
+        default=0.0,
+        ge=-1e4,
+        le=1e4,
+        description="where the position sensor reads the model's zero (um), added after the static map",
+    )
 
     @model_validator(mode="after")
     def _check_model(self) -> FamilyModelConfig:
@@ -194,6 +200,7 @@ class FamilyModelConfig(StrictModel):
             self.lag_time_constant_s,
             self.stiffness_pct_per_um,
             self.creep_driver,
+            self.offset_um,
         )
 
 

@@ -945,10 +945,9 @@ def tied_to_one_sensor(choice_report: Mapping[str, Any]) -> bool:
 def offset_spread(data: DynamicCalibrationData, params: Any) -> tuple[float, float]:
     """How far a family member's per-experiment offsets spread (um: the largest minus the
     smallest of the experiments' mean residual) and the frame's travel (um)."""
-    from piezod.calibrate_family import session_positions
+    from piezod.calibrate_family import experiment_offsets, session_positions
 
-    res = data.position_um - session_positions(data, params)
-    off = np.add.reduceat(res, data.starts) / data.counts
+    off = experiment_offsets(data, session_positions(data, params))
     return float(np.ptp(off)), float(np.ptp(data.position_um))
 
 

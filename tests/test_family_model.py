@@ -138,6 +138,30 @@ def test_hold_and_adopt_with_either_creep_driver(driver: str) -> None:
     np.testing.assert_allclose(v, 50.0, atol=1e-9)
 
 
+@pytest.mark.parametrize("driver", ["position", "voltage"])
+def test_the_sensor_offset_moves_every_position_and_nothing_else(driver: str) -> None:
+    """``offset_um`` (where the sensor reads the model's zero, fitted by the calibration) is added
+    after the static map: forward, rest and adopted positions move by it, the inverse takes it
+    off, the voltages for the same motion do not change; the config carries it."""
+    base = FamilyParams(PI, SPEC, 1e-3, 0.4, creep_driver=driver)
+    off = FamilyParams(PI, SPEC, 1e-3, 0.4, creep_driver=driver, offset_um=-1.5)
+    dt = 1e-4
+    volts = np.linspace(0, 100, 500)
+    x0, s0 = family_forward(base, volts, dt, family_rest_state(base))
+    x1, s1 = family_forward(off, volts, dt, family_rest_state(off))
+    np.testing.assert_allclose(x1, x0 - 1.5, atol=1e-12)
+    assert family_rest_state(off).position_um == pytest.approx(family_rest_state(base).position_um - 1.5)
+    v0, _ = family_inverse(base, x0[-1] + np.linspace(0, 2, 50), dt, s0)
+    v1, _ = family_inverse(off, x1[-1] + np.linspace(0, 2, 50), dt, s1)
+    np.testing.assert_allclose(v1, v0, atol=1e-9)
+    adopted = family_adopt_state(off, 50.0, 5.0)
+    assert adopted.position_um == pytest.approx(5.0, abs=1e-9)
+    assert adopted.law.position_um == pytest.approx(family_adopt_state(base, 50.0, 6.5).law.position_um)
+    assert family_model_config(off).params().offset_um == -1.5
+    with pytest.raises(ModelError, match="offset_um"):
+        FamilyParams(PI, SPEC, offset_um=float("nan"))
+
+
 def test_hold_relaxes_creep_and_settles_the_lag() -> None:
     p = FamilyParams(PI, SPEC, 1e-3, 0.0)
     dt = 1e-4

@@ -167,6 +167,11 @@ class FamilyParams:
         Static map ``x + k x^2 / 200`` (%/um).
     creep_driver
         ``position`` (the creep of the hysteretic position) or ``voltage`` (of the drive voltage).
+    offset_um
+        Where the position sensor reads the model's zero (um), added after the static map: the
+        calibration's frame is fitted with an offset per scan (or one for the sensor), and the
+        runtime parts around the model, which act on the absolute position, were fitted in the
+        sensor's frame (:func:`piezod.calibrate_family.fit_family` sets it).
     """
 
     hysteresis: HysteresisLaw
@@ -174,6 +179,7 @@ class FamilyParams:
     lag_time_constant_s: float = 0.0
     stiffness_pct_per_um: float = 0.0
     creep_driver: str = "position"
+    offset_um: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "creep", self.creep.pruned())
@@ -181,6 +187,8 @@ class FamilyParams:
             raise ModelError(
                 f"creep_driver must be one of {', '.join(CREEP_DRIVERS)}, got {self.creep_driver!r}"
             )
+        if not math.isfinite(self.offset_um):
+            raise ModelError(f"offset_um must be finite, got {self.offset_um!r}")
         if not (math.isfinite(self.lag_time_constant_s) and 0.0 <= self.lag_time_constant_s <= 1.0):
             raise ModelError(f"lag_time_constant_s must lie in [0, 1] s, got {self.lag_time_constant_s!r}")
         limit = MAX_STIFFNESS_PCT_PER_UM
@@ -248,14 +256,13 @@ class FamilyState:
 
 def _static(params: FamilyParams, xc: F64) -> F64:
     kappa = params.stiffness_pct_per_um / 200.0
-    if kappa == 0.0:
-        return xc
-    out: F64 = xc + kappa * xc * xc
+    out: F64 = xc + kappa * xc * xc + params.offset_um if kappa != 0.0 else xc + params.offset_um
     return out
 
 
 def _static_inverse(params: FamilyParams, x: F64) -> F64:
     kappa = params.stiffness_pct_per_um / 200.0
+    x = x - params.offset_um
     if kappa == 0.0:
         return x
     disc = np.maximum(1.0 + 4.0 * kappa * x, 0.0)
