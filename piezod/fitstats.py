@@ -408,6 +408,13 @@ class CalibrationFit(FitResult, Generic[ExperimentT]):
         return max(self.experiments, key=lambda e: e.fit_error_pct)
 
 
+#: :func:`scipy.optimize.lsq_linear`'s options per method of :func:`solve_linear`.
+_LSQ_OPTIONS: dict[str, dict[str, str]] = {
+    "trf": {"method": "trf", "lsmr_tol": "auto"},
+    "bvls": {"method": "bvls"},
+}
+
+
 def solve_linear(
     a: F64,
     y: F64,
@@ -449,7 +456,8 @@ def solve_linear(
     Raises
     ------
     CalibrationError
-        ``A`` or ``y`` is not finite, or ``method`` is unknown.
+        ``A`` or ``y`` is not finite, ``method`` is unknown, or the solver does not converge
+        (``bvls`` whose SVD fails is solved by ``trf`` first).
     """
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(y))):
         raise CalibrationError("linear least squares: the design matrix or the data is not finite")
@@ -476,7 +484,10 @@ def solve_linear(
         # what lsq_linear does first (and returns) for an unbounded problem, without its overhead
         scale = np.linalg.norm(a, axis=0)
         scale[scale == 0.0] = 1.0
-        sol_u: F64 = np.linalg.lstsq(a / scale, y, rcond=-1)[0] / scale
+        try:
+            sol_u: F64 = np.linalg.lstsq(a / scale, y, rcond=-1)[0] / scale
+        except np.linalg.LinAlgError as exc:
+            raise CalibrationError(f"linear least squares did not converge: {exc}") from exc
         return sol_u, float(np.sqrt(np.mean((a @ sol_u - y) ** 2)))
     if ridge is not None:
         a_full = np.vstack([a, ridge])
@@ -487,8 +498,18 @@ def solve_linear(
     scale[scale == 0.0] = 1.0
     if method not in ("trf", "bvls"):
         raise CalibrationError(f"unknown linear least-squares method {method!r} (trf, bvls)")
-    options = {"lsmr_tol": "auto"} if method == "trf" else {}
-    res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), method=method, **options)
+    bounds = (lo * scale, hi * scale)
+    try:
+        res = lsq_linear(a_full / scale, y_full, bounds=bounds, **_LSQ_OPTIONS[method])
+    except np.linalg.LinAlgError as exc:
+        if method != "bvls":
+            raise CalibrationError(f"linear least squares did not converge: {exc}") from exc
+        # the active set's SVD can fail to converge on nearly collinear columns (the generalised
+        # play law on 5 centre nodes did on tansy30's frame); the trust-region method takes none
+        try:
+            res = lsq_linear(a_full / scale, y_full, bounds=bounds, **_LSQ_OPTIONS["trf"])
+        except np.linalg.LinAlgError as again:
+            raise CalibrationError(f"linear least squares did not converge: {again}") from again
     # the active-set solution may sit a rounding error outside its bounds
     sol: F64 = np.clip(res.x / scale, lo, hi)
     return sol, float(np.sqrt(np.mean((a @ sol - y) ** 2)))

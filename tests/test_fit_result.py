@@ -82,6 +82,38 @@ def test_solve_linear_honours_bounds() -> None:
     assert rms == pytest.approx(0.0, abs=1e-9)
 
 
+def test_solve_linear_falls_back_when_the_active_set_svd_does_not_converge(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """BVLS's SVD can fail to converge on nearly collinear columns (the generalised play law on 5
+    centre nodes on tansy30's frame): the trust-region method solves it instead; a solver that
+    fails outright is a CalibrationError naming it, never numpy's LinAlgError."""
+    import piezod.fitstats as fs
+    from piezod.errors import CalibrationError
+
+    real = fs.lsq_linear
+
+    def flaky(*args: object, method: str = "trf", **kwargs: object) -> object:
+        if method == "bvls":
+            raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
+        return real(*args, method=method, **kwargs)
+
+    a = np.column_stack([np.ones(10), np.arange(10.0)])
+    y = 1.0 - 0.5 * np.arange(10.0)
+    lower, upper = np.array([-np.inf, -1.0]), np.array([np.inf, 0.0])
+    want, _ = solve_linear(a, y, lower=lower, upper=upper, method="bvls")
+    monkeypatch.setattr(fs, "lsq_linear", flaky)
+    got, _ = solve_linear(a, y, lower=lower, upper=upper, method="bvls")
+    np.testing.assert_allclose(got, want, atol=1e-6)
+
+    def broken(*args: object, **kwargs: object) -> object:
+        raise np.linalg.LinAlgError("SVD did not converge")
+
+    monkeypatch.setattr(fs, "lsq_linear", broken)
+    with pytest.raises(CalibrationError, match="did not converge"):
+        solve_linear(a, y, lower=lower, upper=upper, method="bvls")
+
+
 def _check_common(res: FitResult) -> None:
     """The part every fit fills: residuals, n, dof, cost and the information criteria agree."""
     assert isinstance(res, FitResult)
