@@ -1385,44 +1385,42 @@ def choose_model(
         tied = [k for k in scores if k in fits and scores[k] <= limit]
         chosen = min(tied, key=lambda k: (fits[k].n - fits[k].dof, scores[k]))
         law, driver = fits[chosen].law, fits[chosen].params.creep_driver
-        n_plays = plays
-        while law in PLAY_LAWS and 2 * n_plays <= MAX_PLAYS:
-            finer = member_name(law, driver, 2 * n_plays)
-            try:
-                fit = fit_family(
-                    data, law, train=train, plays=2 * n_plays, alpha_per_v=alpha_per_v, creep_driver=driver
-                )
-            except CalibrationError as exc:
-                failed[finer] = str(exc)
-                break
-            fits[finer] = fit
-            heldout[finer], train_rms[finer] = fit.heldout_rms_um, fit.rms_um
-            if not fit.heldout_rms_um < scores[chosen] * (1.0 - CHOICE_TIE_FRACTION):
-                break
-            chosen, n_plays = finer, 2 * n_plays
-            scores[chosen] = fit.heldout_rms_um
-        n_nodes = GP_NODES
-        while law == "generalised-play" and 2 * n_nodes - 1 <= MAX_GP_NODES:
-            finer = member_name(law, driver, n_plays if n_plays != plays else None, 2 * n_nodes - 1)
+
+        def finer(name: str, n_plays: int, n_nodes: int) -> bool:
+            """The chosen member on a finer grid, chosen when it predicts better by the tie fraction."""
+            nonlocal chosen
             try:
                 fit = fit_family(
                     data,
                     law,
                     train=train,
                     plays=n_plays,
-                    n_nodes=2 * n_nodes - 1,
+                    n_nodes=n_nodes,
                     alpha_per_v=alpha_per_v,
                     creep_driver=driver,
                 )
             except CalibrationError as exc:
-                failed[finer] = str(exc)
-                break
-            fits[finer] = fit
-            heldout[finer], train_rms[finer] = fit.heldout_rms_um, fit.rms_um
+                failed[name] = str(exc)
+                return False
+            fits[name] = fit
+            heldout[name], train_rms[name] = fit.heldout_rms_um, fit.rms_um
             if not fit.heldout_rms_um < scores[chosen] * (1.0 - CHOICE_TIE_FRACTION):
-                break
-            chosen, n_nodes = finer, 2 * n_nodes - 1
+                return False
+            chosen = name
             scores[chosen] = fit.heldout_rms_um
+            return True
+
+        n_plays, n_nodes = plays, GP_NODES
+        while law in PLAY_LAWS and 2 * n_plays <= MAX_PLAYS:
+            if not finer(member_name(law, driver, 2 * n_plays), 2 * n_plays, n_nodes):
+                break
+            n_plays *= 2
+        refined_plays = n_plays if n_plays != plays else None
+        while law == "generalised-play" and 2 * n_nodes - 1 <= MAX_GP_NODES:
+            name = member_name(law, driver, refined_plays, 2 * n_nodes - 1)
+            if not finer(name, n_plays, 2 * n_nodes - 1):
+                break
+            n_nodes = 2 * n_nodes - 1
         final = fit_family(
             data, law, plays=n_plays, n_nodes=n_nodes, alpha_per_v=alpha_per_v, creep_driver=driver
         )
