@@ -112,9 +112,14 @@ def member_name(law: str, driver: str, plays: int | None = None, nodes: int | No
     )
 
 
+def _named_count(parts: Sequence[str], suffix: str) -> int | None:
+    """The ``<n>`` of a :func:`member_name`'s ``<n><suffix>`` part, None when it has none."""
+    return next((int(p.removesuffix(suffix)) for p in parts if p.endswith(suffix)), None)
+
+
 def member_nodes(name: str) -> int:
     """Centre nodes of a :func:`member_name`'s generalised play law (:data:`GP_NODES` unless named)."""
-    return next((int(p.removesuffix("-nodes")) for p in name.split("/") if p.endswith("-nodes")), GP_NODES)
+    return _named_count(name.split("/"), "-nodes") or GP_NODES
 
 
 def parse_member(name: str) -> tuple[str, str, int | None] | None:
@@ -122,8 +127,8 @@ def parse_member(name: str) -> tuple[str, str, int | None] | None:
     parts = name.split("/")
     if len(parts) < 2 or parts[0] != "family" or parts[1] not in LAWS:
         return None
-    plays = next((int(p.removesuffix("-plays")) for p in parts[2:] if p.endswith("-plays")), None)
-    return parts[1], "voltage" if parts[-1] == "voltage-creep" else "position", plays
+    driver = "voltage" if parts[-1] == "voltage-creep" else "position"
+    return parts[1], driver, _named_count(parts[2:], "-plays")
 
 
 #: Longest drive lag the fit considers (s).
@@ -717,7 +722,7 @@ def _result(s: _Session, params: FamilyParams, iterations: int, n_coefficients: 
     x = session_positions(s.data, params, s.dev)
     offset = float(np.mean(experiment_offsets(s.data, x)))
     params = dataclasses.replace(params, offset_um=params.offset_um + offset)
-    x = x + offset
+    # the offsets are centred out of the residual: x need not move with them
     resid = s.yc - _centre(s.data, x)
     train = resid[s.train_rows]
     held = resid[s.test_rows]

@@ -498,18 +498,16 @@ def solve_linear(
     scale[scale == 0.0] = 1.0
     if method not in ("trf", "bvls"):
         raise CalibrationError(f"unknown linear least-squares method {method!r} (trf, bvls)")
-    bounds = (lo * scale, hi * scale)
-    try:
-        res = lsq_linear(a_full / scale, y_full, bounds=bounds, **_LSQ_OPTIONS[method])
-    except np.linalg.LinAlgError as exc:
-        if method != "bvls":
-            raise CalibrationError(f"linear least squares did not converge: {exc}") from exc
-        # the active set's SVD can fail to converge on nearly collinear columns (the generalised
-        # play law on 5 centre nodes did on tansy30's frame); the trust-region method takes none
+    # the active set's SVD can fail to converge on nearly collinear columns (the generalised play
+    # law on 5 centre nodes did on tansy30's frame); the trust-region method takes none
+    tries = [method, "trf"] if method == "bvls" else [method]
+    for i, m in enumerate(tries):
         try:
-            res = lsq_linear(a_full / scale, y_full, bounds=bounds, **_LSQ_OPTIONS["trf"])
-        except np.linalg.LinAlgError as again:
-            raise CalibrationError(f"linear least squares did not converge: {again}") from again
+            res = lsq_linear(a_full / scale, y_full, bounds=(lo * scale, hi * scale), **_LSQ_OPTIONS[m])
+            break
+        except np.linalg.LinAlgError as exc:
+            if i == len(tries) - 1:
+                raise CalibrationError(f"linear least squares did not converge: {exc}") from exc
     # the active-set solution may sit a rounding error outside its bounds
     sol: F64 = np.clip(res.x / scale, lo, hi)
     return sol, float(np.sqrt(np.mean((a @ sol - y) ** 2)))

@@ -256,7 +256,9 @@ class FamilyState:
 
 def _static(params: FamilyParams, xc: F64) -> F64:
     kappa = params.stiffness_pct_per_um / 200.0
-    out: F64 = xc + kappa * xc * xc + params.offset_um if kappa != 0.0 else xc + params.offset_um
+    if kappa == 0.0 and params.offset_um == 0.0:
+        return xc
+    out: F64 = xc + kappa * xc * xc + params.offset_um
     return out
 
 
