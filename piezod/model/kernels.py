@@ -33,6 +33,40 @@ from numpy.typing import NDArray
 F64 = NDArray[np.float64]
 
 
+def _mem(wa: F64, e: F64) -> float:
+    """The creep's memory term ``sum_i wa_i e_i`` in four interleaved partial sums: the sum's
+    additions are otherwise one dependency chain, the longest part of a sample's creep."""
+    m = e.shape[0]
+    s0, s1, s2, s3 = 0.0, 0.0, 0.0, 0.0
+    i = 0
+    while i + 4 <= m:
+        s0 += wa[i] * e[i]
+        s1 += wa[i + 1] * e[i + 1]
+        s2 += wa[i + 2] * e[i + 2]
+        s3 += wa[i + 3] * e[i + 3]
+        i += 4
+    while i < m:
+        s0 += wa[i] * e[i]
+        i += 1
+    return (s0 + s1) + (s2 + s3)
+
+
+def _creep_ahead(wa: F64, a: F64, ob0: F64, e: F64) -> tuple[F64, float, float]:
+    """``wa_i a_i``, ``sum_i wa_i ob0_i`` and the memory term ``sum_i wa_i e_i`` before a block.
+
+    After a sample's update ``e_i <- a_i e_i - ob0_i dV`` the memory term is
+    ``sum_i wa_i a_i e_i - dV sum_i wa_i ob0_i``; its first sum does not wait for the sample's
+    solve, so a sample's dependency chain holds no sum over the creep elements.
+    """
+    m = e.shape[0]
+    waa = np.empty(m)
+    pull = 0.0
+    for i in range(m):
+        waa[i] = wa[i] * a[i]
+        pull += wa[i] * ob0[i]
+    return waa, pull, _mem(wa, e)
+
+
 def _pi_loop(
     xc: F64,
     b: float,
@@ -58,11 +92,10 @@ def _pi_loop(
     m = e.shape[0]
     p = plays.shape[0]
     base = b * rho0 + g
+    waa, pull, mem = _creep_ahead(wa, a, ob0, e)
     for j in range(n):
-        mem = 0.0
-        for i in range(m):
-            mem += wa[i] * e[i]
         y = xc[j] - mem - wb * u_prev
+        ahead = _mem(waa, e)
         f = xh + g * u_prev
         u = u_prev
         if y > f:
@@ -129,6 +162,7 @@ def _pi_loop(
         du = u - u_prev
         for i in range(m):
             e[i] = a[i] * e[i] - ob0[i] * du
+        mem = ahead - pull * du
         out[j] = u
         u_prev = u
     return u_prev, xh
@@ -200,58 +234,20 @@ def _ch_loop(
     n = xc.shape[0]
     m = e.shape[0]
     y0 = xh - b * u_prev
+    waa, pull, mem = _creep_ahead(wa, a, ob0, e)
     for j in range(n):
-        mem = 0.0
-        for i in range(m):
-            mem += wa[i] * e[i]
         y = xc[j] - mem - wb * u_prev
+        ahead = _mem(waa, e)
         u = ch_solve(b, alpha, delta, g, y, u_prev, y0)
         xh = y - g * u
         y0 = xh - b * u
         du = u - u_prev
         for i in range(m):
             e[i] = a[i] * e[i] - ob0[i] * du
+        mem = ahead - pull * du
         out[j] = u
         u_prev = u
     return u_prev, xh
-
-
-def _gmu(mu: F64, c: F64, row: int, q: float) -> float:
-    """Density ``mu_row(q)``: linear between the nodes, constant beyond them."""
-    k_last = c.shape[0] - 1
-    if q <= c[0]:
-        return float(mu[row, 0])
-    if q >= c[k_last]:
-        return float(mu[row, k_last])
-    k = 0
-    while c[k + 1] <= q:
-        k += 1
-    t = (q - c[k]) / (c[k + 1] - c[k])
-    return float(mu[row, k] + t * (mu[row, k + 1] - mu[row, k]))
-
-
-def _gcurv(mu: F64, c: F64, row: int, u: float, shift: float, sigma: float) -> float:
-    """``d mu_row / dq`` on the segment the play of ``row`` (at ``q = u - shift``) moves into."""
-    k_last = c.shape[0] - 1
-    for k in range(k_last):
-        lo, hi = c[k] + shift, c[k + 1] + shift
-        inside = (lo <= u < hi) if sigma > 0.0 else (lo < u <= hi)
-        if inside:
-            return float((mu[row, k + 1] - mu[row, k]) / (c[k + 1] - c[k]))
-    return 0.0
-
-
-def _gknot(c: F64, u: float, shift: float, sigma: float, eps: float) -> float:
-    """The next voltage (beyond ``eps``) where a play moving with ``u`` (offset ``shift``) crosses a node."""
-    best = math.inf if sigma > 0.0 else -math.inf
-    for k in range(c.shape[0]):
-        v = c[k] + shift
-        if sigma > 0.0:
-            if u + eps < v < best:
-                best = v
-        elif best < v < u - eps:
-            best = v
-    return best
 
 
 def _gval(mu: F64, c: F64, row: int, q: float) -> float:
@@ -269,6 +265,45 @@ def _gval(mu: F64, c: F64, row: int, q: float) -> float:
     return float(acc + mu[row, k_last] * (q - c[k_last]))
 
 
+def _grow(
+    mu: F64, c: F64, row: int, u: float, shift: float, sigma: float, eps: float
+) -> tuple[float, float, float]:
+    """One row's share of the piece starting at ``u`` (its play offset by ``shift``), in one pass
+    over the nodes: the density ``mu_row(u - shift)``, ``d mu_row / dq`` on the segment the play
+    moves into (just past ``u``, beyond the last node 0) and the next node it reaches beyond
+    ``eps`` (``+-inf`` when none)."""
+    k_last = c.shape[0] - 1
+    q = u - shift
+    ahead = u + sigma * 2.0 * eps
+    if q <= c[0]:
+        slope = float(mu[row, 0])
+    elif q >= c[k_last]:
+        slope = float(mu[row, k_last])
+    else:
+        k = 0
+        while c[k + 1] <= q:
+            k += 1
+        t = (q - c[k]) / (c[k + 1] - c[k])
+        slope = float(mu[row, k] + t * (mu[row, k + 1] - mu[row, k]))
+    curv = 0.0
+    knot = math.inf if sigma > 0.0 else -math.inf
+    lo = c[0] + shift
+    for k in range(k_last + 1):
+        v = lo
+        if sigma > 0.0:
+            if u + eps < v < knot:
+                knot = v
+        elif knot < v < u - eps:
+            knot = v
+        if k < k_last:
+            hi = c[k + 1] + shift
+            inside = (lo <= ahead < hi) if sigma > 0.0 else (lo < ahead <= hi)
+            if inside:
+                curv = float((mu[row, k + 1] - mu[row, k]) / (c[k + 1] - c[k]))
+            lo = hi
+    return slope, curv, knot
+
+
 def _gpiece(mu: F64, c: F64, r: F64, plays: F64, u: float, sigma: float) -> tuple[float, float, float]:
     """The piece of ``H_state`` starting at ``u`` in direction ``sigma``: slope, curvature, end (knot).
 
@@ -276,17 +311,14 @@ def _gpiece(mu: F64, c: F64, r: F64, plays: F64, u: float, sigma: float) -> tupl
     taken just past them, so rounding at a knot (``(u - r) + r != u``) cannot stall the walk.
     """
     eps = 1e-13 * (1.0 + abs(u))
-    ahead = u + sigma * 2.0 * eps
-    slope = _gmu(mu, c, 0, u)
-    curv = _gcurv(mu, c, 0, ahead, 0.0, sigma)
-    knot = _gknot(c, u, 0.0, sigma, eps)
+    slope, curv, knot = _grow(mu, c, 0, u, 0.0, sigma, eps)
     for i in range(plays.shape[0]):
         shift = sigma * r[i]
         edge = plays[i] + shift
         if sigma * (edge - u) <= eps:
-            slope += _gmu(mu, c, i + 1, u - shift)
-            curv += _gcurv(mu, c, i + 1, ahead, shift, sigma)
-            k = _gknot(c, u, shift, sigma, eps)
+            ds, dc, k = _grow(mu, c, i + 1, u, shift, sigma, eps)
+            slope += ds
+            curv += dc
             if sigma * (k - knot) < 0.0:
                 knot = k
         elif sigma * (edge - knot) < 0.0:
@@ -339,8 +371,11 @@ def _gpi_loop(
     (its start, value, slope, curvature and end) is kept from sample to sample, so a sample that
     stays on it costs ``O(1)`` besides the creep: one quadratic, solved from the piece's start in
     its stable form (no accumulation of rounding along the piece). Crossing a knot or reversing
-    settles the plays and computes the next piece (``O(p K)``). With no creep elements and
-    ``g = 0`` it is the law's own exact inverse.
+    settles the plays and computes the next piece (``O(p K)``, one pass over the nodes per moving
+    play); across a knot the left side is continuous, so the next piece starts from the last one's
+    end value, and the state's ``x_h`` is summed afresh only at a reversal (rounding does not build
+    up beyond one monotone run). With no creep elements and ``g = 0`` it is the law's own exact
+    inverse.
     """
     n = xc.shape[0]
     m = e.shape[0]
@@ -348,11 +383,10 @@ def _gpi_loop(
     have = False
     ps, u0, f0, b0, cv, kn = 0.0, u_prev, 0.0, 0.0, 0.0, 0.0
     f_cur = xh + g * u_prev
+    waa, pull, mem = _creep_ahead(wa, a, ob0, e)
     for j in range(n):
-        mem = 0.0
-        for i in range(m):
-            mem += wa[i] * e[i]
         y = xc[j] - mem - wb * u_prev
+        ahead = _mem(waa, e)
         u = u_prev
         if y != f_cur:
             sigma = 1.0 if y > f_cur else -1.0
@@ -373,9 +407,9 @@ def _gpi_loop(
                 if d <= sigma * (kn - u0):
                     u = u0 + sigma * d
                     break
+                f0 += sigma * (b0 + q * (sigma * (kn - u0))) * (sigma * (kn - u0))
                 u0 = kn
                 _gsettle(r, plays, u0, sigma)
-                f0 = _gxh(mu, c, zero, plays, u0) + g * u0
                 b0, cv, kn = _gpiece(mu, c, r, plays, u0, sigma)
                 b0 += g
                 u = u0
@@ -383,6 +417,7 @@ def _gpi_loop(
         du = u - u_prev
         for i in range(m):
             e[i] = a[i] * e[i] - ob0[i] * du
+        mem = ahead - pull * du
         out[j] = u
         u_prev = u
     if have:
@@ -515,11 +550,10 @@ def _bw_loop(
     n = xc.shape[0]
     m = e.shape[0]
     big = b + g
+    waa, pull, mem = _creep_ahead(wa, a, ob0, e)
     for j in range(n):
-        mem = 0.0
-        for i in range(m):
-            mem += wa[i] * e[i]
         y = xc[j] - mem - wb * u_prev
+        ahead = _mem(waa, e)
         f0 = big * u_prev + c * h
         u = u_prev
         if y != f0:
@@ -557,6 +591,7 @@ def _bw_loop(
         du = u - u_prev
         for i in range(m):
             e[i] = a[i] * e[i] - ob0[i] * du
+        mem = ahead - pull * du
         out[j] = u
         u_prev = u
     return u_prev, h
@@ -656,11 +691,10 @@ def _bwn_loop(
     n_s = xc.shape[0]
     m = e.shape[0]
     big = b + g
+    waa, pull, mem = _creep_ahead(wa, a, ob0, e)
     for j in range(n_s):
-        mem = 0.0
-        for i in range(m):
-            mem += wa[i] * e[i]
         y = xc[j] - mem - wb * u_prev
+        ahead = _mem(waa, e)
         f0 = big * u_prev + c * h
         u = u_prev
         if y != f0:
@@ -701,6 +735,7 @@ def _bwn_loop(
         du = u - u_prev
         for i in range(m):
             e[i] = a[i] * e[i] - ob0[i] * du
+        mem = ahead - pull * du
         out[j] = u
         u_prev = u
     return u_prev, h
@@ -708,15 +743,26 @@ def _bwn_loop(
 
 def _fast_creep_loop(y: F64, a: F64, w: F64, scale: float, g: float, c: F64, out: F64) -> None:
     """The fast-creep part's inverse (:mod:`piezod.model.fast_creep`), ``c`` updated in place:
-    per sample ``x = (scale y - sum_j w_j a_j c_j) / g``, then ``c_j = a_j c_j + (1 - a_j) x``."""
+    per sample ``x = (scale y - sum_j w_j a_j c_j) / g``, then ``c_j = a_j c_j + (1 - a_j) x``.
+
+    The next sample's sum is ``sum_j w_j a_j^2 c_j + x sum_j w_j a_j (1 - a_j)``: its first term
+    does not wait for ``x``, so a sample's dependency chain is one division and one multiply-add.
+    """
     m = a.size
+    wa = np.empty(m)
+    waa = np.empty(m)
+    q = 0.0
+    for j in range(m):
+        wa[j] = w[j] * a[j]
+        waa[j] = wa[j] * a[j]
+        q += wa[j] * (1.0 - a[j])
+    s = _mem(wa, c)
     for n in range(y.size):
-        acc = scale * y[n]
-        for j in range(m):
-            acc -= w[j] * a[j] * c[j]
-        x = acc / g
+        x = (scale * y[n] - s) / g
+        p = _mem(waa, c)
         for j in range(m):
             c[j] = a[j] * c[j] + (1.0 - a[j]) * x
+        s = p + q * x
         out[n] = x
 
 
@@ -734,13 +780,13 @@ def _jit(fn: Any) -> Any:
 
 
 # _ch_loop calls ch_solve by its global name, resolved when _ch_loop compiles
+_mem = _jit(_mem)
+_creep_ahead = _jit(_creep_ahead)
 ch_solve = cast(Callable[..., float], _jit(_ch_solve_py))
 pi_loop = cast(Loop, _jit(_pi_loop))
 ch_loop = cast(Loop, _jit(_ch_loop))
 # _gpi_loop calls these by their global names, resolved when it compiles
-_gmu = _jit(_gmu)
-_gcurv = _jit(_gcurv)
-_gknot = _jit(_gknot)
+_grow = _jit(_grow)
 _gval = _jit(_gval)
 _gpiece = _jit(_gpiece)
 _gxh = _jit(_gxh)
