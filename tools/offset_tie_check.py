@@ -41,7 +41,7 @@ def main() -> int:
         ),
     }
     data = sessions["per experiment"]
-    train = ~holdout_mask(data.n_experiments)
+    train = holdout_mask(data.n_experiments)
     print(f"{args.stage}: {data.n_experiments} experiments, {np.ptp(data.position_um):.3g} um of travel")
     for law in args.laws:
         for driver in ("position", "voltage"):
