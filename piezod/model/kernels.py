@@ -268,8 +268,8 @@ def _gval(mu: F64, c: F64, row: int, q: float) -> float:
 def _grow(
     mu: F64, c: F64, row: int, u: float, shift: float, sigma: float, eps: float
 ) -> tuple[float, float, float]:
-    """One row's share of the piece starting at ``u`` (its play offset by ``shift``), in one pass
-    over the nodes: the density ``mu_row(u - shift)``, ``d mu_row / dq`` on the segment the play
+    """One row's share of the piece starting at ``u`` (its play offset by ``shift``), in one call
+    per row: the density ``mu_row(u - shift)``, ``d mu_row / dq`` on the segment the play
     moves into (just past ``u``, beyond the last node 0) and the next node it reaches beyond
     ``eps`` (``+-inf`` when none)."""
     k_last = c.shape[0] - 1
@@ -404,10 +404,11 @@ def _gpi_loop(
                 q = 0.5 * sigma * cv
                 disc = b0 * b0 + 4.0 * q * t
                 d = 2.0 * t / (b0 + math.sqrt(disc)) if disc >= 0.0 else math.inf
-                if d <= sigma * (kn - u0):
+                to_knot = sigma * (kn - u0)
+                if d <= to_knot:
                     u = u0 + sigma * d
                     break
-                f0 += sigma * (b0 + q * (sigma * (kn - u0))) * (sigma * (kn - u0))
+                f0 += sigma * (b0 + q * to_knot) * to_knot
                 u0 = kn
                 _gsettle(r, plays, u0, sigma)
                 b0, cv, kn = _gpiece(mu, c, r, plays, u0, sigma)
@@ -749,14 +750,7 @@ def _fast_creep_loop(y: F64, a: F64, w: F64, scale: float, g: float, c: F64, out
     does not wait for ``x``, so a sample's dependency chain is one division and one multiply-add.
     """
     m = a.size
-    wa = np.empty(m)
-    waa = np.empty(m)
-    q = 0.0
-    for j in range(m):
-        wa[j] = w[j] * a[j]
-        waa[j] = wa[j] * a[j]
-        q += wa[j] * (1.0 - a[j])
-    s = _mem(wa, c)
+    waa, q, s = _creep_ahead(w * a, a, 1.0 - a, c)
     for n in range(y.size):
         x = (scale * y[n] - s) / g
         p = _mem(waa, c)
