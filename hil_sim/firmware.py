@@ -92,7 +92,7 @@ def spawn_firmware(
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
     with os.fdopen(fd, "wb") as err:
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=err, env=env)
-    board = SimProcess(proc, "", stderr_path)
+    board = SimProcess(proc, "", stderr_path, Path(link) if link is not None else None)
     try:
         board.path = _read_path_line(proc, timeout_s, stderr_path)
     except BaseException:

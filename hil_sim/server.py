@@ -120,15 +120,19 @@ class PtyPort:
         return path
 
     def close(self) -> None:
-        """Close the master (the host sees a hang-up) and remove the link."""
+        """Remove the link and close the master (the host sees a hang-up).
+
+        In this order: once the master is closed, the system may give its pty number to another
+        process, and a host reopening the link must not find it there.
+        """
+        if self.link is not None and self.link.is_symlink():
+            with contextlib.suppress(FileNotFoundError):
+                self.link.unlink()
         if self._master is not None:
             os.close(self._master)
             self._master = None
         self._present = False
         self._backlog.clear()
-        if self.link is not None and self.link.is_symlink():
-            with contextlib.suppress(FileNotFoundError):
-                self.link.unlink()
 
     def read_fds(self) -> list[int]:
         """File descriptors to select for reading (none while nobody has the slave open)."""
@@ -589,12 +593,18 @@ class SimProcess:
         The :class:`subprocess.Popen` object.
     stderr_path
         File receiving the simulator's log (kept until :meth:`close`).
+    link
+        The symlink the simulator keeps (``--link``), if any: :meth:`kill` removes it, as the device
+        node of a board that lost power goes away.
     """
 
-    def __init__(self, process: subprocess.Popen[bytes], path: str, stderr_path: Path) -> None:
+    def __init__(
+        self, process: subprocess.Popen[bytes], path: str, stderr_path: Path, link: Path | None = None
+    ) -> None:
         self.process = process
         self.path = path
         self.stderr_path = stderr_path
+        self.link = link
 
     @property
     def pid(self) -> int:
@@ -628,7 +638,14 @@ class SimProcess:
                 pipe.close()
 
     def kill(self) -> int:
-        """SIGKILL and wait. Returns the exit status."""
+        """Remove the link (if any), SIGKILL and wait. Returns the exit status.
+
+        The link goes first: a killed simulator cannot remove it, and a link left dangling at a pty
+        number the system hands out again would lead the host to another process's port.
+        """
+        if self.link is not None and self.link.is_symlink():
+            with contextlib.suppress(FileNotFoundError):
+                self.link.unlink()
         if self.process.poll() is None:
             self.process.kill()
             self.process.wait()
@@ -708,7 +725,7 @@ def spawn_sim(
     with os.fdopen(fd, "wb") as err:
         # stdin a pipe nobody writes to: its end of file tells the simulator this process is gone
         proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err)
-    sim = SimProcess(proc, "", stderr_path)
+    sim = SimProcess(proc, "", stderr_path, Path(link) if link is not None else None)
     try:
         sim.path = _read_path_line(proc, timeout_s, stderr_path)
     except BaseException:

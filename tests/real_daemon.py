@@ -195,8 +195,7 @@ class RealDaemon:
 
     def kill_sim(self) -> None:
         if self.sim is not None:
-            self.sim.process.kill()
-            self.sim.process.wait()
+            self.sim.kill()  # the link goes with the power, before the pty number is free again
             self.sim.close()
             self.sim = None
 

@@ -686,6 +686,56 @@ def test_unplug_reconnects_and_reports_the_watchdog(board: TestBoard, config: Sc
     assert [r.ended_by for r in streamer.stats.runs] == ["link", "stop"]
 
 
+class BrokenAfterCapabilities(WireTap):
+    """The board's wire, broken right after it delivered CAPABILITIES (a board that answers the
+    handshake and goes away again, or another board's port briefly on the same path)."""
+
+    def __init__(self, inner: Transport) -> None:
+        super().__init__(inner)
+        self._decoder = FrameDecoder()
+        self._answered = False
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        if self._answered:
+            raise LinkClosedError(f"{self.url}: unplugged again (test)")
+        data = self.inner.read(max_bytes)
+        frames = self._decoder.feed(data)
+        self._answered = any(isinstance(f, Frame) and isinstance(f.msg, Capabilities) for f in frames)
+        return data
+
+
+@pytest.mark.parametrize("broken_dials", [1, 2])
+def test_a_link_that_breaks_again_right_after_the_handshake_is_dialled_again(
+    board: TestBoard, config: ScannerConfig, broken_dials: int
+) -> None:
+    """The link breaks, the next dial(s) answer HELLO and break at once (while the reconnection
+    is still finishing, or before the handshake is done): the session keeps dialling until the
+    board is really back, instead of being left down with nobody dialling."""
+    events = Events()
+    dials: list[Transport] = []
+
+    def connect() -> Transport:
+        wire = board.connect()
+        if 1 <= len(dials) <= broken_dials:
+            wire = BrokenAfterCapabilities(wire)
+        dials.append(wire)
+        return wire
+
+    settings = LinkSettings(reconnect_initial_s=0.05, reconnect_max_s=0.2)
+    with BoardSession.open(
+        transport_factory=connect, config=config, settings=settings, sample_rate_hz=RATE, on_event=events
+    ) as s:
+        board.unplug(0.05)
+        events.wait_for(LinkDown)
+        deadline = time.monotonic() + 30.0
+        while len(dials) < broken_dials + 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert len(dials) >= broken_dials + 2, f"dialled {len(dials)} times, then nobody dialled"
+        assert s.wait_connected(30.0)
+        assert s.prepare_restart().state == BoardState.IDLE
+        assert not events.of(LinkLost)
+
+
 # -- piezod probe ---------------------------------------------------------------------------------
 
 

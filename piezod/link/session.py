@@ -202,6 +202,10 @@ class BoardSession:
         self._closed_event = threading.Event()
         self._dead: LinkError | None = None
         self._supervisor: threading.Thread | None = None
+        # set under the lock by whoever starts the reconnecting thread, cleared by that thread under the
+        # lock once nothing is pending: a break while it finishes is handed over, never dropped
+        self._reconnecting = False
+        self._pending_break: tuple[_Connection, LinkError] | None = None
         self._down_since: float | None = None
         self.capabilities: Capabilities | None = None
         self._config: ScannerConfig | None = None
@@ -432,9 +436,16 @@ class BoardSession:
             self._shutdown_connection(conn)
             raise from_wire(exc) from exc
         with self._lock:
-            self.capabilities = reply
-            conn.hello_done = True
-            conn.established = True
+            broke = not conn.alive
+            if not broke:
+                self.capabilities = reply
+                conn.hello_done = True
+                conn.established = True
+        if broke:
+            # the reply came, then the link broke before the handshake was done: _link_failed took it
+            # for a failed handshake (no reconnecting), so it fails here, where the caller sees it
+            self._shutdown_connection(conn)
+            raise LinkClosedError(f"{self.url}: the link broke right after the handshake")
         self.emit(LinkUp(time.monotonic(), reply, self.url))
         return reply
 
@@ -501,14 +512,37 @@ class BoardSession:
         log.warning("link to the board broke: %s", error)
         self.emit(LinkDown(time.monotonic(), error))
         with self._lock:
-            if self._supervisor is not None and self._supervisor.is_alive():
+            if self._reconnecting:
+                # the reconnecting thread is still finishing (e.g. this connection is the one it just
+                # made): it takes this break over instead of leaving the link down with nobody dialling
+                self._pending_break = (conn, error)
                 return
+            self._reconnecting = True
             self._supervisor = threading.Thread(
                 target=self._supervise, args=(conn, error), name="piezod-link-reconnect", daemon=True
             )
             self._supervisor.start()
 
     def _supervise(self, dead: _Connection, error: LinkError) -> None:
+        pending: tuple[_Connection, LinkError] | None = (dead, error)
+        try:
+            while pending is not None:
+                self._redial(*pending)
+                with self._lock:
+                    pending, self._pending_break = self._pending_break, None
+                    if self._closing or self._dead is not None:
+                        pending = None
+                    if pending is None:
+                        self._reconnecting = False
+                        self._cond.notify_all()
+        except BaseException:
+            with self._lock:
+                self._reconnecting = False
+                self._cond.notify_all()
+            raise
+
+    def _redial(self, dead: _Connection, error: LinkError) -> None:
+        """Dial until the board answers again (or the session gives up or closes)."""
         self._shutdown_connection(dead)
         if not self.settings.reconnect:
             self._give_up(error)
@@ -549,10 +583,9 @@ class BoardSession:
             wait = max(0.5, 10 * self.settings.status_period_ms / 1000.0)
             self._cond.wait_for(
                 lambda: (
-                    self._status_count > count0
-                    and self._conn is conn
-                    and conn is not None
-                    and conn.got_status
+                    conn is None
+                    or not conn.alive
+                    or (self._status_count > count0 and self._conn is conn and conn.got_status)
                 ),
                 timeout=wait,
             )
@@ -609,7 +642,7 @@ class BoardSession:
                 self._cond.wait(min(left, 0.05))
 
     def _supervisor_done(self) -> bool:
-        return self._supervisor is None or not self._supervisor.is_alive()
+        return not self._reconnecting
 
     def close(self, *, ramp_to_safe: bool = False) -> None:
         """End the session (idempotent).

@@ -305,12 +305,14 @@ static void pty_open(host *h) {
     }
 }
 
+/* The link goes before the master: once the master is closed its pty number may be handed to
+ * another process, and a host reopening the link must not find that port there. */
 static void pty_close(host *h) {
+    if (h->link) unlink(h->link);
     if (h->master >= 0) close(h->master);
     h->master = -1;
     h->present = false;
     h->backlog_len = 0;
-    if (h->link) unlink(h->link);
 }
 
 static void set_present(host *h, bool p) {
