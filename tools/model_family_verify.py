@@ -262,6 +262,29 @@ def main() -> int:
         "(--resonance --fast-creep) on this code, e.g. on a written YAML to compare two versions",
     )
     ap.add_argument(
+        "--hold-s",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="hold the frame's last voltage this long before verifying, as the stage does over the pty "
+        "while piezod calibrate fits (an hour on a 2-core machine)",
+    )
+    ap.add_argument(
+        "--hold-v",
+        type=float,
+        default=None,
+        metavar="V",
+        help="with --hold-s: ramp to this voltage and hold it (default: the frame's last); the "
+        "verification then starts from the sensor's reading there (--start now)",
+    )
+    ap.add_argument(
+        "--start",
+        choices=("frame-end", "now"),
+        default="frame-end",
+        help="the position the verification adopts: the frame's last reading (as piezod calibrate "
+        "does) or the sensor's reading after --hold-s",
+    )
+    ap.add_argument(
         "--markdown", default=None, metavar="F.json", help="print the tables of a saved --json run"
     )
     ap.add_argument(
@@ -317,6 +340,17 @@ def main() -> int:
             Path(args.json).write_text(json.dumps({"stage": str(path), "choice": choice.report}, indent=2))
         return 0
     calibrated = choice.config
+    if args.hold_s > 0:
+        if args.hold_v is not None:
+            bench.ramp(args.hold_v, ramp)
+            args.start = "now"
+        chunk = int(60 * rate)
+        for k in range(0, round(args.hold_s * rate), chunk):
+            _, x = bench.play(np.full(min(chunk, round(args.hold_s * rate) - k), bench.v))
+        now_x = float(np.mean(x[-FRAME_END_SAMPLES:]))
+        print(f"held {bench.v:.4g} V for {args.hold_s:.0f} s: the reading moved {now_x - last_x:+.4f} um")
+        if args.start == "now":
+            last_x = now_x
     if args.verify and placement is not None:
         named = {**choice.report, "model_choice": {"chosen": args.member}} if args.member else choice.report
         placed = with_lag_placed(placement, axis, dataclasses.replace(choice, report=named), exps, ramp, rest)
