@@ -310,6 +310,7 @@ class _Session:
         max_lag_s: float = _MAX_LAG_S,
         max_kappa: float = _MAX_KAPPA,
         max_creep: float = MAX_TOTAL_CREEP,
+        history: NDArray[np.bool_] | None = None,
     ) -> None:
         self.data = data
         self.max_lag_s = max_lag_s
@@ -320,6 +321,8 @@ class _Session:
         self.y = data.position_um
         exp_of_row = np.repeat(np.arange(data.n_experiments), data.counts)
         keep = settled_rows(data, skip_s)
+        if history is not None:
+            keep &= ~history[exp_of_row]
         self.train_rows = train[exp_of_row] & keep
         self.test_rows = ~train[exp_of_row] & keep
         self.yc = _centre(data, self.y)
@@ -1041,6 +1044,7 @@ def fit_family(
     fit_stiffness: bool = True,
     fit_creep: bool = True,
     start: BoucWenParams | None = None,
+    history: NDArray[np.bool_] | None = None,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -1091,6 +1095,9 @@ def fit_family(
         polish and its exponent is kept; the profile over exponents and ratios is skipped
         (the same fit to 0.001 nm at a seventh to a fourteenth of the time on fern21's frame,
         docs/model-family.md 6.2w).
+    history
+        Experiments the model runs through but neither fits nor scores (default none): what the
+        stage did before the fitted ones (a first frame, before the frame played again).
 
     Raises
     ------
@@ -1106,6 +1113,8 @@ def fit_family(
     voltage = creep_driver == "voltage"
     taus = default_taus(data) if taus is None else np.asarray(taus, dtype=np.float64)
     mask = np.ones(data.n_experiments, dtype=bool) if train is None else np.asarray(train, dtype=bool)
+    if history is not None:
+        mask = mask & ~np.asarray(history, dtype=bool)
     if not mask.any():
         raise CalibrationError("no experiment left to fit")
     t0 = time.perf_counter()
@@ -1117,6 +1126,7 @@ def fit_family(
         _MAX_LAG_S if fit_lag else 0.0,
         _MAX_KAPPA if fit_stiffness else 0.0,
         MAX_TOTAL_CREEP if fit_creep else 0.0,
+        None if history is None else np.asarray(history, dtype=bool),
     )
     rest_v = data.rest_voltage_v
     hyst: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams

@@ -347,3 +347,29 @@ def test_one_sensors_offsets_are_an_offset_and_a_drift_of_the_whole_session() ->
     assert one.n_offset_parameters(rows) == 2
     assert data.n_offset_parameters(rows) == data.n_experiments
     assert dataclasses.replace(one, offset_time_s=None).n_offset_parameters(rows) == 1
+
+
+def test_history_experiments_run_the_model_but_are_neither_fitted_nor_scored() -> None:
+    """The refit on a frame played again (piezod.stagecal.refresh_member) runs the model through
+    the first frame without fitting or scoring it: readings there, however wrong, change nothing;
+    the same readings fitted do."""
+    import dataclasses
+
+    data = _pi_session()
+    n = data.n_experiments
+    before = np.arange(n) < 2
+    train = holdout_mask(n) & ~before
+    spoilt_y = data.position_um.copy()
+    rows = slice(int(data.starts[0]), int(data.starts[1] + data.counts[1]))
+    spoilt_y[rows] += np.linspace(0.0, 5.0, spoilt_y[rows].size)
+    spoilt = dataclasses.replace(data, position_um=spoilt_y)
+    options = {"plays": 16, "creep_driver": "voltage", "train": train}
+    clean = fit_family(data, "prandtl-ishlinskii", history=before, **options)
+    same = fit_family(spoilt, "prandtl-ishlinskii", history=before, **options)
+    assert same.heldout_rms_um == pytest.approx(clean.heldout_rms_um, rel=1e-9)
+    assert same.rms_um == pytest.approx(clean.rms_um, rel=1e-9)
+    # without the history mask the experiments left out of the training are scored
+    scored = fit_family(data, "prandtl-ishlinskii", **options).heldout_residuals_um.size
+    assert same.heldout_residuals_um.size == clean.heldout_residuals_um.size < scored
+    fitted = fit_family(spoilt, "prandtl-ishlinskii", **{**options, "train": holdout_mask(n)})
+    assert fitted.rms_um > 3.0 * clean.rms_um

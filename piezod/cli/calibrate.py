@@ -29,6 +29,7 @@ from piezod.cli._common import (
     add_reading_options,
     human_stream,
     input_file,
+    nonneg_float,
     nonneg_int,
     positive_float,
     write_json,
@@ -146,6 +147,14 @@ def register(sub: Any) -> None:
         help="do not play the lag placement experiment after the frame (~20 s of ramps with short "
         "spikes; by default it measures how much of the audit's sensor lag is the amplifier's pole at "
         "the drive, docs/model-family.md 6.2ak)",
+    )
+    stage.add_argument(
+        "--refresh-after",
+        type=nonneg_float,
+        metavar="S",
+        help="when the fits end more than S s after the frame's middle, play the frame again and refit the "
+        "chosen family member on it, its parts held: a warming stage drifts while the fits run "
+        "(docs/model-family.md 6.2br; by default never)",
     )
     stage.add_argument(
         "--recordings-dir", metavar="DIR", help="where the frame and verification recordings go"

@@ -4,24 +4,28 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Any
 
 from piezod.cli._common import board_url, fresh_dir, human_stream, scanner_config_path, write_json
 from piezod.config import AxisName, dump_config, load_config, with_recorded_utc
-from piezod.errors import CalibrationError, ModelError
+from piezod.errors import CalibrationError, ModelError, PiezodError
 from piezod.progress import progress_bar
 from piezod.service.engine import Engine
 from piezod.stagecal import (
     AnalysisWorker,
+    Frame,
     default_frame,
     format_table,
     frame_summary,
     plot_verification,
+    refresh_blocker,
     run_frame,
     run_placement,
     summary,
+    tied_to_one_sensor,
     tracker_far_off_note,
     tracker_note,
     verification_points,
@@ -115,6 +119,8 @@ def run_on_stage(args: argparse.Namespace) -> int:
             if not (getattr(args, "no_audit", False) or getattr(args, "no_lag_placement", False)):
                 placement_path = run_placement(engine, base, axis, recdir / "lag-placement.csv", frame)
                 print(f"lag placement experiment recorded ({took('lag_placement')})", file=say)
+            # the recording whose end is where the stage is left for the verification
+            start_path = placement_path or recorded_path
             rest_v = base.axes[axis].safe_voltage_v
             fitted = worker.fit_thesis(frame_path, base, axis)
             print(
@@ -188,6 +194,76 @@ def run_on_stage(args: argparse.Namespace) -> int:
                 if audited.report["adopted"]:
                     names = ", ".join(a.split(":")[0] for a in audited.report["adopted"])
                     extra = f"; the audit's findings adopted as runtime parts: {names}"
+            # the choice the written member comes from (the audit's redone choice when it adopted)
+            final_choice = (audit_report or {}).get("model_choice", choice.report)
+            faults_while_fitting: list[str] = []
+
+            def acknowledged(when: str) -> None:
+                if engine.status().state in ("fault", "disconnected"):
+                    # the frame is recorded; a fault while the stage only held during the fits (an
+                    # underrun on a loaded machine) does not spoil it: say so, acknowledge, go on
+                    faults = [f"{f.source}/{f.code}: {f.message}" for f in engine.acknowledge_fault()]
+                    print(f"faults while the stage held {when} (acknowledged): {'; '.join(faults)}", file=say)
+                    faults_while_fitting.extend(faults)
+
+            # opt-in: not yet verified over the pty on the other-physics presets (6.2br)
+            after_s = getattr(args, "refresh_after", None)
+            after_s = math.inf if after_s is None else float(after_s)
+            refresh: dict[str, Any] = {"after_s": after_s if math.isfinite(after_s) else None}
+            age_s = time.time() - frame_mid_unix_s
+            if age_s > after_s:
+                chosen_now = str(final_choice.get("chosen", ""))
+                refresh["age_s"] = round(age_s, 1)
+                why_not = refresh_blocker(calibrated, axis, chosen_now)
+                if why_not is not None:
+                    refresh["skipped"] = why_not
+                    print(f"the frame is {age_s:.0f} s old; not played again: {why_not}", file=say)
+                else:
+                    acknowledged("during the fits")
+                    print(
+                        f"the frame is {age_s:.0f} s old (the stage may have drifted while the fits ran): "
+                        f"played again to refit {chosen_now} on it",
+                        file=say,
+                    )
+                    try:
+                        again, again_mid_unix_s = _play_again(engine, frame, recdir)
+                        refresh["recording"] = str(again)
+                        again_fitted, _, _ = worker.frame_in_sensor_range(
+                            again, frame, full_scale, recdir / "frame-again-in-sensor-range.csv"
+                        )
+                        refreshed, heldout = worker.refresh(
+                            again_fitted,
+                            calibrated,
+                            axis,
+                            chosen_now,
+                            # the stage's creep still relaxes from the first frame: the model runs
+                            # through it (and the lag placement) on the daemon's clock
+                            history=[p for p in (recorded_path, placement_path) if p is not None],
+                            ramp_v_per_s=base.service.ramp_rate_v_per_s,
+                            rest_voltage_v=rest_v,
+                            one_sensor=tied_to_one_sensor(final_choice),
+                        )
+                    except PiezodError as exc:
+                        # the first frame's model stands (a fault while the frame played again, a
+                        # failed fit); what was recorded is kept for a look
+                        refresh["error"] = str(exc)
+                        print(
+                            f"WARNING: the refit on the frame played again failed ({took('refresh')}): "
+                            f"{exc}; the model fitted on the first frame is written",
+                            file=say,
+                        )
+                    else:
+                        calibrated, frame_mid_unix_s = refreshed, again_mid_unix_s
+                        # the verification starts where this frame left the stage
+                        start_path = again
+                        refresh["heldout_rms_um"] = heldout
+                        extra += f"; the member refitted on the frame played again {age_s:.0f} s later"
+                        print(
+                            f"{chosen_now} refitted on the frame played again: {heldout * 1e3:.2f} nm held "
+                            f"out (the first frame: {choice_rms(audit_report, choice) * 1e3:.2f} nm) "
+                            f"({took('refresh')})",
+                            file=say,
+                        )
             calibrated = with_recorded_utc(with_tracking_bound(calibrated, frame), frame_mid_unix_s)
             dump_config(
                 calibrated,
@@ -213,18 +289,15 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     "samples_by_scan": clipped,
                     "fitted_recording": str(frame_path),
                 }
+            report["refresh"] = refresh
             rows: list[dict[str, Any]] = []
-            if engine.status().state in ("fault", "disconnected"):
-                # the frame is recorded; a fault while the stage only held during the fits (an
-                # underrun on a loaded machine) does not spoil it: say so, acknowledge, verify
-                faults = [f"{f.source}/{f.code}: {f.message}" for f in engine.acknowledge_fault()]
-                text = "; ".join(faults)
-                print(f"faults while the stage held during the fits (acknowledged): {text}", file=say)
-                report["faults_while_fitting"] = faults
+            acknowledged("during the fits")
+            if faults_while_fitting:
+                report["faults_while_fitting"] = faults_while_fitting
             if not args.no_verify:
                 # the run starts where the frame left the stage, in the sensor's coordinates (if the
                 # stage still holds the frame's last voltage: a position read at another is not the state)
-                v_end, x_end = worker.frame_end(placement_path or recorded_path, axis)
+                v_end, x_end = worker.frame_end(start_path, axis)
                 held = engine.status().voltage_v.get(axis)
                 span_v = base.axes[axis].voltage_max_v - base.axes[axis].voltage_min_v
 
@@ -287,3 +360,27 @@ def run_on_stage(args: argparse.Namespace) -> int:
     report["phase_seconds"] = phases
     write_json(args.json, report)
     return 0
+
+
+def choice_rms(audit_report: dict[str, Any] | None, choice: Any) -> float:
+    """The written member's held-out RMS on the first frame (um): the audit's extended one when it
+    adopted parts, else the choice's."""
+    extended = ((audit_report or {}).get("heldout_rms_um") or {}).get("extended")
+    if extended is not None and (audit_report or {}).get("adopted"):
+        return float(extended)
+    return float(choice.fit_error_pct)
+
+
+def _play_again(engine: Engine, frame: Frame, recdir: Path) -> tuple[Path, float]:
+    """Play the frame again from where the stage holds (recorded to ``frame-again.csv``): the path
+    and the Unix time of the frame's middle."""
+    with progress_bar(desc="frame again", total=round(frame.duration_s, 1), unit="s") as bar:
+        shown = [0.0]
+
+        def tick(_: str, t: float) -> None:
+            bar.update(round(t, 1) - shown[0])
+            shown[0] = round(t, 1)
+
+        t0 = time.time()
+        path = run_frame(engine, frame, recdir / "frame-again.csv", progress=tick)
+    return path, 0.5 * (t0 + time.time())
