@@ -131,6 +131,7 @@ def test_a_frame_older_than_the_refresh_limit_is_played_again_and_the_member_ref
     assert "error" not in refresh and "skipped" not in refresh, refresh
     assert refresh["after_s"] == 0.0 and refresh["age_s"] > 0.0
     assert Path(refresh["recording"]).is_file() and "refresh" in phases
+    assert load_config(refresh["first_frame_config"]).axes["x"].family != load_config(out).axes["x"].family
     # the same stage a minute later: the member predicts the new frame's held-out scans about as well
     first = doc["model_choice"]["heldout_rms_um"][doc["model_choice"]["chosen"]]
     assert 0.0 < refresh["heldout_rms_um"] < 3.0 * first

@@ -253,6 +253,14 @@ def run_on_stage(args: argparse.Namespace) -> int:
                             file=say,
                         )
                     else:
+                        # the model fitted on the first frame is kept beside the recordings
+                        first_yaml = recdir / "first-frame.yaml"
+                        dump_config(
+                            with_recorded_utc(with_tracking_bound(calibrated, frame), frame_mid_unix_s),
+                            first_yaml,
+                            header="fitted on the first frame, before the frame was played again",
+                        )
+                        refresh["first_frame_config"] = str(first_yaml)
                         calibrated, frame_mid_unix_s = refreshed, again_mid_unix_s
                         # the verification starts where this frame left the stage
                         start_path = again
