@@ -1,0 +1,64 @@
+"""What the refit on a frame played again needs to know of the stage's past.
+
+Usage::
+
+    piezod calibrate --sim --config configs/sim-pi-stage.yaml --frame reduced --no-audit \\
+        --no-verify --refresh-after 0 --out F.yaml --json F.json
+    python tools/refresh_history.py F.yaml F.json
+
+On that run's recordings (``F-recordings/frame.csv`` and ``frame-again.csv``, one clock) the
+chosen member is refitted as :func:`piezod.stagecal.refresh_member` does, and as it would with
+less of the stage's past: the held-out RMS of each (docs/model-family.md 6.2br).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from piezod import calibrate_family as cf
+from piezod.config import load_config
+from piezod.recording import Experiment, read_experiments
+from piezod.stagecal import refit_at_drive_lag
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("config", help="the YAML `piezod calibrate --refresh-after` wrote")
+    ap.add_argument("report", help="its --json report")
+    ap.add_argument("--axis", default="x")
+    args = ap.parse_args()
+    cfg, doc = load_config(args.config), json.loads(Path(args.report).read_text())
+    chosen = doc["model_choice"]["chosen"]
+    member = cf.parse_member(chosen)
+    if member is None or "recording" not in doc.get("refresh", {}):
+        raise SystemExit(f"{args.report}: no family member refitted on a frame played again")
+    first_path = Path(doc["frame"]["recording"])
+    first = read_experiments([first_path], axis=args.axis)
+    again = read_experiments([Path(doc["refresh"]["recording"])], axis=args.axis)
+    ramp, rest = cfg.service.ramp_rate_v_per_s, cfg.axes[args.axis].safe_voltage_v
+
+    def refit(exps: list[Experiment], history: list[Experiment]) -> float:
+        _, rms = refit_at_drive_lag(exps, cfg, args.axis, member[2], ramp, rest, history=history)
+        return rms
+
+    rows = [
+        ("the first frame (refitted so)", refit(first, [])),
+        ("the frame played again, as if the stage had rested until it", refit(again, [])),
+        ("after the first frame, the new frame's first scan fitted", refit(again, first)),
+        ("the new frame's first scan only run through", refit(again[1:], again[:1])),
+        (
+            "the first frame and the first scan run through (refresh_member)",
+            refit(again[1:], [*first, again[0]]),
+        ),
+    ]
+    print(f"{chosen}: the choice's held-out RMS {doc['model_choice']['heldout_rms_um'][chosen] * 1e3:.2f} nm")
+    print("| refit of the chosen member | held out |\n|---|---|")
+    for what, rms in rows:
+        print(f"| {what} | {rms * 1e3:.2f} nm |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
