@@ -1371,8 +1371,11 @@ def refit_at_drive_lag(
     data = _frame_session(
         seen, ramp_v_per_s, rest_voltage_v, one_sensor=one_sensor, hold_before_move=bool(history)
     )
-    # the session is sorted by time: the history comes first
-    before = np.arange(data.n_experiments) < len(history)
+    # the session is sorted by time
+    first_t = min(float(e.t_s[0]) for e in experiments)
+    before = np.array([lay.t_start_s < first_t for lay in data.experiments], dtype=bool)
+    if np.count_nonzero(before) != len(history):
+        raise CalibrationError("the history must come before the frame, on the same clock")
     train = np.concatenate([np.zeros(len(history), dtype=bool), cf.holdout_mask(len(experiments))])
     law = section.params()
     options: dict[str, Any] = {
@@ -1442,8 +1445,8 @@ def refresh_member(
     if len(experiments) < 2:
         raise CalibrationError("not refitted: the frame played again has fewer than two scans")
     # its first scan only runs the model: the creep from the hold relaxes through it, which the
-    # member's spectrum, fitted on a frame that began at rest, does not follow (pi-stage: 18.5 nm
-    # held out with it fitted, 3.3 nm without; the first frame 3.0 nm)
+    # member's spectrum, fitted on a frame that began at rest, does not follow (pi-stage: 26.0 nm
+    # held out with it fitted, 3.5 nm without; the first frame 2.9 nm; docs/model-family.md 6.2br)
     return refit_at_drive_lag(
         experiments[1:],
         config,
