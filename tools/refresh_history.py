@@ -28,33 +28,49 @@ def main() -> int:
     ap.add_argument("config", help="the YAML `piezod calibrate --refresh-after` wrote")
     ap.add_argument("report", help="its --json report")
     ap.add_argument("--axis", default="x")
+    ap.add_argument(
+        "--rule-only",
+        action="store_true",
+        help="only the rule's refit, with an offset per scan and with the offsets of one sensor",
+    )
     args = ap.parse_args()
     cfg, doc = load_config(args.config), json.loads(Path(args.report).read_text())
-    chosen = doc["model_choice"]["chosen"]
+    # the audit's redone choice when it adopted parts
+    choice = doc.get("audit", {}).get("model_choice", doc["model_choice"])
+    chosen = choice["chosen"]
     member = cf.parse_member(chosen)
     if member is None or "recording" not in doc.get("refresh", {}):
         raise SystemExit(f"{args.report}: no family member refitted on a frame played again")
-    first_path = Path(doc["frame"]["recording"])
-    first = read_experiments([first_path], axis=args.axis)
+    placement = doc["frame"].get("lag_placement_recording")
+    first = read_experiments([Path(doc["frame"]["recording"])], axis=args.axis)
+    lead = read_experiments([Path(placement)], axis=args.axis) if placement else []
     again = read_experiments([Path(doc["refresh"]["recording"])], axis=args.axis)
     ramp, rest = cfg.service.ramp_rate_v_per_s, cfg.axes[args.axis].safe_voltage_v
 
-    def refit(exps: list[Experiment], history: list[Experiment]) -> float:
-        _, rms = refit_at_drive_lag(exps, cfg, args.axis, member[2], ramp, rest, history=history)
+    def refit(exps: list[Experiment], history: list[Experiment], one_sensor: bool = False) -> float:
+        _, rms = refit_at_drive_lag(
+            exps, cfg, args.axis, member[2], ramp, rest, one_sensor=one_sensor, history=history
+        )
         return rms
 
+    print(f"{chosen}: the choice's held-out RMS {choice['heldout_rms_um'][chosen] * 1e3:.2f} nm")
+    print("| refit of the chosen member | held out |\n|---|---|")
+    if args.rule_only:
+        for one in (False, True):
+            rms = refit(again[1:], [*first, *lead, again[0]], one)
+            offsets = "the offsets of one sensor" if one else "an offset per scan"
+            print(f"| the rule, {offsets} | {rms * 1e3:.2f} nm |")
+        return 0
     rows = [
         ("the first frame (refitted so)", refit(first, [])),
         ("the frame played again, as if the stage had rested until it", refit(again, [])),
-        ("after the first frame, the new frame's first scan fitted", refit(again, first)),
+        ("after the first frame, the new frame's first scan fitted", refit(again, [*first, *lead])),
         ("the new frame's first scan only run through", refit(again[1:], again[:1])),
         (
             "the first frame and the first scan run through (refresh_member)",
-            refit(again[1:], [*first, again[0]]),
+            refit(again[1:], [*first, *lead, again[0]]),
         ),
     ]
-    print(f"{chosen}: the choice's held-out RMS {doc['model_choice']['heldout_rms_um'][chosen] * 1e3:.2f} nm")
-    print("| refit of the chosen member | held out |\n|---|---|")
     for what, rms in rows:
         print(f"| {what} | {rms * 1e3:.2f} nm |")
     return 0
