@@ -89,16 +89,9 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     "the board (or the scanner config's microscope section) has no position sensor: "
                     "calibrate from images of a reference instead (--from-images --pitch-um P)"
                 )
-            with progress_bar(desc="calibration frame", total=round(frame.duration_s, 1), unit="s") as bar:
-                shown = [0.0]
-
-                def tick(_: str, t: float) -> None:
-                    bar.update(round(t, 1) - shown[0])
-                    shown[0] = round(t, 1)
-
-                frame_t0 = time.time()
-                frame_path = run_frame(engine, frame, recdir / "frame.csv", progress=tick)
-                frame_mid_unix_s = 0.5 * (frame_t0 + time.time())
+            frame_path, frame_mid_unix_s = _play_frame(
+                engine, frame, recdir / "frame.csv", "calibration frame"
+            )
             took("frame")
             # a scan that drove the stage beyond the sensor's range has no positions there: the fits
             # and the verification's placement use the scans within it (the recording is kept whole)
@@ -226,7 +219,9 @@ def run_on_stage(args: argparse.Namespace) -> int:
                         file=say,
                     )
                     try:
-                        again, again_mid_unix_s = _play_again(engine, frame, recdir)
+                        again, again_mid_unix_s = _play_frame(
+                            engine, frame, recdir / "frame-again.csv", "frame again"
+                        )
                         refresh["recording"] = str(again)
                         again_fitted, _, _ = worker.frame_in_sensor_range(
                             again, frame, full_scale, recdir / "frame-again-in-sensor-range.csv"
@@ -379,10 +374,10 @@ def choice_rms(audit_report: dict[str, Any] | None, choice: Any) -> float:
     return float(choice.fit_error_pct)
 
 
-def _play_again(engine: Engine, frame: Frame, recdir: Path) -> tuple[Path, float]:
-    """Play the frame again from where the stage holds (recorded to ``frame-again.csv``): the path
-    and the Unix time of the frame's middle."""
-    with progress_bar(desc="frame again", total=round(frame.duration_s, 1), unit="s") as bar:
+def _play_frame(engine: Engine, frame: Frame, path: Path, what: str) -> tuple[Path, float]:
+    """Play the frame from where the stage holds, recorded to ``path``, with a progress bar: the
+    path and the Unix time of the frame's middle."""
+    with progress_bar(desc=what, total=round(frame.duration_s, 1), unit="s") as bar:
         shown = [0.0]
 
         def tick(_: str, t: float) -> None:
@@ -390,5 +385,5 @@ def _play_again(engine: Engine, frame: Frame, recdir: Path) -> tuple[Path, float
             shown[0] = round(t, 1)
 
         t0 = time.time()
-        path = run_frame(engine, frame, recdir / "frame-again.csv", progress=tick)
-    return path, 0.5 * (t0 + time.time())
+        played = run_frame(engine, frame, path, progress=tick)
+    return played, 0.5 * (t0 + time.time())
