@@ -1113,8 +1113,9 @@ def fit_family(
     voltage = creep_driver == "voltage"
     taus = default_taus(data) if taus is None else np.asarray(taus, dtype=np.float64)
     mask = np.ones(data.n_experiments, dtype=bool) if train is None else np.asarray(train, dtype=bool)
-    if history is not None:
-        mask = mask & ~np.asarray(history, dtype=bool)
+    before = None if history is None else np.asarray(history, dtype=bool)
+    if before is not None:
+        mask = mask & ~before
     if not mask.any():
         raise CalibrationError("no experiment left to fit")
     t0 = time.perf_counter()
@@ -1126,7 +1127,7 @@ def fit_family(
         _MAX_LAG_S if fit_lag else 0.0,
         _MAX_KAPPA if fit_stiffness else 0.0,
         MAX_TOTAL_CREEP if fit_creep else 0.0,
-        None if history is None else np.asarray(history, dtype=bool),
+        before,
     )
     rest_v = data.rest_voltage_v
     hyst: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams

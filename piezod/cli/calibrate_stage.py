@@ -263,7 +263,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
                         extra += f"; the member refitted on the frame played again {age_s:.0f} s later"
                         print(
                             f"{chosen_now} refitted on the frame played again: {heldout * 1e3:.2f} nm held "
-                            f"out (the first frame: {choice_rms(audit_report, choice) * 1e3:.2f} nm) "
+                            f"out (the first frame: {(audited or choice).fit_error_pct * 1e3:.2f} nm) "
                             f"({took('refresh')})",
                             file=say,
                         )
@@ -363,15 +363,6 @@ def run_on_stage(args: argparse.Namespace) -> int:
     report["phase_seconds"] = phases
     write_json(args.json, report)
     return 0
-
-
-def choice_rms(audit_report: dict[str, Any] | None, choice: Any) -> float:
-    """The written member's held-out RMS on the first frame (um): the audit's extended one when it
-    adopted parts, else the choice's."""
-    extended = ((audit_report or {}).get("heldout_rms_um") or {}).get("extended")
-    if extended is not None and (audit_report or {}).get("adopted"):
-        return float(extended)
-    return float(choice.fit_error_pct)
 
 
 def _play_frame(engine: Engine, frame: Frame, path: Path, what: str) -> tuple[Path, float]:
