@@ -795,6 +795,30 @@ def session_positions(
     return out
 
 
+def heldout_rms(
+    data: DynamicCalibrationData,
+    params: FamilyParams,
+    train: NDArray[np.bool_],
+    history: NDArray[np.bool_] | None = None,
+    skip_s: float = 0.0,
+) -> float:
+    """RMS (um) of a member with given ``params`` (fitted elsewhere) on a session's held-out
+    experiments, scored as :func:`fit_family` scores its own fit on the same ``train``,
+    ``history`` and ``skip_s``: the offsets (per experiment or of one sensor, as ``data`` says)
+    are the only thing fitted. NaN when no experiment is held out.
+    """
+    train = np.asarray(train, dtype=bool)
+    exp_of_row = np.repeat(np.arange(data.n_experiments), data.counts)
+    keep = settled_rows(data, skip_s)
+    if history is not None:
+        keep &= ~np.asarray(history, dtype=bool)[exp_of_row]
+    test_rows = ~train[exp_of_row] & keep
+    if not test_rows.any():
+        return math.nan
+    resid = _centre(data, data.position_um) - _centre(data, session_positions(data, params))
+    return float(np.sqrt(np.mean(resid[test_rows] ** 2)))
+
+
 def experiment_offsets(data: DynamicCalibrationData, positions_um: F64) -> F64:
     """Each experiment's mean residual, sensor minus ``positions_um`` (:func:`session_positions`):
     its offset as the fit leaves it."""

@@ -18,7 +18,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 
 from piezod import calibrate_any
 from piezod.calibrate import calibrate, calibrated_config, result_json
-from piezod.config import AxisName, ScannerConfig
+from piezod.config import AxisName, FamilyModelConfig, ScannerConfig
 from piezod.errors import CalibrationError, ModelError, PiezodError
 from piezod.fitstats import excess_rms, lowers
 from piezod.linearity import linearity, noise_pct
@@ -1329,6 +1329,39 @@ def drive_lagged(experiments: Sequence[Experiment], tau_s: float) -> list[Experi
     return out
 
 
+def _drive_lag_session(
+    experiments: Sequence[Experiment],
+    config: ScannerConfig,
+    axis: AxisName,
+    ramp_v_per_s: float,
+    rest_voltage_v: float,
+    one_sensor: bool,
+    history: Sequence[Experiment],
+) -> tuple[FamilyModelConfig, DynamicCalibrationData, NDArray[np.bool_], NDArray[np.bool_]]:
+    """The family section of ``config``'s ``axis``, and :func:`refit_at_drive_lag`'s session with
+    its training and history masks (the model choice's split of ``experiments``)."""
+    from piezod import calibrate_family as cf
+    from piezod.extensions import experiments_through
+
+    ax = config.axes[axis]
+    if ax.model != "family" or ax.family is None:
+        raise CalibrationError(f"axis {axis}: the drive lag is refitted on a family member only")
+    section = ax.family
+    # experiments_through takes the sensor path and the runtime parts and ignores the rest
+    effects = {str(k): v for k, v in (ax.extensions or {}).items()}
+    seen = drive_lagged(experiments_through([*history, *experiments], effects), section.lag_time_constant_s)
+    data = _frame_session(
+        seen, ramp_v_per_s, rest_voltage_v, one_sensor=one_sensor, hold_before_move=bool(history)
+    )
+    # the session is sorted by time
+    first_t = min(float(e.t_s[0]) for e in experiments)
+    before = np.array([lay.t_start_s < first_t for lay in data.experiments], dtype=bool)
+    if np.count_nonzero(before) != len(history):
+        raise CalibrationError("the history must come before the frame, on the same clock")
+    train = np.concatenate([np.zeros(len(history), dtype=bool), cf.holdout_mask(len(experiments))])
+    return section, data, train, before
+
+
 def refit_at_drive_lag(
     experiments: Sequence[Experiment],
     config: ScannerConfig,
@@ -1358,25 +1391,11 @@ def refit_at_drive_lag(
         The axis model is not a family member, or a fit fails.
     """
     from piezod import calibrate_family as cf
-    from piezod.extensions import experiments_through
 
-    ax = config.axes[axis]
-    if ax.model != "family" or ax.family is None:
-        raise CalibrationError(f"axis {axis}: the drive lag is refitted on a family member only")
-    section = ax.family
-    tau = section.lag_time_constant_s
-    # experiments_through takes the sensor path and the runtime parts and ignores the rest
-    effects = {str(k): v for k, v in (ax.extensions or {}).items()}
-    seen = drive_lagged(experiments_through([*history, *experiments], effects), tau)
-    data = _frame_session(
-        seen, ramp_v_per_s, rest_voltage_v, one_sensor=one_sensor, hold_before_move=bool(history)
+    section, data, train, before = _drive_lag_session(
+        experiments, config, axis, ramp_v_per_s, rest_voltage_v, one_sensor, history
     )
-    # the session is sorted by time
-    first_t = min(float(e.t_s[0]) for e in experiments)
-    before = np.array([lay.t_start_s < first_t for lay in data.experiments], dtype=bool)
-    if np.count_nonzero(before) != len(history):
-        raise CalibrationError("the history must come before the frame, on the same clock")
-    train = np.concatenate([np.zeros(len(history), dtype=bool), cf.holdout_mask(len(experiments))])
+    tau = section.lag_time_constant_s
     law = section.params()
     options: dict[str, Any] = {
         "plays": plays or cf.DEFAULT_PLAYS,
@@ -1407,6 +1426,32 @@ def refresh_blocker(config: ScannerConfig, axis: AxisName, chosen: str) -> str |
     return None
 
 
+@dataclass(frozen=True)
+class Refresh:
+    """A family member refitted on a frame played again (:func:`refresh_member`).
+
+    Attributes
+    ----------
+    config
+        The config with the member refitted on the new frame.
+    heldout_rms_um
+        The refit's held-out RMS on the new frame (fitted on the model choice's training scans).
+    kept_rms_um
+        The first frame's member, unchanged, on the same held-out scans (only the offsets fitted,
+        by the same rule).
+    """
+
+    config: ScannerConfig
+    heldout_rms_um: float
+    kept_rms_um: float
+
+    @property
+    def better(self) -> bool:
+        """Whether the refit predicts the new frame's held-out scans better than the first frame's
+        member does (true when there was nothing to compare)."""
+        return not self.heldout_rms_um >= self.kept_rms_um
+
+
 def refresh_member(
     experiments: Sequence[Experiment],
     axis: AxisName,
@@ -1416,19 +1461,16 @@ def refresh_member(
     rest_voltage_v: float,
     one_sensor: bool = False,
     history: Sequence[Experiment] = (),
-) -> tuple[ScannerConfig, float]:
+) -> Refresh:
     """``config``'s family member (``chosen``, the model choice's name for it) refitted on a frame
     played again after the fits: the member's laws, play grid, centre grid and drive lag stay, its
     weights and offsets are fitted again (:func:`refit_at_drive_lag`) on the frame seen through the
     adopted parts and the sensor path, which are held as the first frame's fits left them (as are
     the mode and the fast creep). The model runs through the ``history`` first: what the stage
     did since it rested at ``rest_voltage_v`` (the first frame, the lag placement), on the same
-    clock, and through the frame's first scan; neither is fitted or scored.
-
-    Returns
-    -------
-    config, heldout_rms_um
-        The config with the refitted member, and its held-out RMS on the new frame.
+    clock, and through the frame's first scan; neither is fitted or scored. The first frame's
+    member is scored on the same held-out scans, so a caller keeps whichever predicts the stage
+    as it is now (:attr:`Refresh.better`).
 
     Raises
     ------
@@ -1447,16 +1489,17 @@ def refresh_member(
     # its first scan only runs the model: the creep from the hold relaxes through it, which the
     # member's spectrum, fitted on a frame that began at rest, does not follow (pi-stage: 26.0 nm
     # held out with it fitted, 3.5 nm without; the first frame 2.9 nm; docs/model-family.md 6.2br)
-    return refit_at_drive_lag(
-        experiments[1:],
-        config,
-        axis,
-        member[2],
-        ramp_v_per_s,
-        rest_voltage_v,
-        one_sensor=one_sensor,
-        history=[*history, experiments[0]],
+    scans, ran = experiments[1:], [*history, experiments[0]]
+    section, data, train, before = _drive_lag_session(
+        scans, config, axis, ramp_v_per_s, rest_voltage_v, one_sensor, ran
     )
+    # the section's lag is the drive pole the session's voltages went through already
+    first = replace(section.params(), lag_time_constant_s=0.0)
+    kept = cf.heldout_rms(data, first, train, history=before)
+    refitted, heldout = refit_at_drive_lag(
+        scans, config, axis, member[2], ramp_v_per_s, rest_voltage_v, one_sensor=one_sensor, history=ran
+    )
+    return Refresh(refitted, heldout, kept)
 
 
 def _refresh_here(
@@ -1468,7 +1511,7 @@ def _refresh_here(
     ramp_v_per_s: float,
     rest_voltage_v: float,
     one_sensor: bool,
-) -> tuple[ScannerConfig, float]:
+) -> Refresh:
     exps = read_experiments([frame_path], axis=axis)
     before = read_experiments(list(history_paths), axis=axis) if history_paths else []
     return refresh_member(
@@ -2013,7 +2056,7 @@ class AnalysisWorker:
         ramp_v_per_s: float,
         rest_voltage_v: float,
         one_sensor: bool = False,
-    ) -> tuple[ScannerConfig, float]:
+    ) -> Refresh:
         """:func:`refresh_member` on the frame played again, after the recordings in ``history``
         (in the worker process)."""
         return self._pool.submit(

@@ -18,6 +18,7 @@ from piezod.calibrate_family import (
     choose_model,
     family_model_config,
     fit_family,
+    heldout_rms,
     holdout_mask,
     member_name,
     member_nodes,
@@ -373,3 +374,28 @@ def test_history_experiments_run_the_model_but_are_neither_fitted_nor_scored() -
     assert same.heldout_residuals_um.size == clean.heldout_residuals_um.size < scored
     fitted = fit_family(spoilt, "prandtl-ishlinskii", **{**options, "train": holdout_mask(n)})
     assert fitted.rms_um > 3.0 * clean.rms_um
+
+
+def test_a_member_fitted_elsewhere_is_scored_as_a_fit_scores_its_own() -> None:
+    """heldout_rms scores given parameters on a session's held-out experiments as fit_family
+    scores its own (the refit on a frame played again is set against the first frame's member
+    so): the fit's own parameters score its held-out RMS; a member 2 % more sensitive, as a stage
+    that warmed would be seen by the model fitted before, scores worse."""
+    import dataclasses
+
+    data = _pi_session()
+    n = data.n_experiments
+    before = np.arange(n) < 2
+    train = holdout_mask(n) & ~before
+    fit = fit_family(
+        data, "prandtl-ishlinskii", plays=16, creep_driver="voltage", train=train, history=before
+    )
+    assert heldout_rms(data, fit.params, train, history=before) == pytest.approx(fit.heldout_rms_um, rel=1e-9)
+    law = fit.params.hysteresis
+    assert isinstance(law, PlayParams)
+    warmed = dataclasses.replace(
+        fit.params, hysteresis=dataclasses.replace(law, b_um_per_v=1.02 * law.b_um_per_v)
+    )
+    assert heldout_rms(data, warmed, train, history=before) > 3.0 * fit.heldout_rms_um
+    # nothing held out: nothing to score
+    assert np.isnan(heldout_rms(data, fit.params, np.ones(n, dtype=bool)))

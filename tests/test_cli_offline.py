@@ -157,6 +157,9 @@ def test_on_stage_calibration_arguments_are_checked(
     assert "--config F is required" in _one_line_error(capsys, "piezod calibrate: error:")
     assert main(["calibrate"]) == 2
     assert "no recordings" in _one_line_error(capsys, "piezod calibrate: error:")
+    # the frame played again after the fits is on by default; one or the other
+    assert main(["calibrate", "--sim", "--out", "x.yaml", "--refresh-after", "5", "--no-refresh"]) == 2
+    assert "--no-refresh: not allowed with" in _one_line_error(capsys, "piezod calibrate: error:")
 
 
 @pytest.mark.parametrize("command", ["calibrate", "linearity"])

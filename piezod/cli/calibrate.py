@@ -50,6 +50,11 @@ from piezod.progress import progress_bar
 from piezod.readback import align_known_delay, within_sensor_range
 from piezod.recording import AXES, Experiment, read_experiments
 
+#: ``piezod calibrate --sim/--port``: the frame is played again when the fits end more than this
+#: many seconds after its middle (the full frame's audit takes 45-95 min over the pty; birch35's
+#: stage warmed by 4 %/h meanwhile, docs/model-family.md 6.2br).
+REFRESH_AFTER_S = 600.0
+
 
 def register(sub: Any) -> None:
     """Add the ``calibrate`` subcommand."""
@@ -148,13 +153,19 @@ def register(sub: Any) -> None:
         "spikes; by default it measures how much of the audit's sensor lag is the amplifier's pole at "
         "the drive, docs/model-family.md 6.2ak)",
     )
-    stage.add_argument(
+    refresh = stage.add_mutually_exclusive_group()
+    refresh.add_argument(
         "--refresh-after",
         type=nonneg_float,
         metavar="S",
-        help="when the fits end more than S s after the frame's middle, play the frame again and refit the "
-        "chosen family member on it, its parts held: a warming stage drifts while the fits run "
-        "(docs/model-family.md 6.2br; by default never)",
+        default=REFRESH_AFTER_S,
+        help="when the fits end more than S s after the frame's middle, play the frame again, refit the "
+        "chosen family member on it (its parts held) and write the refit when it predicts that frame "
+        "better than the first frame's member: a warming stage drifts while the fits run "
+        f"(default {REFRESH_AFTER_S:g}; docs/model-family.md 6.2br)",
+    )
+    refresh.add_argument(
+        "--no-refresh", action="store_true", help="never play the frame again after the fits"
     )
     stage.add_argument(
         "--recordings-dir", metavar="DIR", help="where the frame and verification recordings go"

@@ -199,9 +199,9 @@ def run_on_stage(args: argparse.Namespace) -> int:
                     print(f"faults while the stage held {when} (acknowledged): {'; '.join(faults)}", file=say)
                     faults_while_fitting.extend(faults)
 
-            # opt-in: not yet verified over the pty on the other-physics presets (6.2br)
             after_s = getattr(args, "refresh_after", None)
-            after_s = math.inf if after_s is None else float(after_s)
+            if getattr(args, "no_refresh", False) or after_s is None:
+                after_s = math.inf
             refresh: dict[str, Any] = {"after_s": after_s if math.isfinite(after_s) else None}
             age_s = time.time() - frame_mid_unix_s
             if age_s > after_s:
@@ -226,7 +226,7 @@ def run_on_stage(args: argparse.Namespace) -> int:
                         again_fitted, _, _ = worker.frame_in_sensor_range(
                             again, frame, full_scale, recdir / "frame-again-in-sensor-range.csv"
                         )
-                        refreshed, heldout = worker.refresh(
+                        got = worker.refresh(
                             again_fitted,
                             calibrated,
                             axis,
@@ -248,25 +248,43 @@ def run_on_stage(args: argparse.Namespace) -> int:
                             file=say,
                         )
                     else:
-                        # the model fitted on the first frame is kept beside the recordings
-                        first_yaml = recdir / "first-frame.yaml"
-                        dump_config(
-                            with_recorded_utc(with_tracking_bound(calibrated, frame), frame_mid_unix_s),
-                            first_yaml,
-                            header="fitted on the first frame, before the frame was played again",
-                        )
-                        refresh["first_frame_config"] = str(first_yaml)
-                        calibrated, frame_mid_unix_s = refreshed, again_mid_unix_s
-                        # the verification starts where this frame left the stage
+                        # the verification starts where the frame played again left the stage
                         start_path = again
-                        refresh["heldout_rms_um"] = heldout
-                        extra += f"; the member refitted on the frame played again {age_s:.0f} s later"
-                        print(
-                            f"{chosen_now} refitted on the frame played again: {heldout * 1e3:.2f} nm held "
-                            f"out (the first frame: {(audited or choice).fit_error_pct * 1e3:.2f} nm) "
-                            f"({took('refresh')})",
-                            file=say,
+                        refresh["heldout_rms_um"] = got.heldout_rms_um
+                        refresh["kept_rms_um"] = got.kept_rms_um
+                        refresh["adopted"] = got.better
+                        first_nm = (audited or choice).fit_error_pct * 1e3
+                        compared = (
+                            f"{got.heldout_rms_um * 1e3:.2f} nm held out on it, the first frame's member "
+                            f"{got.kept_rms_um * 1e3:.2f} nm on the same scans (on its own frame "
+                            f"{first_nm:.2f} nm)"
                         )
+                        if got.better:
+                            # the model fitted on the first frame is kept beside the recordings
+                            first_yaml = recdir / "first-frame.yaml"
+                            dump_config(
+                                with_recorded_utc(with_tracking_bound(calibrated, frame), frame_mid_unix_s),
+                                first_yaml,
+                                header="fitted on the first frame, before the frame was played again",
+                            )
+                            refresh["first_frame_config"] = str(first_yaml)
+                            calibrated, frame_mid_unix_s = got.config, again_mid_unix_s
+                            extra += f"; the member refitted on the frame played again {age_s:.0f} s later"
+                            print(
+                                f"{chosen_now} refitted on the frame played again: {compared} "
+                                f"({took('refresh')})",
+                                file=say,
+                            )
+                        else:
+                            extra += (
+                                f"; kept over its refit on the frame played again {age_s:.0f} s later "
+                                "(which predicted that frame no better)"
+                            )
+                            print(
+                                f"{chosen_now} refitted on the frame played again: {compared}; "
+                                f"the first frame's model is kept ({took('refresh')})",
+                                file=say,
+                            )
             calibrated = with_recorded_utc(with_tracking_bound(calibrated, frame), frame_mid_unix_s)
             dump_config(
                 calibrated,
