@@ -59,7 +59,8 @@ def main() -> int:
     print(f"{chosen}: the choice's held-out RMS {choice['heldout_rms_um'][chosen] * 1e3:.2f} nm")
     if args.rule_only:
         # the rule as refresh_member runs it from the first frame's model, beside that model kept
-        first_cfg = load_config(doc["refresh"]["first_frame_config"])
+        # kept beside the recordings when the refit was written; otherwise it is the written one
+        first_cfg = load_config(doc["refresh"].get("first_frame_config", args.config))
         print("| offsets | the refit | the first frame's member kept |\n|---|---|---|")
         for one in (False, True):
             got = refresh_member(
