@@ -1,9 +1,9 @@
-"""The held-out stage of foreign physics (tools/heldout/foreign49) still serves the real protocol,
-and its take-apart tool still parses its command line.
+"""The held-out stages of foreign physics (tools/heldout/foreign49, tools/heldout/foreign51) still
+serve the real protocol, and foreign49's take-apart tool still parses its command line.
 
-docs/model-family.md 6.2bm gives the commands that calibrate piezod on it over ``--port``; this
-keeps them runnable: the stage server starts on a real pty, ``piezod probe`` completes the
-handshake over it, and SIGTERM ends it cleanly.
+docs/model-family.md 6.2bm gives the commands that calibrate piezod on foreign49 over ``--port``
+(foreign51's scanner YAML gives its own); this keeps them runnable: each stage server starts on a
+real pty, ``piezod probe`` completes the handshake over it, and SIGTERM ends it cleanly.
 """
 
 from __future__ import annotations
@@ -15,15 +15,18 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
-SERVER = ROOT / "tools" / "heldout" / "foreign49" / "stage_server.py"
+HELDOUT = ROOT / "tools" / "heldout"
 
 
-def test_the_foreign_stage_serves_the_protocol_on_a_pty(tmp_path: Path) -> None:
+@pytest.mark.parametrize("stage", ["foreign49", "foreign51"])
+def test_the_foreign_stage_serves_the_protocol_on_a_pty(stage: str, tmp_path: Path) -> None:
     link = tmp_path / "link"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     server = subprocess.Popen(
-        [sys.executable, str(SERVER), "--link", str(link)],
+        [sys.executable, str(HELDOUT / stage / "stage_server.py"), "--link", str(link)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         env=env,
