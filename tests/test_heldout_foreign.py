@@ -1,5 +1,5 @@
 """The held-out stages of foreign physics (tools/heldout/foreign49, tools/heldout/foreign51) still
-serve the real protocol, and foreign49's take-apart tool still parses its command line.
+serve the real protocol, and their take-apart tools still parse their command lines.
 
 docs/model-family.md 6.2bm gives the commands that calibrate piezod on foreign49 over ``--port``
 (foreign51's scanner YAML gives its own); this keeps them runnable: each stage server starts on a
@@ -56,14 +56,15 @@ def test_the_foreign_stage_serves_the_protocol_on_a_pty(stage: str, tmp_path: Pa
     assert not link.exists()
 
 
-def test_take_apart_names_its_usage_on_a_wrong_command_line() -> None:
-    tool = ROOT / "tools" / "heldout" / "foreign49" / "take_apart.py"
+@pytest.mark.parametrize(("stage", "part"), [("foreign49", "noenv"), ("foreign51", "noae")])
+def test_take_apart_names_its_usage_on_a_wrong_command_line(stage: str, part: str) -> None:
+    tool = ROOT / "tools" / "heldout" / stage / "take_apart.py"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     wrong: list[list[str]] = [
         [],
         ["--calibrate"],
         ["F.yaml", "nothere"],
-        ["--calibrate", "OUT.yaml", "noenv", "nothere"],
+        ["--calibrate", "OUT.yaml", part, "nothere"],
         ["F.yaml", "--json"],
     ]
     for args in wrong:
