@@ -18,81 +18,26 @@ what the member misses.
 
 from __future__ import annotations
 
-import argparse
-import copy
-import importlib.util
 import sys
-import tempfile
 from pathlib import Path
-from typing import Any
-
-import numpy as np
-import yaml
 
 HERE = Path(__file__).resolve().parent
-ROOT = HERE.parents[2]
-sys.path.insert(0, str(HERE))
+sys.path[:0] = [str(HERE), str(HERE.parent)]
 
 import stage_server as fs  # noqa: E402
+from take_apart_driver import run  # noqa: E402
 
-SWITCHES = {
-    "noenv": ("env_warm_k", "env_hvac_k"),
-    "noacc": ("acc_sigma_m", "acc_sigma_a"),
-    "nota": ("ta_kappa",),
-    "nocreep": ("creep_gamma",),
+#: Each part's parameters and the factor that switches it off.
+SWITCHES: dict[str, dict[str, float]] = {
+    "noenv": {"env_warm_k": 0.0, "env_hvac_k": 0.0},
+    "noacc": {"acc_sigma_m": 0.0, "acc_sigma_a": 0.0},
+    "nota": {"ta_kappa": 0.0},
+    "nocreep": {"creep_gamma": 0.0},
 }
 
 
-class OneAxis:
-    """The foreign stage's x axis as the one-axis stage :class:`piezod.effects_bench.StageBench` drives."""
-
-    def __init__(self, seed: int) -> None:
-        self.stage = fs.ForeignStage(seed=seed)
-
-    def step(self, voltage_v: Any, dt_s: float) -> np.ndarray:
-        v = np.asarray(voltage_v, dtype=np.float64)
-        return np.asarray(self.stage.step(np.stack([v, np.zeros_like(v), np.zeros_like(v)]), dt_s)[0])
-
-    def sense(self, position_um: Any, lsb_um: float | None = None) -> np.ndarray:
-        return self.stage.sense(position_um)
-
-
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(usage="\n".join(__doc__.strip().splitlines()[2:5]))
-    ap.add_argument("yaml", help="the written scanner YAML to verify (with --calibrate: the one to write)")
-    ap.add_argument("parts", nargs="*", help=f"parts of the physics to switch off: {', '.join(SWITCHES)}")
-    ap.add_argument(
-        "--calibrate", action="store_true", help="calibrate in process first, as piezod calibrate does"
-    )
-    ap.add_argument("--json", metavar="RUN.json", help="the verification tool's rows")
-    args = ap.parse_args(argv)
-    unknown = [name for name in args.parts if name not in SWITCHES]
-    if unknown:  # not argparse's choices: it checks an empty list of parts against them too
-        ap.error(f"no part {', '.join(unknown)} (parts: {', '.join(SWITCHES)})")
-    params = copy.deepcopy(fs.PARAMS)
-    for name in args.parts:
-        for key in SWITCHES[name]:
-            params[key] = params[key] * 0.0
-    fs.PARAMS.clear()
-    fs.PARAMS.update(params)
-    # the verification tool reads the base config (limits, rate) and a simulation section from one
-    # YAML; the section is a placeholder: the stage below replaces whatever it describes
-    scanner = yaml.safe_load((HERE / "scanner.yaml").read_text())
-    scanner["simulation"] = yaml.safe_load((ROOT / "configs" / "sim-stage.yaml").read_text())["simulation"]
-    with tempfile.TemporaryDirectory() as tmp:
-        stage_yaml = Path(tmp) / "foreign49-stage.yaml"
-        stage_yaml.write_text(yaml.safe_dump(scanner, sort_keys=False))
-        tool = ROOT / "tools" / "model_family_verify.py"
-        spec = importlib.util.spec_from_file_location("model_family_verify", tool)
-        assert spec is not None and spec.loader is not None
-        mfv = importlib.util.module_from_spec(spec)
-        sys.modules["model_family_verify"] = mfv
-        spec.loader.exec_module(mfv)
-        mfv.__dict__["Stage"] = lambda cfg, axes=None: OneAxis(7)
-        what = ["--audit", "--resonance", "--fast-creep", "--config-out"] if args.calibrate else ["--verify"]
-        json_out = ["--json", args.json] if args.json else []
-        sys.argv = [tool.name, "--stage", str(stage_yaml), "--skip-dynamic", *json_out, *what, args.yaml]
-        return int(mfv.main())
+    return run(argv, __doc__ or "", HERE, lambda: fs.ForeignStage(seed=7), fs.PARAMS, SWITCHES)
 
 
 if __name__ == "__main__":
