@@ -1390,11 +1390,23 @@ def refit_at_drive_lag(
     CalibrationError
         The axis model is not a family member, or a fit fails.
     """
+
+    session = _drive_lag_session(experiments, config, axis, ramp_v_per_s, rest_voltage_v, one_sensor, history)
+    return _refit_on_session(config, axis, plays, *session)
+
+
+def _refit_on_session(
+    config: ScannerConfig,
+    axis: AxisName,
+    plays: int | None,
+    section: FamilyModelConfig,
+    data: DynamicCalibrationData,
+    train: NDArray[np.bool_],
+    before: NDArray[np.bool_],
+) -> tuple[ScannerConfig, float]:
+    """:func:`refit_at_drive_lag` on the session :func:`_drive_lag_session` built."""
     from piezod import calibrate_family as cf
 
-    section, data, train, before = _drive_lag_session(
-        experiments, config, axis, ramp_v_per_s, rest_voltage_v, one_sensor, history
-    )
     tau = section.lag_time_constant_s
     law = section.params()
     options: dict[str, Any] = {
@@ -1490,15 +1502,12 @@ def refresh_member(
     # member's spectrum, fitted on a frame that began at rest, does not follow (pi-stage: 26.0 nm
     # held out with it fitted, 3.5 nm without; the first frame 2.9 nm; docs/model-family.md 6.2br)
     scans, ran = experiments[1:], [*history, experiments[0]]
-    section, data, train, before = _drive_lag_session(
-        scans, config, axis, ramp_v_per_s, rest_voltage_v, one_sensor, ran
-    )
+    session = _drive_lag_session(scans, config, axis, ramp_v_per_s, rest_voltage_v, one_sensor, ran)
+    section, data, train, before = session
     # the section's lag is the drive pole the session's voltages went through already
     first = replace(section.params(), lag_time_constant_s=0.0)
     kept = cf.heldout_rms(data, first, train, history=before)
-    refitted, heldout = refit_at_drive_lag(
-        scans, config, axis, member[2], ramp_v_per_s, rest_voltage_v, one_sensor=one_sensor, history=ran
-    )
+    refitted, heldout = _refit_on_session(config, axis, member[2], *session)
     return Refresh(refitted, heldout, kept)
 
 
