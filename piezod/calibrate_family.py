@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares, minimize_scalar
+from scipy.optimize import least_squares, minimize, minimize_scalar
 
 from piezod.calibrate_dynamic import (
     DynamicCalibrationData,
@@ -54,6 +54,8 @@ from piezod.calibrate_dynamic import (
 from piezod.config import FamilyModelConfig
 from piezod.errors import CalibrationError, ModelError
 from piezod.fitstats import FitResult, solve_linear
+from piezod.model import kernels
+from piezod.model.aftereffect import AfterEffect
 from piezod.model.boucwen import (
     MIN_SLOPE_FRACTION,
     BoucWenParams,
@@ -100,16 +102,24 @@ PLAY_LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play")
 MAX_PLAYS = 64
 
 
-def member_name(law: str, driver: str, plays: int | None = None, nodes: int | None = None) -> str:
-    """The choice's name of a family member: ``family/<law>[/<n>-plays][/<k>-nodes][/voltage-creep]``
-    (the play count and the generalised play law's centre nodes only when they are not the
-    choice's defaults)."""
+def member_name(
+    law: str, driver: str, plays: int | None = None, nodes: int | None = None, after_effect: bool = False
+) -> str:
+    """The choice's name of a family member:
+    ``family/<law>[/<n>-plays][/<k>-nodes][/after-effect][/voltage-creep]`` (the play count and
+    the generalised play law's centre nodes only when they are not the choice's defaults)."""
     return (
         f"family/{law}"
         + (f"/{plays}-plays" if plays else "")
         + (f"/{nodes}-nodes" if nodes else "")
+        + ("/after-effect" if after_effect else "")
         + ("/voltage-creep" if driver == "voltage" else "")
     )
+
+
+def member_after_effect(name: str) -> bool:
+    """Whether a :func:`member_name` has the generalised play law's after-effect."""
+    return "after-effect" in name.split("/")
 
 
 def _named_count(parts: Sequence[str], suffix: str) -> int | None:
@@ -186,12 +196,59 @@ def default_nodes(data: DynamicCalibrationData, count: int = GP_NODES) -> F64:
     return np.linspace(lo, hi, max(2, count))
 
 
-def _gplay_features(data: DynamicCalibrationData, thresholds: F64, nodes: F64) -> tuple[F64, F64, F64]:
+def hysteresis_times_s(data: DynamicCalibrationData) -> F64:
+    """The time (s, from the session's start) of every sample of ``data.hysteresis_voltage_v``:
+    the grid samples' from the pieces' intervals, the turning points between them interpolated."""
+    step = np.empty(data.grid_index.size)
+    for dt_s, start, stop in data.pieces:
+        step[start:stop] = dt_s
+    out: F64 = np.interp(
+        np.arange(data.hysteresis_voltage_v.size, dtype=np.float64), data.grid_index, np.cumsum(step)
+    )
+    return out
+
+
+#: Most relaxation steps between two samples of a session (:func:`session_play_outputs`): a slow
+#: ramp's steps then grow beyond the after-effect's interval.
+AE_MAX_STEPS = 256
+
+
+def session_play_outputs(
+    data: DynamicCalibrationData, thresholds: F64, after_effect: AfterEffect | None = None
+) -> F64:
+    """Play outputs at every sample of ``data.hysteresis_voltage_v`` from rest, shape ``(p, n)``;
+    with ``after_effect`` the memory relaxes between the samples as the runtime model's does."""
+    v = data.hysteresis_voltage_v
+    rest = data.rest_voltage_v
+    start = PlayState(rest, np.full(thresholds.size, rest), 0.0)
+    if after_effect is None:
+        plays, _ = play_outputs(thresholds, v, start)
+        return plays
+    out = np.empty((thresholds.size, v.size))
+    kernels.timed_relax_outputs(
+        hysteresis_times_s(data),
+        v,
+        np.ascontiguousarray(thresholds, dtype=np.float64),
+        start.plays_v.copy(),
+        rest,
+        0.0,
+        after_effect.interval_s,
+        after_effect.time_s,
+        after_effect.fluctuation_v,
+        AE_MAX_STEPS,
+        out,
+    )
+    return out
+
+
+def _gplay_features(
+    data: DynamicCalibrationData, thresholds: F64, nodes: F64, after_effect: AfterEffect | None = None
+) -> tuple[F64, F64, F64]:
     """``[V, H_{0,0}, ..., H_{p,K-1}]`` at the grid samples from rest, their rest values, and the
     voltage-creep scale per column (the rest slope at 0 V each column contributes)."""
     v = data.hysteresis_voltage_v
     rest = data.rest_voltage_v
-    plays, _ = play_outputs(thresholds, v, PlayState(rest, np.full(thresholds.size, rest), 0.0))
+    plays = session_play_outputs(data, thresholds, after_effect)
     idx = data.grid_index
     f = np.column_stack([v[idx], basis_features(v[idx], plays[:, idx], nodes)])
     f_rest = np.concatenate(
@@ -767,7 +824,10 @@ def session_positions(
     if isinstance(h, BoucWenParams):
         xh_all, _ = boucwen_forward(h, v, boucwen_rest_state(h, data.rest_voltage_v))
     elif isinstance(h, GeneralisedPlayParams):
-        xh_all, _ = gplay_forward(h, v, gplay_rest_state(h, data.rest_voltage_v))
+        if params.after_effect is None:
+            xh_all, _ = gplay_forward(h, v, gplay_rest_state(h, data.rest_voltage_v))
+        else:
+            xh_all = h.positions(v, session_play_outputs(data, np.asarray(h.r), params.after_effect))
     elif isinstance(h, PlayParams):
         state = PlayState(data.rest_voltage_v, np.full(h.r.size, data.rest_voltage_v), 0.0)
         xh_all, _ = play_forward(h, v, state)
@@ -1069,6 +1129,7 @@ def fit_family(
     fit_creep: bool = True,
     start: BoucWenParams | None = None,
     history: NDArray[np.bool_] | None = None,
+    after_effect: AfterEffect | bool = False,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -1122,6 +1183,10 @@ def fit_family(
     history
         Experiments the model runs through but neither fits nor scores (default none): what the
         stage did before the fitted ones (a first frame, before the frame played again).
+    after_effect
+        Generalised play law with voltage-driven creep: the after-effect of its memory
+        (:mod:`piezod.model.aftereffect`), held at the given one, or searched with True
+        (:func:`_search_after_effect`); False: none.
 
     Raises
     ------
@@ -1135,6 +1200,12 @@ def fit_family(
     if creep_driver not in CREEP_DRIVERS:
         raise CalibrationError(f"unknown creep driver {creep_driver!r} (one of {', '.join(CREEP_DRIVERS)})")
     voltage = creep_driver == "voltage"
+    if after_effect is not False and not (law == "generalised-play" and voltage):
+        raise CalibrationError(
+            f"family fit ({law}, {creep_driver} creep): an after-effect needs the generalised play law "
+            "with voltage-driven creep"
+        )
+    ae: AfterEffect | None = None
     taus = default_taus(data) if taus is None else np.asarray(taus, dtype=np.float64)
     mask = np.ones(data.n_experiments, dtype=bool) if train is None else np.asarray(train, dtype=bool)
     before = None if history is None else np.asarray(history, dtype=bool)
@@ -1162,7 +1233,12 @@ def fit_family(
         elif law == "generalised-play":
             r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
             c = default_nodes(data, n_nodes) if nodes is None else np.asarray(nodes, np.float64)
-            f_grid, f_rest, slope = _gplay_features(data, r, c)
+            if after_effect is True:
+                ae = _search_after_effect(s, r, c, regularisation, centre_smoothing)
+                searched = 2
+            elif isinstance(after_effect, AfterEffect):
+                ae = after_effect
+            f_grid, f_rest, slope = _gplay_features(data, r, c, ae)
             theta, w, kappa, tau, _, it = _alternate(
                 s,
                 f_grid,
@@ -1252,13 +1328,13 @@ def fit_family(
             tau,
             200.0 * kappa,
             creep_driver,
+            after_effect=ae,
         )
     except ModelError as exc:
         raise CalibrationError(f"family fit ({law}): {exc}") from exc
     # theta, the creep weights, kappa and the lag (and Coleman-Hodgdon's alpha when searched)
     n_coefficients = theta.size + taus.size + 2 + int(law == "coleman-hodgdon" and alpha_per_v is None)
-    if law == "bouc-wen":
-        n_coefficients += searched
+    n_coefficients += searched
     fit = _result(s, params, it, n_coefficients, t0)
     if law == "bouc-wen" and not fit.rms_um <= (constant := _train_scale_um(s)):
         # the returned law, not the search's linear fit, is what is scored: never hand back a law
@@ -1268,6 +1344,71 @@ def fit_family(
             f"per experiment ({constant:.3g} um)"
         )
     return fit
+
+
+#: The after-effect's search (:func:`_search_after_effect`): fluctuation voltages as fractions of
+#: the session's voltage span, and relaxation times (s), on a grid; then a polish of both.
+AE_FLUCTUATION_FRACTIONS = (0.003, 0.015, 0.075)
+AE_TIMES_S = (1e-2, 1.0, 1e2, 1e4)
+AE_POLISH_EVALUATIONS = 16
+#: Gauss-Newton steps and play operators of a searched candidate's fit (the final fit runs on
+#: the member's own plays to convergence).
+AE_SEARCH_STEPS = 5
+AE_SEARCH_PLAYS = 8
+#: Bounds of the searched after-effect: ``g0`` from this fraction of the span (below it every
+#: gap closes logarithmically from the start) to ``AE_MAX_FLUCTUATION_V`` (linear), ``tau`` (s).
+AE_MIN_FLUCTUATION_FRACTION = 1e-4
+AE_MAX_FLUCTUATION_V = 1e6
+AE_TIME_BOUNDS_S = (1e-4, 1e9)
+
+
+def _search_after_effect(s: _Session, r: F64, c: F64, lam: float, centre_smoothing: float) -> AfterEffect:
+    """The after-effect whose fit leaves the least training RMS: a grid over ``g0`` (fractions of
+    the span, :data:`AE_FLUCTUATION_FRACTIONS`) and ``tau`` (:data:`AE_TIMES_S`), each candidate
+    fitted with :data:`AE_SEARCH_STEPS` steps, then a Nelder-Mead polish of both (log scale)."""
+    data = s.data
+    v = data.grid_voltage_v[data.compared]
+    span = float(np.max(v) - np.min(v))
+    r = default_thresholds(data, min(AE_SEARCH_PLAYS, r.size))
+    lo = np.log([AE_MIN_FLUCTUATION_FRACTION * span, AE_TIME_BOUNDS_S[0]])
+    hi = np.log([AE_MAX_FLUCTUATION_V, AE_TIME_BOUNDS_S[1]])
+    scores: dict[tuple[float, float], float] = {}
+
+    def candidate(z: F64) -> AfterEffect:
+        g0, tau = np.exp(np.clip(z, lo, hi))
+        return AfterEffect(float(g0), float(tau))
+
+    def score(z: F64) -> float:
+        ae = candidate(z)
+        key = (ae.fluctuation_v, ae.time_s)
+        if key not in scores:
+            f_grid, f_rest, slope = _gplay_features(data, r, c, ae)
+            theta_reg = _centre_smoothing(s, f_grid, r.size + 1, c.size, centre_smoothing)
+            fit = _alternate(
+                s,
+                f_grid,
+                f_rest,
+                lam,
+                max_iter=AE_SEARCH_STEPS,
+                slope_of_theta=slope,
+                refine=False,
+                theta_reg=theta_reg,
+            )
+            scores[key] = fit[4] if math.isfinite(fit[4]) else math.inf
+        return scores[key]
+
+    grid = [np.log([f * span, t]) for f in AE_FLUCTUATION_FRACTIONS for t in AE_TIMES_S]
+    best = min(grid, key=score)
+    # the simplex's first steps: a factor e in g0 and e^1.5 in tau, about half a grid step
+    simplex = np.vstack([best, best + np.array([1.0, 0.0]), best + np.array([0.0, 1.5])])
+    polish = minimize(
+        score,
+        best,
+        method="Nelder-Mead",
+        options={"maxfev": AE_POLISH_EVALUATIONS, "xatol": 0.05, "fatol": 0.0, "initial_simplex": simplex},
+    )
+    z = polish.x if float(polish.fun) < score(best) else best
+    return candidate(np.asarray(z, dtype=np.float64))
 
 
 @dataclass(frozen=True, eq=False)
@@ -1354,7 +1495,10 @@ def choose_model(
     its density then bends more than once over the span (a Krasnosel'skii-Pokrovskii stage's
     loops, docs/model-family.md 6.2bo). A finer grid can also bend the slope the way a part on the
     absolute position does; :func:`piezod.stagecal.needs_one_sensor` ties such a member's offsets
-    when they would place the part wrongly.
+    when they would place the part wrongly. A generalised play law with voltage-driven creep is
+    last tried with its memory's after-effect (:mod:`piezod.model.aftereffect`, searched per
+    fit; ``.../after-effect/voltage-creep``), adopted on the same terms: a stage whose loops
+    narrow at slow drive.
 
     Parameters
     ----------
@@ -1426,8 +1570,9 @@ def choose_model(
         chosen = min(tied, key=lambda k: (fits[k].n - fits[k].dof, scores[k]))
         law, driver = fits[chosen].law, fits[chosen].params.creep_driver
 
-        def finer(name: str, n_plays: int, n_nodes: int) -> bool:
-            """The chosen member on a finer grid, chosen when it predicts better by the tie fraction."""
+        def finer(name: str, n_plays: int, n_nodes: int, after_effect: bool = False) -> bool:
+            """The chosen member on a finer grid (or with the after-effect), chosen when it predicts
+            better by the tie fraction."""
             nonlocal chosen
             try:
                 fit = fit_family(
@@ -1438,6 +1583,7 @@ def choose_model(
                     n_nodes=n_nodes,
                     alpha_per_v=alpha_per_v,
                     creep_driver=driver,
+                    after_effect=after_effect,
                 )
             except CalibrationError as exc:
                 failed[name] = str(exc)
@@ -1461,8 +1607,21 @@ def choose_model(
             if not finer(name, n_plays, 2 * n_nodes - 1):
                 break
             n_nodes = 2 * n_nodes - 1
+        after_effect: AfterEffect | bool = False
+        if law == "generalised-play" and driver == "voltage":
+            # the memory's relaxation: a stage whose loops narrow at slow drive
+            refined_nodes = n_nodes if n_nodes != GP_NODES else None
+            name = member_name(law, driver, refined_plays, refined_nodes, after_effect=True)
+            if finer(name, n_plays, n_nodes, True):
+                after_effect = fits[name].params.after_effect or False
         final = fit_family(
-            data, law, plays=n_plays, n_nodes=n_nodes, alpha_per_v=alpha_per_v, creep_driver=driver
+            data,
+            law,
+            plays=n_plays,
+            n_nodes=n_nodes,
+            alpha_per_v=alpha_per_v,
+            creep_driver=driver,
+            after_effect=after_effect,
         )
     holdout = tuple(int(i) for i in np.flatnonzero(~train))
     return ModelChoice(chosen, final, heldout, train_rms, holdout, fits, blocked, failed)
@@ -1487,6 +1646,8 @@ def family_model_config(params: FamilyParams) -> FamilyModelConfig:
         "creep_driver": params.creep_driver,
         "offset_um": params.offset_um,
     }
+    if (ae := params.after_effect) is not None:
+        fields.update(ae_fluctuation_v=ae.fluctuation_v, ae_time_s=ae.time_s, ae_interval_s=ae.interval_s)
     if isinstance(h, BoucWenParams):
         fields.update(
             bw_c_um_per_v=h.c_um_per_v,
@@ -1529,6 +1690,7 @@ __all__ = [
     "family_model_config",
     "fit_family",
     "holdout_mask",
+    "member_after_effect",
     "member_name",
     "member_nodes",
     "parse_member",

@@ -26,6 +26,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from piezod.errors import ConfigError, ModelError
+from piezod.model.aftereffect import DEFAULT_INTERVAL_S, AfterEffect
 from piezod.model.boucwen import BoucWenParams
 from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
@@ -153,9 +154,26 @@ class FamilyModelConfig(StrictModel):
         le=1e4,
         description="where the position sensor reads the model's zero (um), added after the static map",
     )
+    ae_fluctuation_v: float | None = Field(
+        default=None,
+        gt=0,
+        le=1e6,
+        description="generalised-play after-effect: fluctuation voltage g0 of the memory's relaxation (V)",
+    )
+    ae_time_s: float | None = Field(
+        default=None, gt=0, le=1e9, description="generalised-play after-effect: relaxation time tau (s)"
+    )
+    ae_interval_s: float = Field(
+        default=DEFAULT_INTERVAL_S,
+        gt=0,
+        le=1.0,
+        description="generalised-play after-effect: relaxation interval (s)",
+    )
 
     @model_validator(mode="after")
     def _check_model(self) -> FamilyModelConfig:
+        if (self.ae_fluctuation_v is None) != (self.ae_time_s is None):
+            raise ValueError("an after-effect needs both ae_fluctuation_v and ae_time_s")
         if self.law == "coleman-hodgdon" and (self.alpha_per_v is None or self.u_um_per_v is None):
             raise ValueError("law coleman-hodgdon needs alpha_per_v and u_um_per_v")
         if self.law == "prandtl-ishlinskii" and self.pi_rho0 is None:
@@ -201,6 +219,9 @@ class FamilyModelConfig(StrictModel):
             self.stiffness_pct_per_um,
             self.creep_driver,
             self.offset_um,
+            None
+            if self.ae_fluctuation_v is None or self.ae_time_s is None
+            else AfterEffect(self.ae_fluctuation_v, self.ae_time_s, self.ae_interval_s),
         )
 
 

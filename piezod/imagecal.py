@@ -626,6 +626,7 @@ def _fitted(
             n_nodes=cf.member_nodes(which),
             alpha_per_v=alpha_per_v,
             creep_driver=driver,
+            after_effect=cf.member_after_effect(which),
         )
     except (CalibrationError, ModelError):
         return None

@@ -31,6 +31,7 @@ from piezod.config import AxisName, FamilyModelConfig, ScannerConfig
 from piezod.errors import CalibrationError, ModelError, PiezodError
 from piezod.fitstats import excess_rms, lowers
 from piezod.linearity import linearity, noise_pct
+from piezod.model.aftereffect import AfterEffect
 from piezod.model.boucwen import BoucWenParams
 from piezod.model.sensor import SensorPath
 from piezod.model.thesis import scan_range_um
@@ -1416,6 +1417,8 @@ def _refit_on_session(
         "alpha_per_v": section.alpha_per_v,
         "fit_lag": False,
         "start": law.hysteresis if isinstance(law.hysteresis, BoucWenParams) else None,
+        # held where the first frame placed it (a search per refit costs a minute)
+        "after_effect": law.after_effect or False,
     }
     heldout = cf.fit_family(data, section.law, train=train, history=before, **options)
     final = cf.fit_family(data, section.law, history=before, **options)
@@ -1777,15 +1780,21 @@ def profile_member(
     # 28.4 um on 5; docs/model-family.md 6.2bo)
     nodes = cf.member_nodes(chosen)
     fitted = cf.member_name(
-        law, driver, None if plays == cf.DEFAULT_PLAYS else plays, None if nodes == cf.GP_NODES else nodes
+        law,
+        driver,
+        None if plays == cf.DEFAULT_PLAYS else plays,
+        None if nodes == cf.GP_NODES else nodes,
+        cf.member_after_effect(chosen),
     )
     fits: dict[str, tuple[float, float]] = {}
     # the profiles refit the member through slightly different parts: a Bouc-Wen law starts from
-    # the first fit's rates instead of searching them again (the costliest part of its fit)
+    # the first fit's rates instead of searching them again (the costliest part of its fit), and
+    # an after-effect is searched on the first fit and held there
     first_law: BoucWenParams | None = None
+    after_effect: AfterEffect | bool = cf.member_after_effect(chosen)
 
     def fit(trial: dict[str, dict[str, float]], fit_lag: bool = True) -> tuple[float, float]:
-        nonlocal first_law
+        nonlocal first_law, after_effect
         key = json.dumps([trial, fit_lag], sort_keys=True)
         if key not in fits:
             data = _frame_session(
@@ -1802,10 +1811,13 @@ def profile_member(
                     creep_driver=driver,
                     fit_lag=fit_lag,
                     start=first_law,
+                    after_effect=after_effect,
                 )
                 fits[key] = (f.rms_um, f.heldout_rms_um)
                 if first_law is None and isinstance(f.params.hysteresis, BoucWenParams):
                     first_law = f.params.hysteresis
+                if after_effect is True and f.params.after_effect is not None:
+                    after_effect = f.params.after_effect
             except (CalibrationError, ModelError):
                 fits[key] = (math.inf, math.inf)
         return fits[key]

@@ -47,6 +47,7 @@ from scipy.signal import lfilter
 
 from piezod.errors import ModelError
 from piezod.model import kernels
+from piezod.model.aftereffect import AfterEffect, relax
 from piezod.model.boucwen import (
     BoucWenParams,
     BoucWenState,
@@ -172,6 +173,9 @@ class FamilyParams:
         calibration's frame is fitted with an offset per scan (or one for the sensor), and the
         runtime parts around the model, which act on the absolute position, were fitted in the
         sensor's frame (:func:`piezod.calibrate_family.fit_family` sets it).
+    after_effect
+        The generalised play law's after-effect (:mod:`piezod.model.aftereffect`): its memory
+        relaxes towards the voltage at rest. None: the law is rate independent.
     """
 
     hysteresis: HysteresisLaw
@@ -180,9 +184,15 @@ class FamilyParams:
     stiffness_pct_per_um: float = 0.0
     creep_driver: str = "position"
     offset_um: float = 0.0
+    after_effect: AfterEffect | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "creep", self.creep.pruned())
+        if self.after_effect is not None and not (
+            isinstance(self.hysteresis, GeneralisedPlayParams) and self.creep_driver == "voltage"
+        ):
+            # a creep of the hysteretic position would follow the relaxing memory: no closed-form hold
+            raise ModelError("an after-effect needs the generalised play law with voltage-driven creep")
         if self.creep_driver not in CREEP_DRIVERS:
             raise ModelError(
                 f"creep_driver must be one of {', '.join(CREEP_DRIVERS)}, got {self.creep_driver!r}"
@@ -244,6 +254,8 @@ class FamilyState:
         ``x_c``: position before the static map (um).
     position_um
         ``x``: the model's position (um).
+    relax_pending
+        Samples since the after-effect last relaxed the law's memory.
     """
 
     voltage_v: float
@@ -252,6 +264,7 @@ class FamilyState:
     creep_um: F64
     creep_position_um: float
     position_um: float
+    relax_pending: int = 0
 
 
 def _static(params: FamilyParams, xc: F64) -> F64:
@@ -379,12 +392,16 @@ def family_forward(
     h = params.hysteresis
     xh: F64
     law: LawState
+    pending = state.relax_pending
     if isinstance(h, BoucWenParams):
         assert isinstance(state.law, BoucWenState)
         xh, law = boucwen_forward(h, vc, state.law)
     elif isinstance(h, GeneralisedPlayParams):
         assert isinstance(state.law, PlayState)
-        xh, law = gplay_forward(h, vc, state.law)
+        if params.after_effect is not None:
+            xh, law, pending = _relaxing_forward(h, params.after_effect, vc, dt_s, state)
+        else:
+            xh, law = gplay_forward(h, vc, state.law)
     elif isinstance(h, PlayParams):
         assert isinstance(state.law, PlayState)
         xh, law = play_forward(h, vc, state.law)
@@ -399,7 +416,30 @@ def family_forward(
         creep, e_end = _creep_forward(params.creep, dt_s, disc, xh, state.law.position_um, state.creep_um)  # type: ignore[arg-type]
         xc = (1.0 + disc.total) * xh + creep
     x = _static(params, xc)
-    return x, FamilyState(float(v[-1]), float(vc[-1]), law, e_end, float(xc[-1]), float(x[-1]))
+    return x, FamilyState(float(v[-1]), float(vc[-1]), law, e_end, float(xc[-1]), float(x[-1]), pending)
+
+
+def _relaxing_forward(
+    h: GeneralisedPlayParams, ae: AfterEffect, vc: F64, dt_s: float, state: FamilyState
+) -> tuple[F64, PlayState, int]:
+    """The generalised play law with its after-effect through a block: positions, state, count."""
+    assert isinstance(state.law, PlayState)
+    plays = np.array(state.law.plays_v, dtype=np.float64)
+    out = np.empty((plays.size, vc.size))
+    every = ae.every(dt_s)
+    pending = kernels.relax_outputs(
+        vc,
+        h.r,
+        plays,
+        state.law.voltage_v,
+        state.relax_pending,
+        every,
+        ae.factor(every * dt_s),
+        ae.fluctuation_v,
+        out,
+    )
+    xh = h.positions(vc, out)
+    return xh, PlayState(float(vc[-1]), plays, float(xh[-1])), int(pending)
 
 
 def family_inverse(
@@ -443,7 +483,7 @@ def family_inverse(
         vc, law = boucwen_inverse(h, xh, state.law)
     elif isinstance(h, GeneralisedPlayParams):
         assert isinstance(state.law, PlayState)
-        vc, law = _gplay_inverse(h, xh, state.law)
+        vc, law = _gplay_inverse(h, xh, state.law, _relaxation(params, dt_s, state))
     elif isinstance(h, PlayParams):
         assert isinstance(state.law, PlayState)
         vc, law = play_inverse(h, xh, state.law)
@@ -453,7 +493,19 @@ def family_inverse(
     return _lag_inverse(params, vc, xc, x, dt_s, state, law, e_end)
 
 
-def _gplay_inverse(h: GeneralisedPlayParams, xh: F64, state: PlayState) -> tuple[F64, PlayState]:
+def _relaxation(params: FamilyParams, dt_s: float, state: FamilyState) -> tuple[int, int, float, float]:
+    """The compiled walk's after-effect arguments: samples per relaxation (0: none), samples since
+    the last one, the relaxation factor, the fluctuation voltage."""
+    ae = params.after_effect
+    if ae is None:
+        return 0, 0, 1.0, math.inf
+    every = ae.every(dt_s)
+    return every, int(state.relax_pending), ae.factor(every * dt_s), float(ae.fluctuation_v)
+
+
+def _gplay_inverse(
+    h: GeneralisedPlayParams, xh: F64, state: PlayState, relaxation: tuple[int, int, float, float]
+) -> tuple[F64, PlayState]:
     """The generalised play law's exact inverse: the compiled walk without creep."""
     plays = np.array(state.plays_v, dtype=np.float64)
     vc = np.empty(xh.size)
@@ -474,6 +526,7 @@ def _gplay_inverse(h: GeneralisedPlayParams, xh: F64, state: PlayState) -> tuple
         state.voltage_v,
         state.position_um,
         vc,
+        *relaxation,
     )
     return vc, PlayState(u, plays, x_end)
 
@@ -487,7 +540,10 @@ def _lag_inverse(
     else:
         prev = np.concatenate(([state.drive_v], vc[:-1]))
         v = (vc - a * prev) / (1.0 - a)
-    return v, FamilyState(float(v[-1]), float(vc[-1]), law, e_end, float(xc[-1]), float(x[-1]))
+    pending = state.relax_pending
+    if params.after_effect is not None:
+        pending = (pending + vc.size) % params.after_effect.every(dt_s)
+    return v, FamilyState(float(v[-1]), float(vc[-1]), law, e_end, float(xc[-1]), float(x[-1]), pending)
 
 
 def family_hold(params: FamilyParams, samples: int, dt_s: float, state: FamilyState) -> FamilyState:
@@ -508,12 +564,21 @@ def family_hold(params: FamilyParams, samples: int, dt_s: float, state: FamilySt
     if rest == 0:
         return state
     e = state.creep_um * np.exp(-(rest * dt_s) / params.creep.taus_s)
+    law, pending = state.law, state.relax_pending
+    ae = params.after_effect
+    if ae is not None and isinstance(params.hysteresis, GeneralisedPlayParams):
+        assert isinstance(law, PlayState)
+        # at a held voltage the relaxations compose: one step over all the intervals that end
+        every = ae.every(dt_s)
+        times, pending = divmod(pending + rest, every)
+        plays = relax(law.plays_v, state.drive_v, ae.factor(times * every * dt_s), ae.fluctuation_v)
+        law = gplay_state_at(params.hysteresis, state.drive_v, plays)
     scale = params.law_slope_um_per_v if params.creep_driver == "voltage" else 1.0
-    xc = _relaxed_creep_position(params, state.law.position_um, state.drive_v) + scale * float(
+    xc = _relaxed_creep_position(params, law.position_um, state.drive_v) + scale * float(
         params.creep.weights @ e
     )
     x = float(_static(params, np.array([xc]))[0])
-    return FamilyState(state.voltage_v, state.drive_v, state.law, e, xc, x)
+    return FamilyState(state.voltage_v, state.drive_v, law, e, xc, x, pending)
 
 
 def _voltage_creep_inverse(
@@ -530,6 +595,7 @@ def _voltage_creep_inverse(
     vc = np.empty(xc.size)
     creep = (g, wa, wb, disc.a, ob0, e)
     h = params.hysteresis
+    relaxation = _relaxation(params, dt_s, state)
     law: LawState
     if isinstance(h, BoucWenParams):
         assert isinstance(state.law, BoucWenState)
@@ -538,12 +604,23 @@ def _voltage_creep_inverse(
     elif isinstance(h, GeneralisedPlayParams | PlayParams):
         assert isinstance(state.law, PlayState)
         plays = np.array(state.law.plays_v, dtype=np.float64)
-        law_args: tuple[float | F64, ...]
         if isinstance(h, GeneralisedPlayParams):
-            loop, law_args = kernels.gpi_loop, (h.r, h.c, h.mu, h.zero)
+            u, xh = kernels.gpi_loop(
+                xc,
+                h.r,
+                h.c,
+                h.mu,
+                h.zero,
+                *creep,
+                plays,
+                state.drive_v,
+                state.law.position_um,
+                vc,
+                *relaxation,
+            )
         else:
-            loop, law_args = kernels.pi_loop, (h.b_um_per_v, h.rho0, h.r, h.w)
-        u, xh = loop(xc, *law_args, *creep, plays, state.drive_v, state.law.position_um, vc)
+            pi_args = (h.b_um_per_v, h.rho0, h.r, h.w)
+            u, xh = kernels.pi_loop(xc, *pi_args, *creep, plays, state.drive_v, state.law.position_um, vc)
         law = PlayState(u, plays, xh)
     else:
         assert isinstance(state.law, HysteresisState)

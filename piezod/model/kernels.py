@@ -347,6 +347,85 @@ def _gsettle(r: F64, plays: F64, u: float, sigma: float) -> None:
                 plays[i] = hi
 
 
+def _relax_plays(plays: F64, u: float, factor: float, g0: float) -> None:
+    """The after-effect's relaxation of the play outputs towards ``u`` (in place; ``g0 = inf``:
+    linear), :func:`piezod.model.aftereffect.relax`."""
+    if math.isinf(g0):
+        for i in range(plays.shape[0]):
+            plays[i] = u + (plays[i] - u) * factor
+        return
+    two = 2.0 * g0
+    for i in range(plays.shape[0]):
+        plays[i] = u + two * math.atanh(math.tanh((plays[i] - u) / two) * factor)
+
+
+def _clip_plays(r: F64, plays: F64, v: float) -> None:
+    """The play update at the voltage ``v`` (in place)."""
+    for i in range(plays.shape[0]):
+        lo = v - r[i]
+        hi = v + r[i]
+        if plays[i] < lo:
+            plays[i] = lo
+        elif plays[i] > hi:
+            plays[i] = hi
+
+
+def _relax_outputs(
+    v: F64, r: F64, plays: F64, u_prev: float, pending: int, every: int, factor: float, g0: float, out: F64
+) -> int:
+    """Play outputs ``out[i, j]`` through a block with the after-effect every ``every`` samples
+    (``pending`` samples since the last one); ``plays`` updated in place; returns the new count."""
+    cnt = pending
+    for j in range(v.shape[0]):
+        cnt += 1
+        if cnt >= every:
+            cnt = 0
+            _relax_plays(plays, u_prev, factor, g0)
+        _clip_plays(r, plays, v[j])
+        for i in range(plays.shape[0]):
+            out[i, j] = plays[i]
+        u_prev = v[j]
+    return cnt
+
+
+def _timed_relax_outputs(
+    t: F64,
+    v: F64,
+    r: F64,
+    plays: F64,
+    u_prev: float,
+    t_prev: float,
+    interval: float,
+    tau: float,
+    g0: float,
+    max_steps: int,
+    out: F64,
+) -> None:
+    """Play outputs with the after-effect at samples of any spacing (a calibration session's
+    voltages at the times ``t``): between two samples the voltage moves linearly in steps of
+    about ``interval`` (at most ``max_steps``), the memory relaxing before each as the runtime
+    model does every interval; a held voltage relaxes in one exact step."""
+    for j in range(v.shape[0]):
+        span = t[j] - t_prev
+        if span > 0.0:
+            if v[j] == u_prev:
+                _relax_plays(plays, u_prev, math.exp(-span / tau), g0)
+            else:
+                m = min(max_steps, max(1, math.ceil(span / interval)))
+                factor = math.exp(-span / m / tau)
+                step = (v[j] - u_prev) / m
+                u = u_prev
+                for k in range(1, m + 1):
+                    _relax_plays(plays, u, factor, g0)
+                    u = u_prev + step * k
+                    _clip_plays(r, plays, u)
+        _clip_plays(r, plays, v[j])
+        for i in range(plays.shape[0]):
+            out[i, j] = plays[i]
+        u_prev = v[j]
+        t_prev = t[j]
+
+
 def _gpi_loop(
     xc: F64,
     r: F64,
@@ -363,6 +442,10 @@ def _gpi_loop(
     u_prev: float,
     xh: float,
     out: F64,
+    every: int,
+    pending: int,
+    factor: float,
+    g0: float,
 ) -> tuple[float, float]:
     """Generalised play (Preisach) law + voltage creep: ``out[j] = V_c``; ``e``, ``plays`` updated in place.
 
@@ -376,15 +459,31 @@ def _gpi_loop(
     end value, and the state's ``x_h`` is summed afresh only at a reversal (rounding does not build
     up beyond one monotone run). With no creep elements and ``g = 0`` it is the law's own exact
     inverse.
+
+    With ``every > 0`` the after-effect relaxes the plays every ``every`` samples (``pending``
+    since the last time, :mod:`piezod.model.aftereffect`): the plays are settled, relaxed
+    towards the last voltage and the left side summed afresh; the next sample starts a new piece.
     """
     n = xc.shape[0]
     m = e.shape[0]
     max_pieces = 4 * (plays.shape[0] + 1) * (c.shape[0] + 1) + 8
     have = False
+    dirty = False
+    cnt = pending
     ps, u0, f0, b0, cv, kn = 0.0, u_prev, 0.0, 0.0, 0.0, 0.0
     f_cur = xh + g * u_prev
     waa, pull, mem = _creep_ahead(wa, a, ob0, e)
     for j in range(n):
+        if every > 0:
+            cnt += 1
+            if cnt >= every:
+                cnt = 0
+                if have:
+                    _gsettle(r, plays, u_prev, ps)
+                    have = False
+                _relax_plays(plays, u_prev, factor, g0)
+                f_cur = _gxh(mu, c, zero, plays, u_prev) + g * u_prev
+                dirty = True
         y = xc[j] - mem - wb * u_prev
         ahead = _mem(waa, e)
         u = u_prev
@@ -423,6 +522,7 @@ def _gpi_loop(
         u_prev = u
     if have:
         _gsettle(r, plays, u_prev, ps)
+    if have or dirty:
         xh = _gxh(mu, c, zero, plays, u_prev)
     return u_prev, xh
 
@@ -785,7 +885,11 @@ _gval = _jit(_gval)
 _gpiece = _jit(_gpiece)
 _gxh = _jit(_gxh)
 _gsettle = _jit(_gsettle)
+_relax_plays = _jit(_relax_plays)
+_clip_plays = _jit(_clip_plays)
 gpi_loop = cast(Loop, _jit(_gpi_loop))
+relax_outputs = cast(Callable[..., int], _jit(_relax_outputs))
+timed_relax_outputs = cast(Callable[..., None], _jit(_timed_relax_outputs))
 # _bw_forward and _bw_loop call these by their global names, resolved when they compile
 _bw_phi = _jit(_bw_phi)
 _bw_to_zero = _jit(_bw_to_zero)
@@ -835,7 +939,22 @@ def _compile_all(frozen: bool) -> None:
     pi_loop(one, 1.0, 0.5, param(one), param(one), *creep, np.zeros(1), *start)
     ch_loop(one, 1.0, 1e-3, 0.5, *creep, *start)
     nodes, dens = np.array([-1.0, 1.0]), np.ones((2, 2))
-    gpi_loop(one, param(one), param(nodes), param(dens), param(np.zeros(2)), *creep, np.zeros(1), *start)
+    gpi_loop(
+        one,
+        param(one),
+        param(nodes),
+        param(dens),
+        param(np.zeros(2)),
+        *creep,
+        np.zeros(1),
+        *start,
+        1,
+        0,
+        0.5,
+        1.0,
+    )
+    relax_outputs(one, param(one), np.zeros(1), 0.0, 0, 1, 0.5, 1.0, np.empty((1, 1)))
+    timed_relax_outputs(one, one, param(one), np.zeros(1), 0.0, 0.0, 1e-3, 1.0, 1.0, 8, np.empty((1, 1)))
     bw_forward(one, *bw, *start)
     bw_loop(one, *bw, *creep, *start)
     bwn_forward(one, *bw, 2.0, *start)
@@ -853,5 +972,7 @@ __all__ = [
     "fast_creep_loop",
     "gpi_loop",
     "pi_loop",
+    "relax_outputs",
+    "timed_relax_outputs",
     "warm_up",
 ]
