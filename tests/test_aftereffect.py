@@ -9,7 +9,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from piezod import calibrate_family as cf
-from piezod.calibrate_dynamic import prepare_dynamic
+from piezod.calibrate_dynamic import DynamicCalibrationData, prepare_dynamic
 from piezod.config import FamilyModelConfig
 from piezod.errors import CalibrationError, ModelError
 from piezod.model import kernels
@@ -158,7 +158,7 @@ def test_the_after_effect_is_written_and_read_back() -> None:
         AfterEffect(1.0, math.inf)
 
 
-def _session(params: FamilyParams, rate_hz: float = 500.0) -> cf.DynamicCalibrationData:
+def _session(params: FamilyParams, rate_hz: float = 500.0) -> DynamicCalibrationData:
     """Loops at three rates and two ranges, each after a pause, with 5 nm of sensor noise."""
     rng = np.random.default_rng(11)
     dt = 1.0 / rate_hz
@@ -174,8 +174,9 @@ def _session(params: FamilyParams, rate_hz: float = 500.0) -> cf.DynamicCalibrat
             _, state = family_forward(params, np.full(gap, 2.0 * v[0] - v[1]), dt, state)
             t0 += gap * dt
             x, state = family_forward(params, v, dt, state)
-            x = x + rng.normal(0.0, 0.005, x.size)
-            exps.append(Experiment(f"{amp:g}V {freq:g}Hz", "x", t0 + t, v, x))
+            x = x + rng.normal(0.0, 0.005, x.size).astype(np.float64)
+            times = np.asarray(t0 + t, dtype=np.float64)
+            exps.append(Experiment(f"{amp:g}V {freq:g}Hz", "x", times, np.asarray(v, np.float64), x))
             t0 += n * dt
     return prepare_dynamic(
         exps, max_samples_per_loop=128, slew_rate_v_per_s=1e9, rest_voltage_v=0.0, max_preroll_loops=0
