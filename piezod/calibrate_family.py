@@ -1496,9 +1496,9 @@ def choose_model(
     loops, docs/model-family.md 6.2bo). A finer grid can also bend the slope the way a part on the
     absolute position does; :func:`piezod.stagecal.needs_one_sensor` ties such a member's offsets
     when they would place the part wrongly. A generalised play law with voltage-driven creep is
-    last tried with its memory's after-effect (:mod:`piezod.model.aftereffect`, searched per
-    fit; ``.../after-effect/voltage-creep``), adopted on the same terms: a stage whose loops
-    narrow at slow drive.
+    last tried with its memory's after-effect (:mod:`piezod.model.aftereffect`, searched once;
+    ``.../after-effect/voltage-creep``), adopted on the same terms (a stage whose loops depend on
+    the rate), and then its grids are refined again with the after-effect held.
 
     Parameters
     ----------
@@ -1570,7 +1570,7 @@ def choose_model(
         chosen = min(tied, key=lambda k: (fits[k].n - fits[k].dof, scores[k]))
         law, driver = fits[chosen].law, fits[chosen].params.creep_driver
 
-        def finer(name: str, n_plays: int, n_nodes: int, after_effect: bool = False) -> bool:
+        def finer(name: str, n_plays: int, n_nodes: int, after_effect: AfterEffect | bool = False) -> bool:
             """The chosen member on a finer grid (or with the after-effect), chosen when it predicts
             better by the tie fraction."""
             nonlocal chosen
@@ -1597,23 +1597,42 @@ def choose_model(
             return True
 
         n_plays, n_nodes = plays, GP_NODES
-        while law in PLAY_LAWS and 2 * n_plays <= MAX_PLAYS:
-            if not finer(member_name(law, driver, 2 * n_plays), 2 * n_plays, n_nodes):
-                break
-            n_plays *= 2
-        refined_plays = n_plays if n_plays != plays else None
-        while law == "generalised-play" and 2 * n_nodes - 1 <= MAX_GP_NODES:
-            name = member_name(law, driver, refined_plays, 2 * n_nodes - 1)
-            if not finer(name, n_plays, 2 * n_nodes - 1):
-                break
-            n_nodes = 2 * n_nodes - 1
         after_effect: AfterEffect | bool = False
+
+        def name_of(n_p: int, n_n: int) -> str:
+            return member_name(
+                law,
+                driver,
+                n_p if n_p != plays else None,
+                n_n if n_n != GP_NODES else None,
+                after_effect is not False,
+            )
+
+        def refine() -> None:
+            nonlocal n_plays, n_nodes
+            while law in PLAY_LAWS and 2 * n_plays <= MAX_PLAYS:
+                if not finer(name_of(2 * n_plays, n_nodes), 2 * n_plays, n_nodes, after_effect):
+                    break
+                n_plays *= 2
+            while law == "generalised-play" and 2 * n_nodes - 1 <= MAX_GP_NODES:
+                if not finer(name_of(n_plays, 2 * n_nodes - 1), n_plays, 2 * n_nodes - 1, after_effect):
+                    break
+                n_nodes = 2 * n_nodes - 1
+
+        refine()
         if law == "generalised-play" and driver == "voltage":
-            # the memory's relaxation: a stage whose loops narrow at slow drive
-            refined_nodes = n_nodes if n_nodes != GP_NODES else None
-            name = member_name(law, driver, refined_plays, refined_nodes, after_effect=True)
+            # the memory's relaxation (a stage whose loops depend on the rate), searched once; the
+            # grids are refined again with it held: what the finer grids fit may have been its misfit
+            name = member_name(
+                law,
+                driver,
+                n_plays if n_plays != plays else None,
+                n_nodes if n_nodes != GP_NODES else None,
+                after_effect=True,
+            )
             if finer(name, n_plays, n_nodes, True):
                 after_effect = fits[name].params.after_effect or False
+                refine()
         final = fit_family(
             data,
             law,

@@ -109,6 +109,11 @@ def main() -> int:
     ap.add_argument("--skip-s", type=float, default=1.0, help="start-up transient left out (s)")
     ap.add_argument("--laws", nargs="+", default=list(LAWS), choices=LAWS, help="laws to fit")
     ap.add_argument(
+        "--after-effect",
+        action="store_true",
+        help="also fit the generalised play law with voltage creep and its memory's after-effect (searched)",
+    )
+    ap.add_argument(
         "--centre-smoothing",
         type=float,
         default=None,
@@ -135,11 +140,18 @@ def main() -> int:
     floor_va = float(np.sqrt(np.mean([noise_floor(np.asarray(e.position_um)) ** 2 for e in valid_exps])))
     rows = []
     best: tuple[float, tuple[str, str, Any, Any]] | None = None
-    for law, driver in [(law, d) for law in args.laws for d in CREEP_DRIVERS]:
+    members = [(law, d, False) for law in args.laws for d in CREEP_DRIVERS]
+    if args.after_effect and "generalised-play" in args.laws:
+        members.append(("generalised-play", "voltage", True))
+    for law, driver, after_effect in members:
         t0 = time.perf_counter()
-        extra = {} if args.centre_smoothing is None else {"centre_smoothing": args.centre_smoothing}
+        extra: dict[str, Any] = (
+            {} if args.centre_smoothing is None else {"centre_smoothing": args.centre_smoothing}
+        )
         if args.drive_lag_samples > 0.0:
             extra["fit_lag"] = False
+        if after_effect:
+            extra["after_effect"] = True
         fit = fit_family(ident, law, plays=args.plays, skip_s=args.skip_s, creep_driver=driver, **extra)
         keep = settled_rows(valid, args.skip_s)
         err, gain = prediction_error(valid, fit.params, keep)
@@ -149,7 +161,7 @@ def main() -> int:
         p = fit.params
         rows.append(
             {
-                "law": law,
+                "law": law + ("+after-effect" if after_effect else ""),
                 "creep_driver": driver,
                 "identification_rms_um": fit.rms_um,
                 "validation_rms_um": rms_valid,
