@@ -202,3 +202,16 @@ def test_the_choice_adopts_the_after_effect_where_the_memory_relaxes() -> None:
     assert choice.fit is not None and choice.fit.params.after_effect is not None
     with pytest.raises(CalibrationError, match="after-effect needs"):
         cf.fit_family(data, "bouc-wen", creep_driver="voltage", after_effect=True)
+
+
+def test_a_saturated_gap_relaxes_to_a_finite_one_and_no_time_leaves_it() -> None:
+    """A gap far beyond ``g0`` (tanh at 1.0 in floating point) relaxes to the finite gap the closed
+    form gives; a step too short to change ``exp(-t / tau)`` from 1 leaves every play where it is."""
+    plays = np.array([100.0, -100.0, 0.5])
+    kernels._relax_plays(plays, 0.0, 1.0, 1.0)
+    np.testing.assert_array_equal(plays, [100.0, -100.0, 0.5])
+    kernels._relax_plays(plays, 0.0, 1.0 - 1e-7, 1.0)
+    assert np.all(np.isfinite(plays))
+    # the log law: tanh(g / 2) = 1 - 2 exp(-g) times 1 - eps leaves g = ln(2 / eps)
+    assert plays[0] == pytest.approx(2.0 * 0.5 * math.log(2.0 / 1e-7), rel=1e-6)
+    np.testing.assert_allclose(relax(np.array([100.0]), 0.0, 1.0 - 1e-7, 1.0), plays[:1])

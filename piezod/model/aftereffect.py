@@ -87,6 +87,9 @@ def relax(plays_v: F64, voltage_v: float, factor: float, fluctuation_v: float) -
     The reference of the compiled step (:func:`piezod.model.kernels.relax_plays`).
     """
     g = np.asarray(plays_v, dtype=np.float64) - voltage_v
+    if factor >= 1.0:
+        out0: F64 = voltage_v + g
+        return out0
     if math.isinf(fluctuation_v):
         out: F64 = voltage_v + g * factor
         return out

@@ -354,8 +354,12 @@ def _relax_plays(plays: F64, u: float, factor: float, g0: float) -> None:
         for i in range(plays.shape[0]):
             plays[i] = u + (plays[i] - u) * factor
         return
+    if factor >= 1.0:
+        return
     two = 2.0 * g0
     for i in range(plays.shape[0]):
+        # a gap beyond ~37 g0 saturates tanh at 1.0: the closed form then gives the gap it has
+        # after the step to rounding (such a gap closes almost at once), never atanh(1)
         plays[i] = u + two * math.atanh(math.tanh((plays[i] - u) / two) * factor)
 
 
