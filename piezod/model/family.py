@@ -4,7 +4,10 @@ Per sample ``n`` (interval ``dt``)::
 
     V_c[n] = a V_c[n-1] + (1 - a) V[n],  a = exp(-dt / tau_lag)     amplifier pole (tau_lag = 0: none)
     x_h    = H(V_c)                                               Coleman-Hodgdon ODE (2.21) or
-                                                                  Prandtl-Ishlinskii (piezod.model.play)
+                                                                  Prandtl-Ishlinskii (piezod.model.play),
+                                                                  generalised play (piezod.model.gplay;
+                                                                  its memory may relax: after_effect,
+                                                                  piezod.model.aftereffect) or Bouc-Wen
     x_c    = (1 + W) x_h + sum_i w_i e_i                          creep spectrum (driver: position):
                                                                   free non-negative weights on tau_i
     x_c    = x_h + s (W V_c + sum_i w_i e_i)                      or (driver: voltage) the creep of the
@@ -550,7 +553,8 @@ def family_hold(params: FamilyParams, samples: int, dt_s: float, state: FamilySt
     """The state after holding the last commanded voltage for ``samples`` samples.
 
     The lag settles (simulated sample by sample for ``20 tau_lag``), then the creep elements
-    relax in closed form, ``e_i -> e_i exp(-T / tau_i)``.
+    relax in closed form, ``e_i -> e_i exp(-T / tau_i)``, and so does an after-effect's memory
+    (one step over every relaxation interval that ends in the hold: at a held voltage they compose).
     """
     if samples < 0:
         raise ModelError(f"samples must be >= 0, got {samples}")
