@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 
 from piezod import calibrate_family as cf
@@ -77,6 +79,34 @@ def test_the_inverse_is_exact_across_blocks_and_relaxations(g0: float) -> None:
     np.testing.assert_allclose(np.concatenate(out), v, atol=1e-9)
     assert state.relax_pending == end.relax_pending == 60_000 % params.after_effect.every(DT)  # type: ignore[union-attr]
     assert state.position_um == pytest.approx(end.position_um, abs=1e-9)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    step_v=st.floats(0.01, 8.0),
+    g0=st.sampled_from([0.3, 3.0, 1e6]),
+    tau_s=st.floats(1e-3, 1e3),
+    every_ms=st.sampled_from([0.1, 1.0, 5.0]),
+    splits=st.integers(1, 9),
+)
+def test_random_walks_through_the_relaxing_inverse_are_exact(
+    seed: int, step_v: float, g0: float, tau_s: float, every_ms: float, splits: int
+) -> None:
+    """Random walks (steps up to 8 V a sample, reversals anywhere, relaxations every 1-50 samples,
+    gaps from far below to far above ``g0``) through the forward model come back through the
+    compiled inverse to 1e-8 V, over blocks split anywhere."""
+    spec = CreepSpectrum.log_spaced(1e-3, 1e2, 1, 0.01)
+    params = FamilyParams(_law(), spec, 0.0, 0.02, "voltage", 0.0, AfterEffect(g0, tau_s, every_ms * 1e-3))
+    rng = np.random.default_rng(seed)
+    v = np.clip(40.0 + np.cumsum(rng.normal(0.0, step_v, 3000)), -20.0, 120.0)
+    rest = family_rest_state(params, 40.0)
+    x, _ = family_forward(params, v, DT, rest)
+    state, out = rest, []
+    for block in np.array_split(x, splits):
+        u, state = family_inverse(params, block, DT, state)
+        out.append(u)
+    np.testing.assert_allclose(np.concatenate(out), v, atol=1e-8)
 
 
 def test_a_hold_is_the_forward_model_at_the_held_voltage() -> None:
