@@ -60,6 +60,7 @@ from piezod.calibrate_family import (
     settled_rows,
 )
 from piezod.errors import CalibrationError
+from piezod.model.aftereffect import AfterEffect
 from piezod.model.family import FamilyParams
 from piezod.model.params import ThesisParams
 from piezod.readback import align_known_delay
@@ -565,6 +566,7 @@ def compare_family(
     on_step: Callable[[str], None] | None = None,
     others: dict[str, FamilyParams] | None = None,
     parts: bool = True,
+    after_effect: bool = False,
 ) -> FamilyComparison:
     """Fit every member of the family and score it on held-out data (module docstring).
 
@@ -589,6 +591,10 @@ def compare_family(
     parts
         Measure the best member's parts (:attr:`FamilyComparison.parts`: one refit per part; the
         audit's check needs them, the choice of a model does not).
+    after_effect
+        When the best member is the generalised play law with voltage-driven creep, also fit it
+        with its memory's after-effect (:mod:`piezod.model.aftereffect`, searched; listed last, so
+        it is best only by more than the tie fraction), as the model choice on the stage does.
 
     Raises
     ------
@@ -645,7 +651,9 @@ def compare_family(
             out: F64 = (x - y_centred)[test_rows]
             return out, []
 
-    def fitted(law: str, driver: str, without: str = "") -> tuple[FamilyFit, F64, list[float]]:
+    def fitted(
+        law: str, driver: str, without: str = "", relaxing: AfterEffect | bool = False
+    ) -> tuple[FamilyFit, F64, list[float]]:
         fit = fit_family(
             train_data,
             law,
@@ -656,6 +664,7 @@ def compare_family(
             fit_stiffness=without != "stiffness",
             fit_creep=without != "creep",
             fit_lag=without != "delay",
+            after_effect=relaxing,
         )
         if not validate:
             return fit, fit.heldout_residuals_um, []
@@ -680,6 +689,21 @@ def compare_family(
                 gains_by[name] = dict(zip(keys, gains, strict=True))
             members.append(MemberScore(name, law, driver, fit.rms_um, held, fit.params))
             step(name)
+    first = FamilyComparison(method, tuple(members), floor, skip, heldout).best
+    relaxes = first is not None and (first.law, first.creep_driver) == ("generalised-play", "voltage")
+    if after_effect and first is not None and relaxes:
+        law, driver = first.law, first.creep_driver
+        name = member_name(law, driver, after_effect=True)
+        try:
+            fit, resid, gains = fitted(law, driver, relaxing=True)
+        except (CalibrationError, np.linalg.LinAlgError) as exc:
+            members.append(MemberScore(name, law, driver, math.nan, math.nan, None, str(exc)))
+        else:
+            resid_by[name] = resid
+            if validate:
+                gains_by[name] = dict(zip(keys, gains, strict=True))
+            members.append(MemberScore(name, law, driver, fit.rms_um, _rms(resid), fit.params))
+        step(name)
     scored_others: dict[str, float] = {}
     for name, params in (others or {}).items():
         scored_others[name] = _rms(heldout_residual(params)[0])
@@ -693,9 +717,10 @@ def compare_family(
     part_gains: list[PartGain] = []
     opts = AuditOptions()
     with_part = HeldOut(best.heldout_rms_um, resid_by[best.name], np.ones(1, dtype=bool))
+    held_effect: AfterEffect | bool = False if best.params is None else (best.params.after_effect or False)
     for effect in PARTS:
         try:
-            _, resid, _ = fitted(best.law, best.creep_driver, without=effect)
+            _, resid, _ = fitted(best.law, best.creep_driver, without=effect, relaxing=held_effect)
         except (CalibrationError, np.linalg.LinAlgError) as exc:
             part_gains.append(PartGain(effect, math.nan, math.nan, math.nan, False, str(exc)))
             continue

@@ -188,7 +188,7 @@ def test_the_after_effect_is_written_and_read_back() -> None:
         AfterEffect(1.0, math.inf)
 
 
-def _session(params: FamilyParams, rate_hz: float = 500.0) -> DynamicCalibrationData:
+def _experiments(params: FamilyParams, rate_hz: float = 500.0) -> list[Experiment]:
     """Loops at three rates and two ranges, each after a pause, with 5 nm of sensor noise."""
     rng = np.random.default_rng(11)
     dt = 1.0 / rate_hz
@@ -208,8 +208,16 @@ def _session(params: FamilyParams, rate_hz: float = 500.0) -> DynamicCalibration
             times = np.asarray(t0 + t, dtype=np.float64)
             exps.append(Experiment(f"{amp:g}V {freq:g}Hz", "x", times, np.asarray(v, np.float64), x))
             t0 += n * dt
+    return exps
+
+
+def _session(params: FamilyParams) -> DynamicCalibrationData:
     return prepare_dynamic(
-        exps, max_samples_per_loop=128, slew_rate_v_per_s=1e9, rest_voltage_v=0.0, max_preroll_loops=0
+        _experiments(params),
+        max_samples_per_loop=128,
+        slew_rate_v_per_s=1e9,
+        rest_voltage_v=0.0,
+        max_preroll_loops=0,
     )
 
 
@@ -245,3 +253,25 @@ def test_a_saturated_gap_relaxes_to_a_finite_one_and_no_time_leaves_it() -> None
     # the log law: tanh(g / 2) = 1 - 2 exp(-g) times 1 - eps leaves g = ln(2 / eps)
     assert plays[0] == pytest.approx(2.0 * 0.5 * math.log(2.0 / 1e-7), rel=1e-6)
     np.testing.assert_allclose(relax(np.array([100.0]), 0.0, 1.0 - 1e-7, 1.0), plays[:1])
+
+
+def test_the_recordings_path_tries_the_after_effect_and_writes_it() -> None:
+    """``piezod calibrate FILES`` (the held-out comparison of recordings) tries the after-effect on
+    a best generalised play member with voltage creep, names it best when it predicts better, and
+    the written refit holds it."""
+    from piezod.cli.calibrate import _written
+    from piezod.family_heldout import compare_family
+
+    truth = _params(2.0, 20.0, lag_s=0.0)
+    exps = _experiments(truth)
+    family = compare_family(
+        exps, laws=("generalised-play",), creep_drivers=("voltage",), plays=12, parts=False, after_effect=True
+    )
+    best = family.best
+    assert best is not None and cf.member_after_effect(best.name), family.table()
+    written = _written(exps, best, family.skip_s, refit=True)
+    assert written.after_effect == best.params.after_effect  # type: ignore[union-attr]
+    plain = compare_family(
+        exps, laws=("generalised-play",), creep_drivers=("voltage",), plays=12, parts=False
+    )
+    assert not any(cf.member_after_effect(m.name) for m in plain.members)

@@ -274,6 +274,7 @@ def run(args: argparse.Namespace) -> int:
                     on_step=lambda _name: tick(1),
                     others=incumbent,
                     parts=False,
+                    after_effect=True,
                 )
             except CalibrationError as exc:
                 if args.model == "family":
@@ -440,7 +441,11 @@ def _written(exps: Sequence[Experiment], chosen: MemberScore, skip_s: float, *, 
     was (``--validate``), else refitted on all of them (the held-out ones included)."""
     if not refit and chosen.params is not None:
         return chosen.params
-    return fit_family(session(exps), chosen.law, creep_driver=chosen.creep_driver, skip_s=skip_s).params
+    # an after-effect is held where the scored fit placed it (the search is the costly part)
+    held = False if chosen.params is None else (chosen.params.after_effect or False)
+    return fit_family(
+        session(exps), chosen.law, creep_driver=chosen.creep_driver, skip_s=skip_s, after_effect=held
+    ).params
 
 
 def _print_dynamic(result: DynamicCalibrationResult, axis: str, out: Any) -> None:
