@@ -25,6 +25,7 @@ from piezod.model.family import (
     family_rest_state,
 )
 from piezod.model.gplay import GeneralisedPlayParams
+from piezod.model.play import PlayState
 from piezod.recording import Experiment
 
 DT = 1e-4
@@ -77,7 +78,9 @@ def test_the_inverse_is_exact_across_blocks_and_relaxations(g0: float) -> None:
         u, state = family_inverse(params, block, DT, state)
         out.append(u)
     np.testing.assert_allclose(np.concatenate(out), v, atol=1e-9)
-    assert state.relax_pending == end.relax_pending == 60_000 % params.after_effect.every(DT)  # type: ignore[union-attr]
+    ae = params.after_effect
+    assert ae is not None
+    assert state.relax_pending == end.relax_pending == 60_000 % ae.every(DT)
     assert state.position_um == pytest.approx(end.position_um, abs=1e-9)
 
 
@@ -118,7 +121,8 @@ def test_a_hold_is_the_forward_model_at_the_held_voltage() -> None:
     _, stepped = family_forward(params, np.full(123_457, state.voltage_v), DT, state)
     assert held.position_um == pytest.approx(stepped.position_um, abs=1e-9)
     assert held.relax_pending == stepped.relax_pending
-    np.testing.assert_allclose(held.law.plays_v, stepped.law.plays_v, atol=1e-9)  # type: ignore[union-attr]
+    assert isinstance(held.law, PlayState) and isinstance(stepped.law, PlayState)
+    np.testing.assert_allclose(held.law.plays_v, stepped.law.plays_v, atol=1e-9)
     # the memory relaxed: the position crept towards the anhysteretic state
     assert abs(held.position_um - state.position_um) > 1e-3
 
@@ -270,7 +274,7 @@ def test_the_recordings_path_tries_the_after_effect_and_writes_it() -> None:
     best = family.best
     assert best is not None and cf.member_after_effect(best.name), family.table()
     written = _written(exps, best, family.skip_s, refit=True)
-    assert written.after_effect == best.params.after_effect  # type: ignore[union-attr]
+    assert best.params is not None and written.after_effect == best.params.after_effect
     plain = compare_family(
         exps, laws=("generalised-play",), creep_drivers=("voltage",), plays=12, parts=False
     )
