@@ -1129,7 +1129,7 @@ def fit_family(
     fit_creep: bool = True,
     start: BoucWenParams | None = None,
     history: NDArray[np.bool_] | None = None,
-    after_effect: AfterEffect | bool = False,
+    after_effect: AfterEffect | bool | None = None,
 ) -> FamilyFit:
     """Fit one law of the family to a session.
 
@@ -1186,7 +1186,8 @@ def fit_family(
     after_effect
         Generalised play law with voltage-driven creep: the after-effect of its memory
         (:mod:`piezod.model.aftereffect`), held at the given one, or searched with True
-        (:func:`_search_after_effect`); False: none.
+        (:func:`_search_after_effect`); False or None: none (what a member's
+        :attr:`~piezod.model.family.FamilyParams.after_effect` holds when it has none).
 
     Raises
     ------
@@ -1200,7 +1201,7 @@ def fit_family(
     if creep_driver not in CREEP_DRIVERS:
         raise CalibrationError(f"unknown creep driver {creep_driver!r} (one of {', '.join(CREEP_DRIVERS)})")
     voltage = creep_driver == "voltage"
-    if after_effect is not False and not (law == "generalised-play" and voltage):
+    if after_effect and not (law == "generalised-play" and voltage):
         raise CalibrationError(
             f"family fit ({law}, {creep_driver} creep): an after-effect needs the generalised play law "
             "with voltage-driven creep"
@@ -1570,20 +1571,23 @@ def choose_model(
         chosen = min(tied, key=lambda k: (fits[k].n - fits[k].dof, scores[k]))
         law, driver = fits[chosen].law, fits[chosen].params.creep_driver
 
-        def finer(name: str, n_plays: int, n_nodes: int, after_effect: AfterEffect | bool = False) -> bool:
-            """The chosen member on a finer grid (or with the after-effect), chosen when it predicts
-            better by the tie fraction."""
+        def finer(n_p: int, n_n: int, relaxing: AfterEffect | bool | None) -> bool:
+            """The chosen member on ``n_p`` plays and ``n_n`` centre nodes (and with ``relaxing``,
+            :func:`fit_family`'s ``after_effect``), chosen when it predicts better by the tie fraction."""
             nonlocal chosen
+            name = member_name(
+                law, driver, n_p if n_p != plays else None, n_n if n_n != GP_NODES else None, bool(relaxing)
+            )
             try:
                 fit = fit_family(
                     data,
                     law,
                     train=train,
-                    plays=n_plays,
-                    n_nodes=n_nodes,
+                    plays=n_p,
+                    n_nodes=n_n,
                     alpha_per_v=alpha_per_v,
                     creep_driver=driver,
-                    after_effect=after_effect,
+                    after_effect=relaxing,
                 )
             except CalibrationError as exc:
                 failed[name] = str(exc)
@@ -1597,42 +1601,22 @@ def choose_model(
             return True
 
         n_plays, n_nodes = plays, GP_NODES
-        after_effect: AfterEffect | bool = False
-
-        def name_of(n_p: int, n_n: int) -> str:
-            return member_name(
-                law,
-                driver,
-                n_p if n_p != plays else None,
-                n_n if n_n != GP_NODES else None,
-                after_effect is not False,
-            )
+        after_effect: AfterEffect | None = None
 
         def refine() -> None:
             nonlocal n_plays, n_nodes
-            while law in PLAY_LAWS and 2 * n_plays <= MAX_PLAYS:
-                if not finer(name_of(2 * n_plays, n_nodes), 2 * n_plays, n_nodes, after_effect):
-                    break
+            while law in PLAY_LAWS and 2 * n_plays <= MAX_PLAYS and finer(2 * n_plays, n_nodes, after_effect):
                 n_plays *= 2
-            while law == "generalised-play" and 2 * n_nodes - 1 <= MAX_GP_NODES:
-                if not finer(name_of(n_plays, 2 * n_nodes - 1), n_plays, 2 * n_nodes - 1, after_effect):
-                    break
+            gp = law == "generalised-play"
+            while gp and 2 * n_nodes - 1 <= MAX_GP_NODES and finer(n_plays, 2 * n_nodes - 1, after_effect):
                 n_nodes = 2 * n_nodes - 1
 
         refine()
-        if law == "generalised-play" and driver == "voltage":
-            # the memory's relaxation (a stage whose loops depend on the rate), searched once; the
-            # grids are refined again with it held: what the finer grids fit may have been its misfit
-            name = member_name(
-                law,
-                driver,
-                n_plays if n_plays != plays else None,
-                n_nodes if n_nodes != GP_NODES else None,
-                after_effect=True,
-            )
-            if finer(name, n_plays, n_nodes, True):
-                after_effect = fits[name].params.after_effect or False
-                refine()
+        # the memory's relaxation (a stage whose loops depend on the rate), searched once; the grids
+        # are refined again with it held: what the finer grids fit may have been its misfit
+        if law == "generalised-play" and driver == "voltage" and finer(n_plays, n_nodes, True):
+            after_effect = fits[chosen].params.after_effect
+            refine()
         final = fit_family(
             data,
             law,

@@ -652,7 +652,7 @@ def compare_family(
             return out, []
 
     def fitted(
-        law: str, driver: str, without: str = "", relaxing: AfterEffect | bool = False
+        law: str, driver: str, without: str = "", relaxing: AfterEffect | bool | None = None
     ) -> tuple[FamilyFit, F64, list[float]]:
         fit = fit_family(
             train_data,
@@ -674,28 +674,12 @@ def compare_family(
     members: list[MemberScore] = []
     gains_by: dict[str, dict[str, float]] = {}
     resid_by: dict[str, F64] = {}
-    for law in laws:
-        for driver in creep_drivers:
-            name = member_name(law, driver)
-            try:
-                fit, resid, gains = fitted(law, driver)
-            except (CalibrationError, np.linalg.LinAlgError) as exc:
-                members.append(MemberScore(name, law, driver, math.nan, math.nan, None, str(exc)))
-                step(name)
-                continue
-            held = _rms(resid)
-            resid_by[name] = resid
-            if validate:
-                gains_by[name] = dict(zip(keys, gains, strict=True))
-            members.append(MemberScore(name, law, driver, fit.rms_um, held, fit.params))
-            step(name)
-    first = FamilyComparison(method, tuple(members), floor, skip, heldout).best
-    relaxes = first is not None and (first.law, first.creep_driver) == ("generalised-play", "voltage")
-    if after_effect and first is not None and relaxes:
-        law, driver = first.law, first.creep_driver
-        name = member_name(law, driver, after_effect=True)
+
+    def score(law: str, driver: str, relaxing: bool = False) -> None:
+        """Fit and score one member (with the after-effect searched when ``relaxing``)."""
+        name = member_name(law, driver, after_effect=relaxing)
         try:
-            fit, resid, gains = fitted(law, driver, relaxing=True)
+            fit, resid, gains = fitted(law, driver, relaxing=relaxing)
         except (CalibrationError, np.linalg.LinAlgError) as exc:
             members.append(MemberScore(name, law, driver, math.nan, math.nan, None, str(exc)))
         else:
@@ -704,6 +688,17 @@ def compare_family(
                 gains_by[name] = dict(zip(keys, gains, strict=True))
             members.append(MemberScore(name, law, driver, fit.rms_um, _rms(resid), fit.params))
         step(name)
+
+    for law in laws:
+        for driver in creep_drivers:
+            score(law, driver)
+    first = FamilyComparison(method, tuple(members), floor, skip, heldout).best
+    if (
+        after_effect
+        and first is not None
+        and (first.law, first.creep_driver) == ("generalised-play", "voltage")
+    ):
+        score(first.law, first.creep_driver, relaxing=True)
     scored_others: dict[str, float] = {}
     for name, params in (others or {}).items():
         scored_others[name] = _rms(heldout_residual(params)[0])
@@ -717,10 +712,10 @@ def compare_family(
     part_gains: list[PartGain] = []
     opts = AuditOptions()
     with_part = HeldOut(best.heldout_rms_um, resid_by[best.name], np.ones(1, dtype=bool))
-    held_effect: AfterEffect | bool = False if best.params is None else (best.params.after_effect or False)
+    held = None if best.params is None else best.params.after_effect
     for effect in PARTS:
         try:
-            _, resid, _ = fitted(best.law, best.creep_driver, without=effect, relaxing=held_effect)
+            _, resid, _ = fitted(best.law, best.creep_driver, without=effect, relaxing=held)
         except (CalibrationError, np.linalg.LinAlgError) as exc:
             part_gains.append(PartGain(effect, math.nan, math.nan, math.nan, False, str(exc)))
             continue

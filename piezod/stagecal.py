@@ -1391,7 +1391,6 @@ def refit_at_drive_lag(
     CalibrationError
         The axis model is not a family member, or a fit fails.
     """
-
     session = _drive_lag_session(experiments, config, axis, ramp_v_per_s, rest_voltage_v, one_sensor, history)
     return _refit_on_session(config, axis, plays, *session)
 
@@ -1418,7 +1417,7 @@ def _refit_on_session(
         "fit_lag": False,
         "start": law.hysteresis if isinstance(law.hysteresis, BoucWenParams) else None,
         # held where the first frame placed it (a search per refit costs a minute)
-        "after_effect": law.after_effect or False,
+        "after_effect": law.after_effect,
     }
     heldout = cf.fit_family(data, section.law, train=train, history=before, **options)
     final = cf.fit_family(data, section.law, history=before, **options)

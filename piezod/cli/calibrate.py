@@ -442,7 +442,7 @@ def _written(exps: Sequence[Experiment], chosen: MemberScore, skip_s: float, *, 
     if not refit and chosen.params is not None:
         return chosen.params
     # an after-effect is held where the scored fit placed it (the search is the costly part)
-    held = False if chosen.params is None else (chosen.params.after_effect or False)
+    held = None if chosen.params is None else chosen.params.after_effect
     return fit_family(
         session(exps), chosen.law, creep_driver=chosen.creep_driver, skip_s=skip_s, after_effect=held
     ).params

@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezod.errors import ModelError
+from piezod.model import kernels
 
 F64 = NDArray[np.float64]
 
@@ -82,19 +83,10 @@ class AfterEffect:
 
 
 def relax(plays_v: F64, voltage_v: float, factor: float, fluctuation_v: float) -> F64:
-    """Play outputs after relaxing towards ``voltage_v`` by ``factor`` (:meth:`AfterEffect.factor`).
-
-    The reference of the compiled step (:func:`piezod.model.kernels.relax_plays`).
-    """
-    g = np.asarray(plays_v, dtype=np.float64) - voltage_v
-    if factor >= 1.0:
-        out0: F64 = voltage_v + g
-        return out0
-    if math.isinf(fluctuation_v):
-        out: F64 = voltage_v + g * factor
-        return out
-    two = 2.0 * fluctuation_v
-    out = voltage_v + two * np.arctanh(np.tanh(g / two) * factor)
+    """Play outputs after relaxing towards ``voltage_v`` by ``factor`` (:meth:`AfterEffect.factor`):
+    a copy through the compiled step the runtime model takes every interval."""
+    out = np.array(plays_v, dtype=np.float64)
+    kernels.relax_plays(out, float(voltage_v), float(factor), float(fluctuation_v))
     return out
 
 

@@ -890,6 +890,7 @@ _gpiece = _jit(_gpiece)
 _gxh = _jit(_gxh)
 _gsettle = _jit(_gsettle)
 _relax_plays = _jit(_relax_plays)
+relax_plays = cast(Callable[..., None], _relax_plays)
 _clip_plays = _jit(_clip_plays)
 gpi_loop = cast(Loop, _jit(_gpi_loop))
 relax_outputs = cast(Callable[..., int], _jit(_relax_outputs))
@@ -957,6 +958,7 @@ def _compile_all(frozen: bool) -> None:
         0.5,
         1.0,
     )
+    relax_plays(np.zeros(1), 0.0, 0.5, 1.0)
     relax_outputs(one, param(one), np.zeros(1), 0.0, 0, 1, 0.5, 1.0, np.empty((1, 1)))
     timed_relax_outputs(one, one, param(one), np.zeros(1), 0.0, 0.0, 1e-3, 1.0, 1.0, 8, np.empty((1, 1)))
     bw_forward(one, *bw, *start)
@@ -977,6 +979,7 @@ __all__ = [
     "gpi_loop",
     "pi_loop",
     "relax_outputs",
+    "relax_plays",
     "timed_relax_outputs",
     "warm_up",
 ]
