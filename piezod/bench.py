@@ -113,6 +113,7 @@ def bench_models() -> dict[str, Any]:
     from piezod.model.aftereffect import AfterEffect
     from piezod.model.axis_model import DynamicAxisModel, FamilyAxisModel, ThesisAxisModel
     from piezod.model.boucwen import BoucWenParams
+    from piezod.model.domainwall import DomainWallParams
     from piezod.model.dynamic import DynamicParams
     from piezod.model.family import CreepSpectrum, FamilyParams
     from piezod.model.fast_creep import FastCreep, FastCreepAxisModel
@@ -157,6 +158,9 @@ def bench_models() -> dict[str, Any]:
     fast = FastCreep(taus, tuple(0.003 for _ in taus))
     # the memory's after-effect (piezod.model.aftereffect) as foreign51's frame placed it
     after_effect = AfterEffect(2.16, 5.0e3)
+    # the domain-wall law as foreign51's frame placed it, its interaction raised to the stage's
+    dw = DomainWallParams(0.42, 0.22, 36.7, 36.8, 96.8, 0.3)
+    dw_after_effect = AfterEffect(1.38, 5.4e4)
     return {
         "thesis": ThesisAxisModel(MEDIUM_TUBE_TABLE_3_3, 0.01, 0.0),
         "dynamic": DynamicAxisModel(DynamicParams(3e-3, 0.115, 0.072, 1.5)),
@@ -176,6 +180,14 @@ def bench_models() -> dict[str, Any]:
         "family/bouc-wen/voltage-creep": FamilyAxisModel(FamilyParams(bw, creep, 2e-4, 0.05, "voltage")),
         "family/bouc-wen-n2": FamilyAxisModel(FamilyParams(bw2, creep, 2e-4, 0.05)),
         "family/bouc-wen-n2/voltage-creep": FamilyAxisModel(FamilyParams(bw2, creep, 2e-4, 0.05, "voltage")),
+        "family/domain-wall": FamilyAxisModel(FamilyParams(dw, creep, 2e-4, 0.05)),
+        "family/domain-wall/voltage-creep": FamilyAxisModel(FamilyParams(dw, creep, 2e-4, 0.05, "voltage")),
+        "family/domain-wall/after-effect/voltage-creep+parts": PartsAxisModel(
+            FastCreepAxisModel(
+                FamilyAxisModel(FamilyParams(dw, creep, 2e-4, 0.05, "voltage", 0.0, dw_after_effect)), fast
+            ),
+            Parts(-5.0, 1.0, 0.05, 120.0, 0.5),
+        ),
         "family/bouc-wen/voltage-creep+parts": PartsAxisModel(
             FamilyAxisModel(FamilyParams(bw, creep, 2e-4, 0.05, "voltage")),
             Parts(-5.0, 1.0, 0.05, 120.0, 0.5),

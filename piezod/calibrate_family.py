@@ -63,6 +63,7 @@ from piezod.model.boucwen import (
     boucwen_rest_state,
     unit_hysteresis,
 )
+from piezod.model.domainwall import DomainWallParams, domainwall_rest_state, session_walls
 from piezod.model.dynamic import MAX_TOTAL_CREEP
 from piezod.model.family import CREEP_DRIVERS, MAX_STIFFNESS_PCT_PER_UM, CreepSpectrum, FamilyParams
 from piezod.model.gplay import (
@@ -77,7 +78,13 @@ from piezod.model.play import PlayParams, PlayState, play_forward
 
 F64 = NDArray[np.float64]
 
-LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play", "coleman-hodgdon", "bouc-wen")
+LAWS: tuple[str, ...] = (
+    "prandtl-ishlinskii",
+    "generalised-play",
+    "coleman-hodgdon",
+    "bouc-wen",
+    "domain-wall",
+)
 #: Relay-centre nodes of the generalised play law's density (its centre dependence is piecewise
 #: linear between them: 3 nodes allow a density that bends once over the recorded span).
 GP_NODES = 3
@@ -97,6 +104,8 @@ CHOICE_TIE_FRACTION = 0.02
 DEFAULT_PLAYS = 32
 #: Laws built from play operators, whose resolution (the number of plays) the choice refines.
 PLAY_LAWS: tuple[str, ...] = ("prandtl-ishlinskii", "generalised-play")
+#: Laws that may carry an after-effect (:mod:`piezod.model.aftereffect`), with voltage-driven creep.
+AFTER_EFFECT_LAWS: tuple[str, ...] = ("generalised-play", "domain-wall")
 #: Finest play grid the choice tries: the per-sample inverse of a play law grows with its plays
 #: (Prandtl-Ishlinskii with voltage creep and every runtime part: ~100 ns at 64, ~170 ns at 128).
 MAX_PLAYS = 64
@@ -821,7 +830,12 @@ def session_positions(
         dev = _Deviations(data, np.asarray(params.creep.taus_s))
     h = params.hysteresis
     v = data.hysteresis_voltage_v
-    if isinstance(h, BoucWenParams):
+    if isinstance(h, DomainWallParams):
+        walls = session_walls(
+            h, hysteresis_times_s(data), v, data.rest_voltage_v, params.after_effect, AE_MAX_STEPS
+        )
+        xh_all = h.b_um_per_v * v + h.w_um_per_v * walls
+    elif isinstance(h, BoucWenParams):
         xh_all, _ = boucwen_forward(h, v, boucwen_rest_state(h, data.rest_voltage_v))
     elif isinstance(h, GeneralisedPlayParams):
         if params.after_effect is None:
@@ -887,8 +901,10 @@ def experiment_offsets(data: DynamicCalibrationData, positions_um: F64) -> F64:
 
 
 def _rest_position(
-    h: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams, v: float
+    h: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams | DomainWallParams, v: float
 ) -> float:
+    if isinstance(h, DomainWallParams):
+        return domainwall_rest_state(h, v).position_um
     if isinstance(h, BoucWenParams):
         return boucwen_rest_state(h, v).position_um
     if isinstance(h, GeneralisedPlayParams):
@@ -1109,6 +1125,171 @@ def _fit_bouc_wen(
     return theta, w, kappa, tau, it + evaluations, law, 6
 
 
+#: The domain-wall law's search (:func:`_fit_domain_wall`): starting pinnings (fractions of the
+#: session's span) and interactions on a grid, the curve centred on the span and as wide; then a
+#: polish of the four (and of the after-effect's two, searched from its own grid at the polished law).
+DW_PINNING_FRACTIONS = (0.05, 0.2, 0.5)
+DW_INTERACTIONS = (0.0, 0.4)
+DW_POLISH_EVALUATIONS = 60
+#: Bounds of the searched shape: pinning and width as fractions of the span, the centre within a
+#: span of the session's voltages, the interaction below the law's limit.
+DW_PINNING_BOUNDS = (1e-3, 3.0)
+DW_WIDTH_BOUNDS = (0.05, 30.0)
+DW_MAX_INTERACTION = 0.85
+#: The after-effect's grid on the domain-wall law: ``g0`` as fractions of the span, ``tau`` (s).
+DW_AE_FLUCTUATION_FRACTIONS = (0.003, 0.015, 0.075)
+DW_AE_TIMES_S = (1.0, 1e2, 1e4)
+
+
+def _fit_domain_wall(
+    s: _Session,
+    lam: float,
+    voltage: bool,
+    after_effect: AfterEffect | bool | None,
+    start: DomainWallParams | None = None,
+) -> tuple[F64, F64, float, float, int, DomainWallParams, AfterEffect | None, int]:
+    """The domain-wall law by variable projection.
+
+    For a given shape ``(k, h_b, a, alpha)`` (and after-effect) the position is linear in
+    ``theta = (b, w)`` and the creep weights (features ``[V, P]``, ``P`` the walls' displacement
+    along the session, :func:`piezod.model.domainwall.session_walls`), so the shape is searched on
+    the training residuals of the linear fit (:func:`_alternate`, 4 steps): a grid of pinnings and
+    interactions (:data:`DW_PINNING_FRACTIONS`, :data:`DW_INTERACTIONS`; the curve centred on the
+    session's span and as wide), then a bounded Gauss-Newton polish
+    (:func:`scipy.optimize.least_squares`) of the four. With ``after_effect=True`` its ``(g0,
+    tau)`` are then searched at the polished shape on a grid (:data:`DW_AE_FLUCTUATION_FRACTIONS`
+    x :data:`DW_AE_TIMES_S`) and all six polished together; an :class:`AfterEffect` is held. A
+    candidate whose linear fit is not finite or has ``w < 0`` or ``b <= 0`` is rejected (a flat
+    residual of :data:`BW_REJECT_FACTOR` times the centred data). ``start``: a law fitted on nearly
+    the same session, whose shape starts the polish (the grid is skipped).
+
+    Returns ``(theta, w, kappa, tau, iterations, law, after-effect, searched parameters)``.
+
+    Raises
+    ------
+    CalibrationError
+        Every candidate was rejected.
+    """
+    data = s.data
+    v = data.hysteresis_voltage_v
+    times = hysteresis_times_s(data)
+    rest = data.rest_voltage_v
+    lo_v, hi_v = (float(np.min(v)), float(np.max(v))) if v.size else (rest - 1.0, rest + 1.0)
+    span = max(hi_v - lo_v, 1e-3)
+    slope = np.array([1.0, 0.0]) if voltage else None
+    n_train = int(np.count_nonzero(s.train_rows))
+    reject = np.full(n_train, BW_REJECT_FACTOR * _train_scale_um(s))
+    evaluations = 0
+
+    def law_of(z: F64) -> DomainWallParams:
+        return DomainWallParams(
+            1.0, 1.0, math.exp(float(z[0])), float(z[1]), math.exp(float(z[2])), float(z[3])
+        )
+
+    def ae_of(z: F64) -> AfterEffect | None:
+        if isinstance(after_effect, AfterEffect):
+            return after_effect
+        if z.size < 6:
+            return None
+        return AfterEffect(math.exp(float(z[4])), math.exp(float(z[5])))
+
+    def features(z: F64) -> tuple[F64, F64]:
+        law = law_of(z)
+        walls = session_walls(law, times, v, rest, ae_of(z), AE_MAX_STEPS)
+        f_rest = np.array([rest, domainwall_rest_state(law, rest).walls_v])
+        return np.column_stack([data.grid_voltage_v, walls[data.grid_index]]), f_rest
+
+    def residuals(z: F64) -> F64:
+        nonlocal evaluations
+        evaluations += 1
+        try:
+            f, f_rest = features(z)
+        except ModelError:
+            return reject
+        if not np.all(np.isfinite(f)):
+            return reject
+        keep: list[F64] = []
+        theta = _alternate(
+            s, f, f_rest, lam, max_iter=4, slope_of_theta=slope, refine=slope is None, keep=keep
+        )[0]
+        if keep and np.all(np.isfinite(keep[0])) and float(theta[0]) > 0.0 and float(theta[1]) >= 0.0:
+            return keep[0]
+        return reject
+
+    def cost(z: F64) -> float:
+        r = residuals(z)
+        return float(np.sqrt(np.mean(r * r)))
+
+    lower = np.array(
+        [math.log(DW_PINNING_BOUNDS[0] * span), lo_v - span, math.log(DW_WIDTH_BOUNDS[0] * span), 0.0]
+    )
+    upper = np.array(
+        [
+            math.log(DW_PINNING_BOUNDS[1] * span),
+            hi_v + span,
+            math.log(DW_WIDTH_BOUNDS[1] * span),
+            DW_MAX_INTERACTION,
+        ]
+    )
+    if start is not None:
+        best_z = np.array(
+            [math.log(start.pinning_v), start.centre_v, math.log(start.width_v), start.interaction]
+        )
+        best_z = best_z.clip(lower, upper)
+        best = cost(best_z)
+    else:
+        best_z, best = np.zeros(4), math.inf
+        for frac in DW_PINNING_FRACTIONS:
+            for alpha in DW_INTERACTIONS:
+                z = np.array([math.log(frac * span), 0.5 * (lo_v + hi_v), math.log(span), alpha])
+                c = cost(z)
+                if c < best:
+                    best_z, best = z, c
+    if best >= float(reject[0]):
+        raise CalibrationError(
+            "family fit (domain-wall): no searched shape gives an admissible law (every candidate's fit "
+            "diverged or weighs the walls negatively)"
+        )
+
+    def polish(z0: F64, lo: F64, hi: F64) -> F64:
+        res = least_squares(
+            residuals,
+            z0.clip(lo, hi),
+            bounds=(lo, hi),
+            method="trf",
+            diff_step=1e-3,
+            max_nfev=DW_POLISH_EVALUATIONS,
+        )
+        return np.asarray(res.x) if cost(np.asarray(res.x)) < cost(z0) else z0
+
+    z = polish(best_z, lower, upper)
+    searched = 4
+    if after_effect is True:
+        base, best = z, math.inf
+        for frac in DW_AE_FLUCTUATION_FRACTIONS:
+            for tau_s in DW_AE_TIMES_S:
+                trial = np.concatenate([base, [math.log(frac * span), math.log(tau_s)]])
+                c = cost(trial)
+                if c < best:
+                    z, best = trial, c
+        ae_lo = [math.log(AE_MIN_FLUCTUATION_FRACTION * span), math.log(AE_TIME_BOUNDS_S[0])]
+        ae_hi = [math.log(AE_MAX_FLUCTUATION_V), math.log(AE_TIME_BOUNDS_S[1])]
+        z = polish(z, np.concatenate([lower, ae_lo]), np.concatenate([upper, ae_hi]))
+        searched = 6
+    f, f_rest = features(z)
+    theta, w, kappa, tau, _, it = _alternate(s, f, f_rest, lam, slope_of_theta=slope)
+    shape = law_of(z)
+    law = DomainWallParams(
+        float(theta[0]),
+        max(float(theta[1]), 0.0),
+        shape.pinning_v,
+        shape.centre_v,
+        shape.width_v,
+        shape.interaction,
+    )
+    return theta, w, kappa, tau, it + evaluations, law, ae_of(z), searched
+
+
 def fit_family(
     data: DynamicCalibrationData,
     law: str,
@@ -1127,7 +1308,7 @@ def fit_family(
     fit_lag: bool = True,
     fit_stiffness: bool = True,
     fit_creep: bool = True,
-    start: BoucWenParams | None = None,
+    start: BoucWenParams | DomainWallParams | None = None,
     history: NDArray[np.bool_] | None = None,
     after_effect: AfterEffect | bool | None = None,
 ) -> FamilyFit:
@@ -1201,10 +1382,10 @@ def fit_family(
     if creep_driver not in CREEP_DRIVERS:
         raise CalibrationError(f"unknown creep driver {creep_driver!r} (one of {', '.join(CREEP_DRIVERS)})")
     voltage = creep_driver == "voltage"
-    if after_effect and not (law == "generalised-play" and voltage):
+    if after_effect and not (law in AFTER_EFFECT_LAWS and voltage):
         raise CalibrationError(
-            f"family fit ({law}, {creep_driver} creep): an after-effect needs the generalised play law "
-            "with voltage-driven creep"
+            f"family fit ({law}, {creep_driver} creep): an after-effect needs the generalised play or "
+            "domain-wall law with voltage-driven creep"
         )
     ae: AfterEffect | None = None
     taus = default_taus(data) if taus is None else np.asarray(taus, dtype=np.float64)
@@ -1226,11 +1407,20 @@ def fit_family(
         before,
     )
     rest_v = data.rest_voltage_v
-    hyst: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams
+    hyst: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams | DomainWallParams
     searched = 0
     try:
-        if law == "bouc-wen":
-            theta, w, kappa, tau, it, hyst, searched = _fit_bouc_wen(s, regularisation, voltage, start)
+        if law == "domain-wall":
+            theta, w, kappa, tau, it, hyst, ae, searched = _fit_domain_wall(
+                s,
+                regularisation,
+                voltage,
+                after_effect,
+                start if isinstance(start, DomainWallParams) else None,
+            )
+        elif law == "bouc-wen":
+            bw_start = start if isinstance(start, BoucWenParams) else None
+            theta, w, kappa, tau, it, hyst, searched = _fit_bouc_wen(s, regularisation, voltage, bw_start)
         elif law == "generalised-play":
             r = default_thresholds(data, plays) if thresholds is None else np.asarray(thresholds, np.float64)
             c = default_nodes(data, n_nodes) if nodes is None else np.asarray(nodes, np.float64)
@@ -1337,11 +1527,11 @@ def fit_family(
     n_coefficients = theta.size + taus.size + 2 + int(law == "coleman-hodgdon" and alpha_per_v is None)
     n_coefficients += searched
     fit = _result(s, params, it, n_coefficients, t0)
-    if law == "bouc-wen" and not fit.rms_um <= (constant := _train_scale_um(s)):
+    if law in ("bouc-wen", "domain-wall") and not fit.rms_um <= (constant := _train_scale_um(s)):
         # the returned law, not the search's linear fit, is what is scored: never hand back a law
         # that fits worse than a constant per experiment
         raise CalibrationError(
-            f"family fit (bouc-wen) failed: training RMS {fit.rms_um:.3g} um, worse than a constant "
+            f"family fit ({law}) failed: training RMS {fit.rms_um:.3g} um, worse than a constant "
             f"per experiment ({constant:.3g} um)"
         )
     return fit
@@ -1499,7 +1689,10 @@ def choose_model(
     when they would place the part wrongly. A generalised play law with voltage-driven creep is
     last tried with its memory's after-effect (:mod:`piezod.model.aftereffect`, searched once;
     ``.../after-effect/voltage-creep``), adopted on the same terms (a stage whose loops depend on
-    the rate), and then its grids are refined again with the after-effect held.
+    the rate), and then its grids are refined again with the after-effect held; so is the
+    domain-wall law with voltage-driven creep. When an after-effect was adopted on another law,
+    the domain-wall law with its walls' after-effect (searched) is tried last
+    (``family/domain-wall/after-effect/voltage-creep``), on the same terms.
 
     Parameters
     ----------
@@ -1571,17 +1764,19 @@ def choose_model(
         chosen = min(tied, key=lambda k: (fits[k].n - fits[k].dof, scores[k]))
         law, driver = fits[chosen].law, fits[chosen].params.creep_driver
 
-        def finer(n_p: int, n_n: int, relaxing: AfterEffect | bool | None) -> bool:
+        def finer(n_p: int, n_n: int, relaxing: AfterEffect | bool | None, trial: str | None = None) -> bool:
             """The chosen member on ``n_p`` plays and ``n_n`` centre nodes (and with ``relaxing``,
-            :func:`fit_family`'s ``after_effect``), chosen when it predicts better by the tie fraction."""
+            :func:`fit_family`'s ``after_effect``; with ``trial`` another law), chosen when it
+            predicts better by the tie fraction."""
             nonlocal chosen
+            which = trial or law
             name = member_name(
-                law, driver, n_p if n_p != plays else None, n_n if n_n != GP_NODES else None, bool(relaxing)
+                which, driver, n_p if n_p != plays else None, n_n if n_n != GP_NODES else None, bool(relaxing)
             )
             try:
                 fit = fit_family(
                     data,
-                    law,
+                    which,
                     train=train,
                     plays=n_p,
                     n_nodes=n_n,
@@ -1614,9 +1809,15 @@ def choose_model(
         refine()
         # the memory's relaxation (a stage whose loops depend on the rate), searched once; the grids
         # are refined again with it held: what the finer grids fit may have been its misfit
-        if law == "generalised-play" and driver == "voltage" and finer(n_plays, n_nodes, True):
+        if law in AFTER_EFFECT_LAWS and driver == "voltage" and finer(n_plays, n_nodes, True):
             after_effect = fits[chosen].params.after_effect
             refine()
+        # loops that depend on the rate: the walls' after-effect on the domain-wall law, whose
+        # branches bend towards a curve of the voltage (a Preisach law's relaxed memory cannot)
+        if after_effect is not None and law != "domain-wall" and finer(plays, GP_NODES, True, "domain-wall"):
+            law, n_plays, n_nodes = "domain-wall", plays, GP_NODES
+            after_effect = fits[chosen].params.after_effect
+        chosen_law = fits[chosen].params.hysteresis
         final = fit_family(
             data,
             law,
@@ -1625,6 +1826,7 @@ def choose_model(
             alpha_per_v=alpha_per_v,
             creep_driver=driver,
             after_effect=after_effect,
+            start=chosen_law if isinstance(chosen_law, DomainWallParams) else None,
         )
     holdout = tuple(int(i) for i in np.flatnonzero(~train))
     return ModelChoice(chosen, final, heldout, train_rms, holdout, fits, blocked, failed)
@@ -1651,7 +1853,15 @@ def family_model_config(params: FamilyParams) -> FamilyModelConfig:
     }
     if (ae := params.after_effect) is not None:
         fields.update(ae_fluctuation_v=ae.fluctuation_v, ae_time_s=ae.time_s, ae_interval_s=ae.interval_s)
-    if isinstance(h, BoucWenParams):
+    if isinstance(h, DomainWallParams):
+        fields.update(
+            dw_w_um_per_v=h.w_um_per_v,
+            dw_pinning_v=h.pinning_v,
+            dw_centre_v=h.centre_v,
+            dw_width_v=h.width_v,
+            dw_interaction=h.interaction,
+        )
+    elif isinstance(h, BoucWenParams):
         fields.update(
             bw_c_um_per_v=h.c_um_per_v,
             bw_rates_per_v=list(h.rates),
@@ -1680,6 +1890,7 @@ def family_model_config(params: FamilyParams) -> FamilyModelConfig:
 
 
 __all__ = [
+    "AFTER_EFFECT_LAWS",
     "CREEP_DRIVERS",
     "DEFAULT_PLAYS",
     "LAWS",

@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from piezod.errors import ConfigError, ModelError
 from piezod.model.aftereffect import DEFAULT_INTERVAL_S, AfterEffect
 from piezod.model.boucwen import BoucWenParams
+from piezod.model.domainwall import DomainWallParams
 from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.model.fast_creep import FastCreep
@@ -106,12 +107,15 @@ class FamilyModelConfig(StrictModel):
     Preisach law, :mod:`piezod.model.gplay`) needs ``gp_thresholds_v``, ``gp_nodes_v`` and
     ``gp_density`` (its ``b_um_per_v`` is the rest slope at 0 V, for information); ``law: bouc-wen``
     (a Duhem law with direction- and sign-dependent rates, :mod:`piezod.model.boucwen`) needs
-    ``bw_c_um_per_v``, ``bw_rates_per_v`` and ``bw_amp_down`` (and ``bw_exponent``, default 1). The creep
+    ``bw_c_um_per_v``, ``bw_rates_per_v`` and ``bw_amp_down`` (and ``bw_exponent``, default 1); ``law:
+    domain-wall`` (pinned walls relaxing towards an anhysteretic curve, :mod:`piezod.model.domainwall`)
+    needs ``dw_w_um_per_v``, ``dw_pinning_v``, ``dw_centre_v`` and ``dw_width_v`` (and
+    ``dw_interaction``, default 0). The creep
     spectrum is a list of non-negative weights on relaxation times. ``piezod calibrate`` writes this section.
     """
 
-    law: Literal["coleman-hodgdon", "prandtl-ishlinskii", "generalised-play", "bouc-wen"] = Field(
-        description="hysteresis law"
+    law: Literal["coleman-hodgdon", "prandtl-ishlinskii", "generalised-play", "bouc-wen", "domain-wall"] = (
+        Field(description="hysteresis law")
     )
     b_um_per_v: float = Field(gt=0, lt=100.0, description="sensitivity b of the hysteresis law (um/V)")
     alpha_per_v: float | None = Field(default=None, gt=0, lt=1.0, description="coleman-hodgdon: alpha (1/V)")
@@ -139,6 +143,19 @@ class FamilyModelConfig(StrictModel):
     bw_exponent: float = Field(
         default=1.0, ge=1, le=4, description="bouc-wen: exponent n of the knee (1: exponential, 2: tanh)"
     )
+    dw_w_um_per_v: float | None = Field(
+        default=None, ge=0, lt=100.0, description="domain-wall: weight w of the walls, x_h = b V + w P (um/V)"
+    )
+    dw_pinning_v: float | None = Field(default=None, gt=0, le=1e6, description="domain-wall: pinning k (V)")
+    dw_centre_v: float | None = Field(
+        default=None, ge=-1e4, le=1e4, description="domain-wall: centre h_b of the anhysteretic curve (V)"
+    )
+    dw_width_v: float | None = Field(
+        default=None, gt=0, le=1e6, description="domain-wall: width a of the anhysteretic curve (V)"
+    )
+    dw_interaction: float = Field(
+        default=0.0, ge=0, le=0.9, description="domain-wall: interaction alpha, field h = V + alpha P"
+    )
     creep_taus_s: list[float] = Field(description="creep relaxation times (s), ascending")
     creep_weights: list[float] = Field(description="creep weights (fractions of the hysteretic motion)")
     lag_time_constant_s: float = Field(default=0.0, ge=0, le=1.0, description="drive pole (s)")
@@ -158,16 +175,19 @@ class FamilyModelConfig(StrictModel):
         default=None,
         gt=0,
         le=1e6,
-        description="generalised-play after-effect: fluctuation voltage g0 of the memory's relaxation (V)",
+        description="after-effect (generalised-play, domain-wall): fluctuation voltage g0 (V)",
     )
     ae_time_s: float | None = Field(
-        default=None, gt=0, le=1e9, description="generalised-play after-effect: relaxation time tau (s)"
+        default=None,
+        gt=0,
+        le=1e9,
+        description="after-effect (generalised-play, domain-wall): relaxation time tau (s)",
     )
     ae_interval_s: float = Field(
         default=DEFAULT_INTERVAL_S,
         gt=0,
         le=1.0,
-        description="generalised-play after-effect: relaxation interval (s)",
+        description="after-effect (generalised-play, domain-wall): relaxation interval (s)",
     )
 
     @model_validator(mode="after")
@@ -182,6 +202,9 @@ class FamilyModelConfig(StrictModel):
             self.bw_c_um_per_v is None or len(self.bw_rates_per_v) != 4 or self.bw_amp_down is None
         ):
             raise ValueError("law bouc-wen needs bw_c_um_per_v, bw_rates_per_v (4 rates) and bw_amp_down")
+        dw = (self.dw_w_um_per_v, self.dw_pinning_v, self.dw_centre_v, self.dw_width_v)
+        if self.law == "domain-wall" and any(v is None for v in dw):
+            raise ValueError("law domain-wall needs dw_w_um_per_v, dw_pinning_v, dw_centre_v and dw_width_v")
         if self.law == "generalised-play" and not (self.gp_nodes_v and self.gp_density):
             raise ValueError("law generalised-play needs gp_thresholds_v, gp_nodes_v and gp_density")
         try:
@@ -192,8 +215,12 @@ class FamilyModelConfig(StrictModel):
 
     def params(self) -> FamilyParams:
         """The frozen model parameter object."""
-        hyst: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams
-        if self.law == "bouc-wen":
+        hyst: HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams | DomainWallParams
+        if self.law == "domain-wall":
+            w, pin, hb, a = self.dw_w_um_per_v, self.dw_pinning_v, self.dw_centre_v, self.dw_width_v
+            assert w is not None and pin is not None and hb is not None and a is not None
+            hyst = DomainWallParams(self.b_um_per_v, w, pin, hb, a, self.dw_interaction)
+        elif self.law == "bouc-wen":
             assert self.bw_c_um_per_v is not None and self.bw_amp_down is not None
             k = self.bw_rates_per_v
             c, amp, n = self.bw_c_um_per_v, self.bw_amp_down, self.bw_exponent

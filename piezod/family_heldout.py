@@ -48,6 +48,7 @@ from piezod.audit.fitting import HeldOut, gain_with_se
 from piezod.audit.residuals import pooled_noise_floor
 from piezod.calibrate_data import DynamicCalibrationData, prepare_dynamic
 from piezod.calibrate_family import (
+    AFTER_EFFECT_LAWS,
     CHOICE_TIE_FRACTION,
     CREEP_DRIVERS,
     DEFAULT_PLAYS,
@@ -696,9 +697,17 @@ def compare_family(
     if (
         after_effect
         and first is not None
-        and (first.law, first.creep_driver) == ("generalised-play", "voltage")
+        and first.creep_driver == "voltage"
+        and first.law in AFTER_EFFECT_LAWS
     ):
         score(first.law, first.creep_driver, relaxing=True)
+        relaxed = FamilyComparison(method, tuple(members), floor, skip, heldout).best
+        # loops that depend on the rate: the domain-wall law with its walls' after-effect too
+        adopted = (
+            relaxed is not None and relaxed.params is not None and relaxed.params.after_effect is not None
+        )
+        if adopted and relaxed is not None and relaxed.law != "domain-wall" and "domain-wall" in laws:
+            score("domain-wall", "voltage", relaxing=True)
     scored_others: dict[str, float] = {}
     for name, params in (others or {}).items():
         scored_others[name] = _rms(heldout_residual(params)[0])

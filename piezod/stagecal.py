@@ -33,6 +33,7 @@ from piezod.fitstats import excess_rms, lowers
 from piezod.linearity import linearity, noise_pct
 from piezod.model.aftereffect import AfterEffect
 from piezod.model.boucwen import BoucWenParams
+from piezod.model.domainwall import DomainWallParams
 from piezod.model.sensor import SensorPath
 from piezod.model.thesis import scan_range_um
 from piezod.readback import at_full_scale
@@ -1415,7 +1416,7 @@ def _refit_on_session(
         "creep_driver": section.creep_driver,
         "alpha_per_v": section.alpha_per_v,
         "fit_lag": False,
-        "start": law.hysteresis if isinstance(law.hysteresis, BoucWenParams) else None,
+        "start": law.hysteresis if isinstance(law.hysteresis, BoucWenParams | DomainWallParams) else None,
         # held where the first frame placed it (a search per refit costs a minute)
         "after_effect": law.after_effect,
     }
@@ -1789,7 +1790,7 @@ def profile_member(
     # the profiles refit the member through slightly different parts: a Bouc-Wen law starts from
     # the first fit's rates instead of searching them again (the costliest part of its fit), and
     # an after-effect is searched on the first fit and held there
-    first_law: BoucWenParams | None = None
+    first_law: BoucWenParams | DomainWallParams | None = None
     after_effect: AfterEffect | bool = cf.member_after_effect(chosen)
 
     def fit(trial: dict[str, dict[str, float]], fit_lag: bool = True) -> tuple[float, float]:
@@ -1813,7 +1814,7 @@ def profile_member(
                     after_effect=after_effect,
                 )
                 fits[key] = (f.rms_um, f.heldout_rms_um)
-                if first_law is None and isinstance(f.params.hysteresis, BoucWenParams):
+                if first_law is None and isinstance(f.params.hysteresis, BoucWenParams | DomainWallParams):
                     first_law = f.params.hysteresis
                 if after_effect is True and f.params.after_effect is not None:
                     after_effect = f.params.after_effect

@@ -184,7 +184,7 @@ def test_the_after_effect_is_written_and_read_back() -> None:
         FamilyModelConfig(**{**fields, "ae_time_s": None})
     with pytest.raises(ValueError, match="voltage-driven creep"):
         FamilyModelConfig(**{**fields, "creep_driver": "position"})
-    with pytest.raises(ModelError, match="generalised play law"):
+    with pytest.raises(ModelError, match="generalised play or domain-wall law"):
         FamilyParams(_law(), params.creep, creep_driver="position", after_effect=AfterEffect(1.0, 1.0))
     with pytest.raises(ModelError, match="fluctuation_v"):
         AfterEffect(0.0, 1.0)

@@ -209,7 +209,11 @@ class FamilyAxisModel(AxisModel):
 
     def __post_init__(self) -> None:
         # a model is loaded before it streams: compile its per-sample loop now, not in the first block
-        if self.params.creep_driver == "voltage" or self.params.law in ("generalised-play", "bouc-wen"):
+        if self.params.creep_driver == "voltage" or self.params.law in (
+            "generalised-play",
+            "bouc-wen",
+            "domain-wall",
+        ):
             kernels.warm_up()
 
     def rest(self, voltage_v: float = 0.0) -> Any:

@@ -7,7 +7,9 @@ Per sample ``n`` (interval ``dt``)::
                                                                   Prandtl-Ishlinskii (piezod.model.play),
                                                                   generalised play (piezod.model.gplay;
                                                                   its memory may relax: after_effect,
-                                                                  piezod.model.aftereffect) or Bouc-Wen
+                                                                  piezod.model.aftereffect), Bouc-Wen or
+                                                                  domain-wall (piezod.model.domainwall;
+                                                                  may relax too)
     x_c    = (1 + W) x_h + sum_i w_i e_i                          creep spectrum (driver: position):
                                                                   free non-negative weights on tau_i
     x_c    = x_h + s (W V_c + sum_i w_i e_i)                      or (driver: voltage) the creep of the
@@ -60,6 +62,16 @@ from piezod.model.boucwen import (
     boucwen_state_at,
 )
 from piezod.model.boucwen import creep_loop as bw_creep_loop
+from piezod.model.domainwall import (
+    DomainWallParams,
+    DomainWallState,
+    domainwall_forward,
+    domainwall_hold,
+    domainwall_inverse,
+    domainwall_rest_state,
+    domainwall_state_at,
+)
+from piezod.model.domainwall import creep_loop as dw_creep_loop
 from piezod.model.dynamic import MAX_TOTAL_CREEP, _creep_forward, _creep_inverse, discretise
 from piezod.model.gplay import GeneralisedPlayParams, gplay_forward, gplay_rest_state, gplay_state_at
 from piezod.model.ode import HysteresisState, hysteresis_inverse_step, hysteresis_step, relaxed_state
@@ -74,7 +86,7 @@ from piezod.model.play import (
 )
 
 F64 = NDArray[np.float64]
-HysteresisLaw = HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams
+HysteresisLaw = HysteresisParams | PlayParams | GeneralisedPlayParams | BoucWenParams | DomainWallParams
 CREEP_DRIVERS = ("position", "voltage")
 #: Largest static stiffness map the model accepts (%/um): ``x + k x^2 / 200`` changes the
 #: sensitivity by ``k`` % per um, so 5 %/um is far beyond any stage (fits are bounded by it).
@@ -82,7 +94,7 @@ MAX_STIFFNESS_PCT_PER_UM = 5.0
 #: Creep drivers whose per-sample inverse fits the streaming budget (<= 150 ns per sample and axis,
 #: ``piezod bench inverse``): both, since the voltage-driven loop is compiled (:mod:`piezod.model.kernels`).
 REALTIME_CREEP_DRIVERS = ("position", "voltage")
-LawState = HysteresisState | PlayState | BoucWenState
+LawState = HysteresisState | PlayState | BoucWenState | DomainWallState
 
 
 @dataclass(frozen=True)
@@ -161,8 +173,10 @@ class FamilyParams:
     ----------
     hysteresis
         The rate-independent law: Coleman-Hodgdon (:class:`HysteresisParams`),
-        Prandtl-Ishlinskii (:class:`PlayParams`) or the generalised play (Preisach) law
-        (:class:`piezod.model.gplay.GeneralisedPlayParams`).
+        Prandtl-Ishlinskii (:class:`PlayParams`), the generalised play (Preisach) law
+        (:class:`piezod.model.gplay.GeneralisedPlayParams`), Bouc-Wen
+        (:class:`piezod.model.boucwen.BoucWenParams`) or the domain-wall law
+        (:class:`piezod.model.domainwall.DomainWallParams`).
     creep
         The creep spectrum (elements of zero weight are dropped).
     lag_time_constant_s
@@ -177,8 +191,9 @@ class FamilyParams:
         runtime parts around the model, which act on the absolute position, were fitted in the
         sensor's frame (:func:`piezod.calibrate_family.fit_family` sets it).
     after_effect
-        The generalised play law's after-effect (:mod:`piezod.model.aftereffect`): its memory
-        relaxes towards the voltage at rest. None: the law is rate independent.
+        The after-effect of the generalised play law's memory or of the domain-wall law's walls
+        (:mod:`piezod.model.aftereffect`): it relaxes towards the voltage (the anhysteretic curve)
+        at rest. None: the law is rate independent.
     """
 
     hysteresis: HysteresisLaw
@@ -192,10 +207,13 @@ class FamilyParams:
     def __post_init__(self) -> None:
         object.__setattr__(self, "creep", self.creep.pruned())
         if self.after_effect is not None and not (
-            isinstance(self.hysteresis, GeneralisedPlayParams) and self.creep_driver == "voltage"
+            isinstance(self.hysteresis, GeneralisedPlayParams | DomainWallParams)
+            and self.creep_driver == "voltage"
         ):
             # a creep of the hysteretic position would follow the relaxing memory: no closed-form hold
-            raise ModelError("an after-effect needs the generalised play law with voltage-driven creep")
+            raise ModelError(
+                "an after-effect needs the generalised play or domain-wall law with voltage-driven creep"
+            )
         if self.creep_driver not in CREEP_DRIVERS:
             raise ModelError(
                 f"creep_driver must be one of {', '.join(CREEP_DRIVERS)}, got {self.creep_driver!r}"
@@ -212,7 +230,10 @@ class FamilyParams:
 
     @property
     def law(self) -> str:
-        """``coleman-hodgdon``, ``prandtl-ishlinskii``, ``generalised-play`` or ``bouc-wen``."""
+        """``coleman-hodgdon``, ``prandtl-ishlinskii``, ``generalised-play``, ``bouc-wen`` or
+        ``domain-wall``."""
+        if isinstance(self.hysteresis, DomainWallParams):
+            return "domain-wall"
         if isinstance(self.hysteresis, BoucWenParams):
             return "bouc-wen"
         if isinstance(self.hysteresis, GeneralisedPlayParams):
@@ -224,7 +245,7 @@ class FamilyParams:
         """``s``: the law's rest slope (um/V; at 0 V for the generalised play law), the scale of
         voltage-driven creep."""
         h = self.hysteresis
-        if isinstance(h, GeneralisedPlayParams | BoucWenParams):
+        if isinstance(h, GeneralisedPlayParams | BoucWenParams | DomainWallParams):
             return h.b_um_per_v
         return h.b_um_per_v * (h.total_weight if isinstance(h, PlayParams) else 1.0)
 
@@ -289,6 +310,8 @@ def _static_inverse(params: FamilyParams, x: F64) -> F64:
 
 
 def _law_rest(h: HysteresisLaw, v: float) -> LawState:
+    if isinstance(h, DomainWallParams):
+        return domainwall_rest_state(h, v)
     if isinstance(h, BoucWenParams):
         return boucwen_rest_state(h, v)
     if isinstance(h, GeneralisedPlayParams):
@@ -326,7 +349,9 @@ def family_adopt_state(params: FamilyParams, voltage_v: float, position_um: floa
         xh = xc / (1.0 + params.creep.total_creep)
     h = params.hysteresis
     law: LawState
-    if isinstance(h, BoucWenParams):
+    if isinstance(h, DomainWallParams):
+        law = domainwall_state_at(h, v, xh)
+    elif isinstance(h, BoucWenParams):
         law = boucwen_state_at(h, v, xh)
     elif isinstance(h, GeneralisedPlayParams):
         law = _gplay_adopt(h, v, xh)
@@ -396,7 +421,10 @@ def family_forward(
     xh: F64
     law: LawState
     pending = state.relax_pending
-    if isinstance(h, BoucWenParams):
+    if isinstance(h, DomainWallParams):
+        assert isinstance(state.law, DomainWallState)
+        xh, law, pending = domainwall_forward(h, vc, state.law, params.after_effect, dt_s, pending)
+    elif isinstance(h, BoucWenParams):
         assert isinstance(state.law, BoucWenState)
         xh, law = boucwen_forward(h, vc, state.law)
     elif isinstance(h, GeneralisedPlayParams):
@@ -481,7 +509,10 @@ def family_inverse(
     h = params.hysteresis
     vc: F64
     law: LawState
-    if isinstance(h, BoucWenParams):
+    if isinstance(h, DomainWallParams):
+        assert isinstance(state.law, DomainWallState)
+        vc, law, _ = domainwall_inverse(h, xh, state.law)
+    elif isinstance(h, BoucWenParams):
         assert isinstance(state.law, BoucWenState)
         vc, law = boucwen_inverse(h, xh, state.law)
     elif isinstance(h, GeneralisedPlayParams):
@@ -570,7 +601,10 @@ def family_hold(params: FamilyParams, samples: int, dt_s: float, state: FamilySt
     e = state.creep_um * np.exp(-(rest * dt_s) / params.creep.taus_s)
     law, pending = state.law, state.relax_pending
     ae = params.after_effect
-    if ae is not None and isinstance(params.hysteresis, GeneralisedPlayParams):
+    if ae is not None and isinstance(params.hysteresis, DomainWallParams):
+        assert isinstance(law, DomainWallState)
+        law, pending = domainwall_hold(params.hysteresis, law, ae, dt_s, rest, pending)
+    elif ae is not None and isinstance(params.hysteresis, GeneralisedPlayParams):
         assert isinstance(law, PlayState)
         # at a held voltage the relaxations compose: one step over all the intervals that end
         every = ae.every(dt_s)
@@ -601,7 +635,10 @@ def _voltage_creep_inverse(
     h = params.hysteresis
     relaxation = _relaxation(params, dt_s, state)
     law: LawState
-    if isinstance(h, BoucWenParams):
+    if isinstance(h, DomainWallParams):
+        assert isinstance(state.law, DomainWallState)
+        law, _ = dw_creep_loop(h, xc, creep, state.law, vc, params.after_effect, dt_s, state.relax_pending)
+    elif isinstance(h, BoucWenParams):
         assert isinstance(state.law, BoucWenState)
         u, hv = bw_creep_loop(h, xc, *creep, state.drive_v, state.law.h_v, vc)
         law = BoucWenState(u, hv, h.b_um_per_v * u + h.c_um_per_v * hv)

@@ -846,6 +846,294 @@ def _bwn_loop(
     return u_prev, h
 
 
+def _dw_tanh(z: float) -> float:
+    """``tanh(z)`` as ``m / (m + 2)``, ``m = expm1(2 z)`` (to rounding; one ``expm1``, cheaper than
+    the library's ``tanh``), saturated beyond ``|z| = 20``."""
+    if z > 20.0:
+        return 1.0
+    if z < -20.0:
+        return -1.0
+    m = math.expm1(2.0 * z)
+    return m / (m + 2.0)
+
+
+def _dw_pan(h: float, hb: float, a: float) -> float:
+    """The domain-wall law's anhysteretic curve ``a tanh((h - hb) / a)`` (slope 1 at ``hb``)."""
+    return a * _dw_tanh((h - hb) / a)
+
+
+def _dw_step(
+    p: float, h0: float, pa0: float, h1: float, ik: float, hb: float, a: float
+) -> tuple[float, float, float]:
+    """``P_i`` after the field runs from ``h0`` (where the curve is at ``pa0``) to ``h1``, its
+    derivative in ``h1``, and how far the walls moved along the run (0: pinned throughout).
+
+    Along the run (distance ``d``) ``dP/dd = (P_an - P) / k`` while ``P_an`` lies ahead of ``P`` in
+    the run's direction, else ``P`` stays (the walls are pinned until the curve passes them). With
+    ``P_an`` linear between the run's start (or the crossing, ``P_an = P``) and ``h1`` the step is
+    the linear ODE's exact solution: ``P1 = P_an1 (1 - phi) + P_a0 (phi - e) + P e`` with
+    ``e = exp(-d / k)``, ``phi = (1 - e) / (d / k)`` (its series below ``d / k = 1e-3``); ``ik`` is
+    ``1 / k`` (multiplications: a division costs several).
+    """
+    if h1 == h0:
+        return p, 0.0, 0.0
+    sigma = 1.0 if h1 > h0 else -1.0
+    t = _dw_tanh((h1 - hb) / a)
+    pa1 = a * t
+    if sigma * (pa1 - p) <= 0.0:
+        return p, 0.0, 0.0
+    hs = h0
+    if sigma * (pa0 - p) <= 0.0:
+        # pinned until the curve reaches P: the run starts there
+        r = p / a
+        if r >= 1.0:
+            r = 1.0 - 1e-16
+        elif r <= -1.0:
+            r = -1.0 + 1e-16
+        hs = hb + a * math.atanh(r)
+        pa0 = p
+    d = sigma * (h1 - hs)
+    if d <= 0.0:
+        return p, 0.0, 0.0
+    x = d * ik
+    e = math.exp(-x)
+    if x < 1e-3:
+        phi = 1.0 - x * (0.5 - x * (1.0 / 6.0 - x / 24.0))
+        q = -0.5 + x * (1.0 / 3.0 - x * 0.125)
+    else:
+        ix = 1.0 / x
+        phi = (1.0 - e) * ix
+        q = (e - phi) * ix
+    p1 = pa1 * (1.0 - phi) + pa0 * (phi - e) + p * e
+    der = (1.0 - t * t) * (1.0 - phi) + sigma * ((pa0 - pa1) * q - (p - pa0) * e) * ik
+    return p1, der, d
+
+
+#: Newton's last step on the field (relative): below it, and inside the piece the walls moved on
+#: (the law has a kink where they start to move), they follow the step to first order
+#: (``P += dP/dh dh``: an error of ``dh^2 / k``, below 1e-12 V at the steps of a scan) and the
+#: iteration stops; along a scan the first iterate from the last sample's slope is that close.
+_DW_TOL = 1e-7
+
+
+def _dw_move(p: float, h0: float, v1: float, k: float, hb: float, a: float, al: float) -> tuple[float, float]:
+    """The field ``h1`` at the drive voltage ``v1`` (``h1 = v1 + al P(h1)``) from the state
+    ``(p, h0)``, and ``P`` there: a bracketed Newton iteration on the increasing
+    ``F(h) = h - al P(h) - v1`` (``F' = 1 - al dP/dh >= 1 - al``), at most 60 steps."""
+    dv = v1 - (h0 - al * p)
+    if dv == 0.0:
+        return h0, p
+    ik = 1.0 / k
+    pa0 = _dw_pan(h0, hb, a)
+    near = h0 + dv
+    far = h0 + 2.0 * dv / (1.0 - al)
+    lo, hi = (near, far) if dv > 0.0 else (far, near)
+    h = near
+    p1 = p
+    for _ in range(60):
+        p1, der, moved = _dw_step(p, h0, pa0, h, ik, hb, a)
+        f = h - al * p1 - v1
+        if f == 0.0:
+            break
+        if f > 0.0:
+            hi = h
+        else:
+            lo = h
+        nxt = h - f / (1.0 - al * der)
+        if not (lo <= nxt <= hi):
+            nxt = 0.5 * (lo + hi)
+        if abs(nxt - h) <= _DW_TOL * (1.0 + abs(nxt)) and moved > abs(nxt - h):
+            p1 += der * (nxt - h)
+            h = nxt
+            break
+        if abs(nxt - h) <= 1e-15 * (1.0 + abs(nxt)):
+            break
+        h = nxt
+    return h, p1
+
+
+def _dw_relax(
+    p: float, h: float, v: float, factor: float, g0: float, hb: float, a: float, al: float
+) -> tuple[float, float]:
+    """The after-effect over one relaxation at the held drive voltage ``v``: the gap
+    ``g = P_an(h) - P`` closes by the Eyring closed form (linear for ``g0 = inf``), then the field
+    settles at ``h = v + al P``."""
+    pa = _dw_pan(h, hb, a)
+    g = pa - p
+    if math.isinf(g0):
+        p = pa - g * factor
+    elif factor < 1.0:
+        two = 2.0 * g0
+        p = pa - two * math.atanh(math.tanh(g / two) * factor)
+    return p, v + al * p
+
+
+def _dw_forward(
+    v: F64,
+    k: float,
+    hb: float,
+    a: float,
+    al: float,
+    p: float,
+    h: float,
+    every: int,
+    pending: int,
+    factor: float,
+    g0: float,
+    out: F64,
+) -> tuple[float, float, int]:
+    """The domain-wall law forward: ``out[j] = P`` at the drive voltages ``v`` (the after-effect
+    every ``every`` samples, ``pending`` since the last; ``every = 0``: none); returns ``(P, h,
+    count)``."""
+    cnt = pending
+    for j in range(v.shape[0]):
+        if every > 0:
+            cnt += 1
+            if cnt >= every:
+                cnt = 0
+                p, h = _dw_relax(p, h, h - al * p, factor, g0, hb, a, al)
+        h, p = _dw_move(p, h, v[j], k, hb, a, al)
+        out[j] = p
+    return p, h, cnt
+
+
+def _dw_timed_forward(
+    t: F64,
+    v: F64,
+    k: float,
+    hb: float,
+    a: float,
+    al: float,
+    p: float,
+    h: float,
+    t_prev: float,
+    interval: float,
+    tau: float,
+    g0: float,
+    max_steps: int,
+    out: F64,
+) -> None:
+    """``P`` at samples of any spacing (a calibration session's voltages at the times ``t``): between
+    two samples the voltage moves linearly in steps of about ``interval`` (at most ``max_steps``),
+    the gap relaxing before each as the runtime model does every interval (``tau = inf``: none)."""
+    for j in range(v.shape[0]):
+        span = t[j] - t_prev
+        u_prev = h - al * p
+        if span > 0.0 and math.isfinite(tau):
+            m = min(max_steps, max(1, math.ceil(span / interval)))
+            factor = math.exp(-span / m / tau)
+            step = (v[j] - u_prev) / m
+            for i in range(1, m + 1):
+                p, h = _dw_relax(p, h, h - al * p, factor, g0, hb, a, al)
+                h, p = _dw_move(p, h, u_prev + step * i, k, hb, a, al)
+        h, p = _dw_move(p, h, v[j], k, hb, a, al)
+        out[j] = p
+        t_prev = t[j]
+
+
+def _dw_hold(
+    p: float, h: float, times: int, factor: float, g0: float, hb: float, a: float, al: float
+) -> tuple[float, float]:
+    """``times`` relaxations at the held drive voltage (each over one interval)."""
+    v = h - al * p
+    for _ in range(times):
+        p, h = _dw_relax(p, h, v, factor, g0, hb, a, al)
+    return p, h
+
+
+def _dw_loop(
+    xc: F64,
+    b: float,
+    w: float,
+    k: float,
+    hb: float,
+    a: float,
+    al: float,
+    g: float,
+    wa: F64,
+    wb: float,
+    ca: F64,
+    ob0: F64,
+    e: F64,
+    p: float,
+    h: float,
+    out: F64,
+    every: int,
+    pending: int,
+    factor: float,
+    g0: float,
+) -> tuple[float, float, int]:
+    """Domain-wall law + voltage creep: ``out[j] = V_c``; ``e`` updated in place; returns
+    ``(P, h, count)``.
+
+    Per sample the position ``(b + g) V + w P - y`` is, in the field ``h`` (``V = h - al P``),
+    ``G(h) = (b + g) h + beta P(h) - y`` with ``beta = w - (b + g) al``; ``dP/dh`` lies in
+    ``[0, 1]`` on every reachable state, so ``G`` increases at least at ``min(b + g, b + g + beta)``
+    > 0: a bracketed Newton iteration on ``h`` (at most 60 steps), then ``V = h - al P``
+    explicitly. With no creep elements and ``g = 0`` it is the law's own exact inverse.
+    """
+    n_s = xc.shape[0]
+    m = e.shape[0]
+    big = b + g
+    beta = w - big * al
+    g_lo = min(big, big + beta)
+    g_hi = max(big, big + beta)
+    waa, pull, mem = _creep_ahead(wa, ca, ob0, e)
+    u_prev = h - al * p
+    cnt = pending
+    slope = 0.5
+    ik = 1.0 / k
+    for j in range(n_s):
+        if every > 0:
+            cnt += 1
+            if cnt >= every:
+                cnt = 0
+                p, h = _dw_relax(p, h, u_prev, factor, g0, hb, a, al)
+        y = xc[j] - mem - wb * u_prev
+        ahead = _mem(waa, e)
+        t = y - (big * h + beta * p)
+        if t != 0.0:
+            pa0 = _dw_pan(h, hb, a)
+            near = h + t / g_hi
+            far = h + 2.0 * t / g_lo
+            lo, hi = (near, far) if t > 0.0 else (far, near)
+            # the last sample's slope: along a scan the first iterate is then all but the root
+            x = h + t / (big + beta * slope)
+            if not (lo <= x <= hi):
+                x = near
+            p1, der = p, slope
+            for _ in range(60):
+                p1, der, moved = _dw_step(p, h, pa0, x, ik, hb, a)
+                f = big * x + beta * p1 - y
+                if f == 0.0:
+                    break
+                if f > 0.0:
+                    hi = x
+                else:
+                    lo = x
+                nxt = x - f / (big + beta * der)
+                if not (lo <= nxt <= hi):
+                    nxt = 0.5 * (lo + hi)
+                if abs(nxt - x) <= _DW_TOL * (1.0 + abs(nxt)) and moved > abs(nxt - x):
+                    p1 += der * (nxt - x)
+                    x = nxt
+                    break
+                if abs(nxt - x) <= 1e-15 * (1.0 + abs(nxt)):
+                    break
+                x = nxt
+            slope = der
+            p = p1
+            h = x
+        u = h - al * p
+        du = u - u_prev
+        for i in range(m):
+            e[i] = ca[i] * e[i] - ob0[i] * du
+        mem = ahead - pull * du
+        out[j] = u
+        u_prev = u
+    return p, h, cnt
+
+
 def _fast_creep_loop(y: F64, a: F64, w: F64, scale: float, g: float, c: F64, out: F64) -> None:
     """The fast-creep part's inverse (:mod:`piezod.model.fast_creep`), ``c`` updated in place:
     per sample ``x = (scale y - sum_j w_j a_j c_j) / g``, then ``c_j = a_j c_j + (1 - a_j) x``.
@@ -908,6 +1196,16 @@ _bwn_rate = _jit(_bwn_rate)
 _bwn_u = _jit(_bwn_u)
 bwn_forward = cast(Callable[..., float], _jit(_bwn_forward))
 bwn_loop = cast(Loop, _jit(_bwn_loop))
+# the domain-wall loops call these by their global names, resolved when they compile
+_dw_tanh = _jit(_dw_tanh)
+_dw_pan = _jit(_dw_pan)
+_dw_step = _jit(_dw_step)
+_dw_move = _jit(_dw_move)
+_dw_relax = _jit(_dw_relax)
+dw_forward = cast(Callable[..., tuple[float, float, int]], _jit(_dw_forward))
+dw_timed_forward = cast(Callable[..., None], _jit(_dw_timed_forward))
+dw_hold = cast(Callable[..., tuple[float, float]], _jit(_dw_hold))
+dw_loop = cast(Callable[..., tuple[float, float, int]], _jit(_dw_loop))
 fast_creep_loop = cast(Callable[..., None], _jit(_fast_creep_loop))
 
 _warm = False
@@ -966,6 +1264,11 @@ def _compile_all(frozen: bool) -> None:
     bwn_forward(one, *bw, 2.0, *start)
     bwn_loop(one, *bw, 2.0, 0.5, *creep, *start)
     fast_creep_loop(one, param(one), param(one), 1.0, 1.0, np.zeros(1), np.empty(1))
+    dw = (30.0, 40.0, 100.0, 0.3)  # k, hb, a, al
+    dw_forward(one, *dw, 0.0, 0.0, 1, 0, 0.5, 1.0, np.empty(1))
+    dw_timed_forward(one, one, *dw, 0.0, 0.0, 0.0, 1e-3, 1.0, 1.0, 8, np.empty(1))
+    dw_hold(0.0, 0.0, 2, 0.5, 1.0, 40.0, 100.0, 0.3)
+    dw_loop(one, 0.4, 0.2, *dw, *creep, 0.0, 0.0, np.empty(1), 1, 0, 0.5, 1.0)
 
 
 __all__ = [
@@ -975,6 +1278,10 @@ __all__ = [
     "bwn_loop",
     "ch_loop",
     "ch_solve",
+    "dw_forward",
+    "dw_hold",
+    "dw_loop",
+    "dw_timed_forward",
     "fast_creep_loop",
     "gpi_loop",
     "pi_loop",
