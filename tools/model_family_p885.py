@@ -28,7 +28,14 @@ import numpy as np
 
 from piezod.audit.residuals import noise_floor
 from piezod.calibrate_dynamic import prepare_dynamic
-from piezod.calibrate_family import CREEP_DRIVERS, LAWS, fit_family, session_positions, settled_rows
+from piezod.calibrate_family import (
+    AFTER_EFFECT_LAWS,
+    CREEP_DRIVERS,
+    LAWS,
+    fit_family,
+    session_positions,
+    settled_rows,
+)
 from piezod.heights import lagged_experiments
 from piezod.recording import read_experiments
 
@@ -111,7 +118,8 @@ def main() -> int:
     ap.add_argument(
         "--after-effect",
         action="store_true",
-        help="also fit the generalised play law with voltage creep and its memory's after-effect (searched)",
+        help="also fit the generalised play and domain-wall laws with voltage creep and the after-effect "
+        "of their memory (searched)",
     )
     ap.add_argument(
         "--centre-smoothing",
@@ -141,8 +149,8 @@ def main() -> int:
     rows = []
     best: tuple[float, tuple[str, str, Any, Any]] | None = None
     members = [(law, d, False) for law in args.laws for d in CREEP_DRIVERS]
-    if args.after_effect and "generalised-play" in args.laws:
-        members.append(("generalised-play", "voltage", True))
+    if args.after_effect:
+        members += [(law, "voltage", True) for law in AFTER_EFFECT_LAWS if law in args.laws]
     for law, driver, after_effect in members:
         t0 = time.perf_counter()
         extra: dict[str, Any] = (
