@@ -6,12 +6,12 @@ import math
 
 import numpy as np
 import pytest
+from family_sessions import loop_experiments, loop_session
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 
 from piezod import calibrate_family as cf
-from piezod.calibrate_dynamic import DynamicCalibrationData, prepare_dynamic
 from piezod.config import FamilyModelConfig
 from piezod.errors import CalibrationError, ModelError
 from piezod.model import kernels
@@ -26,7 +26,6 @@ from piezod.model.family import (
 )
 from piezod.model.gplay import GeneralisedPlayParams
 from piezod.model.play import PlayState
-from piezod.recording import Experiment
 
 DT = 1e-4
 
@@ -192,44 +191,11 @@ def test_the_after_effect_is_written_and_read_back() -> None:
         AfterEffect(1.0, math.inf)
 
 
-def _experiments(params: FamilyParams, rate_hz: float = 500.0) -> list[Experiment]:
-    """Loops at three rates and two ranges, each after a pause, with 5 nm of sensor noise."""
-    rng = np.random.default_rng(11)
-    dt = 1.0 / rate_hz
-    state = family_rest_state(params)
-    exps, t0 = [], 0.0
-    for freq in (0.1, 1.0, 10.0):
-        for amp in (35.0, 60.0):
-            n = round(2.0 / (freq * dt)) if freq < 1.0 else round(3.0 / (freq * dt))
-            t = np.arange(n) * dt
-            v = 50.0 - amp * np.cos(2 * np.pi * freq * t)
-            # as the session's layout has it: a jump to the start (one sample before it), held
-            gap = round(2.0 / dt)
-            _, state = family_forward(params, np.full(gap, 2.0 * v[0] - v[1]), dt, state)
-            t0 += gap * dt
-            x, state = family_forward(params, v, dt, state)
-            x = x + rng.normal(0.0, 0.005, x.size).astype(np.float64)
-            times = np.asarray(t0 + t, dtype=np.float64)
-            exps.append(Experiment(f"{amp:g}V {freq:g}Hz", "x", times, np.asarray(v, np.float64), x))
-            t0 += n * dt
-    return exps
-
-
-def _session(params: FamilyParams) -> DynamicCalibrationData:
-    return prepare_dynamic(
-        _experiments(params),
-        max_samples_per_loop=128,
-        slew_rate_v_per_s=1e9,
-        rest_voltage_v=0.0,
-        max_preroll_loops=0,
-    )
-
-
 def test_the_choice_adopts_the_after_effect_where_the_memory_relaxes() -> None:
     """Self-consistency: on a session of the law with its after-effect the fit finds it (the
     held-out data 5x better than without) and the choice names the member with it."""
     truth = _params(2.0, 20.0, lag_s=0.0)
-    data = _session(truth)
+    data = loop_session(truth)
     train = cf.holdout_mask(data.n_experiments, 3)
     without = cf.fit_family(data, "generalised-play", train=train, creep_driver="voltage", plays=12)
     fitted = cf.fit_family(
@@ -267,7 +233,7 @@ def test_the_recordings_path_tries_the_after_effect_and_writes_it() -> None:
     from piezod.family_heldout import compare_family
 
     truth = _params(2.0, 20.0, lag_s=0.0)
-    exps = _experiments(truth)
+    exps = loop_experiments(truth)
     family = compare_family(
         exps, laws=("generalised-play",), creep_drivers=("voltage",), plays=12, parts=False, after_effect=True
     )

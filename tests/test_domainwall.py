@@ -8,11 +8,11 @@ from typing import Any
 
 import numpy as np
 import pytest
+from family_sessions import loop_session
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from piezod import calibrate_family as cf
-from piezod.calibrate_dynamic import DynamicCalibrationData, prepare_dynamic
 from piezod.config import FamilyModelConfig
 from piezod.errors import ModelError
 from piezod.model import kernels
@@ -34,7 +34,6 @@ from piezod.model.family import (
     family_inverse,
     family_rest_state,
 )
-from piezod.recording import Experiment
 
 DT = 1e-4
 LAW = DomainWallParams(0.42, 0.22, 30.0, 38.0, 90.0, 0.3)
@@ -231,41 +230,6 @@ def test_the_law_is_written_and_read_back_and_bad_values_are_refused() -> None:
         FamilyParams(LAW, params.creep, creep_driver="position", after_effect=AfterEffect(1.0, 1.0))
 
 
-def _experiments(params: FamilyParams, rate_hz: float = 500.0) -> list[Experiment]:
-    """Loops at three rates and two ranges, each after a pause, with 5 nm of sensor noise."""
-    rng = np.random.default_rng(11)
-    dt = 1.0 / rate_hz
-    state = family_rest_state(params)
-    exps, t0 = [], 0.0
-    for freq in (0.1, 1.0, 10.0):
-        for amp in (35.0, 60.0):
-            n = round(2.0 / (freq * dt)) if freq < 1.0 else round(3.0 / (freq * dt))
-            t = np.arange(n) * dt
-            v = 50.0 - amp * np.cos(2 * np.pi * freq * t)
-            gap = round(2.0 / dt)
-            _, state = family_forward(params, np.full(gap, 2.0 * v[0] - v[1]), dt, state)
-            t0 += gap * dt
-            x, state = family_forward(params, v, dt, state)
-            x = x + rng.normal(0.0, 0.005, x.size)
-            exps.append(
-                Experiment(
-                    f"{amp:g}V {freq:g}Hz", "x", np.asarray(t0 + t, np.float64), np.asarray(v, np.float64), x
-                )
-            )
-            t0 += n * dt
-    return exps
-
-
-def _session(params: FamilyParams) -> DynamicCalibrationData:
-    return prepare_dynamic(
-        _experiments(params),
-        max_samples_per_loop=128,
-        slew_rate_v_per_s=1e9,
-        rest_voltage_v=0.0,
-        max_preroll_loops=0,
-    )
-
-
 def test_the_fit_finds_the_law_and_its_after_effect() -> None:
     """Self-consistency: on a session of the law with its after-effect the fit predicts the held-out
     loops as well as the truth does and far better than without the after-effect, and the choice
@@ -273,7 +237,7 @@ def test_the_fit_finds_the_law_and_its_after_effect() -> None:
     truth = FamilyParams(
         LAW, CreepSpectrum((1.0, 100.0), (0.01, 0.02)), 0.0, 0.0, "voltage", 0.0, AfterEffect(1.5, 20.0)
     )
-    data = _session(truth)
+    data = loop_session(truth)
     train = cf.holdout_mask(data.n_experiments, 3)
     without = cf.fit_family(data, "domain-wall", train=train, creep_driver="voltage")
     fitted = cf.fit_family(data, "domain-wall", train=train, creep_driver="voltage", after_effect=True)

@@ -923,33 +923,51 @@ def _dw_move(p: float, h0: float, v1: float, k: float, hb: float, a: float, al: 
     dv = v1 - (h0 - al * p)
     if dv == 0.0:
         return h0, p
-    ik = 1.0 / k
-    pa0 = _dw_pan(h0, hb, a)
     near = h0 + dv
     far = h0 + 2.0 * dv / (1.0 - al)
     lo, hi = (near, far) if dv > 0.0 else (far, near)
-    h = near
-    p1 = p
+    h, p1, _ = _dw_solve(p, h0, _dw_pan(h0, hb, a), near, lo, hi, 1.0, -al, v1, 1.0 / k, hb, a)
+    return h, p1
+
+
+def _dw_solve(
+    p: float,
+    h0: float,
+    pa0: float,
+    x: float,
+    lo: float,
+    hi: float,
+    c1: float,
+    c2: float,
+    y: float,
+    ik: float,
+    hb: float,
+    a: float,
+) -> tuple[float, float, float]:
+    """The field ``x`` in ``[lo, hi]`` where ``c1 x + c2 P(x) = y`` along the run from the state
+    ``(p, h0)`` (the caller's ``c1 + c2 dP/dh`` stays > 0 there), from ``x``: a bracketed Newton
+    iteration, at most 60 steps; returns ``(x, P(x), dP/dh)``."""
+    p1, der = p, 0.0
     for _ in range(60):
-        p1, der, moved = _dw_step(p, h0, pa0, h, ik, hb, a)
-        f = h - al * p1 - v1
+        p1, der, moved = _dw_step(p, h0, pa0, x, ik, hb, a)
+        f = c1 * x + c2 * p1 - y
         if f == 0.0:
             break
         if f > 0.0:
-            hi = h
+            hi = x
         else:
-            lo = h
-        nxt = h - f / (1.0 - al * der)
+            lo = x
+        nxt = x - f / (c1 + c2 * der)
         if not (lo <= nxt <= hi):
             nxt = 0.5 * (lo + hi)
-        if abs(nxt - h) <= _DW_TOL * (1.0 + abs(nxt)) and moved > abs(nxt - h):
-            p1 += der * (nxt - h)
-            h = nxt
+        if abs(nxt - x) <= _DW_TOL * (1.0 + abs(nxt)) and moved > abs(nxt - x):
+            p1 += der * (nxt - x)
+            x = nxt
             break
-        if abs(nxt - h) <= 1e-15 * (1.0 + abs(nxt)):
+        if abs(nxt - x) <= 1e-15 * (1.0 + abs(nxt)):
             break
-        h = nxt
-    return h, p1
+        x = nxt
+    return x, p1, der
 
 
 def _dw_relax(
@@ -1101,29 +1119,7 @@ def _dw_loop(
             x = h + t / (big + beta * slope)
             if not (lo <= x <= hi):
                 x = near
-            p1, der = p, slope
-            for _ in range(60):
-                p1, der, moved = _dw_step(p, h, pa0, x, ik, hb, a)
-                f = big * x + beta * p1 - y
-                if f == 0.0:
-                    break
-                if f > 0.0:
-                    hi = x
-                else:
-                    lo = x
-                nxt = x - f / (big + beta * der)
-                if not (lo <= nxt <= hi):
-                    nxt = 0.5 * (lo + hi)
-                if abs(nxt - x) <= _DW_TOL * (1.0 + abs(nxt)) and moved > abs(nxt - x):
-                    p1 += der * (nxt - x)
-                    x = nxt
-                    break
-                if abs(nxt - x) <= 1e-15 * (1.0 + abs(nxt)):
-                    break
-                x = nxt
-            slope = der
-            p = p1
-            h = x
+            h, p, slope = _dw_solve(p, h, pa0, x, lo, hi, big, beta, y, ik, hb, a)
         u = h - al * p
         du = u - u_prev
         for i in range(m):
@@ -1200,6 +1196,7 @@ bwn_loop = cast(Loop, _jit(_bwn_loop))
 _dw_tanh = _jit(_dw_tanh)
 _dw_pan = _jit(_dw_pan)
 _dw_step = _jit(_dw_step)
+_dw_solve = _jit(_dw_solve)
 _dw_move = _jit(_dw_move)
 _dw_relax = _jit(_dw_relax)
 dw_forward = cast(Callable[..., tuple[float, float, int]], _jit(_dw_forward))
