@@ -296,3 +296,29 @@ def test_the_compiled_loop_equals_the_python_reference() -> None:
     np.testing.assert_allclose(o1, o2, rtol=0, atol=1e-10)
     np.testing.assert_allclose(e1, e2, rtol=0, atol=1e-12)
     assert end1 == pytest.approx(end2, abs=1e-10)
+
+
+def test_the_recordings_path_tries_the_law_with_its_after_effect_and_writes_it() -> None:
+    """``piezod calibrate FILES`` (the held-out comparison of recordings): once the after-effect is
+    adopted on the generalised play law, the domain-wall law with its after-effect is tried, named
+    best when it predicts better, and the written refit holds it."""
+    from family_sessions import loop_experiments
+
+    from piezod.cli.calibrate import _written
+    from piezod.family_heldout import compare_family
+
+    truth = FamilyParams(LAW, CreepSpectrum((1.0, 100.0), (0.01, 0.02)), 0.0, 0.0, "voltage", 0.0, RELAXING)
+    exps = loop_experiments(truth)
+    family = compare_family(
+        exps,
+        laws=("generalised-play", "domain-wall"),
+        creep_drivers=("voltage",),
+        plays=8,
+        parts=False,
+        after_effect=True,
+    )
+    best = family.best
+    assert best is not None and best.name == "family/domain-wall/after-effect/voltage-creep", family.table()
+    written = _written(exps, best, family.skip_s, refit=True)
+    assert best.params is not None and written.after_effect == best.params.after_effect
+    assert written.law == "domain-wall"

@@ -44,6 +44,7 @@ from piezod.family_heldout import (
     session,
     thesis_heldout_rms,
 )
+from piezod.model.domainwall import DomainWallParams
 from piezod.model.dynamic import DynamicParams
 from piezod.model.family import CreepSpectrum, FamilyParams
 from piezod.progress import progress_bar
@@ -441,10 +442,17 @@ def _written(exps: Sequence[Experiment], chosen: MemberScore, skip_s: float, *, 
     was (``--validate``), else refitted on all of them (the held-out ones included)."""
     if not refit and chosen.params is not None:
         return chosen.params
-    # an after-effect is held where the scored fit placed it (the search is the costly part)
+    # an after-effect is held where the scored fit placed it (the search is the costly part), and a
+    # domain-wall law's search starts from its shape
     held = None if chosen.params is None else chosen.params.after_effect
+    law = None if chosen.params is None else chosen.params.hysteresis
     return fit_family(
-        session(exps), chosen.law, creep_driver=chosen.creep_driver, skip_s=skip_s, after_effect=held
+        session(exps),
+        chosen.law,
+        creep_driver=chosen.creep_driver,
+        skip_s=skip_s,
+        after_effect=held,
+        start=law if isinstance(law, DomainWallParams) else None,
     ).params
 
 
