@@ -1136,8 +1136,8 @@ DW_POLISH_EVALUATIONS = 60
 DW_PINNING_BOUNDS = (1e-3, 3.0)
 DW_WIDTH_BOUNDS = (0.05, 30.0)
 DW_MAX_INTERACTION = 0.85
-#: The after-effect's grid on the domain-wall law: ``g0`` as fractions of the span, ``tau`` (s).
-DW_AE_FLUCTUATION_FRACTIONS = (0.003, 0.015, 0.075)
+#: The after-effect's times (s) on the domain-wall law's grid (its ``g0`` on
+#: :data:`AE_FLUCTUATION_FRACTIONS` of the span, as the generalised play law's).
 DW_AE_TIMES_S = (1.0, 1e2, 1e4)
 
 
@@ -1157,7 +1157,7 @@ def _fit_domain_wall(
     interactions (:data:`DW_PINNING_FRACTIONS`, :data:`DW_INTERACTIONS`; the curve centred on the
     session's span and as wide), then a bounded Gauss-Newton polish
     (:func:`scipy.optimize.least_squares`) of the four. With ``after_effect=True`` its ``(g0,
-    tau)`` are then searched at the polished shape on a grid (:data:`DW_AE_FLUCTUATION_FRACTIONS`
+    tau)`` are then searched at the polished shape on a grid (:data:`AE_FLUCTUATION_FRACTIONS`
     x :data:`DW_AE_TIMES_S`) and all six polished together; an :class:`AfterEffect` is held. A
     candidate whose linear fit is not finite or has ``w < 0`` or ``b <= 0`` is rejected (a flat
     residual of :data:`BW_REJECT_FACTOR` times the centred data). ``start``: a law fitted on nearly
@@ -1251,7 +1251,8 @@ def _fit_domain_wall(
             "diverged or weighs the walls negatively)"
         )
 
-    def polish(z0: F64, lo: F64, hi: F64) -> F64:
+    def polish(z0: F64, c0: float, lo: F64, hi: F64) -> F64:
+        """The polished ``z`` from ``z0`` (whose cost is ``c0``), or ``z0`` when it is no better."""
         res = least_squares(
             residuals,
             z0.clip(lo, hi),
@@ -1260,13 +1261,13 @@ def _fit_domain_wall(
             diff_step=1e-3,
             max_nfev=DW_POLISH_EVALUATIONS,
         )
-        return np.asarray(res.x) if cost(np.asarray(res.x)) < cost(z0) else z0
+        return np.asarray(res.x) if float(np.sqrt(np.mean(res.fun**2))) < c0 else z0
 
-    z = polish(best_z, lower, upper)
+    z = polish(best_z, best, lower, upper)
     searched = 4
     if after_effect is True:
         base, best = z, math.inf
-        for frac in DW_AE_FLUCTUATION_FRACTIONS:
+        for frac in AE_FLUCTUATION_FRACTIONS:
             for tau_s in DW_AE_TIMES_S:
                 trial = np.concatenate([base, [math.log(frac * span), math.log(tau_s)]])
                 c = cost(trial)
@@ -1274,7 +1275,7 @@ def _fit_domain_wall(
                     z, best = trial, c
         ae_lo = [math.log(AE_MIN_FLUCTUATION_FRACTION * span), math.log(AE_TIME_BOUNDS_S[0])]
         ae_hi = [math.log(AE_MAX_FLUCTUATION_V), math.log(AE_TIME_BOUNDS_S[1])]
-        z = polish(z, np.concatenate([lower, ae_lo]), np.concatenate([upper, ae_hi]))
+        z = polish(z, best, np.concatenate([lower, ae_lo]), np.concatenate([upper, ae_hi]))
         searched = 6
     f, f_rest = features(z)
     theta, w, kappa, tau, _, it = _alternate(s, f, f_rest, lam, slope_of_theta=slope)

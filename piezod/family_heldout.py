@@ -703,10 +703,13 @@ def compare_family(
         score(first.law, first.creep_driver, relaxing=True)
         relaxed = FamilyComparison(method, tuple(members), floor, skip, heldout).best
         # loops that depend on the rate: the domain-wall law with its walls' after-effect too
-        adopted = (
-            relaxed is not None and relaxed.params is not None and relaxed.params.after_effect is not None
-        )
-        if adopted and relaxed is not None and relaxed.law != "domain-wall" and "domain-wall" in laws:
+        found = None if relaxed is None or relaxed.params is None else relaxed.params.after_effect
+        if (
+            found is not None
+            and relaxed is not None
+            and relaxed.law != "domain-wall"
+            and "domain-wall" in laws
+        ):
             score("domain-wall", "voltage", relaxing=True)
     scored_others: dict[str, float] = {}
     for name, params in (others or {}).items():

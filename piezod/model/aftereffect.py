@@ -81,6 +81,12 @@ class AfterEffect:
         """``exp(-seconds / tau)``: the relaxation over ``seconds`` at a held voltage."""
         return math.exp(-seconds / self.time_s)
 
+    def loop_args(self, dt_s: float) -> tuple[int, float, float]:
+        """The compiled loops' arguments at the sample interval ``dt_s``: samples per relaxation,
+        the factor of one relaxation, ``g0``."""
+        every = self.every(dt_s)
+        return every, self.factor(every * dt_s), float(self.fluctuation_v)
+
 
 def relax(plays_v: F64, voltage_v: float, factor: float, fluctuation_v: float) -> F64:
     """Play outputs after relaxing towards ``voltage_v`` by ``factor`` (:meth:`AfterEffect.factor`):

@@ -165,11 +165,8 @@ def domainwall_state_at(params: DomainWallParams, voltage_v: float, position_um:
 
 
 def _relaxation(ae: AfterEffect | None, dt_s: float) -> tuple[int, float, float]:
-    """``(samples per relaxation, factor, g0)`` of the compiled loops (0: none)."""
-    if ae is None:
-        return 0, 1.0, math.inf
-    every = ae.every(dt_s)
-    return every, ae.factor(every * dt_s), float(ae.fluctuation_v)
+    """:meth:`AfterEffect.loop_args`, or ``(0, 1, inf)`` (none) without an after-effect."""
+    return (0, 1.0, math.inf) if ae is None else ae.loop_args(dt_s)
 
 
 def domainwall_forward(

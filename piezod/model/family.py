@@ -457,17 +457,9 @@ def _relaxing_forward(
     assert isinstance(state.law, PlayState)
     plays = np.array(state.law.plays_v, dtype=np.float64)
     out = np.empty((plays.size, vc.size))
-    every = ae.every(dt_s)
+    every, factor, g0 = ae.loop_args(dt_s)
     pending = kernels.relax_outputs(
-        vc,
-        h.r,
-        plays,
-        state.law.voltage_v,
-        state.relax_pending,
-        every,
-        ae.factor(every * dt_s),
-        ae.fluctuation_v,
-        out,
+        vc, h.r, plays, state.law.voltage_v, state.relax_pending, every, factor, g0, out
     )
     xh = h.positions(vc, out)
     return xh, PlayState(float(vc[-1]), plays, float(xh[-1])), int(pending)
@@ -533,8 +525,8 @@ def _relaxation(params: FamilyParams, dt_s: float, state: FamilyState) -> tuple[
     ae = params.after_effect
     if ae is None:
         return 0, 0, 1.0, math.inf
-    every = ae.every(dt_s)
-    return every, int(state.relax_pending), ae.factor(every * dt_s), float(ae.fluctuation_v)
+    every, factor, g0 = ae.loop_args(dt_s)
+    return every, int(state.relax_pending), factor, g0
 
 
 def _gplay_inverse(

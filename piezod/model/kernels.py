@@ -347,6 +347,11 @@ def _gsettle(r: F64, plays: F64, u: float, sigma: float) -> None:
                 plays[i] = hi
 
 
+def _eyring_gap(g: float, factor: float, two_g0: float) -> float:
+    """A gap ``g`` after the after-effect's closed form: ``tanh(g / 2 g0)`` times ``factor``."""
+    return two_g0 * math.atanh(math.tanh(g / two_g0) * factor)
+
+
 def _relax_plays(plays: F64, u: float, factor: float, g0: float) -> None:
     """The after-effect's relaxation of the play outputs towards ``u`` (in place; ``g0 = inf``:
     linear), :func:`piezod.model.aftereffect.relax`."""
@@ -360,7 +365,7 @@ def _relax_plays(plays: F64, u: float, factor: float, g0: float) -> None:
     for i in range(plays.shape[0]):
         # a gap beyond ~37 g0 saturates tanh at 1.0: the closed form then gives the gap it has
         # after the step to rounding (such a gap closes almost at once), never atanh(1)
-        plays[i] = u + two * math.atanh(math.tanh((plays[i] - u) / two) * factor)
+        plays[i] = u + _eyring_gap(plays[i] - u, factor, two)
 
 
 def _clip_plays(r: F64, plays: F64, v: float) -> None:
@@ -916,17 +921,20 @@ def _dw_step(
 _DW_TOL = 1e-7
 
 
-def _dw_move(p: float, h0: float, v1: float, k: float, hb: float, a: float, al: float) -> tuple[float, float]:
+def _dw_move(
+    p: float, h0: float, v1: float, ik: float, hb: float, a: float, al: float
+) -> tuple[float, float]:
     """The field ``h1`` at the drive voltage ``v1`` (``h1 = v1 + al P(h1)``) from the state
     ``(p, h0)``, and ``P`` there: a bracketed Newton iteration on the increasing
-    ``F(h) = h - al P(h) - v1`` (``F' = 1 - al dP/dh >= 1 - al``), at most 60 steps."""
+    ``F(h) = h - al P(h) - v1`` (``F' = 1 - al dP/dh >= 1 - al``), at most 60 steps; ``ik`` is
+    ``1 / k``."""
     dv = v1 - (h0 - al * p)
     if dv == 0.0:
         return h0, p
     near = h0 + dv
     far = h0 + 2.0 * dv / (1.0 - al)
     lo, hi = (near, far) if dv > 0.0 else (far, near)
-    h, p1, _ = _dw_solve(p, h0, _dw_pan(h0, hb, a), near, lo, hi, 1.0, -al, v1, 1.0 / k, hb, a)
+    h, p1, _ = _dw_solve(p, h0, _dw_pan(h0, hb, a), near, lo, hi, 1.0, -al, v1, ik, hb, a)
     return h, p1
 
 
@@ -981,8 +989,7 @@ def _dw_relax(
     if math.isinf(g0):
         p = pa - g * factor
     elif factor < 1.0:
-        two = 2.0 * g0
-        p = pa - two * math.atanh(math.tanh(g / two) * factor)
+        p = pa - _eyring_gap(g, factor, 2.0 * g0)
     return p, v + al * p
 
 
@@ -1004,13 +1011,14 @@ def _dw_forward(
     every ``every`` samples, ``pending`` since the last; ``every = 0``: none); returns ``(P, h,
     count)``."""
     cnt = pending
+    ik = 1.0 / k
     for j in range(v.shape[0]):
         if every > 0:
             cnt += 1
             if cnt >= every:
                 cnt = 0
                 p, h = _dw_relax(p, h, h - al * p, factor, g0, hb, a, al)
-        h, p = _dw_move(p, h, v[j], k, hb, a, al)
+        h, p = _dw_move(p, h, v[j], ik, hb, a, al)
         out[j] = p
     return p, h, cnt
 
@@ -1034,17 +1042,20 @@ def _dw_timed_forward(
     """``P`` at samples of any spacing (a calibration session's voltages at the times ``t``): between
     two samples the voltage moves linearly in steps of about ``interval`` (at most ``max_steps``),
     the gap relaxing before each as the runtime model does every interval (``tau = inf``: none)."""
+    ik = 1.0 / k
     for j in range(v.shape[0]):
         span = t[j] - t_prev
-        u_prev = h - al * p
         if span > 0.0 and math.isfinite(tau):
+            u_prev = h - al * p
             m = min(max_steps, max(1, math.ceil(span / interval)))
             factor = math.exp(-span / m / tau)
             step = (v[j] - u_prev) / m
             for i in range(1, m + 1):
                 p, h = _dw_relax(p, h, h - al * p, factor, g0, hb, a, al)
-                h, p = _dw_move(p, h, u_prev + step * i, k, hb, a, al)
-        h, p = _dw_move(p, h, v[j], k, hb, a, al)
+                # the last step ends at the sample's own voltage (not at its rounded sum)
+                h, p = _dw_move(p, h, v[j] if i == m else u_prev + step * i, ik, hb, a, al)
+        else:
+            h, p = _dw_move(p, h, v[j], ik, hb, a, al)
         out[j] = p
         t_prev = t[j]
 
@@ -1173,6 +1184,7 @@ _gval = _jit(_gval)
 _gpiece = _jit(_gpiece)
 _gxh = _jit(_gxh)
 _gsettle = _jit(_gsettle)
+_eyring_gap = _jit(_eyring_gap)
 _relax_plays = _jit(_relax_plays)
 relax_plays = cast(Callable[..., None], _relax_plays)
 _clip_plays = _jit(_clip_plays)
